@@ -1,0 +1,15 @@
+//! The contract between ebmpc processes: the task catalog, the messages, the key expressions
+//! they travel on, the codec that turns them into bytes, the validation every received message
+//! goes through, and how a process joins the Zenoh session.
+
+pub mod codec;
+pub mod keys;
+pub mod messages;
+pub mod session;
+pub mod task;
+pub mod validate;
+
+pub use codec::{CodecError, Encoding, decode, encode};
+pub use keys::{AgentChannel, Keys, validate_name};
+pub use messages::*;
+pub use task::{TaskId, TaskSpec, UnknownTask};

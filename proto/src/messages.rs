@@ -1,0 +1,278 @@
+//! The messages that travel between agents and planners.
+//!
+//! Every message starts with `version: u16`, the protocol version. The codec reads that field
+//! first, so a peer speaking another version gets a clear "wrong protocol version" error instead
+//! of a garbled decode.
+
+use crate::task::TaskId;
+use serde::{Deserialize, Serialize};
+
+/// The protocol version this build speaks.
+pub const PROTOCOL_VERSION: u16 = 1;
+
+/// How the trainer interacts with acting agents (design.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TrainMode {
+    /// The agent's next episode starts once the models retrained on its last episode are in
+    /// (the paper's protocol).
+    #[default]
+    Sync,
+    /// Agents keep being served by the previous models while the trainer works.
+    Async,
+}
+
+/// The energy regulariser a run plans with.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RegularizerChoice {
+    /// The unregularised planner (plain PETS-style CEM).
+    None,
+    /// Denoising-autoencoder penalty `‖g(x) − x‖²` (Boney et al. 2019).
+    Dae,
+    /// Deep Energy Estimator Network energy (the paper).
+    #[default]
+    Deen,
+}
+
+/// Overrides of a run's preset. Every field is optional: `None` keeps the preset's value.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PlannerOverrides {
+    pub regularizer: Option<RegularizerChoice>,
+    /// Weight `alpha` of the energy in the planning objective.
+    pub energy_weight: Option<f32>,
+    /// Members of the dynamics ensemble (1 = the paper's single model, 5 = PETS).
+    pub ensemble_size: Option<u32>,
+    /// Trajectory-sampling particles per candidate.
+    pub particles: Option<u32>,
+    pub horizon: Option<u32>,
+    pub population: Option<u32>,
+    pub elites: Option<u32>,
+    pub cem_iterations: Option<u32>,
+    /// Episodes of uniformly random actions before planning starts.
+    pub exploration_episodes: Option<u32>,
+    pub dynamics_epochs: Option<u32>,
+    pub dynamics_hidden_layers: Option<u32>,
+    pub dynamics_hidden_size: Option<u32>,
+    pub energy_epochs: Option<u32>,
+    pub energy_hidden_layers: Option<u32>,
+    pub energy_hidden_size: Option<u32>,
+}
+
+/// What an agent asks for when it attaches: which task it is and how its run should plan.
+///
+/// The first agent to attach creates the run with this spec; later agents must agree on the task.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunSpec {
+    pub task: TaskId,
+    /// Named preset; `None` is the task's default preset.
+    #[serde(default)]
+    pub preset: Option<String>,
+    #[serde(default)]
+    pub overrides: PlannerOverrides,
+    #[serde(default)]
+    pub mode: TrainMode,
+    /// Seed of the run's models and planner.
+    #[serde(default)]
+    pub seed: u64,
+}
+
+/// Sent as the payload of a query on the run's attach key.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AttachRequest {
+    pub version: u16,
+    pub agent: String,
+    pub spec: RunSpec,
+}
+
+/// The planner's answer to an [`AttachRequest`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AttachReply {
+    pub version: u16,
+    pub outcome: AttachOutcome,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum AttachOutcome {
+    Accepted(AttachAccepted),
+    Rejected(ErrorReport),
+}
+
+/// The run as the agent joins it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AttachAccepted {
+    pub planner_id: String,
+    pub task: TaskId,
+    pub mode: TrainMode,
+    /// Episodes this run has already finished (across all its agents).
+    pub episodes_done: u32,
+    /// Version of the models currently in use (0 = untrained).
+    pub models_version: u64,
+    /// The episode number the agent should use next (resuming runs continue numbering).
+    pub next_episode: u32,
+}
+
+/// Why an episode ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EpisodeEnd {
+    /// The task's termination condition fired (e.g. the ant fell).
+    Terminated,
+    /// The episode reached its time limit.
+    TimeLimit,
+    /// The agent stopped early (lost its planner, was shut down): not a normal ending.
+    Interrupted,
+}
+
+/// An agent's observation. `step = 0` starts an episode; step `t > 0` is the result of the
+/// action the planner sent for step `t − 1`, with the reward of that transition.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Observation {
+    pub version: u16,
+    pub episode: u32,
+    pub step: u32,
+    pub obs: Vec<f32>,
+    /// Reward of the transition into `obs` (absent at step 0).
+    #[serde(default)]
+    pub reward: Option<f32>,
+    /// Set on the last observation of an episode. The planner answers it with no action.
+    #[serde(default)]
+    pub end: Option<EpisodeEnd>,
+}
+
+/// Where an action came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ActionSource {
+    /// Uniformly random (exploration episodes).
+    Random,
+    /// Model-predictive control.
+    Planned,
+}
+
+/// Statistics of the plan behind an action.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlanStats {
+    pub source: ActionSource,
+    /// Wall time the planner spent on this action.
+    pub planning_ms: f32,
+    /// Imagined return of the chosen sequence (rewards only).
+    pub predicted_return: f32,
+    /// Mean energy of the chosen sequence's imagined transitions (0 without regulariser).
+    pub mean_energy: f32,
+    /// CEM iterations run.
+    pub iterations: u32,
+    /// Version of the models that planned.
+    pub models_version: u64,
+}
+
+/// The planner's answer to an observation.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Action {
+    pub version: u16,
+    pub episode: u32,
+    /// The step this action is for (equal to the observation's step).
+    pub step: u32,
+    pub action: Vec<f32>,
+    pub stats: PlanStats,
+}
+
+/// Machine-readable kind of an [`ErrorReport`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    /// The bytes could not be decoded.
+    Malformed,
+    /// The sender speaks another protocol version.
+    ProtocolVersion,
+    /// A vector has the wrong length.
+    Dimension,
+    /// A NaN or infinity where a finite number is required.
+    NonFinite,
+    /// The run does not exist (the agent never attached, or the run was removed).
+    UnknownRun,
+    /// The task is not in the catalog.
+    UnknownTask,
+    /// The agent is not attached to this run.
+    NotAttached,
+    /// Episode/step numbering does not follow on from the previous message.
+    OutOfOrder,
+    /// The planner refuses (limits, incompatible spec, invalid name).
+    Refused,
+    /// Something failed inside the planner.
+    Internal,
+}
+
+/// An error reported to the sender of a bad message, on its error key.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ErrorReport {
+    pub version: u16,
+    pub code: ErrorCode,
+    pub message: String,
+    /// The episode and step of the offending message, when known.
+    #[serde(default)]
+    pub episode: Option<u32>,
+    #[serde(default)]
+    pub step: Option<u32>,
+}
+
+impl ErrorReport {
+    pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
+        Self {
+            version: PROTOCOL_VERSION,
+            code,
+            message: message.into(),
+            episode: None,
+            step: None,
+        }
+    }
+
+    /// Attaches the position of the offending message.
+    pub fn at(mut self, episode: u32, step: u32) -> Self {
+        self.episode = Some(episode);
+        self.step = Some(step);
+        self
+    }
+}
+
+impl std::fmt::Display for ErrorReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:?}: {}", self.code, self.message)?;
+        if let (Some(e), Some(s)) = (self.episode, self.step) {
+            write!(f, " (episode {e}, step {s})")?;
+        }
+        Ok(())
+    }
+}
+
+/// Something that happened to a run, published on its events key.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunEvent {
+    pub version: u16,
+    pub run: String,
+    pub kind: RunEventKind,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum RunEventKind {
+    /// An agent finished an episode; its transitions are stored.
+    EpisodeFinished {
+        agent: String,
+        episode: u32,
+        episode_return: f32,
+        steps: u32,
+        end: EpisodeEnd,
+    },
+    /// The trainer started retraining on `transitions` stored transitions.
+    TrainingStarted { transitions: u64 },
+    /// New models are in use.
+    ModelsUpdated {
+        models_version: u64,
+        dynamics_loss: f32,
+        energy_loss: f32,
+        seconds: f32,
+    },
+    /// Training failed; the previous models stay in use.
+    TrainingFailed { message: String },
+}

@@ -1,0 +1,78 @@
+//! Cartpole swing-up (PETS): a cart on a rail with a 0.6 m pole, θ = 0 hanging down.
+//!
+//! Observation `[x, θ, ẋ, θ̇]`; action: the force on the cart, ±3. 200 steps of 0.04 s.
+
+use super::{
+    TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal, squared_norm,
+};
+
+/// Pole length in metres (the reward's target is the tip straight above the rail's origin).
+pub const POLE_LENGTH: f32 = 0.6;
+
+pub(crate) static SPEC: TaskSpec = TaskSpec {
+    id: TaskId::Cartpole,
+    obs_dim: 4,
+    act_dim: 1,
+    action_low: &[-3.0],
+    action_high: &[3.0],
+    episode_len: 200,
+    control_dt: 0.04,
+    state_feature_dim: 5,
+    functions: TaskFunctions {
+        reward,
+        is_terminal: never_terminal,
+        state_features,
+        target: delta_target,
+        next_obs_from_target: apply_delta,
+    },
+};
+
+/// Position of the pole's tip for observation `[x, θ, …]`.
+pub fn tip(obs: &[f32]) -> (f32, f32) {
+    let (x, theta) = (obs[0], obs[1]);
+    (x - POLE_LENGTH * theta.sin(), -POLE_LENGTH * theta.cos())
+}
+
+/// `exp(−‖tip − (0, 0.6)‖² / 0.6²) − 0.01 ‖a‖²`, on the state the action led to.
+fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
+    let (tx, ty) = tip(next_obs);
+    let d2 = tx * tx + (ty - POLE_LENGTH) * (ty - POLE_LENGTH);
+    (-d2 / (POLE_LENGTH * POLE_LENGTH)).exp() - 0.01 * squared_norm(act)
+}
+
+/// `[sin θ, cos θ, x, ẋ, θ̇]`: the angle wraps, so the model sees it on the circle.
+fn state_features(obs: &[f32], out: &mut [f32]) {
+    let theta = obs[1];
+    out[0] = theta.sin();
+    out[1] = theta.cos();
+    out[2] = obs[0];
+    out[3] = obs[2];
+    out[4] = obs[3];
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f32::consts::PI;
+
+    #[test]
+    fn reward_peaks_upright_at_the_origin() {
+        let spec = TaskId::Cartpole.spec();
+        let upright = spec.reward(&[0.0; 4], &[0.0], &[0.0, PI, 0.0, 0.0]);
+        assert!((upright - 1.0).abs() < 1e-6, "{upright}");
+        let hanging = spec.reward(&[0.0; 4], &[0.0], &[0.0, 0.0, 0.0, 0.0]);
+        assert!(hanging < 0.02, "{hanging}");
+        let shifted = spec.reward(&[0.0; 4], &[0.0], &[0.5, PI, 0.0, 0.0]);
+        assert!(hanging < shifted && shifted < upright);
+        let pushing = spec.reward(&[0.0; 4], &[3.0], &[0.0, PI, 0.0, 0.0]);
+        assert!((upright - pushing - 0.09).abs() < 1e-6);
+    }
+
+    #[test]
+    fn features_put_the_angle_on_the_circle() {
+        let mut f = [0.0; 5];
+        state_features(&[1.0, PI / 2.0, 2.0, 3.0], &mut f);
+        assert!((f[0] - 1.0).abs() < 1e-6 && f[1].abs() < 1e-6);
+        assert_eq!(&f[2..], &[1.0, 2.0, 3.0]);
+    }
+}

@@ -1,0 +1,82 @@
+//! Half-cheetah (PETS): a planar 9-link runner with 6 actuated joints.
+//!
+//! Observation (18): forward velocity of the root `Δx/dt`, then qpos without the root x (8:
+//! root z, root pitch, 6 joints), then qvel (9). Actions ±1, 1000 steps of 0.05 s.
+
+use super::{TaskFunctions, TaskId, TaskSpec, never_terminal, squared_norm};
+
+pub(crate) static SPEC: TaskSpec = TaskSpec {
+    id: TaskId::HalfCheetah,
+    obs_dim: 18,
+    act_dim: 6,
+    action_low: &[-1.0; 6],
+    action_high: &[1.0; 6],
+    episode_len: 1000,
+    control_dt: 0.05,
+    state_feature_dim: 18,
+    functions: TaskFunctions {
+        reward,
+        is_terminal: never_terminal,
+        state_features,
+        target,
+        next_obs_from_target,
+    },
+};
+
+/// Index of the root pitch in the observation.
+const PITCH: usize = 2;
+
+/// `obs[0] − 0.1 ‖a‖²`: the forward velocity reached by this step, minus the control cost.
+fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
+    next_obs[0] - 0.1 * squared_norm(act)
+}
+
+/// `[obs[1], sin obs[2], cos obs[2], obs[3..]]`: the velocity is a target, not an input, and the
+/// pitch wraps, so the model sees it on the circle.
+fn state_features(obs: &[f32], out: &mut [f32]) {
+    out[0] = obs[1];
+    out[1] = obs[PITCH].sin();
+    out[2] = obs[PITCH].cos();
+    out[3..].copy_from_slice(&obs[3..]);
+}
+
+/// The next velocity itself (it is not a state, so a delta means nothing), deltas for the rest.
+fn target(obs: &[f32], next_obs: &[f32], out: &mut [f32]) {
+    out[0] = next_obs[0];
+    super::delta_target(&obs[1..], &next_obs[1..], &mut out[1..]);
+}
+
+fn next_obs_from_target(obs: &[f32], target: &[f32], next_obs: &mut [f32]) {
+    next_obs[0] = target[0];
+    super::apply_delta(&obs[1..], &target[1..], &mut next_obs[1..]);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn running_forward_pays() {
+        let spec = TaskId::HalfCheetah.spec();
+        let still = [0.0; 18];
+        let mut running = [0.0; 18];
+        running[0] = 3.0;
+        assert!(spec.reward(&still, &[0.0; 6], &running) > spec.reward(&still, &[0.0; 6], &still));
+        assert!((spec.reward(&still, &[1.0; 6], &still) + 0.6).abs() < 1e-6);
+    }
+
+    #[test]
+    fn features_drop_velocity_and_wrap_pitch() {
+        let mut obs = [0.0f32; 18];
+        obs[0] = 9.0;
+        obs[1] = 0.5;
+        obs[2] = std::f32::consts::FRAC_PI_2;
+        obs[17] = 4.0;
+        let mut f = [0.0; 18];
+        state_features(&obs, &mut f);
+        assert_eq!(f[0], 0.5);
+        assert!((f[1] - 1.0).abs() < 1e-6 && f[2].abs() < 1e-6);
+        assert_eq!(f[17], 4.0);
+        assert!(!f.contains(&9.0));
+    }
+}

@@ -1,0 +1,194 @@
+//! The task catalog: everything both processes must agree on about a task.
+//!
+//! A task's reward, termination and model transforms live here, once, so the simulator computes
+//! the real reward with the very function the planner uses on imagined transitions.
+
+pub mod ant;
+pub mod cartpole;
+pub mod halfcheetah;
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
+
+/// The tasks ebmpc knows. The wire name is the lowercase identifier (`"cartpole"`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TaskId {
+    Cartpole,
+    HalfCheetah,
+    Ant,
+}
+
+impl TaskId {
+    /// Every task in the catalog, in the paper's order.
+    pub const ALL: &'static [TaskId] = &[TaskId::Cartpole, TaskId::HalfCheetah, TaskId::Ant];
+
+    /// The lowercase wire and command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            TaskId::Cartpole => "cartpole",
+            TaskId::HalfCheetah => "halfcheetah",
+            TaskId::Ant => "ant",
+        }
+    }
+
+    /// The task's static description.
+    pub fn spec(self) -> &'static TaskSpec {
+        match self {
+            TaskId::Cartpole => &cartpole::SPEC,
+            TaskId::HalfCheetah => &halfcheetah::SPEC,
+            TaskId::Ant => &ant::SPEC,
+        }
+    }
+}
+
+impl fmt::Display for TaskId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A task name that is not in the catalog.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown task `{0}` (known: {known})", known = TaskId::ALL.iter().map(|t| t.name()).collect::<Vec<_>>().join(", "))]
+pub struct UnknownTask(pub String);
+
+impl FromStr for TaskId {
+    type Err = UnknownTask;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        TaskId::ALL
+            .iter()
+            .copied()
+            .find(|t| t.name().eq_ignore_ascii_case(s))
+            .ok_or_else(|| UnknownTask(s.to_string()))
+    }
+}
+
+/// Dimensions, bounds, timing, and the functions of one task.
+///
+/// All functions take one transition as slices; the planner calls them row by row over its
+/// population (they are cheap next to the networks). Slices must have the task's dimensions.
+#[derive(Debug)]
+pub struct TaskSpec {
+    pub id: TaskId,
+    /// Observation length.
+    pub obs_dim: usize,
+    /// Action length.
+    pub act_dim: usize,
+    /// Lower action bound per dimension.
+    pub action_low: &'static [f32],
+    /// Upper action bound per dimension.
+    pub action_high: &'static [f32],
+    /// Steps per episode (time limit).
+    pub episode_len: u32,
+    /// Seconds of simulated time between two actions.
+    pub control_dt: f64,
+    /// Length of [`TaskSpec::state_features`]: the observation as the dynamics model sees it.
+    pub state_feature_dim: usize,
+    pub(crate) functions: TaskFunctions,
+}
+
+/// The per-task functions behind [`TaskSpec`]'s methods.
+#[derive(Debug)]
+pub(crate) struct TaskFunctions {
+    pub reward: fn(obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32,
+    pub is_terminal: fn(next_obs: &[f32]) -> bool,
+    pub state_features: fn(obs: &[f32], out: &mut [f32]),
+    pub target: fn(obs: &[f32], next_obs: &[f32], out: &mut [f32]),
+    pub next_obs_from_target: fn(obs: &[f32], target: &[f32], next_obs: &mut [f32]),
+}
+
+impl TaskSpec {
+    /// Reward of the transition `obs --act--> next_obs`. The simulator reports exactly this.
+    pub fn reward(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
+        (self.functions.reward)(obs, act, next_obs)
+    }
+
+    /// Whether `next_obs` ends the episode (no reward accrues after it, in reality or imagination).
+    pub fn is_terminal(&self, next_obs: &[f32]) -> bool {
+        (self.functions.is_terminal)(next_obs)
+    }
+
+    /// The observation as the dynamics model's input sees it (e.g. angles as sin/cos),
+    /// `state_feature_dim` numbers written to `out`. The action is appended by the model.
+    pub fn state_features(&self, obs: &[f32], out: &mut [f32]) {
+        (self.functions.state_features)(obs, out)
+    }
+
+    /// What the dynamics model learns to predict for a transition (`obs_dim` numbers):
+    /// usually the delta `next_obs − obs`.
+    pub fn target(&self, obs: &[f32], next_obs: &[f32], out: &mut [f32]) {
+        (self.functions.target)(obs, next_obs, out)
+    }
+
+    /// The inverse of [`TaskSpec::target`]: the next observation from `obs` and a predicted target.
+    pub fn next_obs_from_target(&self, obs: &[f32], target: &[f32], next_obs: &mut [f32]) {
+        (self.functions.next_obs_from_target)(obs, target, next_obs)
+    }
+
+    /// Clamps an action into the task's bounds, in place.
+    pub fn clamp_action(&self, act: &mut [f32]) {
+        for ((a, lo), hi) in act.iter_mut().zip(self.action_low).zip(self.action_high) {
+            *a = a.clamp(*lo, *hi);
+        }
+    }
+}
+
+/// Targets that are plain deltas: `next_obs − obs`.
+pub(crate) fn delta_target(obs: &[f32], next_obs: &[f32], out: &mut [f32]) {
+    for ((o, s), n) in out.iter_mut().zip(obs).zip(next_obs) {
+        *o = n - s;
+    }
+}
+
+/// Inverse of [`delta_target`].
+pub(crate) fn apply_delta(obs: &[f32], delta: &[f32], next_obs: &mut [f32]) {
+    for ((o, s), d) in next_obs.iter_mut().zip(obs).zip(delta) {
+        *o = s + d;
+    }
+}
+
+/// Never terminates: the episode runs to its time limit.
+pub(crate) fn never_terminal(_next_obs: &[f32]) -> bool {
+    false
+}
+
+/// `‖a‖²`.
+pub(crate) fn squared_norm(a: &[f32]) -> f32 {
+    a.iter().map(|x| x * x).sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_round_trip() {
+        for &t in TaskId::ALL {
+            assert_eq!(t.name().parse::<TaskId>().unwrap(), t);
+            assert_eq!(t.spec().id, t);
+            assert_eq!(t.spec().action_low.len(), t.spec().act_dim);
+            assert_eq!(t.spec().action_high.len(), t.spec().act_dim);
+        }
+        let err = "walker".parse::<TaskId>().unwrap_err();
+        assert!(err.to_string().contains("cartpole"), "{err}");
+    }
+
+    #[test]
+    fn targets_invert() {
+        for &t in TaskId::ALL {
+            let spec = t.spec();
+            let obs: Vec<f32> = (0..spec.obs_dim).map(|i| 0.1 * i as f32 - 0.3).collect();
+            let next: Vec<f32> = (0..spec.obs_dim).map(|i| 0.05 * i as f32 + 0.2).collect();
+            let mut target = vec![0.0; spec.obs_dim];
+            let mut back = vec![0.0; spec.obs_dim];
+            spec.target(&obs, &next, &mut target);
+            spec.next_obs_from_target(&obs, &target, &mut back);
+            for (a, b) in back.iter().zip(&next) {
+                assert!((a - b).abs() < 1e-5, "{t}: {back:?} vs {next:?}");
+            }
+        }
+    }
+}

@@ -1,0 +1,149 @@
+//! Validation of received messages against the task they claim to belong to.
+//!
+//! Nothing reaches a replay buffer or a planner without passing through here: a wrong
+//! dimension or a non-finite number is rejected with an error the sender can act on.
+
+use crate::messages::{Action, ErrorCode, ErrorReport, Observation};
+use crate::task::TaskSpec;
+
+/// Why a message was rejected.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ValidationError {
+    #[error("{what} has {found} numbers, task {task} needs {expected}")]
+    Dimension {
+        what: &'static str,
+        task: &'static str,
+        expected: usize,
+        found: usize,
+    },
+    #[error("{what}[{index}] is {value}, only finite numbers are accepted")]
+    NonFinite {
+        what: &'static str,
+        index: usize,
+        value: f32,
+    },
+    #[error("reward is {0}, only finite numbers are accepted")]
+    NonFiniteReward(f32),
+    #[error("step 0 starts an episode and carries no reward")]
+    RewardAtReset,
+    #[error("step {0} carries no reward")]
+    MissingReward(u32),
+}
+
+impl ValidationError {
+    /// The error code reported to the sender.
+    pub fn code(&self) -> ErrorCode {
+        match self {
+            ValidationError::Dimension { .. } => ErrorCode::Dimension,
+            ValidationError::NonFinite { .. } | ValidationError::NonFiniteReward(_) => {
+                ErrorCode::NonFinite
+            }
+            ValidationError::RewardAtReset | ValidationError::MissingReward(_) => {
+                ErrorCode::OutOfOrder
+            }
+        }
+    }
+
+    /// The report sent back to the sender.
+    pub fn report(&self, episode: u32, step: u32) -> ErrorReport {
+        ErrorReport::new(self.code(), self.to_string()).at(episode, step)
+    }
+}
+
+/// Checks that `values` has `expected` finite numbers.
+pub fn check_vector(
+    what: &'static str,
+    task: &TaskSpec,
+    values: &[f32],
+    expected: usize,
+) -> Result<(), ValidationError> {
+    if values.len() != expected {
+        return Err(ValidationError::Dimension {
+            what,
+            task: task.id.name(),
+            expected,
+            found: values.len(),
+        });
+    }
+    match values.iter().position(|v| !v.is_finite()) {
+        Some(index) => Err(ValidationError::NonFinite {
+            what,
+            index,
+            value: values[index],
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Checks an observation's content against its task (not its place in the episode: the
+/// planner's agent session checks ordering).
+pub fn validate_observation(msg: &Observation, task: &TaskSpec) -> Result<(), ValidationError> {
+    check_vector("observation", task, &msg.obs, task.obs_dim)?;
+    match (msg.step, msg.reward) {
+        (0, Some(_)) => Err(ValidationError::RewardAtReset),
+        (0, None) => Ok(()),
+        (step, None) => Err(ValidationError::MissingReward(step)),
+        (_, Some(r)) if !r.is_finite() => Err(ValidationError::NonFiniteReward(r)),
+        _ => Ok(()),
+    }
+}
+
+/// Checks an action's content against its task (bounds are the simulator's to enforce by
+/// clamping; a planner never sends out-of-bounds actions).
+pub fn validate_action(msg: &Action, task: &TaskSpec) -> Result<(), ValidationError> {
+    check_vector("action", task, &msg.action, task.act_dim)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::messages::PROTOCOL_VERSION;
+    use crate::task::TaskId;
+
+    fn obs(step: u32, values: Vec<f32>, reward: Option<f32>) -> Observation {
+        Observation {
+            version: PROTOCOL_VERSION,
+            episode: 0,
+            step,
+            obs: values,
+            reward,
+            end: None,
+        }
+    }
+
+    #[test]
+    fn accepts_well_formed_observations() {
+        let task = TaskId::Cartpole.spec();
+        validate_observation(&obs(0, vec![0.0; 4], None), task).unwrap();
+        validate_observation(&obs(5, vec![0.0; 4], Some(0.3)), task).unwrap();
+    }
+
+    #[test]
+    fn rejects_bad_observations_with_codes() {
+        let task = TaskId::Cartpole.spec();
+        let cases = [
+            (obs(0, vec![0.0; 3], None), ErrorCode::Dimension),
+            (
+                obs(0, vec![0.0, f32::NAN, 0.0, 0.0], None),
+                ErrorCode::NonFinite,
+            ),
+            (
+                obs(1, vec![0.0, 0.0, f32::INFINITY, 0.0], Some(0.0)),
+                ErrorCode::NonFinite,
+            ),
+            (obs(1, vec![0.0; 4], Some(f32::NAN)), ErrorCode::NonFinite),
+            (obs(1, vec![0.0; 4], None), ErrorCode::OutOfOrder),
+            (obs(0, vec![0.0; 4], Some(1.0)), ErrorCode::OutOfOrder),
+        ];
+        for (msg, code) in cases {
+            let err = validate_observation(&msg, task).unwrap_err();
+            assert_eq!(err.code(), code, "{err}");
+            assert!(!err.to_string().is_empty());
+        }
+        let err = validate_observation(&obs(0, vec![0.0; 5], None), task).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "observation has 5 numbers, task cartpole needs 4"
+        );
+    }
+}
