@@ -1,0 +1,99 @@
+//! Transitions `(s, a, s')` laid out as dense row-major `f32` matrices.
+//!
+//! This is the one currency between the replay buffer (which owns the data), the trainers of the
+//! dynamics and energy models (which read it in minibatches) and the tests (which build it from
+//! known distributions). Row-major matrices feed `gemm` directly without copies.
+
+/// A set of transitions: row `i` of `obs`, `act` and `next_obs` is one transition.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Transitions {
+    obs_dim: usize,
+    act_dim: usize,
+    obs: Vec<f32>,
+    act: Vec<f32>,
+    next_obs: Vec<f32>,
+}
+
+impl Transitions {
+    /// An empty set for observations of `obs_dim` and actions of `act_dim` numbers.
+    pub fn new(obs_dim: usize, act_dim: usize) -> Self {
+        Self { obs_dim, act_dim, ..Self::default() }
+    }
+
+    /// Appends one transition. Panics if a slice has the wrong length: callers validate
+    /// untrusted input before it gets here.
+    pub fn push(&mut self, obs: &[f32], act: &[f32], next_obs: &[f32]) {
+        assert_eq!(obs.len(), self.obs_dim, "observation dimension");
+        assert_eq!(act.len(), self.act_dim, "action dimension");
+        assert_eq!(next_obs.len(), self.obs_dim, "next observation dimension");
+        self.obs.extend_from_slice(obs);
+        self.act.extend_from_slice(act);
+        self.next_obs.extend_from_slice(next_obs);
+    }
+
+    /// Appends every transition of `other` (same dimensions).
+    pub fn extend(&mut self, other: &Transitions) {
+        assert_eq!((self.obs_dim, self.act_dim), (other.obs_dim, other.act_dim));
+        self.obs.extend_from_slice(&other.obs);
+        self.act.extend_from_slice(&other.act);
+        self.next_obs.extend_from_slice(&other.next_obs);
+    }
+
+    pub fn len(&self) -> usize {
+        self.obs.len().checked_div(self.obs_dim).unwrap_or(0)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.obs.is_empty()
+    }
+
+    pub fn obs_dim(&self) -> usize {
+        self.obs_dim
+    }
+
+    pub fn act_dim(&self) -> usize {
+        self.act_dim
+    }
+
+    /// All observations, `len() × obs_dim`, row-major.
+    pub fn obs(&self) -> &[f32] {
+        &self.obs
+    }
+
+    /// All actions, `len() × act_dim`, row-major.
+    pub fn act(&self) -> &[f32] {
+        &self.act
+    }
+
+    /// All next observations, `len() × obs_dim`, row-major.
+    pub fn next_obs(&self) -> &[f32] {
+        &self.next_obs
+    }
+
+    /// Transition `i` as `(s, a, s')`.
+    pub fn row(&self, i: usize) -> (&[f32], &[f32], &[f32]) {
+        let (o, a) = (self.obs_dim, self.act_dim);
+        (
+            &self.obs[i * o..(i + 1) * o],
+            &self.act[i * a..(i + 1) * a],
+            &self.next_obs[i * o..(i + 1) * o],
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rows_round_trip() {
+        let mut t = Transitions::new(2, 1);
+        t.push(&[1.0, 2.0], &[0.5], &[3.0, 4.0]);
+        t.push(&[5.0, 6.0], &[-0.5], &[7.0, 8.0]);
+        assert_eq!(t.len(), 2);
+        assert_eq!(t.row(1), (&[5.0, 6.0][..], &[-0.5][..], &[7.0, 8.0][..]));
+        let mut u = Transitions::new(2, 1);
+        u.extend(&t);
+        assert_eq!(u, t);
+    }
+}
