@@ -1,0 +1,277 @@
+//! One agent's place in its episode: the state machine that turns a stream of observations
+//! into transitions `(s, a, s')` and refuses observations that do not follow on.
+//!
+//! The planner knows the action it sent for step `t`, so the observation of step `t + 1`
+//! completes the transition. Everything is checked before anything is stored: a message out of
+//! order is reported to the sender and changes nothing.
+
+use crate::replay::EpisodeSummary;
+use proto::{EpisodeEnd, ErrorCode, ErrorReport, Observation};
+
+/// What an accepted observation means for the run.
+#[derive(Debug, PartialEq)]
+pub struct Accepted {
+    /// The transition this observation completes: `(s, a, reward)`, with `s'` the observation.
+    pub transition: Option<(Vec<f32>, Vec<f32>, f32)>,
+    /// The episode this observation ended, if it did.
+    pub finished: Option<EpisodeSummary>,
+    /// An earlier episode this one replaced before it finished (the agent restarted).
+    pub abandoned: Option<EpisodeSummary>,
+}
+
+impl Accepted {
+    /// Whether the agent waits for an action (every observation except an episode's last).
+    pub fn needs_action(&self) -> bool {
+        self.finished.is_none()
+    }
+}
+
+#[derive(Debug)]
+struct Episode {
+    number: u32,
+    /// The step of the last observation accepted.
+    step: u32,
+    obs: Vec<f32>,
+    /// The action sent for `step`, once sent.
+    action: Option<Vec<f32>>,
+    episode_return: f32,
+}
+
+/// One agent of a run.
+#[derive(Debug)]
+pub struct AgentSession {
+    name: String,
+    current: Option<Episode>,
+    /// The last episode number seen; new episodes must be numbered above it.
+    last_episode: Option<u32>,
+    episodes_finished: u32,
+    last_return: Option<f32>,
+}
+
+impl AgentSession {
+    pub fn new(name: impl Into<String>) -> Self {
+        Self {
+            name: name.into(),
+            current: None,
+            last_episode: None,
+            episodes_finished: 0,
+            last_return: None,
+        }
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    pub fn episodes_finished(&self) -> u32 {
+        self.episodes_finished
+    }
+
+    pub fn last_return(&self) -> Option<f32> {
+        self.last_return
+    }
+
+    /// The episode in progress and the step of its last observation.
+    pub fn position(&self) -> Option<(u32, u32)> {
+        self.current.as_ref().map(|e| (e.number, e.step))
+    }
+
+    /// Takes a validated observation (dimensions and finiteness are checked by
+    /// [`proto::validate`] before this).
+    pub fn observe(&mut self, msg: &Observation) -> Result<Accepted, ErrorReport> {
+        let out_of_order =
+            |why: String| ErrorReport::new(ErrorCode::OutOfOrder, why).at(msg.episode, msg.step);
+        if msg.step == 0 {
+            if msg.end.is_some() {
+                return Err(out_of_order("an episode cannot end at step 0".into()));
+            }
+            if let Some(last) = self.last_episode
+                && msg.episode <= last
+            {
+                return Err(out_of_order(format!(
+                    "episode {} starts, but episode {last} was already seen: number episodes upwards",
+                    msg.episode
+                )));
+            }
+            let abandoned = self
+                .current
+                .take()
+                .map(|e| self.summary(e, EpisodeEnd::Interrupted));
+            self.last_episode = Some(msg.episode);
+            self.current = Some(Episode {
+                number: msg.episode,
+                step: 0,
+                obs: msg.obs.clone(),
+                action: None,
+                episode_return: 0.0,
+            });
+            return Ok(Accepted {
+                transition: None,
+                finished: None,
+                abandoned,
+            });
+        }
+        let Some(current) = self.current.as_mut() else {
+            return Err(out_of_order(format!(
+                "step {} of episode {} arrived with no episode in progress: start with step 0",
+                msg.step, msg.episode
+            )));
+        };
+        if msg.episode != current.number || msg.step != current.step + 1 {
+            return Err(out_of_order(format!(
+                "expected episode {} step {}, got episode {} step {}",
+                current.number,
+                current.step + 1,
+                msg.episode,
+                msg.step
+            )));
+        }
+        let Some(action) = current.action.take() else {
+            return Err(out_of_order(format!(
+                "step {} arrived before the action for step {} was sent",
+                msg.step, current.step
+            )));
+        };
+        let reward = msg.reward.expect("validated: steps after 0 carry a reward");
+        let obs = std::mem::replace(&mut current.obs, msg.obs.clone());
+        current.step = msg.step;
+        current.episode_return += reward;
+        let finished = match msg.end {
+            Some(end) => {
+                let episode = self.current.take().expect("in progress");
+                Some(self.summary(episode, end))
+            }
+            None => None,
+        };
+        Ok(Accepted {
+            transition: Some((obs, action, reward)),
+            finished,
+            abandoned: None,
+        })
+    }
+
+    /// Records the action sent for the current step.
+    pub fn acted(&mut self, step: u32, action: &[f32]) {
+        if let Some(current) = self.current.as_mut()
+            && current.step == step
+        {
+            current.action = Some(action.to_vec());
+        }
+    }
+
+    /// Ends the episode in progress as interrupted (the agent vanished).
+    pub fn interrupt(&mut self) -> Option<EpisodeSummary> {
+        let episode = self.current.take()?;
+        Some(self.summary(episode, EpisodeEnd::Interrupted))
+    }
+
+    fn summary(&mut self, e: Episode, end: EpisodeEnd) -> EpisodeSummary {
+        if end != EpisodeEnd::Interrupted {
+            self.episodes_finished += 1;
+            self.last_return = Some(e.episode_return);
+        }
+        EpisodeSummary {
+            agent: self.name.clone(),
+            episode: e.number,
+            steps: e.step,
+            episode_return: e.episode_return,
+            end,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::PROTOCOL_VERSION;
+
+    fn obs(
+        episode: u32,
+        step: u32,
+        x: f32,
+        reward: Option<f32>,
+        end: Option<EpisodeEnd>,
+    ) -> Observation {
+        Observation {
+            version: PROTOCOL_VERSION,
+            episode,
+            step,
+            obs: vec![x; 4],
+            reward,
+            end,
+        }
+    }
+
+    #[test]
+    fn an_episode_yields_its_transitions_and_return() {
+        let mut s = AgentSession::new("a");
+        let first = s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
+        assert_eq!(first.transition, None);
+        assert!(first.needs_action());
+        s.acted(0, &[1.0]);
+        let second = s.observe(&obs(0, 1, 1.0, Some(0.5), None)).unwrap();
+        assert_eq!(second.transition, Some((vec![0.0; 4], vec![1.0], 0.5)));
+        s.acted(1, &[2.0]);
+        let last = s
+            .observe(&obs(0, 2, 2.0, Some(0.25), Some(EpisodeEnd::TimeLimit)))
+            .unwrap();
+        assert_eq!(last.transition, Some((vec![1.0; 4], vec![2.0], 0.25)));
+        assert!(!last.needs_action());
+        let summary = last.finished.unwrap();
+        assert_eq!(
+            (summary.steps, summary.episode_return, summary.end),
+            (2, 0.75, EpisodeEnd::TimeLimit)
+        );
+        assert_eq!(s.episodes_finished(), 1);
+        assert_eq!(s.position(), None);
+    }
+
+    #[test]
+    fn out_of_order_messages_are_refused_without_changing_state() {
+        let mut s = AgentSession::new("a");
+        let err = s.observe(&obs(0, 3, 0.0, Some(0.0), None)).unwrap_err();
+        assert_eq!(err.code, ErrorCode::OutOfOrder);
+        s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
+        // No action sent yet for step 0.
+        assert_eq!(
+            s.observe(&obs(0, 1, 0.0, Some(0.0), None))
+                .unwrap_err()
+                .code,
+            ErrorCode::OutOfOrder
+        );
+        s.acted(0, &[0.0]);
+        // Skipped step, wrong episode, repeated step.
+        for bad in [
+            obs(0, 2, 0.0, Some(0.0), None),
+            obs(1, 1, 0.0, Some(0.0), None),
+            obs(0, 0, 0.0, None, None),
+        ] {
+            assert_eq!(
+                s.observe(&bad).unwrap_err().code,
+                ErrorCode::OutOfOrder,
+                "{bad:?}"
+            );
+        }
+        assert_eq!(s.position(), Some((0, 0)));
+        assert!(s.observe(&obs(0, 1, 1.0, Some(1.0), None)).is_ok());
+    }
+
+    #[test]
+    fn a_restarted_episode_abandons_the_old_one() {
+        let mut s = AgentSession::new("a");
+        s.observe(&obs(4, 0, 0.0, None, None)).unwrap();
+        s.acted(0, &[0.0]);
+        s.observe(&obs(4, 1, 0.0, Some(1.0), None)).unwrap();
+        let restart = s.observe(&obs(5, 0, 0.0, None, None)).unwrap();
+        let abandoned = restart.abandoned.unwrap();
+        assert_eq!(
+            (abandoned.episode, abandoned.end),
+            (4, EpisodeEnd::Interrupted)
+        );
+        assert_eq!(s.episodes_finished(), 0);
+        assert_eq!(
+            s.observe(&obs(3, 0, 0.0, None, None)).unwrap_err().code,
+            ErrorCode::OutOfOrder
+        );
+    }
+}

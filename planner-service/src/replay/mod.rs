@@ -1,0 +1,217 @@
+//! A run's replay buffer: every transition any of its agents produced, in memory for training
+//! and in an append-only log on disk so that a restarted daemon resumes with all of it.
+
+mod log;
+
+pub use log::{LogError, Record, ReplayLog};
+
+use crate::data::Transitions;
+use proto::{EpisodeEnd, TaskSpec};
+use std::path::Path;
+
+/// A finished episode, as stored.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodeSummary {
+    pub agent: String,
+    pub episode: u32,
+    pub steps: u32,
+    pub episode_return: f32,
+    pub end: EpisodeEnd,
+}
+
+/// Failures of the replay buffer.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error(transparent)]
+    Log(#[from] LogError),
+    #[error("replay log {path} holds task {found}, this run is {expected}")]
+    TaskMismatch {
+        path: String,
+        found: String,
+        expected: String,
+    },
+    #[error("replay log {path} does not start with a header record")]
+    MissingHeader { path: String },
+}
+
+/// Transitions in memory, mirrored to an optional log file.
+#[derive(Debug)]
+pub struct ReplayBuffer {
+    transitions: Transitions,
+    episodes: Vec<EpisodeSummary>,
+    log: Option<ReplayLog>,
+}
+
+impl ReplayBuffer {
+    /// A buffer that lives in memory only (tests, benchmarks).
+    pub fn in_memory(task: &TaskSpec) -> Self {
+        Self {
+            transitions: Transitions::new(task.obs_dim, task.act_dim),
+            episodes: Vec::new(),
+            log: None,
+        }
+    }
+
+    /// Opens the buffer stored at `path` (creating it), recovering every intact record.
+    pub fn open(path: &Path, task: &TaskSpec) -> Result<Self, ReplayError> {
+        let (mut log, recovered) = ReplayLog::open(path)?;
+        if recovered.truncated_bytes > 0 {
+            tracing::warn!(path = %path.display(), bytes = recovered.truncated_bytes, "cut a torn tail off the replay log");
+        }
+        let mut buffer = Self::in_memory(task);
+        let mut records = recovered.records.into_iter();
+        match records.next() {
+            None => log.append(&Record::Header {
+                task: task.id,
+                obs_dim: task.obs_dim as u32,
+                act_dim: task.act_dim as u32,
+            })?,
+            Some(Record::Header { task: found, .. }) if found == task.id => {}
+            Some(Record::Header { task: found, .. }) => {
+                return Err(ReplayError::TaskMismatch {
+                    path: path.display().to_string(),
+                    found: found.to_string(),
+                    expected: task.id.to_string(),
+                });
+            }
+            Some(_) => {
+                return Err(ReplayError::MissingHeader {
+                    path: path.display().to_string(),
+                });
+            }
+        }
+        for record in records {
+            buffer.apply(&record);
+        }
+        buffer.log = Some(log);
+        Ok(buffer)
+    }
+
+    fn apply(&mut self, record: &Record) {
+        match record {
+            Record::Header { .. } => {}
+            Record::Transition {
+                obs, act, next_obs, ..
+            } => self.transitions.push(obs, act, next_obs),
+            Record::EpisodeEnd {
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            } => self.episodes.push(EpisodeSummary {
+                agent: agent.clone(),
+                episode: *episode,
+                steps: *steps,
+                episode_return: *episode_return,
+                end: *end,
+            }),
+        }
+    }
+
+    fn record(&mut self, record: Record) -> Result<(), ReplayError> {
+        if let Some(log) = &mut self.log {
+            log.append(&record)?;
+        }
+        self.apply(&record);
+        Ok(())
+    }
+
+    /// Stores one transition. It is in the log (as far as the OS is concerned) when this returns.
+    #[allow(clippy::too_many_arguments)]
+    pub fn push(
+        &mut self,
+        agent: &str,
+        episode: u32,
+        step: u32,
+        obs: &[f32],
+        act: &[f32],
+        next_obs: &[f32],
+        reward: f32,
+    ) -> Result<(), ReplayError> {
+        self.record(Record::Transition {
+            agent: agent.to_string(),
+            episode,
+            step,
+            obs: obs.to_vec(),
+            act: act.to_vec(),
+            next_obs: next_obs.to_vec(),
+            reward,
+        })
+    }
+
+    /// Marks the end of an episode and syncs the log to disk.
+    pub fn end_episode(&mut self, summary: EpisodeSummary) -> Result<(), ReplayError> {
+        let EpisodeSummary {
+            agent,
+            episode,
+            steps,
+            episode_return,
+            end,
+        } = summary;
+        self.record(Record::EpisodeEnd {
+            agent,
+            episode,
+            steps,
+            episode_return,
+            end,
+        })?;
+        if let Some(log) = &mut self.log {
+            log.sync()?;
+        }
+        Ok(())
+    }
+
+    pub fn transitions(&self) -> &Transitions {
+        &self.transitions
+    }
+
+    pub fn episodes(&self) -> &[EpisodeSummary] {
+        &self.episodes
+    }
+
+    pub fn len(&self) -> usize {
+        self.transitions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.transitions.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::TaskId;
+
+    #[test]
+    fn a_reopened_buffer_holds_everything_stored() {
+        let dir = std::env::temp_dir().join(format!("ebmpc-replay-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let path = dir.join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        for step in 0..10 {
+            let s = [step as f32; 4];
+            buffer
+                .push("a", 0, step, &s, &[0.1], &[step as f32 + 1.0; 4], 0.5)
+                .unwrap();
+        }
+        let summary = EpisodeSummary {
+            agent: "a".into(),
+            episode: 0,
+            steps: 10,
+            episode_return: 5.0,
+            end: EpisodeEnd::TimeLimit,
+        };
+        buffer.end_episode(summary.clone()).unwrap();
+        let snapshot = buffer.transitions().clone();
+        drop(buffer);
+
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.transitions(), &snapshot);
+        assert_eq!(reopened.episodes(), &[summary]);
+        let err = ReplayBuffer::open(&path, TaskId::Ant.spec()).unwrap_err();
+        assert!(err.to_string().contains("holds task cartpole"), "{err}");
+    }
+}
