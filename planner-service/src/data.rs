@@ -17,7 +17,11 @@ pub struct Transitions {
 impl Transitions {
     /// An empty set for observations of `obs_dim` and actions of `act_dim` numbers.
     pub fn new(obs_dim: usize, act_dim: usize) -> Self {
-        Self { obs_dim, act_dim, ..Self::default() }
+        Self {
+            obs_dim,
+            act_dim,
+            ..Self::default()
+        }
     }
 
     /// Appends one transition. Panics if a slice has the wrong length: callers validate
