@@ -1,0 +1,344 @@
+//! [`Env`]: one episode-based task simulation, the way the planner sees the task.
+//!
+//! The environment owns the bookkeeping that must be identical for every task: action validation
+//! and clamping, the reward and termination from proto's catalog (the very functions the planner
+//! applies to imagined transitions, so the real and the imagined reward cannot drift apart), the
+//! time limit, and seeded resets. The physics lives behind [`crate::tasks`].
+
+use crate::error::SimError;
+use crate::tasks::{self, TaskSim};
+use proto::{TaskId, TaskSpec};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+
+/// The result of one control step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepOutcome {
+    /// The observation the action led to.
+    pub obs: Vec<f32>,
+    /// `TaskSpec::reward(obs_before, clamped_action, obs)`.
+    pub reward: f32,
+    /// The task's terminal condition holds for `obs` (no reward accrues after it).
+    pub terminated: bool,
+    /// The episode reached its time limit (`episode_len` steps) without terminating.
+    pub truncated: bool,
+}
+
+impl StepOutcome {
+    /// Whether the episode ended with this step, for either reason.
+    pub fn done(&self) -> bool {
+        self.terminated || self.truncated
+    }
+}
+
+/// A simulated task: reset to a seeded initial state, step with actions, read observations.
+pub struct Env {
+    spec: &'static TaskSpec,
+    sim: Box<dyn TaskSim>,
+    obs: Vec<f32>,
+    /// The observation before the last step (the reward's `obs` argument); reused buffer.
+    prev_obs: Vec<f32>,
+    action: Vec<f32>,
+    steps: u32,
+    done: bool,
+}
+
+impl std::fmt::Debug for Env {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Env")
+            .field("task", &self.spec.id)
+            .field("obs", &self.obs)
+            .field("steps", &self.steps)
+            .field("done", &self.done)
+            .finish()
+    }
+}
+
+impl Env {
+    /// Builds the simulator for `task` and resets it with seed 0, so [`Env::observation`] is
+    /// valid from the start.
+    ///
+    /// # Errors
+    /// [`SimError::NoSimulator`] for a catalog task sim-bridge cannot simulate yet, or a
+    /// model error if the task's MJCF does not load or disagrees with the catalog.
+    pub fn new(task: TaskId) -> Result<Self, SimError> {
+        let spec = task.spec();
+        let sim = tasks::simulator(task)?;
+        let mut env = Self {
+            spec,
+            sim,
+            obs: vec![0.0; spec.obs_dim],
+            prev_obs: vec![0.0; spec.obs_dim],
+            action: vec![0.0; spec.act_dim],
+            steps: 0,
+            done: false,
+        };
+        env.reset(0);
+        Ok(env)
+    }
+
+    /// The task this environment simulates.
+    pub fn task(&self) -> TaskId {
+        self.spec.id
+    }
+
+    /// The task's catalog entry (dimensions, bounds, episode length, control rate).
+    pub fn spec(&self) -> &'static TaskSpec {
+        self.spec
+    }
+
+    /// Starts an episode from an initial state drawn with `seed`; the same seed always gives the
+    /// same state. Returns the first observation.
+    pub fn reset(&mut self, seed: u64) -> &[f32] {
+        self.sim.reset(&mut StdRng::seed_from_u64(seed));
+        self.sim.observe(&mut self.obs);
+        self.steps = 0;
+        self.done = false;
+        &self.obs
+    }
+
+    /// The current observation.
+    pub fn observation(&self) -> &[f32] {
+        &self.obs
+    }
+
+    /// Control steps taken in the current episode.
+    pub fn steps(&self) -> u32 {
+        self.steps
+    }
+
+    /// Advances one control step with `action`, clamped into the task's bounds.
+    ///
+    /// # Errors
+    /// A wrong-length or non-finite action (the state is left unchanged), a step after the
+    /// episode ended, or a simulation that produced a non-finite observation.
+    pub fn step(&mut self, action: &[f32]) -> Result<StepOutcome, SimError> {
+        if self.done {
+            return Err(SimError::EpisodeOver { steps: self.steps });
+        }
+        self.check_action(action)?;
+        self.action.copy_from_slice(action);
+        self.spec.clamp_action(&mut self.action);
+
+        std::mem::swap(&mut self.prev_obs, &mut self.obs);
+        self.sim.step(&self.action);
+        self.sim.observe(&mut self.obs);
+        self.steps += 1;
+        if self.obs.iter().any(|v| !v.is_finite()) {
+            self.done = true;
+            return Err(SimError::Diverged {
+                step: self.steps,
+                obs: self.obs.clone(),
+            });
+        }
+
+        let reward = self.spec.reward(&self.prev_obs, &self.action, &self.obs);
+        let terminated = self.spec.is_terminal(&self.obs);
+        let truncated = !terminated && self.steps >= self.spec.episode_len;
+        self.done = terminated || truncated;
+        Ok(StepOutcome {
+            obs: self.obs.clone(),
+            reward,
+            terminated,
+            truncated,
+        })
+    }
+
+    /// Places the system in the state the observation `obs` describes, as the first state of a
+    /// fresh episode (step count 0). For tests and tools that need a particular situation, e.g.
+    /// the pole upright.
+    ///
+    /// # Errors
+    /// A wrong-length state, or a task whose observation does not determine its physics state.
+    pub fn set_state(&mut self, obs: &[f32]) -> Result<&[f32], SimError> {
+        if obs.len() != self.spec.obs_dim {
+            return Err(SimError::StateDimension {
+                task: self.spec.id,
+                expected: self.spec.obs_dim,
+                got: obs.len(),
+            });
+        }
+        self.sim.set_state(obs)?;
+        self.sim.observe(&mut self.obs);
+        self.steps = 0;
+        self.done = false;
+        Ok(&self.obs)
+    }
+
+    fn check_action(&self, action: &[f32]) -> Result<(), SimError> {
+        if action.len() != self.spec.act_dim {
+            return Err(SimError::ActionDimension {
+                task: self.spec.id,
+                expected: self.spec.act_dim,
+                got: action.len(),
+            });
+        }
+        match action.iter().position(|a| !a.is_finite()) {
+            Some(index) => Err(SimError::NonFiniteAction {
+                index,
+                value: action[index],
+            }),
+            None => Ok(()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::RngExt;
+    use std::f32::consts::PI;
+
+    fn cartpole() -> Env {
+        Env::new(TaskId::Cartpole).unwrap()
+    }
+
+    #[test]
+    fn every_catalog_task_builds_or_says_it_has_no_simulator() {
+        for &task in TaskId::ALL {
+            match Env::new(task) {
+                Ok(env) => {
+                    assert!(tasks::SIMULATED.contains(&task));
+                    assert_eq!(env.task(), task);
+                    assert_eq!(env.observation().len(), task.spec().obs_dim);
+                }
+                Err(SimError::NoSimulator { task: t, known }) => {
+                    assert_eq!(t, task);
+                    assert!(
+                        !tasks::SIMULATED.contains(&task),
+                        "{task} listed but missing"
+                    );
+                    assert!(known.contains("cartpole"), "{known}");
+                }
+                Err(e) => panic!("{task}: {e}"),
+            }
+        }
+    }
+
+    #[test]
+    fn dimensions_follow_the_catalog() {
+        let mut env = cartpole();
+        let spec = env.spec();
+        assert_eq!(env.reset(3).len(), spec.obs_dim);
+        let out = env.step(&[0.5]).unwrap();
+        assert_eq!(out.obs.len(), spec.obs_dim);
+        assert_eq!(out.obs, env.observation());
+        assert_eq!(env.steps(), 1);
+    }
+
+    #[test]
+    fn bad_actions_are_rejected_and_leave_the_state_alone() {
+        let mut env = cartpole();
+        let before = env.reset(1).to_vec();
+        assert!(matches!(
+            env.step(&[1.0, 2.0]),
+            Err(SimError::ActionDimension {
+                expected: 1,
+                got: 2,
+                ..
+            })
+        ));
+        assert!(matches!(
+            env.step(&[]),
+            Err(SimError::ActionDimension { got: 0, .. })
+        ));
+        assert!(matches!(
+            env.step(&[f32::NAN]),
+            Err(SimError::NonFiniteAction { index: 0, .. })
+        ));
+        assert!(matches!(
+            env.step(&[f32::INFINITY]),
+            Err(SimError::NonFiniteAction { .. })
+        ));
+        assert_eq!(env.observation(), &before[..]);
+        assert_eq!(env.steps(), 0);
+        let err = env.set_state(&[0.0; 3]).unwrap_err();
+        assert!(matches!(
+            err,
+            SimError::StateDimension {
+                expected: 4,
+                got: 3,
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn actions_are_clamped_to_the_bounds() {
+        let (mut a, mut b) = (cartpole(), cartpole());
+        a.reset(5);
+        b.reset(5);
+        let big = a.step(&[100.0]).unwrap();
+        let max = b.step(&[3.0]).unwrap();
+        assert_eq!(
+            big, max,
+            "force 100 acts as the bound 3, and is penalised as 3"
+        );
+        let small = a.step(&[-1e9]).unwrap();
+        let min = b.step(&[-3.0]).unwrap();
+        assert_eq!(small, min);
+    }
+
+    #[test]
+    fn a_seed_determines_the_episode() {
+        let (mut a, mut b) = (cartpole(), cartpole());
+        assert_eq!(a.reset(42), b.reset(42));
+        let mut rng = StdRng::seed_from_u64(7);
+        for _ in 0..100 {
+            let act = [rng.random_range(-3.0..3.0)];
+            assert_eq!(a.step(&act).unwrap(), b.step(&act).unwrap());
+        }
+        // Resetting replays the same start; another seed gives another one.
+        let start = a.reset(42).to_vec();
+        assert_eq!(b.reset(42), &start[..]);
+        assert_ne!(b.reset(43), &start[..]);
+    }
+
+    #[test]
+    fn a_random_episode_runs_to_its_time_limit() {
+        let mut env = cartpole();
+        env.reset(11);
+        let spec = env.spec();
+        let mut rng = StdRng::seed_from_u64(11);
+        let mut prev = env.observation().to_vec();
+        for step in 1..=spec.episode_len {
+            let act = [rng.random_range(-3.0..3.0)];
+            let out = env.step(&act).unwrap();
+            assert!(
+                out.obs.iter().all(|v| v.is_finite()),
+                "step {step}: {:?}",
+                out.obs
+            );
+            assert!(out.reward.is_finite() && out.reward <= 1.0);
+            // The reported reward is the catalog's, on the reported transition.
+            assert_eq!(out.reward, spec.reward(&prev, &act, &out.obs));
+            assert!(!out.terminated, "cartpole has no terminal states");
+            assert_eq!(out.truncated, step == spec.episode_len, "step {step}");
+            prev = out.obs;
+        }
+        assert!(matches!(
+            env.step(&[0.0]),
+            Err(SimError::EpisodeOver { steps: 200 })
+        ));
+        env.reset(12);
+        assert!(env.step(&[0.0]).is_ok());
+    }
+
+    #[test]
+    fn reward_is_one_upright_at_the_origin_and_low_hanging() {
+        let mut env = cartpole();
+        env.set_state(&[0.0, PI, 0.0, 0.0]).unwrap();
+        let upright = env.step(&[0.0]).unwrap();
+        // One control step (0.04 s) barely moves an upright pole at rest.
+        assert!(upright.reward > 0.999, "{upright:?}");
+
+        env.set_state(&[0.0, 0.0, 0.0, 0.0]).unwrap();
+        let hanging = env.step(&[0.0]).unwrap();
+        assert!(hanging.reward < 0.02, "{hanging:?}");
+        assert_eq!(hanging.obs, [0.0; 4], "hanging at rest is an equilibrium");
+
+        env.set_state(&[1.0, PI, 0.0, 0.0]).unwrap();
+        let aside = env.step(&[0.0]).unwrap();
+        assert!(hanging.reward < aside.reward && aside.reward < upright.reward);
+    }
+}

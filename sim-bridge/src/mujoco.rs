@@ -1,0 +1,119 @@
+//! A MuJoCo model and its data, checked against proto's task catalog.
+//!
+//! Every task owns one [`MjSim`]: the task module says how to map the physics state to its
+//! observation and how to sample an initial state; this module does what is common to all of
+//! them: loading the embedded MJCF, checking that it agrees with the catalog (a model that
+//! silently ran at another control rate or with other action bounds would make the planner's
+//! learned model and the real system disagree), applying controls and advancing one control step.
+
+use crate::error::SimError;
+use mujoco_rs::prelude::{MjData, MjModel, MjtIntegrator};
+use proto::TaskSpec;
+
+/// How a task's MJCF is meant to be run.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct ModelConfig {
+    /// The MJCF text (embedded with `include_str!`, so the binary is self-contained).
+    pub xml: &'static str,
+    /// Physics steps per control step.
+    pub substeps: u32,
+    /// The integrator the task is specified with (tasks.md).
+    pub integrator: MjtIntegrator,
+}
+
+/// One loaded model and its simulation state.
+#[derive(Debug)]
+pub(crate) struct MjSim {
+    data: MjData<Box<MjModel>>,
+    substeps: u32,
+}
+
+impl MjSim {
+    /// Loads `config.xml` and checks it against `spec`: actuator count, control ranges equal to
+    /// the action bounds, `timestep × substeps = control_dt`, and the integrator.
+    pub fn load(spec: &TaskSpec, config: ModelConfig) -> Result<Self, SimError> {
+        let task = spec.id;
+        let model = MjModel::from_xml_string(config.xml)
+            .map_err(|source| SimError::ModelLoad { task, source })?;
+        let mismatch = |detail: String| SimError::ModelMismatch { task, detail };
+
+        let nu = model.ffi().nu as usize;
+        if nu != spec.act_dim {
+            return Err(mismatch(format!(
+                "{nu} actuators for {} action dimensions",
+                spec.act_dim
+            )));
+        }
+        for (i, range) in model.actuator_ctrlrange().iter().enumerate() {
+            let (lo, hi) = (spec.action_low[i] as f64, spec.action_high[i] as f64);
+            if range[0] != lo || range[1] != hi {
+                return Err(mismatch(format!(
+                    "actuator {i} ctrlrange [{}, {}] but action bounds [{lo}, {hi}]",
+                    range[0], range[1]
+                )));
+            }
+        }
+        let opt = model.opt();
+        let dt = opt.timestep * f64::from(config.substeps);
+        if (dt - spec.control_dt).abs() > 1e-9 {
+            return Err(mismatch(format!(
+                "timestep {} × {} substeps = {dt} s, catalog control dt {} s",
+                opt.timestep, config.substeps, spec.control_dt
+            )));
+        }
+        if opt.integrator != config.integrator as i32 {
+            return Err(mismatch(format!(
+                "integrator {} but the task is specified with {:?}",
+                opt.integrator, config.integrator
+            )));
+        }
+
+        let data = MjData::new(Box::new(model));
+        Ok(Self {
+            data,
+            substeps: config.substeps,
+        })
+    }
+
+    /// Generalised positions.
+    pub fn qpos(&self) -> &[f64] {
+        self.data.qpos()
+    }
+
+    /// Generalised velocities.
+    pub fn qvel(&self) -> &[f64] {
+        self.data.qvel()
+    }
+
+    /// Puts the simulation in the state `(qpos, qvel)` at time 0 with zero controls, and
+    /// recomputes the derived quantities (positions of bodies and sites) for it.
+    ///
+    /// # Panics
+    /// If the slices do not have the model's `nq` and `nv` lengths (a bug in the task module).
+    pub fn set_state(&mut self, qpos: &[f64], qvel: &[f64]) {
+        self.data.reset();
+        self.data.qpos_mut().copy_from_slice(qpos);
+        self.data.qvel_mut().copy_from_slice(qvel);
+        self.data.forward();
+    }
+
+    /// Holds `ctrl` (already clamped and finite) for one control step of `substeps` physics steps.
+    pub fn advance(&mut self, ctrl: &[f32]) {
+        for (c, &a) in self.data.ctrl_mut().iter_mut().zip(ctrl) {
+            *c = f64::from(a);
+        }
+        for _ in 0..self.substeps {
+            self.data.step();
+        }
+    }
+
+    /// Cartesian position of the named site (valid after [`MjSim::set_state`] or a step).
+    #[cfg(test)]
+    pub fn site_position(&self, name: &str) -> Option<[f64; 3]> {
+        let id = self
+            .data
+            .model()
+            .name_to_id(mujoco_rs::prelude::MjtObjBase::mjOBJ_SITE, name)?;
+        Some(self.data.site_xpos()[id])
+    }
+}

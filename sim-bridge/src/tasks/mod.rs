@@ -1,0 +1,52 @@
+//! One simulator per task of proto's catalog, each in its own module.
+//!
+//! A task module owns its MJCF (in `assets/`), the mapping from physics state to the catalog's
+//! observation, and its initial-state distribution. Rewards and termination are *not* here: they
+//! come from proto's [`proto::TaskSpec`], the one definition the planner uses as well. Adding a
+//! task means adding a module, an arm in [`simulator`] and its name in [`SIMULATED`].
+
+mod cartpole;
+
+use crate::error::SimError;
+use proto::TaskId;
+use rand::rngs::StdRng;
+
+/// The physics of one task, driven by [`crate::Env`].
+///
+/// `Env` validates and clamps actions before they get here, and keeps the observation, step count
+/// and episode bookkeeping, so implementations only do physics.
+pub(crate) trait TaskSim: Send {
+    /// Samples an episode's initial state from `rng`.
+    fn reset(&mut self, rng: &mut StdRng);
+
+    /// Advances one control step holding `action` (finite, within the task's bounds).
+    fn step(&mut self, action: &[f32]);
+
+    /// Writes the current observation (`obs_dim` numbers) into `out`.
+    fn observe(&self, out: &mut [f32]);
+
+    /// Puts the system in the state described by `obs` (`obs_dim` numbers, already checked).
+    /// Tasks whose observation does not determine the physics state say so with an error.
+    fn set_state(&mut self, obs: &[f32]) -> Result<(), SimError>;
+}
+
+/// The tasks that have a simulator, in catalog order.
+pub const SIMULATED: &[TaskId] = &[TaskId::Cartpole];
+
+/// Builds the simulator for `task`, or says clearly that it has none yet.
+pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
+    // The wildcard keeps sim-bridge compiling when proto's catalog grows before the
+    // simulator for a new task is written: such a task gets `NoSimulator` at run time.
+    #[allow(unreachable_patterns)]
+    match task {
+        TaskId::Cartpole => Ok(Box::new(cartpole::Cartpole::new()?)),
+        _ => Err(SimError::NoSimulator {
+            task,
+            known: SIMULATED
+                .iter()
+                .map(|t| t.name())
+                .collect::<Vec<_>>()
+                .join(", "),
+        }),
+    }
+}
