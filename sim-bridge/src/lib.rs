@@ -5,11 +5,15 @@
 //! with its own MJCF in `assets/` (embedded in the binary); rewards and termination always come
 //! from proto, the definitions the planner shares.
 
+pub mod bridge;
+pub mod csv;
 pub mod env;
 pub mod error;
+mod link;
 mod mujoco;
 pub mod tasks;
 
+pub use bridge::{BridgeConfig, BridgeError, EpisodeRecord};
 pub use env::{Env, StepOutcome};
 pub use error::SimError;
 pub use tasks::SIMULATED;

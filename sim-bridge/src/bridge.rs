@@ -1,0 +1,443 @@
+//! The bridge loop: runs episodes of a simulated task with actions from a planner over Zenoh.
+//!
+//! ```text
+//! attach(run spec) ─▶ accepted{next_episode}
+//! for each episode:  reset(seed + episode) ─▶ Obs{step 0}
+//!                    ◀─ Act{step t}    step env ─▶ Obs{step t+1, reward, end?}   … until the end
+//! ```
+//! Each wait for an action has a deadline. The first action of every episode but this process's
+//! first may wait for the planner to retrain (sync mode), so it gets the longer train timeout.
+//! Training events are logged as they arrive, so a long wait shows what the planner is doing.
+
+use crate::env::Env;
+use crate::error::SimError;
+use crate::link::{Inbound, PlannerLink};
+use proto::session::Endpoints;
+use proto::{
+    Action, ActionSource, AttachAccepted, CodecError, EpisodeEnd, ErrorReport, Keys, Observation,
+    PROTOCOL_VERSION, PlanStats, RunEvent, RunEventKind, RunSpec, TrainMode,
+};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+/// Everything one bridge process needs to know.
+#[derive(Debug, Clone)]
+pub struct BridgeConfig {
+    /// Key prefix shared with the planner.
+    pub prefix: String,
+    /// Where to listen and what to connect to.
+    pub endpoints: Endpoints,
+    /// A zenoh configuration file to start from (endpoints and scouting are still set here).
+    pub zenoh_config: Option<PathBuf>,
+    /// Run to attach to (created by the planner with `spec` if it does not exist yet).
+    pub run: String,
+    /// This agent's name within the run.
+    pub agent: String,
+    /// The run spec sent when attaching; its task is the task simulated here.
+    pub spec: RunSpec,
+    /// Episodes to run.
+    pub episodes: u32,
+    /// Episode `e` starts from the state drawn with seed `seed + e`.
+    pub seed: u64,
+    /// How long to keep asking for a planner before giving up.
+    pub attach_timeout: Duration,
+    /// How long to wait for an action.
+    pub action_timeout: Duration,
+    /// How long to wait for the first action of a later episode (the planner may be training).
+    pub train_timeout: Duration,
+}
+
+/// One finished episode, as the bridge saw it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeRecord {
+    /// The run's episode number (continues where a resumed run stopped).
+    pub episode: u32,
+    /// Sum of the rewards the simulator reported.
+    pub episode_return: f32,
+    /// Control steps taken.
+    pub steps: u32,
+    /// Why it ended.
+    pub end: EpisodeEnd,
+    /// Wall time from the first observation to the last, including waits for the planner.
+    pub wall_seconds: f64,
+    /// Where the episode's actions came from.
+    pub actions: ActionTally,
+}
+
+/// Counts of an episode's actions by source, and the planner's cost.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ActionTally {
+    /// Actions chosen by model-predictive control.
+    pub planned: u32,
+    /// Uniformly random exploration actions.
+    pub random: u32,
+    /// Total planning time the planner reported for the planned actions.
+    pub planning_ms: f64,
+    /// Version of the models behind the episode's last action (0 = untrained).
+    pub models_version: u64,
+}
+
+impl ActionTally {
+    fn add(&mut self, stats: &PlanStats) {
+        match stats.source {
+            ActionSource::Planned => {
+                self.planned += 1;
+                self.planning_ms += f64::from(stats.planning_ms);
+            }
+            ActionSource::Random => self.random += 1,
+        }
+        self.models_version = stats.models_version;
+    }
+
+    /// Mean planning time per planned action.
+    pub fn mean_planning_ms(&self) -> f64 {
+        if self.planned == 0 {
+            0.0
+        } else {
+            self.planning_ms / f64::from(self.planned)
+        }
+    }
+}
+
+impl std::fmt::Display for ActionTally {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} planned, {} random actions; models v{}",
+            self.planned, self.random, self.models_version
+        )?;
+        if self.planned > 0 {
+            write!(f, "; {:.1} ms per plan", self.mean_planning_ms())?;
+        }
+        Ok(())
+    }
+}
+
+/// Why the bridge stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    #[error("invalid {what}: {source}")]
+    InvalidName {
+        what: &'static str,
+        #[source]
+        source: proto::keys::InvalidName,
+    },
+    #[error(transparent)]
+    Sim(#[from] SimError),
+    #[error(transparent)]
+    SessionConfig(#[from] proto::session::SessionConfigError),
+    #[error("zenoh: {what}: {reason}")]
+    Zenoh { what: String, reason: String },
+    #[error(
+        "no planner answered on `{key}` in {:.1} s ({attempts} attempts): is planner-service running, \
+         and are the endpoints right (--connect to the planner's --listen, or both to a router)?",
+        waited.as_secs_f64()
+    )]
+    NoPlanner {
+        key: String,
+        waited: Duration,
+        attempts: u32,
+    },
+    #[error("the planner refused to attach this agent on `{key}`: {report}")]
+    AttachRejected { key: String, report: ErrorReport },
+    #[error("the planner attached us to a {found} run, but this bridge simulates {expected}")]
+    TaskMismatch {
+        expected: proto::TaskId,
+        found: proto::TaskId,
+    },
+    #[error("cannot encode a message: {0}")]
+    Encode(#[source] CodecError),
+    #[error("undecodable message on `{key}`: {source}")]
+    Decode {
+        key: String,
+        #[source]
+        source: CodecError,
+    },
+    #[error(
+        "no action for episode {episode} step {step} after {:.1} s{hint}",
+        waited.as_secs_f64(),
+        hint = if *while_training { " (the planner may still be training: raise --train-timeout)" } else { " (raise --action-timeout if planning is this slow)" }
+    )]
+    ActionTimeout {
+        episode: u32,
+        step: u32,
+        waited: Duration,
+        while_training: bool,
+    },
+    #[error("the planner reported an error for episode {episode} step {step}: {report}")]
+    Planner {
+        episode: u32,
+        step: u32,
+        report: ErrorReport,
+    },
+    #[error("the planner sent an invalid action for episode {episode} step {step}: {reason}")]
+    InvalidAction {
+        episode: u32,
+        step: u32,
+        reason: String,
+    },
+}
+
+/// Runs `config.episodes` episodes against the planner and returns their records; `on_episode`
+/// sees each record as soon as its episode ends (to write it out before the next one starts).
+pub async fn run(
+    config: &BridgeConfig,
+    mut on_episode: impl FnMut(&EpisodeRecord),
+) -> Result<Vec<EpisodeRecord>, BridgeError> {
+    for (what, name) in [("run name", &config.run), ("agent name", &config.agent)] {
+        proto::validate_name(name).map_err(|source| BridgeError::InvalidName { what, source })?;
+    }
+    let task = config.spec.task;
+    let mut env = Env::new(task)?;
+    let mut link = PlannerLink::open(
+        Keys::new(&config.prefix),
+        &config.run,
+        &config.agent,
+        &config.endpoints,
+        config.zenoh_config.as_deref(),
+    )
+    .await?;
+    let accepted = link.attach(&config.spec, config.attach_timeout).await?;
+    if accepted.task != task {
+        return Err(BridgeError::TaskMismatch {
+            expected: task,
+            found: accepted.task,
+        });
+    }
+    log_attached(config, &accepted);
+
+    let mut records = Vec::with_capacity(config.episodes as usize);
+    for i in 0..config.episodes {
+        let episode = accepted.next_episode + i;
+        // Sync mode: the planner holds an episode's first action until it has retrained on the
+        // episodes before it.
+        let first_wait = if i > 0 && accepted.mode == TrainMode::Sync {
+            FirstWait::Training(config.train_timeout)
+        } else {
+            FirstWait::Action
+        };
+        let record = run_episode(&mut env, &link, config, episode, first_wait).await?;
+        tracing::info!(
+            episode,
+            steps = record.steps,
+            episode_return = record.episode_return,
+            end = ?record.end,
+            seconds = record.wall_seconds,
+            "episode {}/{} done: return {:.2} ({})",
+            i + 1,
+            config.episodes,
+            record.episode_return,
+            record.actions
+        );
+        on_episode(&record);
+        records.push(record);
+    }
+    link.close().await?;
+    Ok(records)
+}
+
+/// How long an episode's first action may take.
+#[derive(Debug, Clone, Copy)]
+enum FirstWait {
+    Action,
+    Training(Duration),
+}
+
+async fn run_episode(
+    env: &mut Env,
+    link: &PlannerLink,
+    config: &BridgeConfig,
+    episode: u32,
+    first_wait: FirstWait,
+) -> Result<EpisodeRecord, BridgeError> {
+    let started = Instant::now();
+    let obs = env
+        .reset(config.seed.wrapping_add(u64::from(episode)))
+        .to_vec();
+    link.send(&observation(episode, 0, obs, None, None)).await?;
+    let mut episode_return = 0.0;
+    let mut actions = ActionTally::default();
+    let mut step = 0;
+    loop {
+        let (timeout, while_training) = match (step, first_wait) {
+            (0, FirstWait::Training(t)) => (t, true),
+            _ => (config.action_timeout, false),
+        };
+        let action = wait_for_action(link, env, episode, step, timeout, while_training).await?;
+        actions.add(&action.stats);
+        let outcome = env.step(&action.action)?;
+        episode_return += outcome.reward;
+        step += 1;
+        let end = if outcome.terminated {
+            Some(EpisodeEnd::Terminated)
+        } else if outcome.truncated {
+            Some(EpisodeEnd::TimeLimit)
+        } else {
+            None
+        };
+        link.send(&observation(
+            episode,
+            step,
+            outcome.obs,
+            Some(outcome.reward),
+            end,
+        ))
+        .await?;
+        if let Some(end) = end {
+            let wall_seconds = started.elapsed().as_secs_f64();
+            return Ok(EpisodeRecord {
+                episode,
+                episode_return,
+                steps: step,
+                end,
+                wall_seconds,
+                actions,
+            });
+        }
+    }
+}
+
+fn observation(
+    episode: u32,
+    step: u32,
+    obs: Vec<f32>,
+    reward: Option<f32>,
+    end: Option<EpisodeEnd>,
+) -> Observation {
+    Observation {
+        version: PROTOCOL_VERSION,
+        episode,
+        step,
+        obs,
+        reward,
+        end,
+    }
+}
+
+/// Waits for the action for `(episode, step)`, logging what else arrives meanwhile.
+async fn wait_for_action(
+    link: &PlannerLink,
+    env: &Env,
+    episode: u32,
+    step: u32,
+    timeout: Duration,
+    while_training: bool,
+) -> Result<Action, BridgeError> {
+    let started = tokio::time::Instant::now();
+    let deadline = started + timeout;
+    loop {
+        let inbound = match tokio::time::timeout_at(deadline, link.recv()).await {
+            Ok(inbound) => inbound?,
+            Err(_) => {
+                return Err(BridgeError::ActionTimeout {
+                    episode,
+                    step,
+                    waited: started.elapsed(),
+                    while_training,
+                });
+            }
+        };
+        match inbound {
+            Inbound::Action(action) if action.episode == episode && action.step == step => {
+                proto::validate::validate_action(&action, env.spec()).map_err(|e| {
+                    BridgeError::InvalidAction {
+                        episode,
+                        step,
+                        reason: e.to_string(),
+                    }
+                })?;
+                tracing::debug!(episode, step, source = ?action.stats.source, planning_ms = action.stats.planning_ms, "action");
+                return Ok(action);
+            }
+            Inbound::Action(stale) => {
+                tracing::debug!(
+                    episode = stale.episode,
+                    step = stale.step,
+                    "ignoring an action for another step"
+                );
+            }
+            Inbound::Error(report) => {
+                if is_fatal(&report, episode, step) {
+                    return Err(BridgeError::Planner {
+                        episode,
+                        step,
+                        report,
+                    });
+                }
+                tracing::warn!("planner reported: {report}");
+            }
+            Inbound::Event(event) => log_event(&event),
+            Inbound::PlannerAlive(true) => tracing::info!("the planner is reachable again"),
+            Inbound::PlannerAlive(false) => tracing::warn!(
+                "the planner went away; waiting {:.0} s more for it to answer",
+                (deadline - tokio::time::Instant::now()).as_secs_f64()
+            ),
+        }
+    }
+}
+
+/// Whether an error report means the action being waited for will never come: one about the
+/// message in flight, or one about no message in particular (an unknown run, an agent the
+/// planner no longer knows, a message it could not decode). Reports about earlier steps are
+/// only logged.
+fn is_fatal(report: &ErrorReport, episode: u32, step: u32) -> bool {
+    match (report.episode, report.step) {
+        (Some(e), Some(s)) => e == episode && s == step,
+        _ => true,
+    }
+}
+
+fn log_attached(config: &BridgeConfig, accepted: &AttachAccepted) {
+    tracing::info!(
+        run = %config.run,
+        agent = %config.agent,
+        planner = %accepted.planner_id,
+        task = %accepted.task,
+        mode = ?accepted.mode,
+        episodes_done = accepted.episodes_done,
+        models_version = accepted.models_version,
+        "attached; running {} episodes from episode {}",
+        config.episodes,
+        accepted.next_episode
+    );
+}
+
+/// Shows the planner's training as it happens.
+fn log_event(event: &RunEvent) {
+    match &event.kind {
+        RunEventKind::TrainingStarted { transitions } => {
+            tracing::info!(run = %event.run, transitions, "planner: training started");
+        }
+        RunEventKind::ModelsUpdated {
+            models_version,
+            dynamics_loss,
+            energy_loss,
+            seconds,
+        } => tracing::info!(
+            run = %event.run,
+            models_version,
+            dynamics_loss,
+            energy_loss,
+            seconds,
+            "planner: models updated"
+        ),
+        RunEventKind::TrainingFailed { message } => {
+            tracing::warn!(run = %event.run, "planner: training failed ({message}); previous models stay in use");
+        }
+        RunEventKind::EpisodeFinished {
+            agent,
+            episode,
+            episode_return,
+            steps,
+            end,
+        } => tracing::debug!(
+            run = %event.run,
+            %agent,
+            episode,
+            episode_return,
+            steps,
+            end = ?end,
+            "planner: episode stored"
+        ),
+    }
+}

@@ -1,0 +1,340 @@
+//! The bridge loop against a scripted planner over real Zenoh sessions on loopback.
+//!
+//! The fake planner speaks proto's protocol the way planner-service does (attach queryable,
+//! observation subscriber, actions on the agent's act key, errors on its error key, events on
+//! the run's events key) and can be told to misbehave, so the bridge's error paths are exercised
+//! with the same transport as production.
+
+use proto::session::{Endpoints, zenoh_config};
+use proto::{
+    Action, ActionSource, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding,
+    EpisodeEnd, ErrorCode, ErrorReport, Keys, Observation, PROTOCOL_VERSION, PlanStats, RunEvent,
+    RunEventKind, RunSpec, TaskId, TrainMode,
+};
+use sim_bridge::{BridgeConfig, BridgeError, Env};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use zenoh::bytes::Encoding as ZEncoding;
+
+/// How the scripted planner behaves.
+#[derive(Clone, Default)]
+struct Script {
+    /// Refuse every attach with this message.
+    reject: Option<String>,
+    /// Never answer this step (of every episode).
+    silent_at: Option<u32>,
+    /// Answer this step with an error report instead of an action.
+    error_at: Option<u32>,
+}
+
+/// What the scripted planner saw.
+#[derive(Default)]
+struct Seen {
+    attach: Vec<AttachRequest>,
+    observations: Vec<Observation>,
+}
+
+fn free_endpoint() -> String {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    format!("tcp/127.0.0.1:{}", listener.local_addr().unwrap().port())
+}
+
+/// The deterministic "policy" of the scripted planner: a slow sine of the step.
+fn scripted_action(step: u32) -> Vec<f32> {
+    vec![3.0 * (step as f32 * 0.3).sin()]
+}
+
+fn publish_bytes<T: serde::Serialize>(msg: &T) -> Vec<u8> {
+    proto::encode(msg, Encoding::Postcard).unwrap()
+}
+
+/// Starts the scripted planner listening on `endpoint`; returns what it sees as it runs.
+async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<Mutex<Seen>>) {
+    let endpoints = Endpoints {
+        listen: vec![endpoint.to_string()],
+        connect: vec![],
+    };
+    let session = zenoh::open(zenoh_config(&endpoints, None).unwrap())
+        .await
+        .unwrap();
+    let keys = Keys::default();
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let token = session
+        .liveliness()
+        .declare_token(keys.planner_alive("fake"))
+        .await
+        .unwrap();
+    let attach = session.declare_queryable(keys.all_attach()).await.unwrap();
+    let observations = session.declare_subscriber(keys.all_obs()).await.unwrap();
+
+    let (s, k, seen2) = (session.clone(), keys.clone(), seen.clone());
+    tokio::spawn(async move {
+        let _token = token;
+        loop {
+            tokio::select! {
+                Ok(query) = attach.recv_async() => {
+                    let bytes = query.payload().unwrap().to_bytes().into_owned();
+                    let request: AttachRequest = proto::decode(&bytes, Encoding::Postcard).unwrap();
+                    let outcome = match &script.reject {
+                        Some(why) => AttachOutcome::Rejected(ErrorReport::new(ErrorCode::Refused, why.clone())),
+                        None => AttachOutcome::Accepted(AttachAccepted {
+                            planner_id: "fake".into(),
+                            task: request.spec.task,
+                            mode: request.spec.mode,
+                            episodes_done: 5,
+                            models_version: 0,
+                            next_episode: 5,
+                        }),
+                    };
+                    seen2.lock().unwrap().attach.push(request);
+                    let reply = AttachReply { version: PROTOCOL_VERSION, outcome };
+                    let key = query.key_expr().as_str().to_string();
+                    query.reply(key, publish_bytes(&reply)).encoding(ZEncoding::from(Encoding::Postcard.mime())).await.unwrap();
+                }
+                Ok(sample) = observations.recv_async() => {
+                    let (run, agent) = {
+                        let (r, a) = k.parse_agent_key(sample.key_expr().as_str(), proto::AgentChannel::Obs).unwrap();
+                        (r.to_string(), a.to_string())
+                    };
+                    let obs: Observation = proto::decode(&sample.payload().to_bytes(), Encoding::Postcard).unwrap();
+                    seen2.lock().unwrap().observations.push(obs.clone());
+                    if let Some(end) = obs.end {
+                        let events = [
+                            RunEventKind::EpisodeFinished { agent: agent.clone(), episode: obs.episode, episode_return: 0.0, steps: obs.step, end },
+                            RunEventKind::TrainingStarted { transitions: u64::from(obs.step) },
+                            RunEventKind::ModelsUpdated { models_version: 1, dynamics_loss: 0.1, energy_loss: 0.2, seconds: 0.01 },
+                        ];
+                        for kind in events {
+                            let event = RunEvent { version: PROTOCOL_VERSION, run: run.clone(), kind };
+                            s.put(k.events(&run), publish_bytes(&event)).await.unwrap();
+                        }
+                        continue;
+                    }
+                    if script.silent_at == Some(obs.step) {
+                        continue;
+                    }
+                    if script.error_at == Some(obs.step) {
+                        let report = ErrorReport::new(ErrorCode::Internal, "planning failed: scripted").at(obs.episode, obs.step);
+                        s.put(k.error(&run, &agent), publish_bytes(&report)).await.unwrap();
+                        continue;
+                    }
+                    let action = Action {
+                        version: PROTOCOL_VERSION,
+                        episode: obs.episode,
+                        step: obs.step,
+                        action: scripted_action(obs.step),
+                        stats: PlanStats {
+                            source: if obs.episode == 5 { ActionSource::Random } else { ActionSource::Planned },
+                            planning_ms: 1.0,
+                            predicted_return: 0.0,
+                            mean_energy: 0.0,
+                            iterations: 1,
+                            models_version: 0,
+                        },
+                    };
+                    s.put(k.act(&run, &agent), publish_bytes(&action)).await.unwrap();
+                }
+                else => break,
+            }
+        }
+    });
+    (session, seen)
+}
+
+fn config(endpoint: &str, episodes: u32) -> BridgeConfig {
+    BridgeConfig {
+        prefix: "ebmpc".into(),
+        endpoints: Endpoints {
+            listen: vec![],
+            connect: vec![endpoint.to_string()],
+        },
+        zenoh_config: None,
+        run: "test-run".into(),
+        agent: "bridge-0".into(),
+        spec: RunSpec {
+            task: TaskId::Cartpole,
+            preset: Some("cem+deen".into()),
+            overrides: Default::default(),
+            mode: TrainMode::Sync,
+            seed: 9,
+        },
+        episodes,
+        seed: 100,
+        attach_timeout: Duration::from_secs(20),
+        action_timeout: Duration::from_secs(20),
+        train_timeout: Duration::from_secs(20),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn episodes_run_step_by_step_and_report_the_simulators_rewards() {
+    let endpoint = free_endpoint();
+    let (_planner, seen) = start_planner(&endpoint, Script::default()).await;
+    let config = config(&endpoint, 2);
+    let mut streamed = Vec::new();
+    let records = sim_bridge::bridge::run(&config, |r| streamed.push(r.clone()))
+        .await
+        .unwrap();
+    assert_eq!(
+        records, streamed,
+        "each record is handed out as its episode ends"
+    );
+
+    let seen = seen.lock().unwrap();
+    assert_eq!(seen.attach.len(), 1);
+    assert_eq!(seen.attach[0].agent, "bridge-0");
+    assert_eq!(seen.attach[0].spec, config.spec);
+
+    // Episodes continue the run's numbering; each is the full time limit.
+    assert_eq!(
+        records.iter().map(|r| r.episode).collect::<Vec<_>>(),
+        [5, 6]
+    );
+    assert_eq!(seen.observations.len(), 2 * 201);
+    for record in &records {
+        assert_eq!((record.steps, record.end), (200, EpisodeEnd::TimeLimit));
+        let (planned, random) = if record.episode == 5 {
+            (0, 200)
+        } else {
+            (200, 0)
+        };
+        assert_eq!(
+            (record.actions.planned, record.actions.random),
+            (planned, random)
+        );
+    }
+
+    // Replaying the same seeds and actions locally gives exactly what was sent, and the
+    // returns are the sums of the sent rewards.
+    let mut env = Env::new(TaskId::Cartpole).unwrap();
+    for (record, sent) in records.iter().zip(seen.observations.chunks(201)) {
+        let start = env.reset(config.seed + u64::from(record.episode)).to_vec();
+        assert_eq!(sent[0].obs, start);
+        assert_eq!(
+            (sent[0].episode, sent[0].step, sent[0].reward, sent[0].end),
+            (record.episode, 0, None, None)
+        );
+        let mut total = 0.0;
+        for (step, msg) in sent.iter().enumerate().skip(1) {
+            let outcome = env.step(&scripted_action(step as u32 - 1)).unwrap();
+            assert_eq!((msg.episode, msg.step), (record.episode, step as u32));
+            assert_eq!(
+                msg.obs, outcome.obs,
+                "episode {} step {step}",
+                record.episode
+            );
+            assert_eq!(msg.reward, Some(outcome.reward));
+            assert_eq!(msg.end, (step == 200).then_some(EpisodeEnd::TimeLimit));
+            total += outcome.reward;
+        }
+        assert_eq!(record.episode_return, total);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refused_attach_is_reported_with_the_planners_reason() {
+    let endpoint = free_endpoint();
+    let script = Script {
+        reject: Some("run `test-run` learns ant, not cartpole".into()),
+        ..Script::default()
+    };
+    let (_planner, _) = start_planner(&endpoint, script).await;
+    let err = sim_bridge::bridge::run(&config(&endpoint, 1), |_| {})
+        .await
+        .unwrap_err();
+    assert!(matches!(err, BridgeError::AttachRejected { .. }), "{err}");
+    assert!(
+        err.to_string().contains("learns ant, not cartpole"),
+        "{err}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_missing_action_times_out_naming_the_step() {
+    let endpoint = free_endpoint();
+    let script = Script {
+        silent_at: Some(3),
+        ..Script::default()
+    };
+    let (_planner, seen) = start_planner(&endpoint, script).await;
+    let mut config = config(&endpoint, 1);
+    config.action_timeout = Duration::from_millis(500);
+    let err = sim_bridge::bridge::run(&config, |_| {}).await.unwrap_err();
+    match &err {
+        BridgeError::ActionTimeout {
+            episode: 5,
+            step: 3,
+            waited,
+            while_training: false,
+        } => {
+            assert!(*waited >= Duration::from_millis(500), "{waited:?}");
+        }
+        other => panic!("{other}"),
+    }
+    assert!(err.to_string().contains("episode 5 step 3"), "{err}");
+    assert_eq!(
+        seen.lock().unwrap().observations.len(),
+        4,
+        "steps 0..=3 were sent"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_error_for_the_pending_step_stops_the_bridge() {
+    let endpoint = free_endpoint();
+    let script = Script {
+        error_at: Some(7),
+        ..Script::default()
+    };
+    let (_planner, _) = start_planner(&endpoint, script).await;
+    let err = sim_bridge::bridge::run(&config(&endpoint, 1), |_| {})
+        .await
+        .unwrap_err();
+    match &err {
+        BridgeError::Planner {
+            episode: 5,
+            step: 7,
+            report,
+        } => assert_eq!(report.code, ErrorCode::Internal),
+        other => panic!("{other}"),
+    }
+    assert!(err.to_string().contains("scripted"), "{err}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_planner_is_a_clear_error() {
+    let endpoint = free_endpoint();
+    // Something to connect to, but nothing serves the attach key.
+    let endpoints = Endpoints {
+        listen: vec![endpoint.clone()],
+        connect: vec![],
+    };
+    let _peer = zenoh::open(zenoh_config(&endpoints, None).unwrap())
+        .await
+        .unwrap();
+    let mut config = config(&endpoint, 1);
+    config.attach_timeout = Duration::from_secs(1);
+    let err = sim_bridge::bridge::run(&config, |_| {}).await.unwrap_err();
+    assert!(matches!(err, BridgeError::NoPlanner { .. }), "{err}");
+    assert!(
+        err.to_string().contains("is planner-service running"),
+        "{err}"
+    );
+}
+
+#[tokio::test]
+async fn invalid_names_are_refused_before_connecting() {
+    let mut config = config("tcp/127.0.0.1:9", 1);
+    config.agent = "a/b".into();
+    let err = sim_bridge::bridge::run(&config, |_| {}).await.unwrap_err();
+    assert!(
+        matches!(
+            err,
+            BridgeError::InvalidName {
+                what: "agent name",
+                ..
+            }
+        ),
+        "{err}"
+    );
+}
