@@ -1,0 +1,336 @@
+//! `sim-bridge`: runs a MuJoCo task as an ebmpc agent, with actions from a planner over Zenoh.
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use proto::session::Endpoints;
+use proto::{PlannerOverrides, RegularizerChoice, RunSpec, TaskId, TrainMode};
+use sim_bridge::bridge::{self, BridgeConfig};
+use sim_bridge::csv::EpisodeCsv;
+use std::path::PathBuf;
+use std::time::Duration;
+use tracing_subscriber::EnvFilter;
+
+/// Runs a simulated task (MuJoCo) as an agent of an ebmpc planner: sends observations and
+/// rewards over Zenoh and applies the actions the planner answers with.
+#[derive(Parser, Debug)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Attach to a run on a planner and run episodes of a task (Ctrl-C stops; the planner
+    /// records the open episode as interrupted).
+    Run(Box<RunArgs>),
+    /// List the tasks of the catalog: dimensions, action bounds, episode length, control rate.
+    Tasks,
+}
+
+#[derive(Args, Debug)]
+struct RunArgs {
+    /// Task to simulate (see `sim-bridge tasks`).
+    #[arg(long, env = "EBMPC_TASK")]
+    task: TaskId,
+    /// Run to attach to: the planner creates it on first attach; other agents may join it.
+    #[arg(long, env = "EBMPC_RUN")]
+    run: String,
+    /// This agent's name within the run (attaching again under the same name resumes it).
+    #[arg(long, env = "EBMPC_AGENT")]
+    agent: String,
+    /// Number of episodes to run.
+    #[arg(long, env = "EBMPC_EPISODES")]
+    episodes: u32,
+    /// Seed: episode e starts from the state drawn with seed + e; also the run's model seed
+    /// unless --planner-seed is given.
+    #[arg(long, env = "EBMPC_SEED", default_value_t = 0)]
+    seed: u64,
+    /// Write one CSV row per episode here (`episode,return,steps,wall_seconds`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+
+    /// Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable, or comma-separated).
+    #[arg(long, env = "EBMPC_LISTEN", value_delimiter = ',')]
+    listen: Vec<String>,
+    /// Zenoh endpoint of the planner or a router, e.g. tcp/127.0.0.1:7447 (repeatable, or
+    /// comma-separated). Multicast scouting is off: give at least one of --connect / --listen.
+    #[arg(long, env = "EBMPC_CONNECT", value_delimiter = ',')]
+    connect: Vec<String>,
+    /// Zenoh configuration file to start from (JSON5); endpoints above still apply.
+    #[arg(long, env = "EBMPC_ZENOH_CONFIG")]
+    zenoh_config: Option<PathBuf>,
+    /// Key prefix shared with the planner.
+    #[arg(long, env = "EBMPC_PREFIX", default_value = proto::keys::DEFAULT_PREFIX)]
+    prefix: String,
+
+    /// Seconds to keep asking for a planner to attach to.
+    #[arg(long, env = "EBMPC_ATTACH_TIMEOUT", default_value_t = 60.0)]
+    attach_timeout: f64,
+    /// Seconds to wait for each action.
+    #[arg(long, env = "EBMPC_ACTION_TIMEOUT", default_value_t = 60.0)]
+    action_timeout: f64,
+    /// Seconds to wait for the first action of each later episode, which in sync mode comes
+    /// only after the planner has retrained on the episodes so far.
+    #[arg(long, env = "EBMPC_TRAIN_TIMEOUT", default_value_t = 3600.0)]
+    train_timeout: f64,
+
+    #[command(flatten)]
+    spec: SpecArgs,
+}
+
+/// The run spec sent when attaching. It creates the run if it is new; a run that exists keeps
+/// its own configuration (only the task must match).
+#[derive(Args, Debug)]
+#[command(next_help_heading = "Run spec (used when the run is created)")]
+struct SpecArgs {
+    /// Planner preset: cem, cem+dae, cem+deen (the paper's default), pets, pets+deen.
+    #[arg(long)]
+    preset: Option<String>,
+    /// sync: the next episode starts once the models are retrained (the paper's protocol);
+    /// async: keep acting with the previous models while training.
+    #[arg(long, value_enum, default_value_t = Mode::Sync)]
+    mode: Mode,
+    /// Seed of the run's models and planner (default: --seed).
+    #[arg(long)]
+    planner_seed: Option<u64>,
+    /// Energy regulariser of the planning objective.
+    #[arg(long, value_enum)]
+    regularizer: Option<Regularizer>,
+    /// Weight alpha of the energy in the planning objective.
+    #[arg(long)]
+    energy_weight: Option<f32>,
+    /// Members of the dynamics ensemble.
+    #[arg(long)]
+    ensemble_size: Option<u32>,
+    /// Trajectory-sampling particles per candidate action sequence.
+    #[arg(long)]
+    particles: Option<u32>,
+    /// Planning horizon in control steps.
+    #[arg(long)]
+    horizon: Option<u32>,
+    /// CEM population size.
+    #[arg(long)]
+    population: Option<u32>,
+    /// CEM elites.
+    #[arg(long)]
+    elites: Option<u32>,
+    /// CEM iterations per action.
+    #[arg(long)]
+    cem_iterations: Option<u32>,
+    /// Episodes of uniformly random actions before planning starts.
+    #[arg(long)]
+    exploration_episodes: Option<u32>,
+    /// Training epochs of the dynamics model after each episode.
+    #[arg(long)]
+    dynamics_epochs: Option<u32>,
+    /// Hidden layers of the dynamics model.
+    #[arg(long)]
+    dynamics_hidden_layers: Option<u32>,
+    /// Width of the dynamics model's hidden layers.
+    #[arg(long)]
+    dynamics_hidden_size: Option<u32>,
+    /// Training epochs of the energy model after each episode.
+    #[arg(long)]
+    energy_epochs: Option<u32>,
+    /// Hidden layers of the energy model.
+    #[arg(long)]
+    energy_hidden_layers: Option<u32>,
+    /// Width of the energy model's hidden layers.
+    #[arg(long)]
+    energy_hidden_size: Option<u32>,
+}
+
+/// Command-line spelling of [`TrainMode`].
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum Mode {
+    Sync,
+    Async,
+}
+
+/// Command-line spelling of [`RegularizerChoice`].
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum Regularizer {
+    None,
+    Dae,
+    Deen,
+}
+
+impl SpecArgs {
+    fn into_spec(self, task: TaskId, seed: u64) -> RunSpec {
+        RunSpec {
+            task,
+            preset: self.preset,
+            overrides: PlannerOverrides {
+                regularizer: self.regularizer.map(|r| match r {
+                    Regularizer::None => RegularizerChoice::None,
+                    Regularizer::Dae => RegularizerChoice::Dae,
+                    Regularizer::Deen => RegularizerChoice::Deen,
+                }),
+                energy_weight: self.energy_weight,
+                ensemble_size: self.ensemble_size,
+                particles: self.particles,
+                horizon: self.horizon,
+                population: self.population,
+                elites: self.elites,
+                cem_iterations: self.cem_iterations,
+                exploration_episodes: self.exploration_episodes,
+                dynamics_epochs: self.dynamics_epochs,
+                dynamics_hidden_layers: self.dynamics_hidden_layers,
+                dynamics_hidden_size: self.dynamics_hidden_size,
+                energy_epochs: self.energy_epochs,
+                energy_hidden_layers: self.energy_hidden_layers,
+                energy_hidden_size: self.energy_hidden_size,
+            },
+            mode: match self.mode {
+                Mode::Sync => TrainMode::Sync,
+                Mode::Async => TrainMode::Async,
+            },
+            seed: self.planner_seed.unwrap_or(seed),
+        }
+    }
+}
+
+fn seconds(name: &str, value: f64) -> Result<Duration> {
+    Duration::try_from_secs_f64(value)
+        .with_context(|| format!("--{name} {value}: not a number of seconds"))
+}
+
+impl RunArgs {
+    fn into_config(self) -> Result<(BridgeConfig, Option<PathBuf>)> {
+        if self.listen.is_empty() && self.connect.is_empty() && self.zenoh_config.is_none() {
+            bail!(
+                "no Zenoh endpoints: multicast scouting is off, so give --connect ENDPOINT (the planner's \
+                 --listen address or a router), --listen ENDPOINT, or --zenoh-config FILE"
+            );
+        }
+        if self.episodes == 0 {
+            bail!("--episodes must be at least 1");
+        }
+        let config = BridgeConfig {
+            prefix: self.prefix,
+            endpoints: Endpoints {
+                listen: self.listen,
+                connect: self.connect,
+            },
+            zenoh_config: self.zenoh_config,
+            run: self.run,
+            agent: self.agent,
+            episodes: self.episodes,
+            seed: self.seed,
+            attach_timeout: seconds("attach-timeout", self.attach_timeout)?,
+            action_timeout: seconds("action-timeout", self.action_timeout)?,
+            train_timeout: seconds("train-timeout", self.train_timeout)?,
+            spec: self.spec.into_spec(self.task, self.seed),
+        };
+        Ok((config, self.out))
+    }
+}
+
+async fn run(args: RunArgs) -> Result<()> {
+    let (config, out) = args.into_config()?;
+    let mut csv = match &out {
+        Some(path) => {
+            Some(EpisodeCsv::create(path).with_context(|| format!("creating {}", path.display()))?)
+        }
+        None => None,
+    };
+    let mut write_error = None;
+    let on_episode = |record: &bridge::EpisodeRecord| {
+        println!(
+            "episode {} return {:.3} ({} steps)",
+            record.episode, record.episode_return, record.steps
+        );
+        if let Some(csv) = csv.as_mut()
+            && let Err(e) = csv.append(record)
+            && write_error.is_none()
+        {
+            tracing::error!(error = %e, "cannot write the episode to the CSV file");
+            write_error = Some(e);
+        }
+    };
+    let records = tokio::select! {
+        result = bridge::run(&config, on_episode) => result.context("sim-bridge stopped")?,
+        signal = tokio::signal::ctrl_c() => {
+            signal.context("listening for Ctrl-C")?;
+            bail!("interrupted (Ctrl-C); the planner records the open episode as interrupted");
+        }
+    };
+    if let (Some(e), Some(path)) = (write_error, &out) {
+        return Err(e).with_context(|| format!("writing {}", path.display()));
+    }
+    let returns: Vec<f32> = records.iter().map(|r| r.episode_return).collect();
+    let mean = returns.iter().sum::<f32>() / returns.len() as f32;
+    let best = returns.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    tracing::info!(
+        episodes = records.len(),
+        mean_return = mean,
+        best_return = best,
+        "done"
+    );
+    Ok(())
+}
+
+fn list_tasks() {
+    println!(
+        "{:<12} {:>4} {:>4}  {:<16} {:>8} {:>10} {:>8}  simulator",
+        "task", "obs", "act", "action bounds", "episode", "control dt", "rate"
+    );
+    for &task in TaskId::ALL {
+        let spec = task.spec();
+        let bounds = bounds_text(spec.action_low, spec.action_high);
+        let simulated = if sim_bridge::SIMULATED.contains(&task) {
+            "yes"
+        } else {
+            "not yet"
+        };
+        println!(
+            "{:<12} {:>4} {:>4}  {:<16} {:>8} {:>9}s {:>6.1}Hz  {simulated}",
+            task.name(),
+            spec.obs_dim,
+            spec.act_dim,
+            bounds,
+            spec.episode_len,
+            spec.control_dt,
+            1.0 / spec.control_dt,
+        );
+    }
+}
+
+/// `±3` when every dimension has the same symmetric bounds, `[lo, hi]` otherwise.
+fn bounds_text(low: &[f32], high: &[f32]) -> String {
+    let symmetric = low
+        .iter()
+        .zip(high)
+        .all(|(l, h)| *l == -*h && *h == high[0]);
+    if symmetric {
+        format!("±{}", high[0])
+    } else if low.iter().all(|l| *l == low[0]) && high.iter().all(|h| *h == high[0]) {
+        format!("[{}, {}]", low[0], high[0])
+    } else {
+        "per dimension".to_string()
+    }
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Tasks => {
+            list_tasks();
+            Ok(())
+        }
+        Command::Run(args) => {
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()
+                .context("starting the tokio runtime")?;
+            runtime.block_on(run(*args))
+        }
+    }
+}
