@@ -1,10 +1,15 @@
 //! Cartpole swing-up: a cart on an unlimited rail with a 0.6 m pole, θ = 0 hanging down.
 //!
 //! The model is `assets/cartpole.xml` (our own MJCF, written from the PETS task's published
-//! facts): 0.02 s RK4 steps, two per 0.04 s control step, a ±3 N motor on the cart, a 0.1 kg cart
-//! and a 0.05 kg pole (PETS's authority with force = action; see the MJCF's header). The observation is `[x, θ, ẋ, θ̇]`, the slider and hinge coordinates
-//! as they are, with the hinge about +y so that the pole's tip is at `(x − 0.6 sin θ, −0.6 cos θ)`,
-//! proto's [`proto::task::cartpole`] convention (θ = π is upright). θ is not wrapped: the planner's
+//! facts): 0.02 s RK4 steps, two per 0.04 s control step, a motor on the cart whose force in
+//! newtons is the action (±3). Deviation from PETS, whose gear-100 motor drives a ~10 kg cart
+//! and a ~5 kg pole: with force = action the masses are scaled down (0.1 kg cart, 0.05 kg pole)
+//! to keep PETS's control authority and mass ratio, so the swing-up takes about a second as
+//! there; the rail has no end stops. See the MJCF's header for the numbers.
+//!
+//! The observation is `[x, θ, ẋ, θ̇]`, the slider and hinge coordinates as they are, with the
+//! hinge about +y so that the pole's tip is at `(x − 0.6 sin θ, −0.6 cos θ)`: proto's
+//! [`proto::task::cartpole`] convention (θ = π is upright). θ is not wrapped; the planner's
 //! features put it on the circle. Initial state: all four numbers ~ N(0, 0.1).
 
 use super::TaskSim;
