@@ -14,8 +14,8 @@ use crate::error::SimError;
 use crate::link::{Inbound, PlannerLink};
 use proto::session::Endpoints;
 use proto::{
-    Action, ActionSource, AttachAccepted, CodecError, EpisodeEnd, ErrorReport, Keys, Observation,
-    PROTOCOL_VERSION, PlanStats, RunEvent, RunEventKind, RunSpec, TrainMode,
+    Action, ActionSource, AttachAccepted, CodecError, EpisodeEnd, ErrorCode, ErrorReport, Keys,
+    Observation, PROTOCOL_VERSION, PlanStats, RunEvent, RunEventKind, RunSpec, TaskSpec, TrainMode,
 };
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -170,6 +170,10 @@ pub enum BridgeError {
         step: u32,
         report: ErrorReport,
     },
+    #[error(
+        "lost the planner {attempts} times in a row without finishing an episode; last: {reason}"
+    )]
+    PlannerLost { reason: String, attempts: u32 },
     #[error("the planner sent an invalid action for episode {episode} step {step}: {reason}")]
     InvalidAction {
         episode: u32,
@@ -197,43 +201,86 @@ pub async fn run(
         config.zenoh_config.as_deref(),
     )
     .await?;
-    let accepted = link.attach(&config.spec, config.attach_timeout).await?;
-    if accepted.task != task {
-        return Err(BridgeError::TaskMismatch {
-            expected: task,
-            found: accepted.task,
-        });
-    }
-    log_attached(config, &accepted);
+    let mut accepted = attach(&mut link, config).await?;
 
     let mut records = Vec::with_capacity(config.episodes as usize);
-    for i in 0..config.episodes {
-        let episode = accepted.next_episode + i;
+    let mut episode = accepted.next_episode;
+    let mut reattached = 0;
+    while records.len() < config.episodes as usize {
         // Sync mode: the planner holds an episode's first action until it has retrained on the
         // episodes before it.
-        let first_wait = if i > 0 && accepted.mode == TrainMode::Sync {
+        let first_wait = if !records.is_empty() && accepted.mode == TrainMode::Sync {
             FirstWait::Training(config.train_timeout)
         } else {
             FirstWait::Action
         };
-        let record = run_episode(&mut env, &link, config, episode, first_wait).await?;
-        tracing::info!(
-            episode,
-            steps = record.steps,
-            episode_return = record.episode_return,
-            end = ?record.end,
-            seconds = record.wall_seconds,
-            "episode {}/{} done: return {:.2} ({})",
-            i + 1,
-            config.episodes,
-            record.episode_return,
-            record.actions
-        );
-        on_episode(&record);
-        records.push(record);
+        match run_episode(&mut env, &mut link, config, episode, first_wait).await? {
+            EpisodeOutcome::Finished(record) => {
+                reattached = 0;
+                episode += 1;
+                tracing::info!(
+                    episode = record.episode,
+                    steps = record.steps,
+                    episode_return = record.episode_return,
+                    end = ?record.end,
+                    seconds = record.wall_seconds,
+                    "episode {}/{} done: return {:.2} ({})",
+                    records.len() + 1,
+                    config.episodes,
+                    record.episode_return,
+                    record.actions
+                );
+                on_episode(&record);
+                records.push(record);
+            }
+            EpisodeOutcome::PlannerLost(reason) => {
+                reattached += 1;
+                if reattached > MAX_REATTACH {
+                    return Err(BridgeError::PlannerLost {
+                        reason,
+                        attempts: MAX_REATTACH,
+                    });
+                }
+                tracing::warn!(
+                    episode,
+                    "{reason}: attaching again; the episode starts over"
+                );
+                accepted = attach(&mut link, config).await?;
+                // Never reuse the number of the abandoned episode.
+                episode = accepted.next_episode.max(episode + 1);
+            }
+        }
     }
     link.close().await?;
     Ok(records)
+}
+
+/// Consecutive re-attachments without a finished episode before the bridge gives up.
+const MAX_REATTACH: u32 = 3;
+
+/// Attaches (or re-attaches) to the run and checks that it learns our task.
+async fn attach(
+    link: &mut PlannerLink,
+    config: &BridgeConfig,
+) -> Result<AttachAccepted, BridgeError> {
+    let accepted = link.attach(&config.spec, config.attach_timeout).await?;
+    if accepted.task != config.spec.task {
+        return Err(BridgeError::TaskMismatch {
+            expected: config.spec.task,
+            found: accepted.task,
+        });
+    }
+    log_attached(config, &accepted);
+    Ok(accepted)
+}
+
+/// How an episode ended for the bridge.
+#[derive(Debug)]
+enum EpisodeOutcome {
+    Finished(EpisodeRecord),
+    /// The planner lost this agent (it restarted, or no longer knows the run or the agent):
+    /// attach again and start a new episode.
+    PlannerLost(String),
 }
 
 /// How long an episode's first action may take.
@@ -245,11 +292,11 @@ enum FirstWait {
 
 async fn run_episode(
     env: &mut Env,
-    link: &PlannerLink,
+    link: &mut PlannerLink,
     config: &BridgeConfig,
     episode: u32,
     first_wait: FirstWait,
-) -> Result<EpisodeRecord, BridgeError> {
+) -> Result<EpisodeOutcome, BridgeError> {
     let started = Instant::now();
     let obs = env
         .reset(config.seed.wrapping_add(u64::from(episode)))
@@ -263,7 +310,12 @@ async fn run_episode(
             (0, FirstWait::Training(t)) => (t, true),
             _ => (config.action_timeout, false),
         };
-        let action = wait_for_action(link, env, episode, step, timeout, while_training).await?;
+        let action = match wait_for_action(link, env.spec(), episode, step, timeout, while_training)
+            .await?
+        {
+            Waited::Action(action) => action,
+            Waited::PlannerLost(reason) => return Ok(EpisodeOutcome::PlannerLost(reason)),
+        };
         actions.add(&action.stats);
         let outcome = env.step(&action.action)?;
         episode_return += outcome.reward;
@@ -285,14 +337,14 @@ async fn run_episode(
         .await?;
         if let Some(end) = end {
             let wall_seconds = started.elapsed().as_secs_f64();
-            return Ok(EpisodeRecord {
+            return Ok(EpisodeOutcome::Finished(EpisodeRecord {
                 episode,
                 episode_return,
                 steps: step,
                 end,
                 wall_seconds,
                 actions,
-            });
+            }));
         }
     }
 }
@@ -314,40 +366,46 @@ fn observation(
     }
 }
 
+/// What waiting for an action produced.
+enum Waited {
+    Action(Action),
+    /// The planner lost this agent; the reason, for the log.
+    PlannerLost(String),
+}
+
 /// Waits for the action for `(episode, step)`, logging what else arrives meanwhile.
 async fn wait_for_action(
-    link: &PlannerLink,
-    env: &Env,
+    link: &mut PlannerLink,
+    task: &TaskSpec,
     episode: u32,
     step: u32,
     timeout: Duration,
     while_training: bool,
-) -> Result<Action, BridgeError> {
+) -> Result<Waited, BridgeError> {
     let started = tokio::time::Instant::now();
     let deadline = started + timeout;
     loop {
-        let inbound = match tokio::time::timeout_at(deadline, link.recv()).await {
-            Ok(inbound) => inbound?,
-            Err(_) => {
-                return Err(BridgeError::ActionTimeout {
-                    episode,
-                    step,
-                    waited: started.elapsed(),
-                    while_training,
-                });
-            }
+        let Ok(inbound) = tokio::time::timeout_at(deadline, link.recv()).await else {
+            let waited = started.elapsed();
+            return Err(BridgeError::ActionTimeout {
+                episode,
+                step,
+                waited,
+                while_training,
+            });
         };
-        match inbound {
+        match inbound? {
             Inbound::Action(action) if action.episode == episode && action.step == step => {
-                proto::validate::validate_action(&action, env.spec()).map_err(|e| {
+                proto::validate::validate_action(&action, task).map_err(|e| {
                     BridgeError::InvalidAction {
                         episode,
                         step,
                         reason: e.to_string(),
                     }
                 })?;
-                tracing::debug!(episode, step, source = ?action.stats.source, planning_ms = action.stats.planning_ms, "action");
-                return Ok(action);
+                let stats = &action.stats;
+                tracing::debug!(episode, step, source = ?stats.source, planning_ms = stats.planning_ms, "action");
+                return Ok(Waited::Action(action));
             }
             Inbound::Action(stale) => {
                 tracing::debug!(
@@ -356,30 +414,37 @@ async fn wait_for_action(
                     "ignoring an action for another step"
                 );
             }
-            Inbound::Error(report) => {
-                if is_fatal(&report, episode, step) {
-                    return Err(BridgeError::Planner {
-                        episode,
-                        step,
-                        report,
-                    });
-                }
-                tracing::warn!("planner reported: {report}");
+            Inbound::Error(report)
+                if matches!(report.code, ErrorCode::NotAttached | ErrorCode::UnknownRun) =>
+            {
+                return Ok(Waited::PlannerLost(format!(
+                    "the planner no longer knows this agent ({report})"
+                )));
             }
+            Inbound::Error(report) if is_fatal(&report, episode, step) => {
+                return Err(BridgeError::Planner {
+                    episode,
+                    step,
+                    report,
+                });
+            }
+            Inbound::Error(report) => tracing::warn!("planner reported: {report}"),
             Inbound::Event(event) => log_event(&event),
-            Inbound::PlannerAlive(true) => tracing::info!("the planner is reachable again"),
-            Inbound::PlannerAlive(false) => tracing::warn!(
-                "the planner went away; waiting {:.0} s more for it to answer",
-                (deadline - tokio::time::Instant::now()).as_secs_f64()
+            // A restarted planner has lost the observation in flight and this agent's session.
+            Inbound::PlannerBack => return Ok(Waited::PlannerLost("the planner restarted".into())),
+            Inbound::PlannerGone => tracing::warn!(
+                "the planner went away; waiting up to {:.0} s for it to come back",
+                deadline
+                    .saturating_duration_since(tokio::time::Instant::now())
+                    .as_secs_f64()
             ),
         }
     }
 }
 
 /// Whether an error report means the action being waited for will never come: one about the
-/// message in flight, or one about no message in particular (an unknown run, an agent the
-/// planner no longer knows, a message it could not decode). Reports about earlier steps are
-/// only logged.
+/// message in flight, or one about no message in particular (e.g. one the planner could not
+/// decode). Reports about earlier steps are only logged.
 fn is_fatal(report: &ErrorReport, episode: u32, step: u32) -> bool {
     match (report.episode, report.step) {
         (Some(e), Some(s)) => e == episode && s == step,

@@ -40,8 +40,11 @@ pub(crate) enum Inbound {
     Error(ErrorReport),
     /// Something that happened to the run (training, models, other agents' episodes).
     Event(RunEvent),
-    /// The attached planner's liveliness token appeared (`true`) or went away (`false`).
-    PlannerAlive(bool),
+    /// The attached planner's liveliness token went away (it stopped, or the link broke).
+    PlannerGone,
+    /// The planner's token is back after [`Inbound::PlannerGone`]: it restarted and has
+    /// forgotten this agent.
+    PlannerBack,
 }
 
 /// One agent's connection to its run.
@@ -56,6 +59,8 @@ pub(crate) struct PlannerLink {
     events: Subscriber<FifoChannelHandler<Sample>>,
     /// Set once attached: the planner's liveliness, so its departure is noticed.
     planner_alive: Option<Subscriber<FifoChannelHandler<Sample>>>,
+    /// Whether the planner's token went away since the last attach.
+    planner_gone: bool,
     _token: LivelinessToken,
 }
 
@@ -125,6 +130,7 @@ impl PlannerLink {
             errors,
             events,
             planner_alive: None,
+            planner_gone: false,
             _token: token,
         })
     }
@@ -184,6 +190,7 @@ impl PlannerLink {
             .await
             .map_err(zenoh_err(format!("watching {alive_key}")))?;
         self.planner_alive = Some(alive);
+        self.planner_gone = false;
 
         while !self.planner_listens().await? {
             if Instant::now() >= deadline {
@@ -268,7 +275,7 @@ impl PlannerLink {
     /// The next message for this agent. Actions and errors that do not decode are errors
     /// (they would leave the loop waiting for an answer that never comes); events that do not
     /// decode are logged and skipped.
-    pub async fn recv(&self) -> Result<Inbound, BridgeError> {
+    pub async fn recv(&mut self) -> Result<Inbound, BridgeError> {
         loop {
             let alive = async {
                 match &self.planner_alive {
@@ -294,7 +301,17 @@ impl PlannerLink {
                 }
                 sample = alive => {
                     let sample = sample.map_err(|e| closed("planner liveliness", e))?;
-                    return Ok(Inbound::PlannerAlive(sample.kind() == SampleKind::Put));
+                    match (sample.kind(), self.planner_gone) {
+                        (SampleKind::Delete, false) => {
+                            self.planner_gone = true;
+                            return Ok(Inbound::PlannerGone);
+                        }
+                        (SampleKind::Put, true) => {
+                            self.planner_gone = false;
+                            return Ok(Inbound::PlannerBack);
+                        }
+                        _ => {}
+                    }
                 }
             }
         }

@@ -338,3 +338,39 @@ async fn invalid_names_are_refused_before_connecting() {
         "{err}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restarted_planner_is_attached_again_and_the_episode_starts_over() {
+    let endpoint = free_endpoint();
+    let script = Script {
+        silent_at: Some(3),
+        ..Script::default()
+    };
+    let (first, seen_by_first) = start_planner(&endpoint, script).await;
+    let config = config(&endpoint, 1);
+    let bridge = tokio::spawn({
+        let config = config.clone();
+        async move { sim_bridge::bridge::run(&config, |_| {}).await }
+    });
+
+    // The first planner stalls at step 3 of episode 5; then it is stopped and replaced.
+    let stalled = tokio::time::Instant::now() + Duration::from_secs(20);
+    while seen_by_first.lock().unwrap().observations.len() < 4 {
+        assert!(
+            tokio::time::Instant::now() < stalled,
+            "the bridge never reached step 3"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    first.close().await.unwrap();
+    let (_second, seen_by_second) = start_planner(&endpoint, Script::default()).await;
+
+    let records = bridge.await.unwrap().unwrap();
+    assert_eq!(records.len(), 1);
+    // The abandoned episode's number is not reused.
+    assert_eq!((records[0].episode, records[0].steps), (6, 200));
+    let seen = seen_by_second.lock().unwrap();
+    assert_eq!(seen.attach.len(), 1, "attached again");
+    assert_eq!(seen.observations.len(), 201);
+    assert!(seen.observations.iter().all(|o| o.episode == 6));
+}
