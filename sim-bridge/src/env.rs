@@ -121,10 +121,10 @@ impl Env {
         self.spec.clamp_action(&mut self.action);
 
         std::mem::swap(&mut self.prev_obs, &mut self.obs);
-        self.sim.step(&self.action);
+        let stable = self.sim.step(&self.action).is_ok();
         self.sim.observe(&mut self.obs);
         self.steps += 1;
-        if self.obs.iter().any(|v| !v.is_finite()) {
+        if !stable || self.obs.iter().any(|v| !v.is_finite()) {
             self.done = true;
             return Err(SimError::Diverged {
                 step: self.steps,
@@ -321,6 +321,21 @@ mod tests {
             Err(SimError::EpisodeOver { steps: 200 })
         ));
         env.reset(12);
+        assert!(env.step(&[0.0]).is_ok());
+    }
+
+    #[test]
+    fn a_blown_up_simulation_is_an_error_not_a_silent_reset() {
+        let mut env = cartpole();
+        env.set_state(&[0.0, 0.0, 1e12, 0.0]).unwrap();
+        let err = env.step(&[0.0]).unwrap_err();
+        assert!(matches!(err, SimError::Diverged { step: 1, .. }), "{err}");
+        // The episode is over; a reset starts a sane one.
+        assert!(matches!(
+            env.step(&[0.0]),
+            Err(SimError::EpisodeOver { .. })
+        ));
+        env.reset(0);
         assert!(env.step(&[0.0]).is_ok());
     }
 

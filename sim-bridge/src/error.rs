@@ -49,7 +49,10 @@ pub enum SimError {
     #[error("episode is over after {steps} steps; call reset before stepping again")]
     EpisodeOver { steps: u32 },
 
-    /// The physics produced a non-finite observation (an unstable model or an absurd state).
-    #[error("simulation diverged at step {step}: observation {obs:?}")]
+    /// The physics blew up (an unstable model or an absurd state): MuJoCo had to reset the
+    /// simulation, or the observation is not finite. `obs` is what the simulator holds now.
+    #[error(
+        "simulation diverged at step {step} (MuJoCo reset it or it went non-finite): now at {obs:?}"
+    )]
     Diverged { step: u32, obs: Vec<f32> },
 }

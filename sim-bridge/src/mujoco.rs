@@ -7,7 +7,7 @@
 //! learned model and the real system disagree), applying controls and advancing one control step.
 
 use crate::error::SimError;
-use mujoco_rs::prelude::{MjData, MjModel, MjtIntegrator};
+use mujoco_rs::prelude::{MjData, MjModel, MjtIntegrator, MjtWarning};
 use proto::TaskSpec;
 
 /// How a task's MJCF is meant to be run.
@@ -20,6 +20,10 @@ pub(crate) struct ModelConfig {
     /// The integrator the task is specified with (tasks.md).
     pub integrator: MjtIntegrator,
 }
+
+/// MuJoCo had to reset a simulation whose state blew up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Unstable;
 
 /// One loaded model and its simulation state.
 #[derive(Debug)]
@@ -98,13 +102,37 @@ impl MjSim {
     }
 
     /// Holds `ctrl` (already clamped and finite) for one control step of `substeps` physics steps.
-    pub fn advance(&mut self, ctrl: &[f32]) {
+    ///
+    /// # Errors
+    /// [`Unstable`] if MuJoCo found a position, velocity or acceleration non-finite or beyond
+    /// its limits. MuJoCo then silently resets the state to the model's rest pose, which must
+    /// not be passed off as the system's next state.
+    pub fn advance(&mut self, ctrl: &[f32]) -> Result<(), Unstable> {
         for (c, &a) in self.data.ctrl_mut().iter_mut().zip(ctrl) {
             *c = f64::from(a);
         }
+        let before = self.instabilities();
         for _ in 0..self.substeps {
             self.data.step();
         }
+        if self.instabilities() == before {
+            Ok(())
+        } else {
+            Err(Unstable)
+        }
+    }
+
+    /// How often MuJoCo has reset the simulation for a bad state since the last reset.
+    fn instabilities(&self) -> i64 {
+        let warnings = self.data.warning();
+        [
+            MjtWarning::mjWARN_BADQPOS,
+            MjtWarning::mjWARN_BADQVEL,
+            MjtWarning::mjWARN_BADQACC,
+        ]
+        .iter()
+        .map(|&w| i64::from(warnings[w as usize].number))
+        .sum()
     }
 
     /// Cartesian position of the named site (valid after [`MjSim::set_state`] or a step).

@@ -14,7 +14,7 @@
 
 use super::TaskSim;
 use crate::error::SimError;
-use crate::mujoco::{MjSim, ModelConfig};
+use crate::mujoco::{MjSim, ModelConfig, Unstable};
 use mujoco_rs::prelude::MjtIntegrator;
 use proto::TaskId;
 use rand::rngs::StdRng;
@@ -60,8 +60,8 @@ impl TaskSim for Cartpole {
         self.sim.set_state(&qpos, &qvel);
     }
 
-    fn step(&mut self, action: &[f32]) {
-        self.sim.advance(action);
+    fn step(&mut self, action: &[f32]) -> Result<(), Unstable> {
+        self.sim.advance(action)
     }
 
     fn observe(&self, out: &mut [f32]) {
@@ -128,7 +128,7 @@ mod tests {
         let mut c = Cartpole::new().unwrap();
         c.set_state(&[0.0; 4]).unwrap();
         for _ in 0..10 {
-            c.step(&[3.0]);
+            c.step(&[3.0]).unwrap();
         }
         let pushed = observe(&c);
         assert!(pushed[0] > 0.1 && pushed[2] > 0.5, "{pushed:?}");
@@ -138,7 +138,7 @@ mod tests {
 
         c.set_state(&[0.0; 4]).unwrap();
         for _ in 0..10 {
-            c.step(&[-3.0]);
+            c.step(&[-3.0]).unwrap();
         }
         let left = observe(&c);
         assert!(
@@ -152,14 +152,14 @@ mod tests {
         let mut c = Cartpole::new().unwrap();
         // Released from horizontal at rest, the pole falls towards hanging down (θ → 0).
         c.set_state(&[0.0, PI / 2.0, 0.0, 0.0]).unwrap();
-        c.step(&[0.0]);
+        c.step(&[0.0]).unwrap();
         let after = observe(&c);
         assert!(after[1] < PI / 2.0 && after[3] < 0.0, "{after:?}");
         // It swings through the bottom well up the other side, but not as high as it started:
         // damping only takes energy out, ...
         let mut min_theta = f32::MAX;
         for _ in 0..40 {
-            c.step(&[0.0]);
+            c.step(&[0.0]).unwrap();
             min_theta = min_theta.min(observe(&c)[1]);
         }
         assert!(
@@ -169,7 +169,7 @@ mod tests {
         // ... and the upright position is an unstable equilibrium: a nudge makes it fall.
         c.set_state(&[0.0, PI - 0.01, 0.0, 0.0]).unwrap();
         for _ in 0..50 {
-            c.step(&[0.0]);
+            c.step(&[0.0]).unwrap();
         }
         let fallen = observe(&c);
         assert!((fallen[1] - PI).abs() > 1.0, "{fallen:?}");
@@ -205,7 +205,7 @@ mod tests {
             let obs = observe(&c);
             let mut act = [swing_up_controller(&obs)];
             spec.clamp_action(&mut act);
-            c.step(&act);
+            c.step(&act).unwrap();
             let r = spec.reward(&obs, &act, &observe(&c));
             total += r;
             if step >= spec.episode_len - 50 {

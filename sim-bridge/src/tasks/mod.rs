@@ -8,6 +8,7 @@
 mod cartpole;
 
 use crate::error::SimError;
+use crate::mujoco::Unstable;
 use proto::TaskId;
 use rand::rngs::StdRng;
 
@@ -20,7 +21,7 @@ pub(crate) trait TaskSim: Send {
     fn reset(&mut self, rng: &mut StdRng);
 
     /// Advances one control step holding `action` (finite, within the task's bounds).
-    fn step(&mut self, action: &[f32]);
+    fn step(&mut self, action: &[f32]) -> Result<(), Unstable>;
 
     /// Writes the current observation (`obs_dim` numbers) into `out`.
     fn observe(&self, out: &mut [f32]);
