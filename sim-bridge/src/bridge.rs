@@ -8,6 +8,9 @@
 //! Each wait for an action has a deadline. The first action of every episode but this process's
 //! first may wait for the planner to retrain (sync mode), so it gets the longer train timeout.
 //! Training events are logged as they arrive, so a long wait shows what the planner is doing.
+//! If the planner restarts (its liveliness token goes and comes back) or says it no longer knows
+//! this agent, the bridge attaches again and starts the interrupted episode over under a new
+//! number; the planner has recorded the old one as interrupted.
 
 use crate::env::Env;
 use crate::error::SimError;
