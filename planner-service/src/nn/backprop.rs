@@ -1,0 +1,274 @@
+//! Training passes: a forward pass that records what backpropagation needs, and the backward
+//! pass giving the parameter gradient and, on request, the input gradient.
+//!
+//! With layers `zₗ = Wₗᵀ hₗ₋₁ + bₗ`, `hₗ = σ(zₗ)` (feature-major, one column per sample) and
+//! `Gₗ = ∂L/∂zₗ` given at the output, backpropagation is
+//! `∂L/∂Wₗ = hₗ₋₁ Gₗᵀ`, `∂L/∂bₗ = Gₗ 1`, `Gₗ₋₁ = (Wₗ Gₗ) ⊙ σ'(zₗ₋₁)`, and `∂L/∂x = W₁ G₁`.
+
+use super::aligned::{AlignedBuf, round_up};
+use super::matmul::{Init, MatMut, MatRef, matmul_par};
+use super::mlp::{Mlp, spans};
+
+/// Buffers of one training pass for batches of up to `capacity` samples.
+#[derive(Clone, Debug)]
+pub struct Tape {
+    sizes: Vec<usize>,
+    ld: usize,
+    samples: usize,
+    /// `h[0]`: the input; `h[l]`: layer `l`'s activations; `h[L]`: the output.
+    h: Vec<AlignedBuf>,
+    /// `d1[l - 1] = σ'(zₗ)` for hidden layer `l`.
+    d1: Vec<AlignedBuf>,
+    out_grad: AlignedBuf,
+    /// Ping-pong buffers for `Gₗ` below the output; the input gradient ends in one of them.
+    g: [AlignedBuf; 2],
+    input_grad_in: Option<usize>,
+    /// `Gₗᵀ`, sample-major, the right factor of the weight gradient.
+    gt: AlignedBuf,
+}
+
+impl Tape {
+    /// Buffers for `mlp` on batches of up to `capacity` samples.
+    pub fn new(mlp: &Mlp, capacity: usize) -> Self {
+        let ld = round_up(capacity.max(1));
+        let sizes = mlp.sizes().to_vec();
+        let width = mlp.max_width();
+        Self {
+            h: sizes.iter().map(|&s| AlignedBuf::zeros(s * ld)).collect(),
+            d1: sizes[1..sizes.len() - 1]
+                .iter()
+                .map(|&s| AlignedBuf::zeros(s * ld))
+                .collect(),
+            out_grad: AlignedBuf::zeros(mlp.out_dim() * ld),
+            g: [AlignedBuf::zeros(width * ld), AlignedBuf::zeros(width * ld)],
+            input_grad_in: None,
+            gt: AlignedBuf::zeros(ld * width),
+            sizes,
+            ld,
+            samples: 0,
+        }
+    }
+
+    /// Row stride of every feature-major buffer (and the batch capacity).
+    pub fn ld(&self) -> usize {
+        self.ld
+    }
+
+    /// The feature-major input to fill before [`Mlp::forward_train`]: `in_dim × ld`.
+    pub fn input_mut(&mut self) -> &mut [f32] {
+        let n = self.sizes[0] * self.ld;
+        &mut self.h[0].as_mut_slice()[..n]
+    }
+
+    /// The output of the last forward pass (`out_dim × ld`) and the buffer for `∂L/∂output`
+    /// (same shape) that [`Mlp::backward`] reads.
+    pub fn output_and_grad_mut(&mut self) -> (&[f32], &mut [f32]) {
+        let n = self.sizes[self.sizes.len() - 1] * self.ld;
+        let out = &self.h[self.sizes.len() - 1].as_slice()[..n];
+        (out, &mut self.out_grad.as_mut_slice()[..n])
+    }
+
+    /// `∂L/∂input` (`in_dim × ld`) from the last [`Mlp::backward`] that asked for it.
+    pub fn input_grad(&self) -> &[f32] {
+        let slot = self
+            .input_grad_in
+            .expect("backward was not asked for the input gradient");
+        &self.g[slot].as_slice()[..self.sizes[0] * self.ld]
+    }
+
+    fn check(&self, mlp: &Mlp, samples: usize) {
+        assert_eq!(
+            self.sizes,
+            mlp.sizes(),
+            "tape built for another network shape"
+        );
+        assert!(
+            samples <= self.ld,
+            "batch of {samples} exceeds the tape's {}",
+            self.ld
+        );
+    }
+}
+
+impl Mlp {
+    /// `Z = Wₗᵀ · H + bₗ` for training: large products are split across two threads.
+    fn affine_train(&self, l: usize, h: &[f32], samples: usize, ld: usize, z: &mut [f32]) {
+        let (n_in, n_out) = (self.sizes()[l], self.sizes()[l + 1]);
+        matmul_par(
+            MatMut::with_stride(z, n_out, samples, ld),
+            MatRef::new(self.weight(l), n_in, n_out).t(),
+            MatRef::with_stride(h, n_in, samples, ld),
+            Init::RowBias(self.bias(l)),
+        );
+    }
+
+    /// Forward pass over the first `samples` columns of [`Tape::input_mut`], recording the
+    /// activations and their derivatives. Returns the output (`out_dim × ld`).
+    pub fn forward_train<'t>(&self, tape: &'t mut Tape, samples: usize) -> &'t [f32] {
+        tape.check(self, samples);
+        tape.samples = samples;
+        tape.input_grad_in = None;
+        let ld = tape.ld;
+        for l in 0..self.layers() {
+            let (below, above) = tape.h.split_at_mut(l + 1);
+            let z = above[0].as_mut_slice();
+            self.affine_train(l, below[l].as_slice(), samples, ld, z);
+            if l + 1 < self.layers() {
+                let d1 = tape.d1[l].as_mut_slice();
+                for span in spans(self.sizes()[l + 1], samples, ld) {
+                    self.activation()
+                        .apply_d1(&mut z[span.clone()], &mut d1[span]);
+                }
+            }
+        }
+        tape.output_and_grad_mut().0
+    }
+
+    /// Backpropagates the `∂L/∂output` written into the tape (see
+    /// [`Tape::output_and_grad_mut`]) through the last forward pass: overwrites `grads`
+    /// (laid out as [`Mlp::params`]) with `∂L/∂θ` and, if `input_grad`, computes `∂L/∂input`
+    /// (read it with [`Tape::input_grad`]).
+    pub fn backward(&self, tape: &mut Tape, grads: &mut [f32], input_grad: bool) {
+        assert_eq!(grads.len(), self.params().len(), "gradient length");
+        let (samples, ld) = (tape.samples, tape.ld);
+        let layers = self.layers();
+        // `None`: Gₗ is the output gradient; `Some(s)`: it is in `g[s]`.
+        let mut current: Option<usize> = None;
+        for l in (0..layers).rev() {
+            let (n_in, n_out) = (self.sizes()[l], self.sizes()[l + 1]);
+            let next_slot = current.map_or(0, |s| 1 - s);
+            let [g0, g1] = &mut tape.g;
+            let (g, g_next): (&[f32], &mut [f32]) = match current {
+                None => (tape.out_grad.as_slice(), g0.as_mut_slice()),
+                Some(0) => (g0.as_slice(), g1.as_mut_slice()),
+                Some(_) => (g1.as_slice(), g0.as_mut_slice()),
+            };
+            let h = MatRef::with_stride(tape.h[l].as_slice(), n_in, samples, ld);
+            let g_view = MatRef::with_stride(g, n_out, samples, ld);
+            weight_and_bias_grad(self, l, h, g_view, tape.gt.as_mut_slice(), grads);
+            if l == 0 && !input_grad {
+                break;
+            }
+            // Gₗ₋₁ = (Wₗ · Gₗ) ⊙ σ'(zₗ₋₁)
+            matmul_par(
+                MatMut::with_stride(g_next, n_in, samples, ld),
+                MatRef::new(self.weight(l), n_in, n_out),
+                MatRef::with_stride(g, n_out, samples, ld),
+                Init::Zero,
+            );
+            if l > 0 {
+                let d1 = tape.d1[l - 1].as_slice();
+                for span in spans(n_in, samples, ld) {
+                    super::activation::mul_inplace(&mut g_next[span.clone()], &d1[span]);
+                }
+            }
+            current = Some(next_slot);
+        }
+        tape.input_grad_in = if input_grad { current } else { None };
+    }
+}
+
+/// `∂L/∂Wₗ = hₗ₋₁ · Gₗᵀ` (overwriting) and `∂L/∂bₗ = Gₗ · 1` for layer `l`, given the
+/// feature-major `h` (`n_in × samples`) and `g` (`n_out × samples`). `gt` is scratch for `Gₗᵀ`.
+fn weight_and_bias_grad(
+    mlp: &Mlp,
+    l: usize,
+    h: MatRef<'_>,
+    g: MatRef<'_>,
+    gt: &mut [f32],
+    grads: &mut [f32],
+) {
+    let (n_in, n_out, samples) = (h.rows(), g.rows(), g.cols());
+    g.transpose_into(gt, n_out);
+    matmul_par(
+        MatMut::new(&mut grads[mlp.weight_range(l)], n_in, n_out),
+        h,
+        MatRef::new(&gt[..samples * n_out], samples, n_out),
+        Init::Zero,
+    );
+    for (f, b) in grads[mlp.bias_range(l)].iter_mut().enumerate() {
+        *b = g.row(f).iter().sum();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nn::activation::Activation;
+    use crate::nn::matmul::transpose;
+    use crate::nn::reference;
+    use rand::rngs::StdRng;
+    use rand::{RngExt, SeedableRng};
+
+    /// Loss `Σ cᵢⱼ outᵢⱼ` with fixed random `c`: its output gradient is `c`, and the
+    /// reference gradient is a central difference of the f64 reference network.
+    #[test]
+    fn parameter_and_input_gradients_match_finite_differences() {
+        let mut rng = StdRng::seed_from_u64(5);
+        for act in [Activation::Swish, Activation::Softplus] {
+            let mlp = Mlp::new(&[4, 9, 7, 3], act, &mut rng);
+            let samples = 6;
+            let x: Vec<f32> = (0..samples * 4)
+                .map(|_| rng.random_range(-2.0..2.0))
+                .collect();
+            let c: Vec<f32> = (0..samples * 3)
+                .map(|_| rng.random_range(-1.0..1.0))
+                .collect();
+            let loss = |params: &[f64], x: &[f64]| -> f64 {
+                (0..samples)
+                    .map(|i| {
+                        let out =
+                            reference::forward(mlp.sizes(), act, params, &x[i * 4..(i + 1) * 4]);
+                        (0..3).map(|j| c[i * 3 + j] as f64 * out[j]).sum::<f64>()
+                    })
+                    .sum()
+            };
+
+            let mut tape = Tape::new(&mlp, samples);
+            let ld = tape.ld();
+            transpose(&x, samples, 4, 4, tape.input_mut(), ld);
+            mlp.forward_train(&mut tape, samples);
+            let (_, out_grad) = tape.output_and_grad_mut();
+            transpose(&c, samples, 3, 3, out_grad, ld);
+            let mut grads = vec![f32::NAN; mlp.params().len()];
+            mlp.backward(&mut tape, &mut grads, true);
+
+            let p64: Vec<f64> = mlp.params().iter().map(|&v| v as f64).collect();
+            let x64: Vec<f64> = x.iter().map(|&v| v as f64).collect();
+            let fd_params = reference::finite_difference(&p64, |p| loss(p, &x64));
+            reference::assert_close(
+                &grads,
+                &fd_params,
+                1e-4,
+                &format!("{act:?} parameter gradient"),
+            );
+
+            let fd_input = reference::finite_difference(&x64, |x| loss(&p64, x));
+            let mut input_grad = vec![0.0; samples * 4];
+            transpose(tape.input_grad(), 4, samples, ld, &mut input_grad, 4);
+            reference::assert_close(
+                &input_grad,
+                &fd_input,
+                1e-4,
+                &format!("{act:?} input gradient"),
+            );
+        }
+    }
+
+    #[test]
+    fn forward_train_agrees_with_inference() {
+        let mut rng = StdRng::seed_from_u64(6);
+        let mlp = Mlp::new(&[3, 20, 2], Activation::Swish, &mut rng);
+        let x: Vec<f32> = (0..10 * 3).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let mut tape = Tape::new(&mlp, 12);
+        let ld = tape.ld();
+        transpose(&x, 10, 3, 3, tape.input_mut(), ld);
+        let out = mlp.forward_train(&mut tape, 10).to_vec();
+        let rows = mlp.forward_rows(&x);
+        for i in 0..10 {
+            for j in 0..2 {
+                assert_eq!(out[j * ld + i], rows[i * 2 + j]);
+            }
+        }
+    }
+}

@@ -1,0 +1,335 @@
+//! The multilayer perceptron: its parameters and its allocation-free inference pass.
+//!
+//! Parameters live in one flat vector — per layer the row-major `in × out` weight matrix, then
+//! the bias — so the optimiser, the gradients and serialisation all see one slice.
+//!
+//! Activations are *feature-major*: a batch of `n` samples with `d` features is a `d × ld`
+//! matrix whose column `i` is sample `i` (`ld ≥ n`, a multiple of 16). A layer is then
+//! `Z = Wᵀ · H + b` with `Wᵀ` a free strided view (see [`matmul`](super::matmul)).
+
+use super::activation::Activation;
+use super::aligned::{AlignedBuf, round_up};
+use super::matmul::{Init, MatMut, MatRef, matmul};
+use rand::RngExt;
+use rand::rngs::StdRng;
+use std::ops::Range;
+
+/// A dense feed-forward network: `sizes[0]` inputs, hidden layers of `sizes[1..L]` units with
+/// `activation`, and a linear output layer of `sizes[L]` units.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mlp {
+    sizes: Vec<usize>,
+    activation: Activation,
+    params: Vec<f32>,
+}
+
+impl Mlp {
+    /// A network with the given layer sizes (at least input and output), initialised like
+    /// PyTorch's `nn.Linear` (the reference implementations are PyTorch): weights and biases
+    /// uniform in `±1/√fan_in`, which keeps activations of order one through smooth layers.
+    pub fn new(sizes: &[usize], activation: Activation, rng: &mut StdRng) -> Self {
+        assert!(
+            sizes.len() >= 2 && sizes.iter().all(|&s| s > 0),
+            "bad layer sizes {sizes:?}"
+        );
+        let mut params = Vec::with_capacity(param_count(sizes));
+        for w in sizes.windows(2) {
+            let bound = 1.0 / (w[0] as f32).sqrt();
+            params.extend((0..w[0] * w[1] + w[1]).map(|_| rng.random_range(-bound..bound)));
+        }
+        Self {
+            sizes: sizes.to_vec(),
+            activation,
+            params,
+        }
+    }
+
+    /// A network with given parameters (e.g. loaded from disk), laid out as [`Mlp::params`].
+    pub fn from_params(sizes: &[usize], activation: Activation, params: Vec<f32>) -> Self {
+        assert!(
+            sizes.len() >= 2 && sizes.iter().all(|&s| s > 0),
+            "bad layer sizes {sizes:?}"
+        );
+        assert_eq!(
+            params.len(),
+            param_count(sizes),
+            "parameter count for {sizes:?}"
+        );
+        Self {
+            sizes: sizes.to_vec(),
+            activation,
+            params,
+        }
+    }
+
+    /// `[inputs, hidden…, outputs]`.
+    pub fn sizes(&self) -> &[usize] {
+        &self.sizes
+    }
+
+    pub fn in_dim(&self) -> usize {
+        self.sizes[0]
+    }
+
+    pub fn out_dim(&self) -> usize {
+        self.sizes[self.sizes.len() - 1]
+    }
+
+    /// Number of weight layers (hidden layers + 1).
+    pub fn layers(&self) -> usize {
+        self.sizes.len() - 1
+    }
+
+    /// The widest layer (buffer sizing).
+    pub fn max_width(&self) -> usize {
+        self.sizes.iter().copied().max().unwrap_or(0)
+    }
+
+    pub fn activation(&self) -> Activation {
+        self.activation
+    }
+
+    /// All parameters: for each layer, the row-major `in × out` weights, then the `out` biases.
+    pub fn params(&self) -> &[f32] {
+        &self.params
+    }
+
+    pub fn params_mut(&mut self) -> &mut [f32] {
+        &mut self.params
+    }
+
+    /// Where layer `l`'s weights sit in [`Mlp::params`] (biases follow directly).
+    pub fn weight_range(&self, l: usize) -> Range<usize> {
+        let start: usize = self
+            .sizes
+            .windows(2)
+            .take(l)
+            .map(|w| w[0] * w[1] + w[1])
+            .sum();
+        start..start + self.sizes[l] * self.sizes[l + 1]
+    }
+
+    /// Where layer `l`'s biases sit in [`Mlp::params`].
+    pub fn bias_range(&self, l: usize) -> Range<usize> {
+        let w = self.weight_range(l);
+        w.end..w.end + self.sizes[l + 1]
+    }
+
+    /// Layer `l`'s weights, row-major `sizes[l] × sizes[l + 1]`.
+    pub fn weight(&self, l: usize) -> &[f32] {
+        &self.params[self.weight_range(l)]
+    }
+
+    pub fn bias(&self, l: usize) -> &[f32] {
+        &self.params[self.bias_range(l)]
+    }
+
+    /// `Z = Wₗᵀ · H + bₗ` for `samples` columns of the feature-major `h` (row stride `ld`),
+    /// into `z` (row stride `ld`). Single-threaded: the planner parallelises over samples.
+    pub(crate) fn affine(&self, l: usize, h: &[f32], samples: usize, ld: usize, z: &mut [f32]) {
+        let (n_in, n_out) = (self.sizes[l], self.sizes[l + 1]);
+        matmul(
+            MatMut::with_stride(z, n_out, samples, ld),
+            MatRef::new(self.weight(l), n_in, n_out).t(),
+            MatRef::with_stride(h, n_in, samples, ld),
+            Init::RowBias(self.bias(l)),
+        );
+    }
+
+    /// The output for `samples` inputs written feature-major into [`ForwardScratch::input_mut`]:
+    /// an `out_dim × scratch.ld()` matrix whose first `samples` columns are the outputs.
+    /// Never allocates.
+    pub fn forward<'s>(&self, samples: usize, scratch: &'s mut ForwardScratch) -> &'s [f32] {
+        assert!(
+            scratch.fits(self, samples),
+            "scratch of {} samples / width {} too small",
+            scratch.ld,
+            scratch.width
+        );
+        let ld = scratch.ld;
+        let ForwardScratch {
+            input, ping, pong, ..
+        } = scratch;
+        let layers = self.layers();
+        for l in 0..layers {
+            // Layer 0 reads the input; then `ping` and `pong` alternate (even layers write `ping`).
+            let (src, dst) = match (l, l % 2) {
+                (0, _) => (input.as_slice(), ping.as_mut_slice()),
+                (_, 1) => (ping.as_slice(), pong.as_mut_slice()),
+                _ => (pong.as_slice(), ping.as_mut_slice()),
+            };
+            self.affine(l, src, samples, ld, dst);
+            if l + 1 < layers {
+                for span in spans(self.sizes[l + 1], samples, ld) {
+                    self.activation.apply(&mut dst[span]);
+                }
+            }
+        }
+        let out = if (layers - 1).is_multiple_of(2) {
+            ping
+        } else {
+            pong
+        };
+        &out.as_slice()[..self.out_dim() * ld]
+    }
+
+    /// Convenience for tests and tools: outputs for sample-major `x` (`samples × in_dim`),
+    /// returned sample-major. Allocates.
+    pub fn forward_rows(&self, x: &[f32]) -> Vec<f32> {
+        let samples = x.len() / self.in_dim();
+        let mut scratch = ForwardScratch::new(self, samples);
+        let ld = scratch.ld();
+        super::matmul::transpose(
+            x,
+            samples,
+            self.in_dim(),
+            self.in_dim(),
+            scratch.input_mut(),
+            ld,
+        );
+        let out = self.forward(samples, &mut scratch);
+        let mut rows = vec![0.0; samples * self.out_dim()];
+        super::matmul::transpose(out, self.out_dim(), samples, ld, &mut rows, self.out_dim());
+        rows
+    }
+}
+
+/// Number of parameters of a network with these layer sizes.
+pub fn param_count(sizes: &[usize]) -> usize {
+    sizes.windows(2).map(|w| w[0] * w[1] + w[1]).sum()
+}
+
+/// The ranges of a `rows × cols` region of a buffer with row stride `ld` that elementwise
+/// operations visit: one range when the rows are contiguous, else one per row.
+pub(crate) fn spans(rows: usize, cols: usize, ld: usize) -> impl Iterator<Item = Range<usize>> {
+    let whole = cols == ld;
+    let count = if whole { usize::from(rows > 0) } else { rows };
+    (0..count).map(move |r| {
+        if whole {
+            0..rows * ld
+        } else {
+            r * ld..r * ld + cols
+        }
+    })
+}
+
+/// Preallocated buffers for [`Mlp::forward`] on up to `capacity` samples.
+#[derive(Clone, Debug)]
+pub struct ForwardScratch {
+    ld: usize,
+    in_dim: usize,
+    width: usize,
+    input: AlignedBuf,
+    ping: AlignedBuf,
+    pong: AlignedBuf,
+}
+
+impl ForwardScratch {
+    /// Buffers for `mlp` on up to `max_samples` samples.
+    pub fn new(mlp: &Mlp, max_samples: usize) -> Self {
+        let ld = round_up(max_samples.max(1));
+        let width = mlp.max_width();
+        Self {
+            ld,
+            in_dim: mlp.in_dim(),
+            width,
+            input: AlignedBuf::zeros(mlp.in_dim() * ld),
+            ping: AlignedBuf::zeros(width * ld),
+            pong: AlignedBuf::zeros(width * ld),
+        }
+    }
+
+    /// Row stride of every buffer, and the most samples one pass can take.
+    pub fn ld(&self) -> usize {
+        self.ld
+    }
+
+    /// Whether these buffers can run `mlp` on `samples` samples.
+    pub fn fits(&self, mlp: &Mlp, samples: usize) -> bool {
+        samples <= self.ld && self.in_dim == mlp.in_dim() && self.width >= mlp.max_width()
+    }
+
+    /// The feature-major input: `in_dim × ld`, sample `i`'s feature `f` at `f · ld + i`.
+    pub fn input_mut(&mut self) -> &mut [f32] {
+        let n = self.in_dim * self.ld;
+        &mut self.input.as_mut_slice()[..n]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    /// A direct, obviously correct evaluation in f64.
+    pub(crate) fn reference_forward(mlp: &Mlp, x: &[f32]) -> Vec<f64> {
+        let mut h: Vec<f64> = x.iter().map(|&v| v as f64).collect();
+        for l in 0..mlp.layers() {
+            let (n_in, n_out) = (mlp.sizes()[l], mlp.sizes()[l + 1]);
+            let (w, b) = (mlp.weight(l), mlp.bias(l));
+            let mut z: Vec<f64> = (0..n_out)
+                .map(|j| {
+                    b[j] as f64
+                        + (0..n_in)
+                            .map(|i| h[i] * w[i * n_out + j] as f64)
+                            .sum::<f64>()
+                })
+                .collect();
+            if l + 1 < mlp.layers() {
+                for v in &mut z {
+                    *v = match mlp.activation() {
+                        Activation::Softplus => v.max(0.0) + (-v.abs()).exp().ln_1p(),
+                        Activation::Swish => *v / (1.0 + (-*v).exp()),
+                    };
+                }
+            }
+            h = z;
+        }
+        h
+    }
+
+    #[test]
+    fn forward_matches_reference_and_reuses_scratch() {
+        let mut rng = StdRng::seed_from_u64(11);
+        for act in [Activation::Swish, Activation::Softplus] {
+            let mlp = Mlp::new(&[5, 37, 20, 3], act, &mut rng);
+            let mut scratch = ForwardScratch::new(&mlp, 40);
+            for samples in [1, 17, 40] {
+                let x: Vec<f32> = (0..samples * 5)
+                    .map(|_| rng.random_range(-2.0..2.0))
+                    .collect();
+                let ld = scratch.ld();
+                crate::nn::matmul::transpose(&x, samples, 5, 5, scratch.input_mut(), ld);
+                let out = mlp.forward(samples, &mut scratch).to_vec();
+                let rows = mlp.forward_rows(&x);
+                for i in 0..samples {
+                    let want = reference_forward(&mlp, &x[i * 5..(i + 1) * 5]);
+                    for j in 0..3 {
+                        assert!(
+                            (out[j * ld + i] as f64 - want[j]).abs() < 1e-5,
+                            "{act:?} sample {i} out {j}"
+                        );
+                        assert_eq!(rows[i * 3 + j], out[j * ld + i]);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn single_layer_network_is_affine() {
+        let mut rng = StdRng::seed_from_u64(1);
+        let mlp = Mlp::from_params(&[2, 1], Activation::Swish, vec![2.0, -1.0, 0.5]);
+        assert_eq!(mlp.forward_rows(&[1.0, 3.0, 0.0, 0.0]), vec![-0.5, 0.5]);
+        let big = Mlp::new(&[3, 4, 2], Activation::Softplus, &mut rng);
+        assert_eq!(big.params().len(), param_count(&[3, 4, 2]));
+        assert_eq!((big.weight_range(1), big.bias_range(1)), (16..24, 24..26));
+    }
+
+    #[test]
+    fn spans_cover_exactly_the_valid_columns() {
+        assert_eq!(spans(3, 16, 16).collect::<Vec<_>>(), vec![0..48]);
+        assert_eq!(spans(2, 5, 16).collect::<Vec<_>>(), vec![0..5, 16..21]);
+        assert_eq!(spans(0, 16, 16).count(), 0);
+    }
+}
