@@ -7,8 +7,11 @@
 //! learned model and the real system disagree), applying controls and advancing one control step.
 
 use crate::error::SimError;
-use mujoco_rs::prelude::{MjData, MjModel, MjtIntegrator, MjtWarning};
+use mujoco_rs::prelude::{
+    MjData, MjLogMessage, MjModel, MjtIntegrator, MjtLogLevel, MjtWarning, set_log_handler,
+};
 use proto::TaskSpec;
+use std::sync::Once;
 
 /// How a task's MJCF is meant to be run.
 #[derive(Debug, Clone, Copy)]
@@ -36,6 +39,7 @@ impl MjSim {
     /// Loads `config.xml` and checks it against `spec`: actuator count, control ranges equal to
     /// the action bounds, `timestep × substeps = control_dt`, and the integrator.
     pub fn load(spec: &TaskSpec, config: ModelConfig) -> Result<Self, SimError> {
+        route_mujoco_messages();
         let task = spec.id;
         let model = MjModel::from_xml_string(config.xml)
             .map_err(|source| SimError::ModelLoad { task, source })?;
@@ -143,5 +147,35 @@ impl MjSim {
             .model()
             .name_to_id(mujoco_rs::prelude::MjtObjBase::mjOBJ_SITE, name)?;
         Some(self.data.site_xpos()[id])
+    }
+}
+
+/// Sends MuJoCo's messages (warnings of unstable simulations, mostly) to `tracing` under the
+/// target `mujoco`, instead of MuJoCo's default: stdout plus a `MUJOCO_LOG.TXT` file in whatever
+/// the working directory is.
+///
+/// Runs once, before this crate's first use of MuJoCo: every use goes through
+/// [`MjSim::load`], which calls this first, and `Once` holds any other caller until the handler
+/// is in place.
+fn route_mujoco_messages() {
+    static ROUTED: Once = Once::new();
+    ROUTED.call_once(|| {
+        // SAFETY: no thread uses MuJoCo while this runs: sim-bridge is the process's only
+        // MuJoCo user, and each of its uses starts with `MjSim::load`, which blocks on this
+        // `Once` until the handler is installed.
+        unsafe { set_log_handler(to_tracing) }
+    });
+}
+
+/// A MuJoCo message as a `tracing` event. (An error-level message ends the process after this
+/// returns: MuJoCo cannot continue after one.)
+fn to_tracing(message: &MjLogMessage) {
+    let subject = message.subject();
+    let body = message.body().unwrap_or_default();
+    match message.level() {
+        MjtLogLevel::mjLOG_DEBUG => tracing::debug!(target: "mujoco", "{subject} {body}"),
+        MjtLogLevel::mjLOG_INFO => tracing::info!(target: "mujoco", "{subject} {body}"),
+        MjtLogLevel::mjLOG_WARNING => tracing::warn!(target: "mujoco", "{subject} {body}"),
+        MjtLogLevel::mjLOG_ERROR => tracing::error!(target: "mujoco", "{subject} {body}"),
     }
 }
