@@ -32,7 +32,7 @@ fn main() {
             dir.display()
         ));
     }
-    // The library file itself: a reinstall must relink.
+    // The library folder (cargo watches the files in it): a reinstall must relink.
     println!("cargo:rerun-if-changed={}", dir.display());
     println!("cargo:rustc-link-arg=-Wl,-rpath,{}", dir.display());
 }
