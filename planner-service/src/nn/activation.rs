@@ -112,16 +112,6 @@ multiversion! {
     }
 }
 
-multiversion! {
-    /// `x ⊙= y` elementwise.
-    pub fn mul_inplace(x: &mut [f32], y: &[f32]) {
-        assert_eq!(x.len(), y.len());
-        for (a, b) in x.iter_mut().zip(y) {
-            *a *= *b;
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::super::simd::{SimdLevel, with_level};
@@ -158,9 +148,6 @@ mod tests {
                     assert!(close(c2[i], d2), "{level:?} {act:?} {x}");
                 }
             }
-            let mut x = vec![2.0; 37];
-            with_level(level, || mul_inplace(&mut x, &[1.5; 37]));
-            assert!(x.iter().all(|v| *v == 3.0));
         }
     }
 

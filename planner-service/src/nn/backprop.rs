@@ -159,7 +159,7 @@ impl Mlp {
             if l > 0 {
                 let d1 = tape.d1[l - 1].as_slice();
                 for span in spans(n_in, samples, ld) {
-                    super::activation::mul_inplace(&mut g_next[span.clone()], &d1[span]);
+                    super::vecops::mul_inplace(&mut g_next[span.clone()], &d1[span]);
                 }
             }
             current = Some(next_slot);
@@ -187,7 +187,7 @@ fn weight_and_bias_grad(
         Init::Zero,
     );
     for (f, b) in grads[mlp.bias_range(l)].iter_mut().enumerate() {
-        *b = g.row(f).iter().sum();
+        *b = super::vecops::sum(g.row(f));
     }
 }
 

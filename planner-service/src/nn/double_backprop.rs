@@ -24,7 +24,7 @@
 use super::aligned::{AlignedBuf, round_up};
 use super::matmul::{Init, MatMut, MatRef, matmul_par, transpose};
 use super::mlp::{Mlp, spans};
-use super::simd::multiversion;
+use super::vecops::{mul_add3, product2, product3, sum};
 
 /// Buffers of one input-gradient pass and its double backpropagation, for batches of up to
 /// `capacity` samples.
@@ -113,39 +113,6 @@ impl InputGradTape {
             &self.u[0].as_slice()[..n],
             &mut self.v.as_mut_slice()[..n],
         )
-    }
-}
-
-multiversion! {
-    /// `x ← x ⊙ a + b ⊙ c ⊙ d` (the tangent `δ̇ = u̇ ⊙ σ' + u ⊙ σ'' ⊙ ż`).
-    fn tangent_delta(x: &mut [f32], a: &[f32], b: &[f32], c: &[f32], d: &[f32]) {
-        let n = x.len();
-        let (a, b, c, d) = (&a[..n], &b[..n], &c[..n], &d[..n]);
-        for i in 0..n {
-            x[i] = x[i] * a[i] + b[i] * c[i] * d[i];
-        }
-    }
-}
-
-multiversion! {
-    /// `x ← b ⊙ c ⊙ d`.
-    fn product3(x: &mut [f32], b: &[f32], c: &[f32], d: &[f32]) {
-        let n = x.len();
-        let (b, c, d) = (&b[..n], &c[..n], &d[..n]);
-        for i in 0..n {
-            x[i] = b[i] * c[i] * d[i];
-        }
-    }
-}
-
-multiversion! {
-    /// `x ← a ⊙ b`.
-    fn product2(x: &mut [f32], a: &[f32], b: &[f32]) {
-        let n = x.len();
-        let (a, b) = (&a[..n], &b[..n]);
-        for i in 0..n {
-            x[i] = a[i] * b[i];
-        }
     }
 }
 
@@ -249,7 +216,7 @@ impl Mlp {
         };
         let w_range = self.weight_range(top);
         for (g, row) in grads[w_range].iter_mut().zip(hdot_top.chunks(ld)) {
-            *g = row[..samples].iter().sum();
+            *g = sum(&row[..samples]);
         }
         grads[self.bias_range(top)].fill(0.0);
         // Tangent backward, with each hidden layer's weight gradient as soon as δ̇ is known.
@@ -272,7 +239,7 @@ impl Mlp {
                 if l == top {
                     product3(&mut ddot[span], &u[s.clone()], &d2[s.clone()], &zdot[s]);
                 } else {
-                    tangent_delta(
+                    mul_add3(
                         &mut ddot[span],
                         &d1[s.clone()],
                         &u[s.clone()],
@@ -306,7 +273,7 @@ impl Mlp {
                 .iter_mut()
                 .zip(ddot.chunks(ld))
             {
-                *g = row[..samples].iter().sum();
+                *g = sum(&row[..samples]);
             }
             if l > 1 {
                 // u̇_{l−1} = W_{l−1} δ̇_l

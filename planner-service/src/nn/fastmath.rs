@@ -93,6 +93,16 @@ pub fn softplus(x: f32) -> f32 {
     pos + ln_1p_unit(t)
 }
 
+/// `(ln(1 + eˣ), σ(x), σ(−x))` from one exponential: softplus, its derivative and the
+/// derivative's complement, each accurate (no `1 − σ` cancellation).
+#[inline(always)]
+pub fn softplus_sigmoid(x: f32) -> (f32, f32, f32) {
+    let t = exp(-x.abs());
+    let pos = if x > 0.0 { x } else { 0.0 };
+    let (s, c) = sigmoid_pair(x, t);
+    (pos + ln_1p_unit(t), s, c)
+}
+
 /// Softplus and its first two derivatives: `(ln(1 + eˣ), σ(x), σ(x)(1 − σ(x)))`.
 #[inline(always)]
 pub fn softplus_d2(x: f32) -> (f32, f32, f32) {
@@ -181,6 +191,10 @@ mod tests {
             }
             assert_eq!(softplus(x), sp);
             assert_eq!(sigmoid(x), sp1);
+            let (sp_b, s_b, c_b) = softplus_sigmoid(x);
+            assert_eq!((sp_b, s_b), (sp, sp1));
+            let c = sigmoid64(-x64);
+            assert!((c_b as f64 - c).abs() <= 3e-7 * c, "σ(−x) at {x}");
         }
         for (k, w) in worst.iter().enumerate() {
             assert!(*w < 3e-7, "function {k}: worst error {w:e}");

@@ -137,9 +137,9 @@ impl Mlp {
     }
 
     /// The output for `samples` inputs written feature-major into [`ForwardScratch::input_mut`]:
-    /// an `out_dim × scratch.ld()` matrix whose first `samples` columns are the outputs.
-    /// Never allocates.
-    pub fn forward<'s>(&self, samples: usize, scratch: &'s mut ForwardScratch) -> &'s [f32] {
+    /// an `out_dim × scratch.ld()` matrix whose first `samples` columns are the outputs (the
+    /// caller may transform it in place). Never allocates.
+    pub fn forward<'s>(&self, samples: usize, scratch: &'s mut ForwardScratch) -> &'s mut [f32] {
         assert!(
             scratch.fits(self, samples),
             "scratch of {} samples / width {} too small",
@@ -170,7 +170,7 @@ impl Mlp {
         } else {
             pong
         };
-        &out.as_slice()[..self.out_dim() * ld]
+        &mut out.as_mut_slice()[..self.out_dim() * ld]
     }
 
     /// Convenience for tests and tools: outputs for sample-major `x` (`samples × in_dim`),

@@ -1,6 +1,16 @@
-//! Neural-network building blocks: MLPs with hand-written gradients, Adam, normalisers.
+//! Neural-network building blocks: plain MLPs with hand-written gradients, Adam, normalisers.
+//!
+//! No autodiff framework: the networks are MLPs with smooth activations, so the forward pass,
+//! the parameter gradient, the input gradient and the DEEN double backprop are written out
+//! ([`mlp`], [`backprop`], [`double_backprop`]) and each is checked against finite differences.
+//! The time goes into [`matmul`] (a register-blocked kernel) and [`activation`] (vectorised
+//! polynomial exp/log), both compiled for AVX-512/AVX2 and picked at run time ([`simd`]).
+//! Inference ([`Mlp::forward`]) never allocates once its [`ForwardScratch`] exists.
+//!
+//! Batches are feature-major throughout (see [`mlp`]).
 
 pub mod activation;
+pub mod adam;
 pub mod aligned;
 pub mod backprop;
 pub mod denormals;
@@ -8,6 +18,18 @@ pub mod double_backprop;
 pub mod fastmath;
 pub mod matmul;
 pub mod mlp;
+pub mod normalizer;
 #[cfg(test)]
-mod reference;
+pub(crate) mod reference;
 pub mod simd;
+pub mod train;
+pub mod vecops;
+
+pub use activation::Activation;
+pub use adam::{Adam, add_weight_decay};
+pub use backprop::Tape;
+pub use denormals::FlushDenormals;
+pub use double_backprop::InputGradTape;
+pub use mlp::{ForwardScratch, Mlp};
+pub use normalizer::Normalizer;
+pub use train::FitReport;

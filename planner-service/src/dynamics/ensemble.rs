@@ -1,0 +1,136 @@
+//! An ensemble of probabilistic models (PETS's "PE"); one member is the paper's single model.
+
+use super::config::DynamicsConfig;
+use super::model::{DynamicsScratch, ProbabilisticModel, TrainingSet};
+use crate::data::Transitions;
+use crate::nn::{FitReport, FlushDenormals, Normalizer};
+use proto::TaskSpec;
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// `ensemble_size` probabilistic models of one task.
+///
+/// With several members each trains on its own bootstrap resample of the data (drawn anew at
+/// every fit, as PETS does) so their disagreement reflects what the data leaves uncertain.
+/// A single member trains on the data itself: resampling would only discard a third of it.
+#[derive(Clone, Debug)]
+pub struct Ensemble {
+    config: DynamicsConfig,
+    members: Vec<ProbabilisticModel>,
+}
+
+impl Ensemble {
+    /// Untrained members of the configured size.
+    pub fn new(task: &'static TaskSpec, config: &DynamicsConfig, rng: &mut StdRng) -> Self {
+        assert!(config.ensemble_size > 0, "an ensemble needs a member");
+        let members = (0..config.ensemble_size)
+            .map(|_| ProbabilisticModel::new(task, config, rng))
+            .collect();
+        Self {
+            config: config.clone(),
+            members,
+        }
+    }
+
+    pub fn config(&self) -> &DynamicsConfig {
+        &self.config
+    }
+
+    pub fn task(&self) -> &'static TaskSpec {
+        self.members[0].task()
+    }
+
+    /// Number of members.
+    pub fn members(&self) -> usize {
+        self.members.len()
+    }
+
+    pub fn member(&self, i: usize) -> &ProbabilisticModel {
+        &self.members[i]
+    }
+
+    pub fn member_mut(&mut self, i: usize) -> &mut ProbabilisticModel {
+        &mut self.members[i]
+    }
+
+    /// Trains every member for `epochs` on `data`, continuing from the current weights after
+    /// refitting the input and target statistics on `data`. Members train in parallel.
+    pub fn fit(&mut self, data: &Transitions, epochs: usize, rng: &mut StdRng) -> FitReport {
+        let started = Instant::now();
+        let task = self.task();
+        let n = data.len();
+        let (inputs, targets) = TrainingSet::raw(task, data);
+        let input_norm = Normalizer::fit(&inputs, task.state_feature_dim + task.act_dim);
+        let target_norm = Normalizer::fit(&targets, task.obs_dim);
+        for m in &mut self.members {
+            m.set_normalizers(input_norm.clone(), target_norm.clone());
+        }
+        let set = TrainingSet::standardised(inputs, targets, &input_norm, &target_norm);
+        let bootstrap = self.members.len() > 1;
+        let plans: Vec<(Vec<usize>, u64)> = (0..self.members.len())
+            .map(|_| {
+                let order = if bootstrap && n > 0 {
+                    (0..n).map(|_| rng.random_range(0..n)).collect()
+                } else {
+                    (0..n).collect()
+                };
+                (order, rng.random())
+            })
+            .collect();
+        let train = |(member, (mut order, seed)): (&mut ProbabilisticModel, (Vec<usize>, u64))| {
+            let _flush = FlushDenormals::new();
+            let mut rng = StdRng::seed_from_u64(seed);
+            let (loss, steps) = member.fit(&set, &mut order, epochs, &mut rng);
+            let (nll, mse) = member.evaluate(&set);
+            (loss, steps, nll, mse)
+        };
+        let results: Vec<(f32, usize, f32, f32)> = if bootstrap {
+            self.members.par_iter_mut().zip(plans).map(train).collect()
+        } else {
+            self.members.iter_mut().zip(plans).map(train).collect()
+        };
+        let mean = |f: fn(&(f32, usize, f32, f32)) -> f32| {
+            results.iter().map(f).sum::<f32>() / results.len() as f32
+        };
+        let report = FitReport {
+            samples: n,
+            epochs,
+            steps: results.iter().map(|r| r.1).sum(),
+            loss: mean(|r| r.0),
+            nll: (n > 0).then(|| mean(|r| r.2)),
+            mse: (n > 0).then(|| mean(|r| r.3)),
+            seconds: started.elapsed().as_secs_f32(),
+        };
+        tracing::debug!(?report, members = self.members.len(), "dynamics trained");
+        report
+    }
+
+    /// Buffers for [`Ensemble::predict_next`] on up to `max_rows` rows (any member).
+    pub fn scratch(&self, max_rows: usize) -> DynamicsScratch {
+        self.members[0].scratch(max_rows)
+    }
+
+    /// [`ProbabilisticModel::predict_next`] with member `member`. Never allocates.
+    #[allow(clippy::too_many_arguments)] // the planner's fixed hot-loop signature
+    pub fn predict_next(
+        &self,
+        member: usize,
+        obs: &[f32],
+        act: &[f32],
+        rows: usize,
+        scratch: &mut DynamicsScratch,
+        noise: Option<&[f32]>,
+        next_obs: &mut [f32],
+    ) {
+        self.members[member].predict_next(obs, act, rows, scratch, noise, next_obs);
+    }
+}
+
+impl DynamicsScratch {
+    /// Whether these buffers serve `ensemble` on `rows` rows.
+    pub fn fits(&self, ensemble: &Ensemble, rows: usize) -> bool {
+        self.fits_model(&ensemble.members[0], rows)
+    }
+}
