@@ -52,16 +52,16 @@ multiversion! {
         let (raw, target) = (&raw[..n], &target[..n]);
         let (d_mean, d_raw) = (&mut grad.0[..n], &mut grad.1[..n]);
         // Sums in 16 independent lanes so the loop vectorises (see `vecops`).
-        let mut lanes = [[0.0f32; 16]; 4];
+        let mut lanes = [[0.0f32; 4]; 16];
         let full = n - n % 16;
         for base in (0..full).step_by(16) {
-            for j in 0..16 {
+            for (j, lane) in lanes.iter_mut().enumerate() {
                 let i = base + j;
                 let (g, s) = nll_element(mean[i], raw[i], target[i], max, min);
                 d_mean[i] = scale * g[0];
                 d_raw[i] = scale * g[1];
-                for k in 0..4 {
-                    lanes[k][j] += s[k];
+                for (acc, v) in lane.iter_mut().zip(s) {
+                    *acc += v;
                 }
             }
         }
@@ -69,11 +69,11 @@ multiversion! {
             let (g, s) = nll_element(mean[i], raw[i], target[i], max, min);
             d_mean[i] = scale * g[0];
             d_raw[i] = scale * g[1];
-            for k in 0..4 {
-                lanes[k][0] += s[k];
+            for (acc, v) in lanes[0].iter_mut().zip(s) {
+                *acc += v;
             }
         }
-        lanes.map(|l| l.iter().sum())
+        std::array::from_fn(|k| lanes.iter().map(|lane| lane[k]).sum())
     }
 }
 
