@@ -6,6 +6,7 @@
 //! task means adding a module, an arm in [`simulator`] and its name in [`SIMULATED`].
 
 mod cartpole;
+mod halfcheetah;
 
 use crate::error::SimError;
 use crate::mujoco::Unstable;
@@ -32,7 +33,7 @@ pub(crate) trait TaskSim: Send {
 }
 
 /// The tasks that have a simulator, in catalog order.
-pub const SIMULATED: &[TaskId] = &[TaskId::Cartpole];
+pub const SIMULATED: &[TaskId] = &[TaskId::Cartpole, TaskId::HalfCheetah];
 
 /// Builds the simulator for `task`, or says clearly that it has none yet.
 pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
@@ -41,6 +42,7 @@ pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
     #[allow(unreachable_patterns)]
     match task {
         TaskId::Cartpole => Ok(Box::new(cartpole::Cartpole::new()?)),
+        TaskId::HalfCheetah => Ok(Box::new(halfcheetah::HalfCheetah::new()?)),
         _ => Err(SimError::NoSimulator {
             task,
             known: SIMULATED

@@ -1,0 +1,288 @@
+//! Half-cheetah: a planar 9-link runner with 6 actuated joints, rewarded for running forward.
+//!
+//! The model is `assets/halfcheetah.xml` (our own MJCF, written from the task's published
+//! facts): 0.01 s Euler steps, five per 0.05 s control step, six motors with ctrlrange ±1 and
+//! gears 120 / 90 / 60 (back thigh, shin, foot) and 120 / 60 / 30 (front), the root free to
+//! slide in x and z and to pitch. Deviations from the gym/PETS model: the limb geometry is our
+//! own (straight capsules of 0.17–0.25 m, a 1 m torso with a short head; the legs are about as
+//! long as gym's, so the torso rests near 0.7 m as there), the passive joint springs and dampers
+//! follow one rule (stiffness = 2 × gear, damping = gear / 20) instead of per-joint tuning,
+//! the joint limits use MuJoCo's default constraint softness, and the friction is 0.5 (gym
+//! 0.4). None of this changes the task's interface or reward; it changes how fast a given gait
+//! runs, so returns are comparable to the paper's in kind, not in value.
+//!
+//! The observation (proto's [`proto::task::halfcheetah`] layout) is
+//! `[Δx/dt, qpos[1..9], qvel[0..9]]`: the root's forward displacement over the last control step
+//! divided by the control dt (0 right after a reset, as in PETS), then root height, root pitch,
+//! the six joint angles, then all nine velocities. The root x itself is not observed: the task
+//! is invariant to it. Initial state: the built pose plus N(0, 0.001) noise on every qpos and
+//! qvel number (tasks.md).
+
+use super::TaskSim;
+use crate::error::SimError;
+use crate::mujoco::{MjSim, ModelConfig, Unstable};
+use mujoco_rs::prelude::MjtIntegrator;
+use proto::TaskId;
+use rand::rngs::StdRng;
+use rand_distr::{Distribution, Normal};
+
+const MODEL: ModelConfig = ModelConfig {
+    xml: include_str!("../../assets/halfcheetah.xml"),
+    substeps: 5,
+    integrator: MjtIntegrator::mjINT_EULER,
+};
+
+/// Generalised coordinates (and velocities): root x, root z, root pitch, six joints.
+const NQ: usize = 9;
+
+/// Standard deviation of the reset noise on every qpos and qvel number.
+const RESET_STD: f64 = 0.001;
+
+/// The half-cheetah's physics.
+#[derive(Debug)]
+pub(crate) struct HalfCheetah {
+    sim: MjSim,
+    /// `Δx/dt` of the root over the last control step: the observation's first number.
+    forward_velocity: f64,
+    control_dt: f64,
+}
+
+impl HalfCheetah {
+    pub fn new() -> Result<Self, SimError> {
+        let spec = TaskId::HalfCheetah.spec();
+        let sim = MjSim::load(spec, MODEL)?;
+        if sim.qpos().len() != NQ || sim.qvel().len() != NQ {
+            return Err(SimError::ModelMismatch {
+                task: TaskId::HalfCheetah,
+                detail: format!(
+                    "expected nq = nv = {NQ} (root x, z, pitch and six joints), found nq = {}, nv = {}",
+                    sim.qpos().len(),
+                    sim.qvel().len()
+                ),
+            });
+        }
+        Ok(Self {
+            sim,
+            forward_velocity: 0.0,
+            control_dt: spec.control_dt,
+        })
+    }
+}
+
+impl TaskSim for HalfCheetah {
+    fn reset(&mut self, rng: &mut StdRng) {
+        let normal = Normal::new(0.0, RESET_STD).expect("a positive standard deviation");
+        let mut qpos = [0.0; NQ];
+        let mut qvel = [0.0; NQ];
+        for v in qpos.iter_mut().chain(qvel.iter_mut()) {
+            *v = normal.sample(rng);
+        }
+        self.sim.set_state(&qpos, &qvel);
+        self.forward_velocity = 0.0;
+    }
+
+    fn step(&mut self, action: &[f32]) -> Result<(), Unstable> {
+        let x_before = self.sim.qpos()[0];
+        let result = self.sim.advance(action);
+        self.forward_velocity = (self.sim.qpos()[0] - x_before) / self.control_dt;
+        result
+    }
+
+    fn observe(&self, out: &mut [f32]) {
+        let (qpos, qvel) = (self.sim.qpos(), self.sim.qvel());
+        out[0] = self.forward_velocity as f32;
+        for (o, &q) in out[1..NQ].iter_mut().zip(&qpos[1..]) {
+            *o = q as f32;
+        }
+        for (o, &v) in out[NQ..].iter_mut().zip(qvel) {
+            *o = v as f32;
+        }
+    }
+
+    /// The root is placed at x = 0; `obs[0]` is kept as the last step's forward velocity.
+    fn set_state(&mut self, obs: &[f32]) -> Result<(), SimError> {
+        let mut qpos = [0.0; NQ];
+        for (q, &o) in qpos[1..].iter_mut().zip(&obs[1..NQ]) {
+            *q = f64::from(o);
+        }
+        let mut qvel = [0.0; NQ];
+        for (v, &o) in qvel.iter_mut().zip(&obs[NQ..]) {
+            *v = f64::from(o);
+        }
+        self.sim.set_state(&qpos, &qvel);
+        self.forward_velocity = f64::from(obs[0]);
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Env;
+    use rand::{RngExt, SeedableRng};
+
+    const OBS: usize = 18;
+
+    fn observe(c: &HalfCheetah) -> [f32; OBS] {
+        let mut obs = [0.0; OBS];
+        c.observe(&mut obs);
+        obs
+    }
+
+    #[test]
+    fn dimensions_follow_the_catalog() {
+        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        let spec = env.spec();
+        assert_eq!((spec.obs_dim, spec.act_dim), (OBS, 6));
+        assert_eq!(env.reset(1).len(), OBS);
+        assert_eq!(env.step(&[0.3; 6]).unwrap().obs.len(), OBS);
+    }
+
+    /// The first number is the root's displacement over the control step divided by its
+    /// duration, not MuJoCo's instantaneous velocity.
+    #[test]
+    fn first_number_is_the_root_displacement_over_the_step() {
+        let mut c = HalfCheetah::new().unwrap();
+        c.reset(&mut StdRng::seed_from_u64(3));
+        assert_eq!(observe(&c)[0], 0.0, "no displacement yet after a reset");
+        let mut rng = StdRng::seed_from_u64(4);
+        for _ in 0..20 {
+            let x = c.sim.qpos()[0];
+            let act: Vec<f32> = (0..6).map(|_| rng.random_range(-1.0..1.0)).collect();
+            c.step(&act).unwrap();
+            let expected = (c.sim.qpos()[0] - x) / 0.05;
+            assert!((f64::from(observe(&c)[0]) - expected).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn reset_noise_is_small_and_seeded() {
+        let mut c = HalfCheetah::new().unwrap();
+        let mut all = Vec::new();
+        for seed in 0..100 {
+            c.reset(&mut StdRng::seed_from_u64(seed));
+            all.extend(c.sim.qpos().iter().chain(c.sim.qvel()).copied());
+        }
+        let n = all.len() as f64;
+        let mean = all.iter().sum::<f64>() / n;
+        let std = (all.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n).sqrt();
+        assert!(mean.abs() < 2e-4, "mean {mean}");
+        assert!((std - RESET_STD).abs() < 1e-4, "std {std}");
+    }
+
+    #[test]
+    fn it_stands_on_its_feet_without_control() {
+        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        env.reset(0);
+        let mut last = Vec::new();
+        for _ in 0..60 {
+            last = env.step(&[0.0; 6]).unwrap().obs;
+        }
+        // Settled on its legs: the torso neither fell through the floor nor flipped, and it
+        // has come to rest.
+        let (z, pitch) = (last[1], last[2]);
+        assert!((-0.2..0.1).contains(&z), "root height offset {z}");
+        assert!(pitch.abs() < 0.5, "pitch {pitch}");
+        assert!(
+            last[9..].iter().all(|v| v.abs() < 0.1),
+            "still moving: {last:?}"
+        );
+    }
+
+    #[test]
+    fn a_seed_determines_the_episode() {
+        let mut a = Env::new(TaskId::HalfCheetah).unwrap();
+        let mut b = Env::new(TaskId::HalfCheetah).unwrap();
+        assert_eq!(a.reset(9), b.reset(9));
+        let mut rng = StdRng::seed_from_u64(9);
+        for _ in 0..200 {
+            let act: Vec<f32> = (0..6).map(|_| rng.random_range(-1.0..1.0)).collect();
+            assert_eq!(a.step(&act).unwrap(), b.step(&act).unwrap());
+        }
+        let start = a.reset(9).to_vec();
+        assert_ne!(b.reset(10), &start[..]);
+    }
+
+    #[test]
+    fn a_random_episode_runs_its_full_length() {
+        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        let spec = env.spec();
+        env.reset(5);
+        let mut rng = StdRng::seed_from_u64(5);
+        let mut prev = env.observation().to_vec();
+        for step in 1..=spec.episode_len {
+            let act: Vec<f32> = (0..6).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let out = env.step(&act).unwrap();
+            assert!(out.obs.iter().all(|v| v.is_finite()), "step {step}");
+            assert_eq!(out.reward, spec.reward(&prev, &act, &out.obs));
+            assert!(!out.terminated);
+            assert_eq!(out.truncated, step == spec.episode_len);
+            prev = out.obs;
+        }
+    }
+
+    /// A cheetah moving forward earns more than one standing still, and the reported reward is
+    /// the forward displacement per second minus the control cost.
+    #[test]
+    fn moving_forward_pays_more_than_standing_still() {
+        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        env.reset(0);
+        for _ in 0..40 {
+            env.step(&[0.0; 6]).unwrap();
+        }
+        let rest = env.observation().to_vec();
+
+        env.set_state(&rest).unwrap();
+        let still = env.step(&[0.0; 6]).unwrap();
+        let mut pushed = rest.clone();
+        pushed[9] = 3.0; // root x velocity
+        env.set_state(&pushed).unwrap();
+        let moving = env.step(&[0.0; 6]).unwrap();
+        let mut backwards = rest.clone();
+        backwards[9] = -3.0;
+        env.set_state(&backwards).unwrap();
+        let reversing = env.step(&[0.0; 6]).unwrap();
+
+        assert!(
+            still.reward.abs() < 0.05,
+            "standing still: {}",
+            still.reward
+        );
+        assert!(moving.reward > 1.0, "moving forward: {}", moving.reward);
+        assert!(reversing.reward < -1.0, "moving back: {}", reversing.reward);
+        // The same motion with full effort costs 0.1 × 6 = 0.6 more than without.
+        env.set_state(&rest).unwrap();
+        let effort = env.step(&[1.0, -1.0, 1.0, -1.0, 1.0, -1.0]).unwrap();
+        assert!(effort.reward < still.reward - 0.5, "{}", effort.reward);
+    }
+
+    /// A fixed open-loop gait (4 Hz sines, the front leg a quarter period behind the back,
+    /// shins and feet a quarter period behind their thighs) runs forward at over 0.5 m/s with a
+    /// positive return: the model can run, so a planner that does not make it run has failed,
+    /// not the model.
+    #[test]
+    fn an_open_loop_gait_runs_forward() {
+        use std::f32::consts::{FRAC_PI_2, FRAC_PI_4, PI};
+        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        env.reset(2);
+        let (mut distance, mut total) = (0.0, 0.0);
+        for step in 0..200 {
+            let phase = 2.0 * PI * 4.0 * step as f32 * 0.05;
+            let (back, front) = (phase, phase + FRAC_PI_4);
+            let act = [
+                back.sin(),
+                (back + FRAC_PI_2).sin(),
+                (back + FRAC_PI_2).sin(),
+                front.sin(),
+                (front + FRAC_PI_2).sin(),
+                (front + FRAC_PI_2).sin(),
+            ];
+            let out = env.step(&act).unwrap();
+            distance += out.obs[0] * 0.05;
+            total += out.reward;
+        }
+        assert!(distance > 5.0, "ran {distance} m in 10 s");
+        assert!(total > 0.0, "return over 200 steps {total}");
+        eprintln!("open-loop gait: {distance} m in 10 s, return {total} over 200 steps");
+    }
+}
