@@ -5,6 +5,7 @@
 //! come from proto's [`proto::TaskSpec`], the one definition the planner uses as well. Adding a
 //! task means adding a module, an arm in [`simulator`] and its name in [`SIMULATED`].
 
+mod ant;
 mod cartpole;
 mod halfcheetah;
 
@@ -33,7 +34,7 @@ pub(crate) trait TaskSim: Send {
 }
 
 /// The tasks that have a simulator, in catalog order.
-pub const SIMULATED: &[TaskId] = &[TaskId::Cartpole, TaskId::HalfCheetah];
+pub const SIMULATED: &[TaskId] = &[TaskId::Cartpole, TaskId::HalfCheetah, TaskId::Ant];
 
 /// Builds the simulator for `task`, or says clearly that it has none yet.
 pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
@@ -43,6 +44,7 @@ pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
     match task {
         TaskId::Cartpole => Ok(Box::new(cartpole::Cartpole::new()?)),
         TaskId::HalfCheetah => Ok(Box::new(halfcheetah::HalfCheetah::new()?)),
+        TaskId::Ant => Ok(Box::new(ant::Ant::new()?)),
         _ => Err(SimError::NoSimulator {
             task,
             known: SIMULATED
