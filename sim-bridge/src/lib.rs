@@ -5,6 +5,7 @@
 //! with its own MJCF in `assets/` (embedded in the binary); rewards and termination always come
 //! from proto, the definitions the planner shares.
 
+pub mod bench;
 pub mod bridge;
 pub mod csv;
 pub mod env;

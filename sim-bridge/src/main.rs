@@ -26,6 +26,18 @@ enum Command {
     Run(Box<RunArgs>),
     /// List the tasks of the catalog: dimensions, action bounds, episode length, control rate.
     Tasks,
+    /// Measure how fast each simulated task steps (control steps per second, one thread).
+    Bench(BenchArgs),
+}
+
+#[derive(Args, Debug)]
+struct BenchArgs {
+    /// Only this task (default: every simulated task).
+    #[arg(long)]
+    task: Option<TaskId>,
+    /// Control steps to time per task, at least (whole episodes are run).
+    #[arg(long, default_value_t = 20_000)]
+    steps: u64,
 }
 
 #[derive(Args, Debug)]
@@ -312,10 +324,35 @@ fn bounds_text(low: &[f32], high: &[f32]) -> String {
     }
 }
 
+fn bench(args: &BenchArgs) -> Result<()> {
+    let tasks = match args.task {
+        Some(task) => vec![task],
+        None => sim_bridge::SIMULATED.to_vec(),
+    };
+    println!(
+        "{:<12} {:>8} {:>8} {:>12} {:>10} {:>10}",
+        "task", "steps", "episodes", "steps/s", "µs/step", "real time"
+    );
+    for task in tasks {
+        let rate = sim_bridge::bench::step_rate(task, args.steps)
+            .with_context(|| format!("benchmarking {task}"))?;
+        println!(
+            "{:<12} {:>8} {:>8} {:>12.0} {:>10.1} {:>9.0}×",
+            task.name(),
+            rate.steps,
+            rate.episodes,
+            rate.steps_per_second(),
+            1e6 / rate.steps_per_second(),
+            rate.real_time_factor()
+        );
+    }
+    Ok(())
+}
+
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn")),
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn,mujoco=warn")),
         )
         .with_writer(std::io::stderr)
         .init();
@@ -325,6 +362,7 @@ fn main() -> Result<()> {
             list_tasks();
             Ok(())
         }
+        Command::Bench(args) => bench(&args),
         Command::Run(args) => {
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
