@@ -9,9 +9,14 @@
 //! - [`plan`]: CEM over action sequences and the batched imagination that scores them.
 
 pub mod agent;
+pub mod config;
 pub mod data;
 pub mod dynamics;
 pub mod energy;
+pub mod models;
 pub mod nn;
 pub mod plan;
 pub mod replay;
+pub mod run;
+pub mod service;
+pub mod trainer;

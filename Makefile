@@ -1,0 +1,38 @@
+# ebmpc: the two commands of the README, and their parts.
+#   make demo   learn cartpole swing-up from scratch: planner daemon + MuJoCo sim-bridge over Zenoh
+#   make test   the whole test suite (what CI runs)
+
+SHELL := /bin/bash
+CARGO ?= cargo
+MUJOCO_LIB := .mujoco/lib/libmujoco.so
+
+# Demo knobs: `make demo TASK=cartpole EPISODES=10 SEED=0 METHOD=cem+deen`
+TASK ?= cartpole
+EPISODES ?= 10
+SEED ?= 0
+METHOD ?= cem+deen
+
+.PHONY: demo test mujoco toolchain lint fmt
+
+toolchain:
+	@command -v $(CARGO) >/dev/null || { echo "error: cargo not found: install Rust 1.95+ (https://rustup.rs) first" >&2; exit 1; }
+
+$(MUJOCO_LIB): deploy/install-mujoco.sh
+	bash deploy/install-mujoco.sh
+
+mujoco: $(MUJOCO_LIB)
+
+demo: toolchain mujoco
+	$(CARGO) build --release --bins
+	TASK=$(TASK) EPISODES=$(EPISODES) SEED=$(SEED) METHOD=$(METHOD) bash deploy/demo.sh
+
+test: toolchain mujoco
+	$(CARGO) build --workspace --bins
+	$(CARGO) test --workspace --no-fail-fast
+
+lint: toolchain mujoco
+	$(CARGO) fmt --all -- --check
+	$(CARGO) clippy --workspace --all-targets -- -D warnings
+
+fmt:
+	$(CARGO) fmt --all

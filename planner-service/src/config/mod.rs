@@ -1,0 +1,125 @@
+//! Configuration of the planner daemon: the service settings (TOML file, overridable from the
+//! command line) and the per-task presets of the paper's Table 2.
+
+mod preset;
+
+pub use preset::{EpochSchedule, Preset, PresetError};
+
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The daemon's configuration file (`planner-service serve --config FILE`).
+///
+/// Every field has a default, so an empty file is a valid configuration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServiceConfig {
+    /// This planner's id: its status key and liveliness token carry it.
+    pub planner_id: String,
+    /// Key prefix shared with the agents.
+    pub prefix: String,
+    /// Zenoh endpoints to listen on.
+    pub listen: Vec<String>,
+    /// Zenoh endpoints (peers or a router) to connect to.
+    pub connect: Vec<String>,
+    /// A zenoh configuration file (JSON5) to start from; endpoints above are applied on top.
+    pub zenoh_config: Option<PathBuf>,
+    /// Where runs keep their replay buffers and models.
+    pub data_dir: PathBuf,
+    /// Most runs this daemon hosts at once; further attaches to new runs are refused.
+    pub max_runs: usize,
+    /// Most agents attached to one run at once.
+    pub max_agents_per_run: usize,
+    /// Presets agents may ask for (empty: all).
+    pub allowed_presets: Vec<String>,
+    /// Overrides applied to every run's preset before the agent's own (e.g. smaller networks
+    /// for a quick test), keyed like the attach message's overrides.
+    pub overrides: proto::PlannerOverrides,
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        Self {
+            planner_id: "planner".into(),
+            prefix: proto::keys::DEFAULT_PREFIX.into(),
+            listen: Vec::new(),
+            connect: Vec::new(),
+            zenoh_config: None,
+            data_dir: PathBuf::from("var/ebmpc"),
+            max_runs: 64,
+            max_agents_per_run: 16,
+            allowed_presets: Vec::new(),
+            overrides: proto::PlannerOverrides::default(),
+        }
+    }
+}
+
+/// A configuration file that could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("invalid config file {path}: {source}")]
+    Parse {
+        path: PathBuf,
+        source: Box<toml::de::Error>,
+    },
+    #[error("invalid planner id: {0}")]
+    PlannerId(#[from] proto::keys::InvalidName),
+}
+
+impl ServiceConfig {
+    /// Reads a TOML configuration file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.into(),
+            source,
+        })?;
+        let config: ServiceConfig = toml::from_str(&text).map_err(|source| ConfigError::Parse {
+            path: path.into(),
+            source: Box::new(source),
+        })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks what serde cannot.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        proto::validate_name(&self.planner_id)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_a_partial_file_over_defaults() {
+        let config: ServiceConfig = toml::from_str(
+            r#"
+            planner_id = "lab-1"
+            listen = ["tcp/127.0.0.1:7447"]
+            max_runs = 4
+            [overrides]
+            population = 50
+            "#,
+        )
+        .unwrap();
+        assert_eq!(config.planner_id, "lab-1");
+        assert_eq!(config.max_runs, 4);
+        assert_eq!(config.overrides.population, Some(50));
+        assert_eq!(
+            config.max_agents_per_run,
+            ServiceConfig::default().max_agents_per_run
+        );
+    }
+
+    #[test]
+    fn rejects_unknown_keys() {
+        assert!(toml::from_str::<ServiceConfig>("max_run = 3").is_err());
+    }
+}

@@ -1,0 +1,394 @@
+//! Per-task presets: the paper's Table 2 (model, DEEN and CEM sizes) and `tasks.md` (horizon,
+//! population, elites, exploration), combined with a *method* — the preset's name:
+//!
+//! | preset      | dynamics                        | regulariser |
+//! |-------------|---------------------------------|-------------|
+//! | `cem`       | one probabilistic model, mean   | none        |
+//! | `cem+dae`   | one probabilistic model, mean   | DAE         |
+//! | `cem+deen`  | one probabilistic model, mean   | DEEN (default: the paper) |
+//! | `pets`      | 5-member ensemble, TS∞, 20 particles, sampled | none |
+//! | `pets+deen` | as `pets`                       | DEEN (the paper's §4.1 setting) |
+//!
+//! A run's preset is then adjusted by the daemon's configured overrides and the attaching
+//! agent's own overrides, in that order.
+
+use crate::dynamics::DynamicsConfig;
+use crate::energy::{EnergyConfig, RegularizerKind};
+use crate::plan::CemConfig;
+use proto::{PlannerOverrides, RegularizerChoice, TaskId};
+use serde::{Deserialize, Serialize};
+
+/// The methods a preset can be built for (see the module docs).
+pub const METHODS: &[&str] = &["cem", "cem+dae", "cem+deen", "pets", "pets+deen"];
+
+/// The method a run uses when it names none: the paper's.
+pub const DEFAULT_METHOD: &str = "cem+deen";
+
+/// Everything a run needs to know to learn and plan.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Preset {
+    /// The method name (one of [`METHODS`]).
+    pub method: String,
+    pub task: TaskId,
+    pub dynamics: DynamicsConfig,
+    pub regularizer: RegularizerKind,
+    pub energy: EnergyConfig,
+    /// `alpha`: weight of the energy in the planning objective (Table 2's cost multiplier).
+    pub energy_weight: f32,
+    pub cem: CemConfig,
+    /// Sample the dynamics' predicted Gaussian in imagination (PETS TS∞) instead of its mean.
+    pub sample_dynamics: bool,
+    /// Episodes of uniformly random actions before planning starts.
+    pub exploration_episodes: u32,
+    /// How the number of training epochs changes as episodes accumulate.
+    pub schedule: EpochSchedule,
+}
+
+/// How training epochs decay with the number of finished episodes (the paper trains less as
+/// the buffer grows, to avoid overfitting it).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum EpochSchedule {
+    /// The configured epochs after every episode.
+    Constant,
+    /// Half-cheetah: `epochs` for both models once `after_episodes` episodes are stored.
+    DropAfter { after_episodes: u32, epochs: u32 },
+    /// Ant: epochs multiplied by `dynamics_factor` / `energy_factor` after every episode
+    /// beyond the exploration ones, never below `min_epochs`.
+    Geometric {
+        dynamics_factor: f32,
+        energy_factor: f32,
+        min_epochs: u32,
+    },
+}
+
+impl EpochSchedule {
+    /// `(dynamics epochs, energy epochs)` for a retraining after `episodes` stored episodes.
+    pub fn epochs(&self, preset: &Preset, episodes: u32) -> (usize, usize) {
+        let (dynamics, energy) = (preset.dynamics.epochs, preset.energy.epochs);
+        match *self {
+            EpochSchedule::Constant => (dynamics, energy),
+            EpochSchedule::DropAfter {
+                after_episodes,
+                epochs,
+            } if episodes >= after_episodes => (epochs as usize, epochs as usize),
+            EpochSchedule::DropAfter { .. } => (dynamics, energy),
+            EpochSchedule::Geometric {
+                dynamics_factor,
+                energy_factor,
+                min_epochs,
+            } => {
+                let decays = episodes.saturating_sub(preset.exploration_episodes) as i32;
+                let decay = |epochs: usize, factor: f32| {
+                    ((epochs as f32 * factor.powi(decays)).round() as usize)
+                        .max(min_epochs as usize)
+                };
+                (
+                    decay(dynamics, dynamics_factor),
+                    decay(energy, energy_factor),
+                )
+            }
+        }
+    }
+}
+
+/// A preset that cannot be built.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PresetError {
+    #[error("unknown preset `{0}` (known: {known})", known = METHODS.join(", "))]
+    UnknownMethod(String),
+    #[error("invalid override: {0}")]
+    InvalidOverride(String),
+}
+
+/// Table 2's numbers for one task.
+struct TaskTable {
+    model_layers: usize,
+    model_size: usize,
+    model_epochs: usize,
+    model_batch: usize,
+    energy_layers: usize,
+    energy_size: usize,
+    energy_epochs: usize,
+    energy_batch: usize,
+    sigma: f32,
+    alpha: f32,
+    horizon: usize,
+    population: usize,
+    elites: usize,
+    iterations: usize,
+    exploration_episodes: u32,
+    schedule: EpochSchedule,
+}
+
+fn table(task: TaskId) -> TaskTable {
+    match task {
+        TaskId::Cartpole => TaskTable {
+            model_layers: 3,
+            model_size: 200,
+            model_epochs: 500,
+            model_batch: 32,
+            energy_layers: 3,
+            energy_size: 200,
+            energy_epochs: 500,
+            energy_batch: 32,
+            sigma: 0.1,
+            alpha: 0.001,
+            horizon: 25,
+            population: 400,
+            elites: 40,
+            iterations: 5,
+            exploration_episodes: 1,
+            schedule: EpochSchedule::Constant,
+        },
+        TaskId::Reacher3d => TaskTable {
+            model_layers: 3,
+            model_size: 200,
+            model_epochs: 500,
+            model_batch: 32,
+            energy_layers: 3,
+            energy_size: 200,
+            energy_epochs: 500,
+            energy_batch: 32,
+            sigma: 0.1,
+            alpha: 0.001,
+            horizon: 25,
+            population: 400,
+            elites: 40,
+            iterations: 5,
+            exploration_episodes: 1,
+            schedule: EpochSchedule::Constant,
+        },
+        TaskId::HalfCheetah => TaskTable {
+            model_layers: 4,
+            model_size: 200,
+            model_epochs: 300,
+            model_batch: 128,
+            energy_layers: 5,
+            energy_size: 500,
+            energy_epochs: 100,
+            energy_batch: 32,
+            sigma: 0.37,
+            alpha: 0.05,
+            horizon: 30,
+            population: 500,
+            elites: 50,
+            iterations: 5,
+            exploration_episodes: 3,
+            schedule: EpochSchedule::DropAfter {
+                after_episodes: 10,
+                epochs: 8,
+            },
+        },
+        TaskId::Ant => TaskTable {
+            model_layers: 4,
+            model_size: 400,
+            model_epochs: 600,
+            model_batch: 400,
+            energy_layers: 3,
+            energy_size: 300,
+            energy_epochs: 800,
+            energy_batch: 64,
+            sigma: 0.9,
+            alpha: 0.035,
+            horizon: 30,
+            population: 500,
+            elites: 50,
+            iterations: 7,
+            exploration_episodes: 1,
+            schedule: EpochSchedule::Geometric {
+                dynamics_factor: 0.6,
+                energy_factor: 0.7,
+                min_epochs: 5,
+            },
+        },
+    }
+}
+
+impl Preset {
+    /// The preset for `task` and `method` (`None`: [`DEFAULT_METHOD`]).
+    pub fn new(task: TaskId, method: Option<&str>) -> Result<Self, PresetError> {
+        let method = method.unwrap_or(DEFAULT_METHOD);
+        let (pets, regularizer) = match method {
+            "cem" => (false, RegularizerKind::None),
+            "cem+dae" => (false, RegularizerKind::Dae),
+            "cem+deen" => (false, RegularizerKind::Deen),
+            "pets" => (true, RegularizerKind::None),
+            "pets+deen" => (true, RegularizerKind::Deen),
+            other => return Err(PresetError::UnknownMethod(other.to_string())),
+        };
+        let t = table(task);
+        Ok(Preset {
+            method: method.to_string(),
+            task,
+            dynamics: DynamicsConfig {
+                hidden_layers: t.model_layers,
+                hidden_size: t.model_size,
+                ensemble_size: if pets { 5 } else { 1 },
+                epochs: t.model_epochs,
+                batch_size: t.model_batch,
+                learning_rate: 1e-3,
+                weight_decay: 5e-5,
+            },
+            regularizer,
+            energy: EnergyConfig {
+                hidden_layers: t.energy_layers,
+                hidden_size: t.energy_size,
+                epochs: t.energy_epochs,
+                batch_size: t.energy_batch,
+                noise_sigma: t.sigma,
+                learning_rate: 1e-3,
+            },
+            energy_weight: t.alpha,
+            cem: CemConfig {
+                horizon: t.horizon,
+                population: t.population,
+                elites: t.elites,
+                iterations: t.iterations,
+                smoothing: 0.1,
+                min_variance: 1e-3,
+                particles: if pets { 20 } else { 1 },
+            },
+            sample_dynamics: pets,
+            exploration_episodes: t.exploration_episodes,
+            schedule: t.schedule,
+        })
+    }
+
+    /// Applies `overrides` (fields that are `Some`), checking that the result still makes sense.
+    pub fn apply(&mut self, o: &PlannerOverrides) -> Result<(), PresetError> {
+        fn set(target: &mut usize, value: Option<u32>, name: &str) -> Result<(), PresetError> {
+            match value {
+                Some(0) => Err(PresetError::InvalidOverride(format!(
+                    "{name} must be at least 1"
+                ))),
+                Some(v) => {
+                    *target = v as usize;
+                    Ok(())
+                }
+                None => Ok(()),
+            }
+        }
+        if let Some(r) = o.regularizer {
+            self.regularizer = match r {
+                RegularizerChoice::None => RegularizerKind::None,
+                RegularizerChoice::Dae => RegularizerKind::Dae,
+                RegularizerChoice::Deen => RegularizerKind::Deen,
+            };
+        }
+        if let Some(w) = o.energy_weight {
+            if !(w.is_finite() && w >= 0.0) {
+                return Err(PresetError::InvalidOverride(format!(
+                    "energy_weight must be finite and ≥ 0, not {w}"
+                )));
+            }
+            self.energy_weight = w;
+        }
+        set(
+            &mut self.dynamics.ensemble_size,
+            o.ensemble_size,
+            "ensemble_size",
+        )?;
+        set(&mut self.cem.particles, o.particles, "particles")?;
+        set(&mut self.cem.horizon, o.horizon, "horizon")?;
+        set(&mut self.cem.population, o.population, "population")?;
+        set(&mut self.cem.elites, o.elites, "elites")?;
+        set(&mut self.cem.iterations, o.cem_iterations, "cem_iterations")?;
+        set(
+            &mut self.dynamics.epochs,
+            o.dynamics_epochs,
+            "dynamics_epochs",
+        )?;
+        set(
+            &mut self.dynamics.hidden_layers,
+            o.dynamics_hidden_layers,
+            "dynamics_hidden_layers",
+        )?;
+        set(
+            &mut self.dynamics.hidden_size,
+            o.dynamics_hidden_size,
+            "dynamics_hidden_size",
+        )?;
+        set(&mut self.energy.epochs, o.energy_epochs, "energy_epochs")?;
+        set(
+            &mut self.energy.hidden_layers,
+            o.energy_hidden_layers,
+            "energy_hidden_layers",
+        )?;
+        set(
+            &mut self.energy.hidden_size,
+            o.energy_hidden_size,
+            "energy_hidden_size",
+        )?;
+        if let Some(e) = o.exploration_episodes {
+            self.exploration_episodes = e;
+        }
+        if self.cem.elites > self.cem.population {
+            return Err(PresetError::InvalidOverride(format!(
+                "elites ({}) cannot exceed population ({})",
+                self.cem.elites, self.cem.population
+            )));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn table_two_numbers() {
+        let hc = Preset::new(TaskId::HalfCheetah, None).unwrap();
+        assert_eq!(hc.method, "cem+deen");
+        assert_eq!((hc.energy.hidden_layers, hc.energy.hidden_size), (5, 500));
+        assert_eq!(hc.energy_weight, 0.05);
+        assert_eq!(hc.exploration_episodes, 3);
+        assert_eq!(hc.schedule.epochs(&hc, 5), (300, 100));
+        assert_eq!(hc.schedule.epochs(&hc, 10), (8, 8));
+        let ant = Preset::new(TaskId::Ant, Some("pets")).unwrap();
+        assert_eq!(
+            (
+                ant.dynamics.ensemble_size,
+                ant.cem.particles,
+                ant.cem.iterations
+            ),
+            (5, 20, 7)
+        );
+        assert_eq!(ant.regularizer, RegularizerKind::None);
+        assert_eq!(ant.schedule.epochs(&ant, 1), (600, 800));
+        assert_eq!(ant.schedule.epochs(&ant, 2), (360, 560));
+        assert!(Preset::new(TaskId::Cartpole, Some("sac")).is_err());
+    }
+
+    #[test]
+    fn overrides_apply_and_are_checked() {
+        let mut p = Preset::new(TaskId::Cartpole, None).unwrap();
+        let o = PlannerOverrides {
+            regularizer: Some(RegularizerChoice::Dae),
+            population: Some(50),
+            elites: Some(5),
+            ..Default::default()
+        };
+        p.apply(&o).unwrap();
+        assert_eq!(
+            (p.regularizer, p.cem.population, p.cem.elites),
+            (RegularizerKind::Dae, 50, 5)
+        );
+        let bad = PlannerOverrides {
+            elites: Some(500),
+            ..Default::default()
+        };
+        assert!(p.apply(&bad).is_err());
+        let zero = PlannerOverrides {
+            horizon: Some(0),
+            ..Default::default()
+        };
+        assert!(p.apply(&zero).is_err());
+        let nan = PlannerOverrides {
+            energy_weight: Some(f32::NAN),
+            ..Default::default()
+        };
+        assert!(p.apply(&nan).is_err());
+    }
+}

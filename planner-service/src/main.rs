@@ -1,0 +1,123 @@
+//! `planner-service`: the ebmpc planner daemon and its tools.
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand};
+use planner_service::config::ServiceConfig;
+use planner_service::service::Service;
+use std::path::PathBuf;
+use tracing_subscriber::EnvFilter;
+
+/// The ebmpc planner: learns dynamics and energy models from agents' experience and answers
+/// every observation with a model-predictive action (CEM regularised by DEEN energy).
+#[derive(Parser, Debug)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Run the planner daemon: serve attach requests and observations over Zenoh until
+    /// SIGINT/SIGTERM.
+    Serve(ServeArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct ServeArgs {
+    /// TOML configuration file (see deploy/planner.toml); flags below override its values.
+    #[arg(long, env = "EBMPC_CONFIG")]
+    config: Option<PathBuf>,
+    /// Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable).
+    #[arg(long, env = "EBMPC_LISTEN", value_delimiter = ',')]
+    listen: Vec<String>,
+    /// Zenoh endpoint (a peer or a zenohd router) to connect to (repeatable).
+    #[arg(long, env = "EBMPC_CONNECT", value_delimiter = ',')]
+    connect: Vec<String>,
+    /// This planner's id (its status key and liveliness token).
+    #[arg(long, env = "EBMPC_PLANNER_ID")]
+    planner_id: Option<String>,
+    /// Key prefix shared with the agents.
+    #[arg(long, env = "EBMPC_PREFIX")]
+    prefix: Option<String>,
+    /// Directory for replay buffers and models.
+    #[arg(long, env = "EBMPC_DATA_DIR")]
+    data_dir: Option<PathBuf>,
+}
+
+impl ServeArgs {
+    fn into_config(self) -> Result<ServiceConfig> {
+        let mut config = match &self.config {
+            Some(path) => ServiceConfig::load(path)?,
+            None => ServiceConfig::default(),
+        };
+        if !self.listen.is_empty() {
+            config.listen = self.listen;
+        }
+        if !self.connect.is_empty() {
+            config.connect = self.connect;
+        }
+        if let Some(id) = self.planner_id {
+            config.planner_id = id;
+        }
+        if let Some(prefix) = self.prefix {
+            config.prefix = prefix;
+        }
+        if let Some(dir) = self.data_dir {
+            config.data_dir = dir;
+        }
+        config.validate()?;
+        Ok(config)
+    }
+}
+
+/// Resolves when the process is asked to stop (SIGINT or SIGTERM).
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!(error = %e, "cannot listen for SIGINT");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for SIGTERM");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => tracing::info!("SIGINT received"),
+        () = term => tracing::info!("SIGTERM received"),
+    }
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Serve(args) => {
+            let config = args.into_config()?;
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()
+                .context("tokio runtime")?;
+            runtime
+                .block_on(Service::serve(config, shutdown_signal()))
+                .context("planner service")?;
+            Ok(())
+        }
+    }
+}

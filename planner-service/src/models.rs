@@ -1,0 +1,48 @@
+//! A run's learned models, as one immutable snapshot.
+//!
+//! Planning reads a snapshot through an `Arc` while the trainer builds the next one from a
+//! copy; the new snapshot is swapped in whole, so a plan never mixes models of two versions.
+
+use crate::config::Preset;
+use crate::dynamics::Ensemble;
+use crate::energy::Regularizer;
+use proto::TaskSpec;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+
+/// The dynamics model and the regulariser of one version.
+#[derive(Clone, Debug)]
+pub struct Models {
+    /// 0 until the first training; +1 with every retraining.
+    pub version: u64,
+    /// Finished episodes whose transitions these models were trained on.
+    pub episodes_covered: u32,
+    pub dynamics: Ensemble,
+    pub regularizer: Regularizer,
+}
+
+impl Models {
+    /// Freshly initialised, untrained models of the preset's sizes.
+    pub fn untrained(task: &'static TaskSpec, preset: &Preset, seed: u64) -> Self {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let dynamics = Ensemble::new(task, &preset.dynamics, &mut rng);
+        let regularizer = Regularizer::new(
+            preset.regularizer,
+            &preset.energy,
+            task.obs_dim,
+            task.act_dim,
+            &mut rng,
+        );
+        Self {
+            version: 0,
+            episodes_covered: 0,
+            dynamics,
+            regularizer,
+        }
+    }
+
+    /// Whether these models have been trained at all.
+    pub fn is_trained(&self) -> bool {
+        self.version > 0
+    }
+}

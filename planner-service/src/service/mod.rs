@@ -1,0 +1,536 @@
+//! The planner daemon's Zenoh face: the attach queryable, the observation subscriber, the
+//! per-agent workers that answer with actions, and the events and errors they publish.
+//!
+//! ```text
+//! attach query ──▶ Service::attach ──▶ Run (created or joined) + agent worker task
+//! obs sample ────▶ Service::route ───▶ agent worker (in order) ──▶ validate → store → act
+//! ```
+//! Each agent has one worker task, so its observations are handled strictly in order while
+//! agents (and runs) proceed concurrently; planning itself runs on the blocking pool, and
+//! training on the run's trainer task, so neither stalls the transport.
+
+pub mod status;
+mod worker;
+
+use crate::config::{Preset, ServiceConfig};
+use crate::replay::ReplayBuffer;
+use crate::run::{EventSink, Run};
+use proto::{
+    AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorCode, ErrorReport,
+    Keys, PROTOCOL_VERSION, RunEvent, RunEventKind,
+};
+use std::collections::HashMap;
+use std::future::Future;
+use std::sync::{Arc, Mutex, PoisonError};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+use worker::{AgentWorker, Incoming};
+use zenoh::bytes::Encoding as ZEncoding;
+
+/// Failures that stop the daemon (everything else is reported to the sender and logged).
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+    #[error(transparent)]
+    SessionConfig(#[from] proto::session::SessionConfigError),
+}
+
+fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
+    ServiceError::Zenoh(e.to_string())
+}
+
+/// Queue depth of one agent's worker. An agent waits for each action, so more than a couple of
+/// queued observations means a misbehaving sender; beyond this they are refused.
+const AGENT_QUEUE: usize = 64;
+
+/// How long a worker may take to finish its message in hand at shutdown.
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(10);
+
+struct AgentHandle {
+    tx: mpsc::Sender<Incoming>,
+    task: JoinHandle<()>,
+}
+
+struct RunHandle {
+    run: Arc<Run>,
+    agents: HashMap<String, AgentHandle>,
+    trainer: JoinHandle<()>,
+}
+
+/// Publishes encoded messages on keys; shared by the service and its workers.
+#[derive(Clone)]
+pub(crate) struct Outbox {
+    session: zenoh::Session,
+    keys: Keys,
+}
+
+impl Outbox {
+    pub(crate) fn keys(&self) -> &Keys {
+        &self.keys
+    }
+
+    /// Publishes `msg` on `key` in `encoding`, logging (not failing) on transport errors: the
+    /// peer may be gone, and the service must keep serving the others.
+    pub(crate) async fn publish<T: serde::Serialize>(
+        &self,
+        key: &str,
+        msg: &T,
+        encoding: Encoding,
+    ) {
+        let bytes = match proto::encode(msg, encoding) {
+            Ok(bytes) => bytes,
+            Err(e) => {
+                tracing::error!(%key, error = %e, "cannot encode message");
+                return;
+            }
+        };
+        if let Err(e) = self
+            .session
+            .put(key, bytes)
+            .encoding(ZEncoding::from(encoding.mime()))
+            .await
+        {
+            tracing::warn!(%key, error = %e, "publish failed");
+        }
+    }
+
+    /// Reports an error to the agent that caused it, and logs it.
+    pub(crate) async fn report(
+        &self,
+        run: &str,
+        agent: &str,
+        report: ErrorReport,
+        encoding: Encoding,
+    ) {
+        tracing::warn!(%run, %agent, code = ?report.code, episode = ?report.episode, step = ?report.step, "rejected: {}", report.message);
+        self.publish(&self.keys.error(run, agent), &report, encoding)
+            .await;
+    }
+}
+
+/// The planner daemon.
+pub struct Service {
+    config: ServiceConfig,
+    outbox: Outbox,
+    runs: Mutex<HashMap<String, RunHandle>>,
+    runtime: tokio::runtime::Handle,
+    started: std::time::Instant,
+}
+
+impl Service {
+    /// Serves until `shutdown` completes, then stops every worker and closes the session.
+    pub async fn serve(
+        config: ServiceConfig,
+        shutdown: impl Future<Output = ()>,
+    ) -> Result<(), ServiceError> {
+        let base = match &config.zenoh_config {
+            Some(path) => Some(zenoh::Config::from_file(path).map_err(zenoh_err)?),
+            None => None,
+        };
+        let endpoints = proto::session::Endpoints {
+            listen: config.listen.clone(),
+            connect: config.connect.clone(),
+        };
+        let zconfig = proto::session::zenoh_config(&endpoints, base)?;
+        let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
+        let keys = Keys::new(&config.prefix);
+        let service = Arc::new(Service {
+            outbox: Outbox {
+                session: session.clone(),
+                keys: keys.clone(),
+            },
+            config,
+            runs: Mutex::new(HashMap::new()),
+            runtime: tokio::runtime::Handle::current(),
+            started: std::time::Instant::now(),
+        });
+        let planner_id = service.config.planner_id.clone();
+        let _alive = session
+            .liveliness()
+            .declare_token(keys.planner_alive(&planner_id))
+            .await
+            .map_err(zenoh_err)?;
+        let attach = session
+            .declare_queryable(keys.all_attach())
+            .await
+            .map_err(zenoh_err)?;
+        let observations = session
+            .declare_subscriber(keys.all_obs())
+            .await
+            .map_err(zenoh_err)?;
+        let status = session
+            .declare_queryable(keys.planner_status(&planner_id))
+            .await
+            .map_err(zenoh_err)?;
+        let agents_alive = session
+            .liveliness()
+            .declare_subscriber(keys.all_agents_alive())
+            .await
+            .map_err(zenoh_err)?;
+        tracing::info!(planner = %planner_id, prefix = %keys.prefix(), "planner serving");
+
+        tokio::pin!(shutdown);
+        loop {
+            tokio::select! {
+                query = attach.recv_async() => match query {
+                    Ok(query) => service.attach(query).await,
+                    Err(e) => { tracing::error!(error = %e, "attach queryable closed"); break; }
+                },
+                sample = observations.recv_async() => match sample {
+                    Ok(sample) => service.route(sample).await,
+                    Err(e) => { tracing::error!(error = %e, "observation subscriber closed"); break; }
+                },
+                query = status.recv_async() => match query {
+                    Ok(query) => service.status(query).await,
+                    Err(e) => { tracing::error!(error = %e, "status queryable closed"); break; }
+                },
+                token = agents_alive.recv_async() => match token {
+                    Ok(token) => service.liveliness(token).await,
+                    Err(e) => { tracing::error!(error = %e, "liveliness subscriber closed"); break; }
+                },
+                () = &mut shutdown => break,
+            }
+        }
+        tracing::info!("shutting down");
+        service.stop().await;
+        session.close().await.map_err(zenoh_err)?;
+        Ok(())
+    }
+
+    /// Stops every worker (each finishes the message in hand, within a grace period) and every
+    /// trainer. The replay logs are synced at every episode end and every transition is
+    /// handed to the OS before it is acknowledged, so nothing acknowledged is lost either way.
+    async fn stop(&self) {
+        let runs: Vec<RunHandle> = self
+            .runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .drain()
+            .map(|(_, h)| h)
+            .collect();
+        for handle in runs {
+            handle.trainer.abort();
+            for (agent, worker) in handle.agents {
+                drop(worker.tx);
+                let abort = worker.task.abort_handle();
+                if tokio::time::timeout(SHUTDOWN_GRACE, worker.task)
+                    .await
+                    .is_err()
+                {
+                    tracing::warn!(run = %handle.run.name(), %agent, "worker did not finish in time; abandoned");
+                    abort.abort();
+                }
+            }
+        }
+    }
+
+    fn event_sink(&self) -> EventSink {
+        let outbox = self.outbox.clone();
+        let runtime = self.runtime.clone();
+        Arc::new(move |run: &str, kind: RunEventKind| {
+            let outbox = outbox.clone();
+            let event = RunEvent {
+                version: PROTOCOL_VERSION,
+                run: run.to_string(),
+                kind,
+            };
+            runtime.spawn(async move {
+                let key = outbox.keys().events(&event.run);
+                outbox.publish(&key, &event, Encoding::Postcard).await;
+            });
+        })
+    }
+
+    async fn attach(&self, query: zenoh::query::Query) {
+        let key = query.key_expr().as_str().to_string();
+        let encoding = query
+            .encoding()
+            .map(|e| Encoding::from_mime(&e.to_string()))
+            .unwrap_or_default();
+        let outcome = match self.outbox.keys().parse_attach(&key) {
+            None => AttachOutcome::Rejected(ErrorReport::new(
+                ErrorCode::Refused,
+                format!("`{key}` is not an attach key"),
+            )),
+            Some(run) => {
+                let bytes = query
+                    .payload()
+                    .map(|p| p.to_bytes().into_owned())
+                    .unwrap_or_default();
+                match proto::decode::<AttachRequest>(&bytes, encoding) {
+                    Err(e) => AttachOutcome::Rejected(codec_report(&e)),
+                    Ok(request) => match self.attach_agent(run, request) {
+                        Ok(accepted) => AttachOutcome::Accepted(accepted),
+                        Err(report) => AttachOutcome::Rejected(report),
+                    },
+                }
+            }
+        };
+        if let AttachOutcome::Rejected(report) = &outcome {
+            tracing::warn!(%key, code = ?report.code, "attach refused: {}", report.message);
+        }
+        let reply = AttachReply {
+            version: PROTOCOL_VERSION,
+            outcome,
+        };
+        match proto::encode(&reply, encoding) {
+            Ok(bytes) => {
+                if let Err(e) = query
+                    .reply(key.as_str(), bytes)
+                    .encoding(ZEncoding::from(encoding.mime()))
+                    .await
+                {
+                    tracing::warn!(%key, error = %e, "attach reply failed");
+                }
+            }
+            Err(e) => tracing::error!(error = %e, "cannot encode attach reply"),
+        }
+    }
+
+    /// Creates or joins the run and starts the agent's worker.
+    fn attach_agent(
+        &self,
+        run_name: &str,
+        request: AttachRequest,
+    ) -> Result<AttachAccepted, ErrorReport> {
+        let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
+        proto::validate_name(run_name).map_err(|e| refuse(e.to_string()))?;
+        proto::validate_name(&request.agent).map_err(|e| refuse(e.to_string()))?;
+        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+        if !runs.contains_key(run_name) {
+            if runs.len() >= self.config.max_runs {
+                return Err(refuse(format!(
+                    "this planner already hosts its limit of {} runs",
+                    self.config.max_runs
+                )));
+            }
+            let run = self.create_run(run_name, &request)?;
+            let trainer = self.runtime.spawn(run.clone().trainer_loop());
+            runs.insert(
+                run_name.to_string(),
+                RunHandle {
+                    run,
+                    agents: HashMap::new(),
+                    trainer,
+                },
+            );
+        }
+        let handle = runs.get_mut(run_name).expect("inserted above");
+        let run = handle.run.clone();
+        if run.spec().task != request.spec.task {
+            return Err(refuse(format!(
+                "run `{run_name}` learns {}, not {}: use another run name",
+                run.spec().task,
+                request.spec.task
+            )));
+        }
+        if let Some(old) = handle.agents.remove(&request.agent) {
+            // The same agent attaching again (it restarted): its old worker ends, and any
+            // episode it left open is recorded as interrupted by the new worker's first step.
+            old.task.abort();
+        } else if handle.agents.len() >= self.config.max_agents_per_run {
+            return Err(refuse(format!(
+                "run `{run_name}` already has its limit of {} agents",
+                self.config.max_agents_per_run
+            )));
+        }
+        let worker = AgentWorker::new(run.clone(), request.agent.clone(), self.outbox.clone())?;
+        let (tx, rx) = mpsc::channel(AGENT_QUEUE);
+        let task = self.runtime.spawn(worker.run(rx));
+        handle
+            .agents
+            .insert(request.agent.clone(), AgentHandle { tx, task });
+        let models = run.models();
+        tracing::info!(run = %run_name, agent = %request.agent, task = %run.spec().task, method = %run.preset().method, "agent attached");
+        Ok(AttachAccepted {
+            planner_id: self.config.planner_id.clone(),
+            task: run.spec().task,
+            mode: run.mode(),
+            episodes_done: run.episodes_stored(),
+            models_version: models.version,
+            next_episode: run.next_episode(&request.agent),
+        })
+    }
+
+    fn create_run(&self, name: &str, request: &AttachRequest) -> Result<Arc<Run>, ErrorReport> {
+        let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
+        let method = request.spec.preset.as_deref();
+        if let Some(m) = method
+            && !self.config.allowed_presets.is_empty()
+            && !self.config.allowed_presets.iter().any(|p| p == m)
+        {
+            return Err(refuse(format!(
+                "preset `{m}` is not allowed here (allowed: {})",
+                self.config.allowed_presets.join(", ")
+            )));
+        }
+        let mut preset =
+            Preset::new(request.spec.task, method).map_err(|e| refuse(e.to_string()))?;
+        preset
+            .apply(&self.config.overrides)
+            .map_err(|e| refuse(format!("planner config: {e}")))?;
+        preset
+            .apply(&request.spec.overrides)
+            .map_err(|e| refuse(e.to_string()))?;
+        preset
+            .cem
+            .validate()
+            .map_err(|e| refuse(format!("invalid planner configuration: {e}")))?;
+        let path = self
+            .config
+            .data_dir
+            .join("runs")
+            .join(name)
+            .join("replay.log");
+        let buffer = ReplayBuffer::open(&path, request.spec.task.spec()).map_err(|e| {
+            ErrorReport::new(
+                ErrorCode::Internal,
+                format!("cannot open the run's replay buffer: {e}"),
+            )
+        })?;
+        tracing::info!(run = %name, transitions = buffer.len(), episodes = buffer.episodes().len(), path = %path.display(), "run opened");
+        Ok(Run::new(
+            name.to_string(),
+            request.spec.clone(),
+            preset,
+            buffer,
+            self.event_sink(),
+        ))
+    }
+
+    /// The status report of this planner.
+    pub fn status_report(&self) -> status::PlannerStatus {
+        let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut reports: Vec<status::RunStatus> = runs
+            .values()
+            .map(|h| {
+                let run = &h.run;
+                let returns = run.returns();
+                let mut agents: Vec<String> = h.agents.keys().cloned().collect();
+                agents.sort();
+                status::RunStatus {
+                    name: run.name().to_string(),
+                    task: run.spec().task.to_string(),
+                    method: run.preset().method.clone(),
+                    mode: run.mode(),
+                    episodes: run.episodes_stored(),
+                    transitions: run.transitions_stored(),
+                    models_version: run.models().version,
+                    training: run.is_training(),
+                    exploring: run.exploring(),
+                    last_returns: returns[returns.len().saturating_sub(10)..].to_vec(),
+                    agents,
+                    planning_latency: run.latency(),
+                }
+            })
+            .collect();
+        reports.sort_by(|a, b| a.name.cmp(&b.name));
+        status::PlannerStatus {
+            planner_id: self.config.planner_id.clone(),
+            protocol_version: PROTOCOL_VERSION,
+            uptime_seconds: self.started.elapsed().as_secs_f64(),
+            runs: reports,
+        }
+    }
+
+    async fn status(&self, query: zenoh::query::Query) {
+        let report = self.status_report();
+        match serde_json::to_vec(&report) {
+            Ok(bytes) => {
+                let key = query.key_expr().as_str().to_string();
+                if let Err(e) = query
+                    .reply(key, bytes)
+                    .encoding(ZEncoding::APPLICATION_JSON)
+                    .await
+                {
+                    tracing::warn!(error = %e, "status reply failed");
+                }
+            }
+            Err(e) => tracing::error!(error = %e, "cannot encode status"),
+        }
+    }
+
+    /// An agent's liveliness token went away: drop its session (its worker records an open
+    /// episode as interrupted). Agents that come back attach again.
+    async fn liveliness(&self, token: zenoh::sample::Sample) {
+        if token.kind() != zenoh::sample::SampleKind::Delete {
+            return;
+        }
+        let key = token.key_expr().as_str();
+        let Some((run, agent)) = self.outbox.keys().parse_agent_alive(key) else {
+            return;
+        };
+        let removed = {
+            let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            runs.get_mut(run)
+                .and_then(|handle| handle.agents.remove(agent))
+        };
+        if let Some(handle) = removed {
+            tracing::info!(%run, %agent, "agent vanished; its session is closed");
+            // Dropping the sender ends the worker once it is done with the message in hand;
+            // it is not awaited here, so a worker waiting for training stalls no one.
+            drop(handle);
+        }
+    }
+
+    /// Hands an observation to its agent's worker, or reports why it cannot be handled.
+    async fn route(&self, sample: zenoh::sample::Sample) {
+        let key = sample.key_expr().as_str().to_string();
+        let encoding = Encoding::from_mime(&sample.encoding().to_string());
+        let Some((run, agent)) = self
+            .outbox
+            .keys()
+            .parse_agent_key(&key, proto::AgentChannel::Obs)
+        else {
+            tracing::warn!(%key, "ignoring sample on a key that is not an observation key");
+            return;
+        };
+        let tx = {
+            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            match runs.get(run) {
+                None => Err(ErrorReport::new(
+                    ErrorCode::UnknownRun,
+                    format!("run `{run}` is not hosted here: attach first"),
+                )),
+                Some(handle) => match handle.agents.get(agent) {
+                    None => Err(ErrorReport::new(
+                        ErrorCode::NotAttached,
+                        format!("agent `{agent}` is not attached to run `{run}`: attach first"),
+                    )),
+                    Some(a) => Ok(a.tx.clone()),
+                },
+            }
+        };
+        let result = match tx {
+            Err(report) => Err(report),
+            Ok(tx) => {
+                let incoming = Incoming {
+                    bytes: sample.payload().to_bytes().into_owned(),
+                    encoding,
+                };
+                tx.try_send(incoming).map_err(|e| match e {
+                    mpsc::error::TrySendError::Full(_) => ErrorReport::new(
+                        ErrorCode::Refused,
+                        format!("more than {AGENT_QUEUE} observations queued: wait for each action before sending the next"),
+                    ),
+                    mpsc::error::TrySendError::Closed(_) => {
+                        ErrorReport::new(ErrorCode::NotAttached, "the agent's session has ended: attach again")
+                    }
+                })
+            }
+        };
+        if let Err(report) = result {
+            self.outbox.report(run, agent, report, encoding).await;
+        }
+    }
+}
+
+/// The error report for bytes that did not decode.
+pub(crate) fn codec_report(e: &proto::CodecError) -> ErrorReport {
+    let code = match e {
+        proto::CodecError::Version { .. } => ErrorCode::ProtocolVersion,
+        _ => ErrorCode::Malformed,
+    };
+    ErrorReport::new(code, e.to_string())
+}

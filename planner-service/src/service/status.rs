@@ -1,0 +1,95 @@
+//! The planner's status report, served as JSON on `{prefix}/planners/{id}/status`.
+
+use serde::Serialize;
+
+/// Planning latencies of the most recent actions, for percentiles.
+#[derive(Debug, Default)]
+pub struct LatencyWindow {
+    samples: std::collections::VecDeque<f32>,
+}
+
+/// How many recent latencies the percentiles cover.
+const WINDOW: usize = 2048;
+
+impl LatencyWindow {
+    pub fn record(&mut self, ms: f32) {
+        if self.samples.len() == WINDOW {
+            self.samples.pop_front();
+        }
+        self.samples.push_back(ms);
+    }
+
+    /// p50, p90 and p99 of the window (nearest rank), `None` when empty.
+    pub fn percentiles(&self) -> Option<Latency> {
+        if self.samples.is_empty() {
+            return None;
+        }
+        let mut sorted: Vec<f32> = self.samples.iter().copied().collect();
+        sorted.sort_by(f32::total_cmp);
+        let at = |q: f32| {
+            sorted[(((sorted.len() as f32) * q).ceil() as usize).clamp(1, sorted.len()) - 1]
+        };
+        Some(Latency {
+            p50_ms: at(0.50),
+            p90_ms: at(0.90),
+            p99_ms: at(0.99),
+            samples: sorted.len(),
+        })
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Latency {
+    pub p50_ms: f32,
+    pub p90_ms: f32,
+    pub p99_ms: f32,
+    pub samples: usize,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct PlannerStatus {
+    pub planner_id: String,
+    pub protocol_version: u16,
+    pub uptime_seconds: f64,
+    pub runs: Vec<RunStatus>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct RunStatus {
+    pub name: String,
+    pub task: String,
+    pub method: String,
+    pub mode: proto::TrainMode,
+    pub episodes: u32,
+    pub transitions: usize,
+    pub models_version: u64,
+    pub training: bool,
+    pub exploring: bool,
+    /// The last (up to 10) finished episodes: agent, episode, return.
+    pub last_returns: Vec<(String, u32, f32)>,
+    pub agents: Vec<String>,
+    pub planning_latency: Option<Latency>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_by_nearest_rank() {
+        let mut w = LatencyWindow::default();
+        assert_eq!(w.percentiles(), None);
+        for ms in 1..=100 {
+            w.record(ms as f32);
+        }
+        let p = w.percentiles().unwrap();
+        assert_eq!(
+            (p.p50_ms, p.p90_ms, p.p99_ms, p.samples),
+            (50.0, 90.0, 99.0, 100)
+        );
+        for _ in 0..WINDOW {
+            w.record(7.0);
+        }
+        assert_eq!(w.percentiles().unwrap().p99_ms, 7.0);
+    }
+}

@@ -1,0 +1,210 @@
+//! One agent's worker: takes its observations in order, stores what they complete, and
+//! answers each with an action — uniformly random while the run explores, planned otherwise.
+
+use super::{Outbox, codec_report};
+use crate::agent::AgentSession;
+use crate::plan::MpcPlanner;
+use crate::run::Run;
+use proto::{
+    Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
+    PlanStats, TrainMode,
+};
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use std::sync::Arc;
+use std::time::Instant;
+use tokio::sync::mpsc;
+
+/// A received observation, still encoded.
+pub(crate) struct Incoming {
+    pub bytes: Vec<u8>,
+    pub encoding: Encoding,
+}
+
+pub(crate) struct AgentWorker {
+    run: Arc<Run>,
+    name: String,
+    outbox: Outbox,
+    session: AgentSession,
+    /// Taken while a plan runs on the blocking pool, then put back.
+    planner: Option<MpcPlanner>,
+    explore_rng: StdRng,
+    /// Sync mode: finished episodes the models must cover before this agent's next episode.
+    wait_for_episodes: Option<u32>,
+}
+
+/// A stable seed per (run seed, agent name), so runs are reproducible.
+fn agent_seed(run_seed: u64, agent: &str) -> u64 {
+    agent
+        .bytes()
+        .fold(run_seed ^ 0xcbf2_9ce4_8422_2325, |h, b| {
+            (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+        })
+}
+
+/// The agent's planner for the run's preset. The preset was checked when the run was created,
+/// so this only fails for a preset that was already refused.
+fn new_planner(run: &Run, seed: u64) -> Result<MpcPlanner, ErrorReport> {
+    let preset = run.preset();
+    MpcPlanner::new(
+        run.task(),
+        preset.cem.clone(),
+        preset.energy_weight,
+        preset.sample_dynamics,
+        seed,
+    )
+    .map_err(|e| {
+        ErrorReport::new(
+            ErrorCode::Refused,
+            format!("invalid planner configuration: {e}"),
+        )
+    })
+}
+
+impl AgentWorker {
+    pub(crate) fn new(run: Arc<Run>, name: String, outbox: Outbox) -> Result<Self, ErrorReport> {
+        let seed = agent_seed(run.spec().seed, &name);
+        Ok(Self {
+            session: AgentSession::new(name.clone()),
+            planner: Some(new_planner(&run, seed)?),
+            explore_rng: StdRng::seed_from_u64(seed.rotate_left(17)),
+            wait_for_episodes: None,
+            run,
+            name,
+            outbox,
+        })
+    }
+
+    /// Handles observations until the service drops the channel, then records an unfinished
+    /// episode as interrupted.
+    pub(crate) async fn run(mut self, mut rx: mpsc::Receiver<Incoming>) {
+        while let Some(incoming) = rx.recv().await {
+            let encoding = incoming.encoding;
+            if let Err(report) = self.handle(incoming).await {
+                self.outbox
+                    .report(self.run.name(), &self.name, report, encoding)
+                    .await;
+            }
+        }
+        if let Some(summary) = self.session.interrupt()
+            && let Err(e) = self.run.store_interrupted(summary)
+        {
+            tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode");
+        }
+    }
+
+    async fn handle(&mut self, incoming: Incoming) -> Result<(), ErrorReport> {
+        let msg: Observation =
+            proto::decode(&incoming.bytes, incoming.encoding).map_err(|e| codec_report(&e))?;
+        let position = |r: ErrorReport| r.at(msg.episode, msg.step);
+        proto::validate::validate_observation(&msg, self.run.task())
+            .map_err(|e| e.report(msg.episode, msg.step))?;
+        let accepted = self.session.observe(&msg)?;
+        let must_cover = self
+            .run
+            .store(&self.name, msg.episode, msg.step, &msg.obs, &accepted)
+            .map_err(|e| {
+                position(ErrorReport::new(
+                    ErrorCode::Internal,
+                    format!("could not store the transition: {e}"),
+                ))
+            })?;
+        if let Some(finished) = &accepted.finished {
+            tracing::info!(run = %self.run.name(), agent = %self.name, episode = finished.episode, steps = finished.steps, episode_return = finished.episode_return, "episode finished");
+            if self.run.mode() == TrainMode::Sync {
+                self.wait_for_episodes = must_cover;
+            }
+        }
+        if !accepted.needs_action() {
+            return Ok(());
+        }
+        if msg.step == 0 {
+            if let Some(episodes) = self.wait_for_episodes.take() {
+                self.run.wait_for_training(episodes).await;
+            }
+            if let Some(planner) = self.planner.as_mut() {
+                planner.reset();
+            }
+        }
+        let action = self.act(&msg).await.map_err(position)?;
+        self.session.acted(msg.step, &action.action);
+        let key = self.outbox.keys().act(self.run.name(), &self.name);
+        self.outbox.publish(&key, &action, incoming.encoding).await;
+        Ok(())
+    }
+
+    /// The action for `msg`: random while exploring, planned with the run's models otherwise.
+    async fn act(&mut self, msg: &Observation) -> Result<Action, ErrorReport> {
+        let started = Instant::now();
+        let task = self.run.task();
+        let models = self.run.models();
+        let (action, source, predicted_return, mean_energy, iterations) = if self.run.exploring() {
+            let action: Vec<f32> = task
+                .action_low
+                .iter()
+                .zip(task.action_high)
+                .map(|(&lo, &hi)| self.explore_rng.random_range(lo..=hi))
+                .collect();
+            (action, ActionSource::Random, 0.0, 0.0, 0)
+        } else {
+            let mut planner = self.planner.take().ok_or_else(|| {
+                ErrorReport::new(
+                    ErrorCode::Internal,
+                    "this agent's planner was lost in an earlier failure: attach again",
+                )
+            })?;
+            let obs = msg.obs.clone();
+            let plan_models = models.clone();
+            let joined = tokio::task::spawn_blocking(move || {
+                let outcome = planner.plan(&obs, &plan_models.dynamics, &plan_models.regularizer);
+                let planned = (
+                    outcome.action.to_vec(),
+                    outcome.predicted_return,
+                    outcome.mean_energy,
+                    outcome.iterations,
+                );
+                (planner, planned)
+            })
+            .await;
+            let (planner, outcome) = match joined {
+                Ok(done) => done,
+                Err(e) => {
+                    // The planner panicked: start this agent over with a fresh one.
+                    self.planner =
+                        new_planner(&self.run, agent_seed(self.run.spec().seed, &self.name)).ok();
+                    return Err(ErrorReport::new(
+                        ErrorCode::Internal,
+                        format!("planning failed: {e}"),
+                    ));
+                }
+            };
+            self.planner = Some(planner);
+            let (action, predicted_return, mean_energy, iterations) = outcome;
+            (
+                action,
+                ActionSource::Planned,
+                predicted_return,
+                mean_energy,
+                iterations,
+            )
+        };
+        let planning_ms = started.elapsed().as_secs_f32() * 1e3;
+        if source == ActionSource::Planned {
+            self.run.record_latency(planning_ms);
+        }
+        Ok(Action {
+            version: PROTOCOL_VERSION,
+            episode: msg.episode,
+            step: msg.step,
+            action,
+            stats: PlanStats {
+                source,
+                planning_ms,
+                predicted_return,
+                mean_energy,
+                iterations,
+                models_version: models.version,
+            },
+        })
+    }
+}
