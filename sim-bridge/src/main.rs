@@ -352,7 +352,8 @@ fn bench(args: &BenchArgs) -> Result<()> {
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn,mujoco=warn")),
+            EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn,mujoco=warn")),
         )
         .with_writer(std::io::stderr)
         .init();
