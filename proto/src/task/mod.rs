@@ -6,6 +6,7 @@
 pub mod ant;
 pub mod cartpole;
 pub mod halfcheetah;
+pub mod reacher3d;
 
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -16,18 +17,25 @@ use std::str::FromStr;
 #[serde(rename_all = "lowercase")]
 pub enum TaskId {
     Cartpole,
+    Reacher3d,
     HalfCheetah,
     Ant,
 }
 
 impl TaskId {
     /// Every task in the catalog, in the paper's order.
-    pub const ALL: &'static [TaskId] = &[TaskId::Cartpole, TaskId::HalfCheetah, TaskId::Ant];
+    pub const ALL: &'static [TaskId] = &[
+        TaskId::Cartpole,
+        TaskId::Reacher3d,
+        TaskId::HalfCheetah,
+        TaskId::Ant,
+    ];
 
     /// The lowercase wire and command-line name.
     pub fn name(self) -> &'static str {
         match self {
             TaskId::Cartpole => "cartpole",
+            TaskId::Reacher3d => "reacher3d",
             TaskId::HalfCheetah => "halfcheetah",
             TaskId::Ant => "ant",
         }
@@ -37,6 +45,7 @@ impl TaskId {
     pub fn spec(self) -> &'static TaskSpec {
         match self {
             TaskId::Cartpole => &cartpole::SPEC,
+            TaskId::Reacher3d => &reacher3d::SPEC,
             TaskId::HalfCheetah => &halfcheetah::SPEC,
             TaskId::Ant => &ant::SPEC,
         }

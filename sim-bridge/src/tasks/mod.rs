@@ -8,6 +8,7 @@
 mod ant;
 mod cartpole;
 mod halfcheetah;
+mod reacher3d;
 
 use crate::error::SimError;
 use crate::mujoco::Unstable;
@@ -34,7 +35,12 @@ pub(crate) trait TaskSim: Send {
 }
 
 /// The tasks that have a simulator, in catalog order.
-pub const SIMULATED: &[TaskId] = &[TaskId::Cartpole, TaskId::HalfCheetah, TaskId::Ant];
+pub const SIMULATED: &[TaskId] = &[
+    TaskId::Cartpole,
+    TaskId::Reacher3d,
+    TaskId::HalfCheetah,
+    TaskId::Ant,
+];
 
 /// Builds the simulator for `task`, or says clearly that it has none yet.
 pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
@@ -43,6 +49,7 @@ pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
     #[allow(unreachable_patterns)]
     match task {
         TaskId::Cartpole => Ok(Box::new(cartpole::Cartpole::new()?)),
+        TaskId::Reacher3d => Ok(Box::new(reacher3d::Reacher3d::new()?)),
         TaskId::HalfCheetah => Ok(Box::new(halfcheetah::HalfCheetah::new()?)),
         TaskId::Ant => Ok(Box::new(ant::Ant::new()?)),
         _ => Err(SimError::NoSimulator {

@@ -1,0 +1,161 @@
+//! Reacher3D (PETS): a 7-joint arm without gravity reaching a goal point resampled every episode.
+//!
+//! Observation (17): the 7 joint angles, the goal's 3 coordinates, the 7 joint velocities.
+//! Actions are joint torques in ±20 N·m, 150 steps of 0.02 s. The reward needs the arm's tip,
+//! which is not observed: [`tip`] computes it from the joint angles by the forward kinematics of
+//! ebmpc's arm (sim-bridge's `assets/reacher3d.xml` is built from the constants here, and its
+//! tests check the two agree), so the simulator and the planner share one definition.
+
+use super::{TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal};
+
+pub(crate) static SPEC: TaskSpec = TaskSpec {
+    id: TaskId::Reacher3d,
+    obs_dim: 17,
+    act_dim: 7,
+    action_low: &[-20.0; 7],
+    action_high: &[20.0; 7],
+    episode_len: 150,
+    control_dt: 0.02,
+    state_feature_dim: 17,
+    functions: TaskFunctions {
+        reward,
+        is_terminal: never_terminal,
+        state_features: identity_features,
+        target: delta_target,
+        next_obs_from_target: apply_delta,
+    },
+};
+
+/// Joints of the arm.
+pub const JOINTS: usize = 7;
+/// Index of the goal's x coordinate in the observation (y and z follow).
+pub const GOAL: usize = JOINTS;
+/// Length of the upper arm: shoulder to elbow, along the link's x axis.
+pub const UPPER_ARM: f32 = 0.4;
+/// Length of the forearm: elbow to wrist.
+pub const FOREARM: f32 = 0.321;
+/// Wrist to tip.
+pub const HAND: f32 = 0.15;
+
+/// The axis of each joint in its link's frame, from the shoulder outwards: shoulder pan (z),
+/// shoulder lift (y), upper-arm roll (x), elbow flex (y), forearm roll (x), wrist flex (y),
+/// wrist roll (x). All links point along their x axis when the joints are at 0.
+pub const AXES: [Axis; JOINTS] = [
+    Axis::Z,
+    Axis::Y,
+    Axis::X,
+    Axis::Y,
+    Axis::X,
+    Axis::Y,
+    Axis::X,
+];
+
+/// A coordinate axis a joint turns about.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Axis {
+    X,
+    Y,
+    Z,
+}
+
+/// Link length after each joint (the offset to the next joint, or to the tip after the last).
+const OFFSETS: [f32; JOINTS] = [0.0, 0.0, UPPER_ARM, 0.0, FOREARM, 0.0, HAND];
+
+/// The tip's position in the world frame (the shoulder at the origin) for the joint angles
+/// `q` (the first [`JOINTS`] numbers of an observation).
+pub fn tip(q: &[f32]) -> [f32; 3] {
+    // Walk the chain: `rot` is the current link's orientation, `pos` its origin.
+    let mut rot = [[1.0f32, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let mut pos = [0.0f32; 3];
+    for ((&angle, &axis), &offset) in q[..JOINTS].iter().zip(&AXES).zip(&OFFSETS) {
+        rot = mul(&rot, &rotation(axis, angle));
+        for (p, row) in pos.iter_mut().zip(&rot) {
+            *p += row[0] * offset;
+        }
+    }
+    pos
+}
+
+/// `−‖tip − goal‖² − 0.01 ‖a‖²`, with the tip and the goal of the new observation.
+fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
+    let tip = tip(next_obs);
+    let distance: f32 = tip
+        .iter()
+        .zip(&next_obs[GOAL..GOAL + 3])
+        .map(|(t, g)| (t - g) * (t - g))
+        .sum();
+    -distance - 0.01 * super::squared_norm(act)
+}
+
+fn identity_features(obs: &[f32], out: &mut [f32]) {
+    out.copy_from_slice(obs);
+}
+
+fn rotation(axis: Axis, angle: f32) -> [[f32; 3]; 3] {
+    let (s, c) = angle.sin_cos();
+    match axis {
+        Axis::X => [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]],
+        Axis::Y => [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]],
+        Axis::Z => [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]],
+    }
+}
+
+fn mul(a: &[[f32; 3]; 3], b: &[[f32; 3]; 3]) -> [[f32; 3]; 3] {
+    let mut out = [[0.0; 3]; 3];
+    for (i, row) in out.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f32::consts::FRAC_PI_2;
+
+    fn close(a: [f32; 3], b: [f32; 3]) -> bool {
+        a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-5)
+    }
+
+    #[test]
+    fn forward_kinematics_of_simple_poses() {
+        let reach = UPPER_ARM + FOREARM + HAND;
+        assert!(close(tip(&[0.0; 7]), [reach, 0.0, 0.0]));
+        // Panning a quarter turn points the straight arm along +y.
+        assert!(close(
+            tip(&[FRAC_PI_2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]),
+            [0.0, reach, 0.0]
+        ));
+        // Lifting by +π/2 about y turns +x into −z; the elbow at +π/2 turns the forearm back.
+        assert!(close(
+            tip(&[0.0, FRAC_PI_2, 0.0, 0.0, 0.0, 0.0, 0.0]),
+            [0.0, 0.0, -reach]
+        ));
+        assert!(close(
+            tip(&[0.0, 0.0, 0.0, FRAC_PI_2, 0.0, 0.0, 0.0]),
+            [UPPER_ARM, 0.0, -FOREARM - HAND]
+        ));
+        // Rolls along a straight arm move nothing; the wrist roll never moves the tip.
+        assert!(close(
+            tip(&[0.0, 0.0, 1.0, 0.0, -2.0, 0.0, 3.0]),
+            [reach, 0.0, 0.0]
+        ));
+    }
+
+    #[test]
+    fn reward_peaks_at_the_goal() {
+        let spec = TaskId::Reacher3d.spec();
+        let mut obs = [0.0f32; 17];
+        obs[..7].copy_from_slice(&[0.3, 0.4, 0.1, -1.0, 0.2, -0.5, 0.0]);
+        let t = tip(&obs);
+        obs[GOAL..GOAL + 3].copy_from_slice(&t);
+        let at_goal = spec.reward(&obs, &[0.0; 7], &obs);
+        assert!(at_goal.abs() < 1e-10);
+        let mut off = obs;
+        off[GOAL] += 0.3;
+        assert!((spec.reward(&obs, &[0.0; 7], &off) + 0.09).abs() < 1e-5);
+        assert!((spec.reward(&obs, &[1.0; 7], &obs) + 0.07).abs() < 1e-5);
+    }
+}
