@@ -15,7 +15,7 @@ use super::gaussian::{
 use crate::data::Transitions;
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::matmul::transpose;
-use crate::nn::train::shuffled_batches;
+use crate::nn::train::run_epochs;
 use crate::nn::vecops::scale_shift;
 use crate::nn::{Activation, Adam, ForwardScratch, Mlp, Normalizer, Tape, add_weight_decay};
 use proto::TaskSpec;
@@ -299,17 +299,9 @@ impl ProbabilisticModel {
             return (f32::NAN, 0);
         }
         let mut ws = TrainWorkspace::new(self, self.batch_size.min(order.len()));
-        let (mut last, mut steps) = (f32::NAN, 0);
-        for _ in 0..epochs {
-            let (mut total, mut count) = (0.0f64, 0usize);
-            for batch in shuffled_batches(order, self.batch_size, rng) {
-                total += self.train_step(set, batch, &mut ws) as f64 * batch.len() as f64;
-                count += batch.len();
-                steps += 1;
-            }
-            last = (total / count as f64) as f32;
-        }
-        (last, steps)
+        run_epochs(order, self.batch_size, epochs, rng, |batch, _| {
+            self.train_step(set, batch, &mut ws)
+        })
     }
 
     /// Mean Gaussian negative log-likelihood per target dimension (standardised units,

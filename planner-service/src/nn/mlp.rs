@@ -140,6 +140,16 @@ impl Mlp {
     /// an `out_dim × scratch.ld()` matrix whose first `samples` columns are the outputs (the
     /// caller may transform it in place). Never allocates.
     pub fn forward<'s>(&self, samples: usize, scratch: &'s mut ForwardScratch) -> &'s mut [f32] {
+        self.forward_io(samples, scratch).1
+    }
+
+    /// [`Mlp::forward`], also returning the (unchanged) input buffer, for callers that
+    /// compare output with input (a denoising autoencoder). Never allocates.
+    pub fn forward_io<'s>(
+        &self,
+        samples: usize,
+        scratch: &'s mut ForwardScratch,
+    ) -> (&'s [f32], &'s mut [f32]) {
         assert!(
             scratch.fits(self, samples),
             "scratch of {} samples / width {} too small",
@@ -170,7 +180,10 @@ impl Mlp {
         } else {
             pong
         };
-        &mut out.as_mut_slice()[..self.out_dim() * ld]
+        (
+            &input.as_slice()[..self.in_dim() * ld],
+            &mut out.as_mut_slice()[..self.out_dim() * ld],
+        )
     }
 
     /// Convenience for tests and tools: outputs for sample-major `x` (`samples × in_dim`),

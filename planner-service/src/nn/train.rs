@@ -25,16 +25,32 @@ pub struct FitReport {
     pub seconds: f32,
 }
 
-/// The minibatches of one epoch: `order` shuffled in place and cut into runs of `batch_size`
-/// (the last one may be shorter), as PETS does.
-pub fn shuffled_batches<'a>(
-    order: &'a mut [usize],
+/// `epochs` passes over `order` (indices of training samples, e.g. a bootstrap resample), each
+/// in freshly shuffled minibatches of `batch_size`; `step` takes one optimiser step on a
+/// minibatch and returns its mean loss. Returns the mean loss of the last epoch (NaN if
+/// nothing ran) and the number of steps.
+pub fn run_epochs(
+    order: &mut [usize],
     batch_size: usize,
+    epochs: usize,
     rng: &mut StdRng,
-) -> impl Iterator<Item = &'a [usize]> {
-    assert!(batch_size > 0, "batch size must be positive");
-    order.shuffle(rng);
-    order.chunks(batch_size)
+    mut step: impl FnMut(&[usize], &mut StdRng) -> f32,
+) -> (f32, usize) {
+    let (mut last, mut steps) = (f32::NAN, 0);
+    if order.is_empty() {
+        return (last, steps);
+    }
+    for _ in 0..epochs {
+        let (mut total, mut count) = (0.0f64, 0usize);
+        order.shuffle(rng);
+        for batch in order.chunks(batch_size.max(1)) {
+            total += step(batch, rng) as f64 * batch.len() as f64;
+            count += batch.len();
+            steps += 1;
+        }
+        last = (total / count as f64) as f32;
+    }
+    (last, steps)
 }
 
 #[cfg(test)]
@@ -43,19 +59,26 @@ mod tests {
     use rand::SeedableRng;
 
     #[test]
-    fn batches_cover_every_index_once_per_epoch() {
+    fn every_epoch_visits_every_index_once_in_shuffled_batches() {
         let mut rng = StdRng::seed_from_u64(0);
         let mut order: Vec<usize> = (0..10).collect();
-        let batches: Vec<Vec<usize>> = shuffled_batches(&mut order, 4, &mut rng)
-            .map(|b| b.to_vec())
-            .collect();
+        let mut batches: Vec<Vec<usize>> = vec![];
+        let (loss, steps) = run_epochs(&mut order, 4, 2, &mut rng, |batch, _| {
+            batches.push(batch.to_vec());
+            batch.iter().map(|&i| i as f32).sum::<f32>() / batch.len() as f32
+        });
         assert_eq!(
             batches.iter().map(Vec::len).collect::<Vec<_>>(),
-            vec![4, 4, 2]
+            vec![4, 4, 2, 4, 4, 2]
         );
-        let mut all: Vec<usize> = batches.concat();
-        assert_ne!(all, (0..10).collect::<Vec<_>>(), "shuffled");
-        all.sort();
-        assert_eq!(all, (0..10).collect::<Vec<_>>());
+        for epoch in batches.chunks(3) {
+            let mut all = epoch.concat();
+            assert_ne!(all, (0..10).collect::<Vec<_>>(), "shuffled");
+            all.sort();
+            assert_eq!(all, (0..10).collect::<Vec<_>>());
+        }
+        // The last epoch's per-batch means weighted by batch size: the mean index, 4.5.
+        assert!((loss - 4.5).abs() < 1e-6 && steps == 6, "{loss} {steps}");
+        assert!(run_epochs(&mut [], 2, 3, &mut rng, |_, _| 1.0).0.is_nan());
     }
 }

@@ -58,6 +58,18 @@ multiversion! {
 }
 
 multiversion! {
+    /// `acc ← acc + (a − b)²`.
+    pub fn add_squared_diff(acc: &mut [f32], a: &[f32], b: &[f32]) {
+        let n = acc.len();
+        let (a, b) = (&a[..n], &b[..n]);
+        for i in 0..n {
+            let d = a[i] - b[i];
+            acc[i] += d * d;
+        }
+    }
+}
+
+multiversion! {
     /// `Σ x`, accumulated in 16 lanes.
     pub fn sum(x: &[f32]) -> f32 {
         let mut lanes = [0.0f32; 16];
@@ -104,6 +116,13 @@ mod tests {
                     y.iter()
                         .zip(a.iter().zip(&b))
                         .all(|(y, (a, b))| (*y - (a * b + a * a * b)).abs() < 1e-4)
+                );
+                let mut acc = vec![1.0; 37];
+                add_squared_diff(&mut acc, &a, &b);
+                assert!(
+                    acc.iter()
+                        .zip(a.iter().zip(&b))
+                        .all(|(s, (a, b))| *s == 1.0 + (a - b) * (a - b))
                 );
                 scale_shift(&mut y, 0.0, 2.0);
                 assert!(y.iter().all(|v| *v == 2.0));

@@ -1,0 +1,265 @@
+//! Energy regularisers: how familiar is a transition `(s, a, s')`? DEEN (the paper) and DAE.
+//!
+//! A regulariser is a density model of the vectors `x = [s, a, s']` of the replay buffer; the
+//! planner subtracts `α · energy(x)` from the return of every imagined transition (paper eq. 5).
+//!
+//! - [`config`]: sizes and training settings (Table 2's "DEEN" rows).
+//! - [`deen`]: the Deep Energy Estimator Network, trained by double backpropagation.
+//! - [`dae`]: the denoising autoencoder baseline (Boney et al. 2019).
+//!
+//! The planner's interface (on [`Regularizer`]; never allocating once the scratch exists):
+//!
+//! ```text
+//! fn scratch(&self, max_rows: usize) -> EnergyScratch
+//! fn energy(&self, obs: &[f32], act: &[f32], next_obs: &[f32], rows: usize,
+//!           scratch: &mut EnergyScratch, out: &mut [f32])
+//! EnergyScratch::fits(&self, regularizer: &Regularizer, rows: usize) -> bool
+//! ```
+//!
+//! and the trainer's: `Regularizer::new(kind, &config, obs_dim, act_dim, &mut rng)`,
+//! `Regularizer::fit(&mut self, &Transitions, epochs, &mut rng) -> FitReport`.
+
+pub mod config;
+pub mod dae;
+pub mod deen;
+
+pub use config::EnergyConfig;
+pub use dae::{Dae, DaeWorkspace};
+pub use deen::{Deen, DeenWorkspace};
+
+use crate::data::Transitions;
+use crate::nn::{FitReport, ForwardScratch, Normalizer};
+use rand::rngs::StdRng;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
+
+/// Which regulariser a run plans with. The wire and config name is the lowercase identifier.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RegularizerKind {
+    /// No regulariser: the energy is zero.
+    None,
+    /// Denoising-autoencoder penalty `‖g(x) − x‖²`.
+    Dae,
+    /// DEEN energy (the paper).
+    #[default]
+    Deen,
+}
+
+impl RegularizerKind {
+    pub const ALL: &'static [RegularizerKind] = &[
+        RegularizerKind::None,
+        RegularizerKind::Dae,
+        RegularizerKind::Deen,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            RegularizerKind::None => "none",
+            RegularizerKind::Dae => "dae",
+            RegularizerKind::Deen => "deen",
+        }
+    }
+}
+
+impl fmt::Display for RegularizerKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A regulariser name that is not `none`, `dae` or `deen`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown regularizer `{0}` (known: none, dae, deen)")]
+pub struct UnknownRegularizer(pub String);
+
+impl FromStr for RegularizerKind {
+    type Err = UnknownRegularizer;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        RegularizerKind::ALL
+            .iter()
+            .copied()
+            .find(|k| k.name().eq_ignore_ascii_case(s.trim()))
+            .ok_or_else(|| UnknownRegularizer(s.to_string()))
+    }
+}
+
+/// A trained (or untrained) regulariser over transitions of `obs_dim`/`act_dim`.
+#[derive(Clone, Debug)]
+pub enum Regularizer {
+    None,
+    Dae(Dae),
+    Deen(Deen),
+}
+
+/// Preallocated buffers for [`Regularizer::energy`] on up to `capacity` rows.
+#[derive(Clone, Debug)]
+pub struct EnergyScratch {
+    capacity: usize,
+    /// `None` for the `None` regulariser, which needs no buffers.
+    forward: Option<ForwardScratch>,
+}
+
+impl EnergyScratch {
+    /// Whether these buffers serve `regularizer` on `rows` rows.
+    pub fn fits(&self, regularizer: &Regularizer, rows: usize) -> bool {
+        rows <= self.capacity
+            && match (regularizer, &self.forward) {
+                (Regularizer::None, _) => true,
+                (Regularizer::Dae(m), Some(f)) => f.fits(m.mlp(), rows),
+                (Regularizer::Deen(m), Some(f)) => f.fits(m.mlp(), rows),
+                _ => false,
+            }
+    }
+}
+
+/// The vectors `[s, a, s']` of every transition, sample-major.
+pub fn transition_rows(data: &Transitions) -> Vec<f32> {
+    let (o, a) = (data.obs_dim(), data.act_dim());
+    let mut rows = Vec::with_capacity(data.len() * (2 * o + a));
+    for i in 0..data.len() {
+        let (s, u, s1) = data.row(i);
+        rows.extend_from_slice(s);
+        rows.extend_from_slice(u);
+        rows.extend_from_slice(s1);
+    }
+    rows
+}
+
+impl Regularizer {
+    /// An untrained regulariser of `kind` for transitions `[s, a, s']` of `2 · obs_dim + act_dim`
+    /// numbers.
+    pub fn new(
+        kind: RegularizerKind,
+        config: &EnergyConfig,
+        obs_dim: usize,
+        act_dim: usize,
+        rng: &mut StdRng,
+    ) -> Self {
+        let dim = 2 * obs_dim + act_dim;
+        match kind {
+            RegularizerKind::None => Regularizer::None,
+            RegularizerKind::Dae => Regularizer::Dae(Dae::new(dim, config, rng)),
+            RegularizerKind::Deen => Regularizer::Deen(Deen::new(dim, config, rng)),
+        }
+    }
+
+    pub fn kind(&self) -> RegularizerKind {
+        match self {
+            Regularizer::None => RegularizerKind::None,
+            Regularizer::Dae(_) => RegularizerKind::Dae,
+            Regularizer::Deen(_) => RegularizerKind::Deen,
+        }
+    }
+
+    /// Trains on every transition of `data` for `epochs`, continuing from the current weights
+    /// (the normaliser is refitted on `data`).
+    pub fn fit(&mut self, data: &Transitions, epochs: usize, rng: &mut StdRng) -> FitReport {
+        let report = match self {
+            Regularizer::None => FitReport {
+                samples: data.len(),
+                epochs,
+                loss: 0.0,
+                ..FitReport::default()
+            },
+            Regularizer::Dae(m) => m.fit(&transition_rows(data), epochs, rng),
+            Regularizer::Deen(m) => m.fit(&transition_rows(data), epochs, rng),
+        };
+        tracing::debug!(?report, kind = %self.kind(), "regularizer trained");
+        report
+    }
+
+    /// Buffers for [`Regularizer::energy`] on up to `max_rows` rows.
+    pub fn scratch(&self, max_rows: usize) -> EnergyScratch {
+        let forward = match self {
+            Regularizer::None => None,
+            Regularizer::Dae(m) => Some(m.scratch(max_rows)),
+            Regularizer::Deen(m) => Some(m.scratch(max_rows)),
+        };
+        EnergyScratch {
+            capacity: max_rows,
+            forward,
+        }
+    }
+
+    /// The energy of each of `rows` transitions into `out[..rows]` (zero for `None`).
+    /// `obs`, `act` and `next_obs` hold exactly `rows` rows each (`rows × obs_dim`,
+    /// `rows × act_dim`, `rows × obs_dim`, sample-major); the dimensions are read from their
+    /// lengths and checked against the model. Never allocates.
+    pub fn energy(
+        &self,
+        obs: &[f32],
+        act: &[f32],
+        next_obs: &[f32],
+        rows: usize,
+        scratch: &mut EnergyScratch,
+        out: &mut [f32],
+    ) {
+        assert!(
+            scratch.fits(self, rows),
+            "energy scratch of {} rows does not fit {rows} rows",
+            scratch.capacity
+        );
+        assert!(out.len() >= rows, "output shorter than {rows} rows");
+        if rows == 0 {
+            return;
+        }
+        let (normalizer, forward) = match (self, scratch.forward.as_mut()) {
+            (Regularizer::None, _) => {
+                out[..rows].fill(0.0);
+                return;
+            }
+            (Regularizer::Dae(m), Some(f)) => (m.normalizer(), f),
+            (Regularizer::Deen(m), Some(f)) => (m.normalizer(), f),
+            _ => unreachable!("checked by fits"),
+        };
+        fill_transitions(normalizer, obs, act, next_obs, rows, forward);
+        match self {
+            Regularizer::Dae(m) => m.energy_standardised(rows, forward, out),
+            Regularizer::Deen(m) => {
+                out[..rows].copy_from_slice(m.energy_standardised(rows, forward))
+            }
+            Regularizer::None => unreachable!(),
+        }
+    }
+}
+
+/// Writes the standardised vectors `[s, a, s']` of `rows` transitions feature-major into the
+/// scratch's input.
+fn fill_transitions(
+    normalizer: &Normalizer,
+    obs: &[f32],
+    act: &[f32],
+    next_obs: &[f32],
+    rows: usize,
+    forward: &mut ForwardScratch,
+) {
+    let (o, a) = (obs.len() / rows, act.len() / rows);
+    assert!(
+        obs.len() == rows * o
+            && act.len() == rows * a
+            && next_obs.len() == obs.len()
+            && 2 * o + a == normalizer.dim(),
+        "transitions of {} numbers expected; got {} / {} / {} floats for {rows} rows",
+        normalizer.dim(),
+        obs.len(),
+        act.len(),
+        next_obs.len()
+    );
+    let ld = forward.ld();
+    let input = forward.input_mut();
+    for (part, width, offset) in [(obs, o, 0), (act, a, o), (next_obs, o, o + a)] {
+        for k in 0..width {
+            let f = offset + k;
+            let row = &mut input[f * ld..f * ld + rows];
+            for (i, v) in row.iter_mut().enumerate() {
+                *v = normalizer.normalize(f, part[i * width + k]);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

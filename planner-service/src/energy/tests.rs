@@ -1,0 +1,400 @@
+//! Tests of the energy models: loss gradients against finite differences, the scores they
+//! learn on a 1-D Gaussian mixture against the analytic answer (the paper's Figure 3
+//! experiment), and the regulariser on transitions.
+
+use super::*;
+use crate::nn::{Activation, reference};
+use rand::{RngExt, SeedableRng};
+use rand_distr::StandardNormal;
+
+/// Weight, mean and standard deviation of each mixture component.
+const MIXTURE: [(f64, f64, f64); 3] = [(0.3, -3.0, 0.4), (0.4, 0.0, 0.6), (0.3, 3.0, 0.5)];
+/// The corruption of the paper's toy experiment, in raw units.
+const SIGMA: f64 = 0.5;
+
+fn mixture_samples(n: usize, rng: &mut StdRng) -> Vec<f32> {
+    (0..n)
+        .map(|_| {
+            let mut u: f64 = rng.random();
+            let &(_, m, s) = MIXTURE
+                .iter()
+                .find(|c| {
+                    u -= c.0;
+                    u < 0.0
+                })
+                .unwrap_or(&MIXTURE[2]);
+            (m + s * rng.sample::<f64, _>(StandardNormal)) as f32
+        })
+        .collect()
+}
+
+/// `∇ log p_σ(y)` of the mixture convolved with `N(0, σ²)`: components of variance `s² + σ²`.
+fn analytic_score(y: f64) -> f64 {
+    let (mut num, mut den) = (0.0, 0.0);
+    for (w, m, s) in MIXTURE {
+        let v = s * s + SIGMA * SIGMA;
+        let density =
+            w * (-(y - m).powi(2) / (2.0 * v)).exp() / (2.0 * std::f64::consts::PI * v).sqrt();
+        num += density * (m - y) / v;
+        den += density;
+    }
+    num / den
+}
+
+fn correlation(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len() as f64;
+    let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+    let cov: f64 = a.iter().zip(b).map(|(x, y)| (x - ma) * (y - mb)).sum();
+    let (va, vb): (f64, f64) = (
+        a.iter().map(|x| (x - ma).powi(2)).sum(),
+        b.iter().map(|y| (y - mb).powi(2)).sum(),
+    );
+    cov / (va * vb).sqrt()
+}
+
+/// Least-squares slope of `b` on `a` through the origin.
+fn slope(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>() / a.iter().map(|x| x * x).sum::<f64>()
+}
+
+/// 1,000 mixture samples, the normaliser's standard deviation of them, and a grid over their
+/// range.
+fn mixture_problem(seed: u64) -> (Vec<f32>, f64, Vec<f32>) {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let data = mixture_samples(1000, &mut rng);
+    let sd = Normalizer::fit(&data, 1).std()[0] as f64;
+    let (lo, hi) = data
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+    let grid = (0..=200)
+        .map(|i| lo + (hi - lo) * i as f32 / 200.0)
+        .collect();
+    (data, sd, grid)
+}
+
+fn toy_config(sd: f64) -> EnergyConfig {
+    // σ is configured in standardised units: σ = 0.5 raw.
+    EnergyConfig {
+        hidden_layers: 2,
+        hidden_size: 64,
+        epochs: 1000,
+        batch_size: 32,
+        noise_sigma: (SIGMA / sd) as f32,
+        learning_rate: 1e-3,
+    }
+}
+
+#[test]
+fn deen_learns_the_score_of_a_smoothed_gaussian_mixture() {
+    let (data, sd, grid) = mixture_problem(31);
+    let mut rng = StdRng::seed_from_u64(32);
+    let config = toy_config(sd);
+    let mut deen = Deen::new(1, &config, &mut rng);
+    let report = deen.fit(&data, config.epochs, &mut rng);
+    assert_eq!(
+        (report.samples, report.steps),
+        (1000, config.epochs * 1000usize.div_ceil(config.batch_size))
+    );
+    let model: Vec<f64> = deen.score_rows(&grid).iter().map(|&v| v as f64).collect();
+    let truth: Vec<f64> = grid.iter().map(|&y| analytic_score(y as f64)).collect();
+    let r = correlation(&model, &truth);
+    let k = slope(&truth, &model);
+    assert!(
+        r >= 0.95,
+        "correlation of DEEN's score with the analytic score: {r}"
+    );
+    // Not only the shape: the magnitude is right too.
+    assert!((0.8..1.25).contains(&k), "slope {k}");
+    // The energy is low where the data is dense: the modes beat the gaps between them.
+    let e = deen.energy_rows(&[-3.0, -1.5, 0.0, 1.5, 3.0, 6.0]);
+    assert!(
+        e[0] < e[1] && e[2] < e[1] && e[2] < e[3] && e[4] < e[3] && e[4] < e[5],
+        "{e:?}"
+    );
+}
+
+#[test]
+fn dae_displacement_estimates_the_scaled_score() {
+    let (data, sd, grid) = mixture_problem(33);
+    let mut rng = StdRng::seed_from_u64(34);
+    let config = toy_config(sd);
+    let mut dae = Dae::new(1, &config, &mut rng);
+    dae.fit(&data, config.epochs, &mut rng);
+    // g(y) − y ≈ σ² ∇ log p_σ(y) in standardised units, i.e. σ_std² · sd · score_raw.
+    let model: Vec<f64> = dae
+        .displacement_rows(&grid)
+        .iter()
+        .map(|&v| v as f64)
+        .collect();
+    let sigma_std = config.noise_sigma as f64;
+    let truth: Vec<f64> = grid
+        .iter()
+        .map(|&y| sigma_std * sigma_std * sd * analytic_score(y as f64))
+        .collect();
+    let r = correlation(&model, &truth);
+    let k = slope(&truth, &model);
+    assert!(
+        r >= 0.9,
+        "correlation of the DAE's displacement with σ²·score: {r}"
+    );
+    assert!((0.6..1.5).contains(&k), "slope {k}");
+}
+
+/// A small network, data and noise for the loss-gradient checks.
+fn gradient_problem(rng: &mut StdRng) -> (EnergyConfig, Vec<f32>, Vec<usize>) {
+    let config = EnergyConfig {
+        hidden_layers: 2,
+        hidden_size: 7,
+        epochs: 1,
+        batch_size: 8,
+        noise_sigma: 0.4,
+        learning_rate: 1e-3,
+    };
+    let set: Vec<f32> = (0..10 * 3).map(|_| rng.random_range(-2.0..2.0)).collect();
+    (config, set, vec![7, 2, 9, 4, 0])
+}
+
+fn fill_noise(noise: &mut [f32], ld: usize, d: usize, b: usize, rng: &mut StdRng) -> Vec<f32> {
+    let mut eps = vec![0.0; b * d];
+    for f in 0..d {
+        for i in 0..b {
+            let e: f32 = rng.sample(StandardNormal);
+            noise[f * ld + i] = e;
+            eps[i * d + f] = e;
+        }
+    }
+    eps
+}
+
+#[test]
+fn deen_loss_gradient_matches_finite_differences() {
+    let mut rng = StdRng::seed_from_u64(35);
+    let (config, set, batch) = gradient_problem(&mut rng);
+    let deen = Deen::new(3, &config, &mut rng);
+    let mut ws = DeenWorkspace::new(&deen, 8);
+    let ld = crate::nn::aligned::round_up(8);
+    let eps = fill_noise(ws.noise_mut(), ld, 3, batch.len(), &mut rng);
+    let loss = deen.loss_and_grad(&set, &batch, &mut ws);
+    let sizes = deen.mlp().sizes().to_vec();
+    let sigma = config.noise_sigma as f64;
+    let reference_loss = |p: &[f64]| -> f64 {
+        let mut total = 0.0;
+        for (c, &idx) in batch.iter().enumerate() {
+            let x: Vec<f64> = set[idx * 3..idx * 3 + 3]
+                .iter()
+                .map(|&v| v as f64)
+                .collect();
+            let y: Vec<f64> = (0..3)
+                .map(|f| x[f] + sigma * eps[c * 3 + f] as f64)
+                .collect();
+            let s = reference::input_gradient(&sizes, Activation::Softplus, p, &y);
+            total += (0..3)
+                .map(|f| (x[f] - y[f] + sigma * sigma * s[f]).powi(2))
+                .sum::<f64>();
+        }
+        total / batch.len() as f64
+    };
+    let p: Vec<f64> = deen.mlp().params().iter().map(|&v| v as f64).collect();
+    assert!((loss as f64 - reference_loss(&p)).abs() < 1e-5 * reference_loss(&p).max(1.0));
+    let fd = reference::finite_difference(&p, reference_loss);
+    reference::assert_close(ws.grads(), &fd, 1e-3, "DEEN loss gradient");
+}
+
+#[test]
+fn dae_loss_gradient_matches_finite_differences() {
+    let mut rng = StdRng::seed_from_u64(36);
+    let (config, set, batch) = gradient_problem(&mut rng);
+    let dae = Dae::new(3, &config, &mut rng);
+    let mut ws = DaeWorkspace::new(&dae, 8);
+    let ld = crate::nn::aligned::round_up(8);
+    let eps = fill_noise(ws.noise_mut(), ld, 3, batch.len(), &mut rng);
+    let loss = dae.loss_and_grad(&set, &batch, &mut ws);
+    let sizes = dae.mlp().sizes().to_vec();
+    let sigma = config.noise_sigma as f64;
+    let reference_loss = |p: &[f64]| -> f64 {
+        let mut total = 0.0;
+        for (c, &idx) in batch.iter().enumerate() {
+            let x: Vec<f64> = set[idx * 3..idx * 3 + 3]
+                .iter()
+                .map(|&v| v as f64)
+                .collect();
+            let y: Vec<f64> = (0..3)
+                .map(|f| x[f] + sigma * eps[c * 3 + f] as f64)
+                .collect();
+            let g = reference::forward(&sizes, Activation::Softplus, p, &y);
+            total += (0..3).map(|f| (g[f] - x[f]).powi(2)).sum::<f64>();
+        }
+        total / batch.len() as f64
+    };
+    let p: Vec<f64> = dae.mlp().params().iter().map(|&v| v as f64).collect();
+    assert!((loss as f64 - reference_loss(&p)).abs() < 1e-5 * reference_loss(&p).max(1.0));
+    let fd = reference::finite_difference(&p, reference_loss);
+    reference::assert_close(ws.grads(), &fd, 1e-4, "DAE loss gradient");
+}
+
+/// Transitions of a damped oscillator `s = (q, p)`, `a` a force: a thin manifold in
+/// `[s, a, s']` space.
+fn oscillator(n: usize, rng: &mut StdRng) -> Transitions {
+    let mut data = Transitions::new(2, 1);
+    for _ in 0..n {
+        let s = [
+            rng.random_range(-1.0f32..1.0),
+            rng.random_range(-1.0f32..1.0),
+        ];
+        let a = rng.random_range(-1.0f32..1.0);
+        let next = [s[0] + 0.1 * s[1], s[1] + 0.1 * (-s[0] - 0.2 * s[1] + a)];
+        data.push(&s, &[a], &next);
+    }
+    data
+}
+
+#[test]
+fn regularizers_score_real_transitions_as_more_familiar_than_impossible_ones() {
+    let mut rng = StdRng::seed_from_u64(37);
+    let data = oscillator(2000, &mut rng);
+    let config = EnergyConfig {
+        hidden_layers: 2,
+        hidden_size: 64,
+        epochs: 30,
+        batch_size: 32,
+        noise_sigma: 0.2,
+        learning_rate: 1e-3,
+    };
+    let test = oscillator(300, &mut rng);
+    // The same states and actions, but next states that the dynamics cannot produce.
+    let shifted: Vec<f32> = test
+        .next_obs()
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v + if i % 2 == 0 { 0.3 } else { -0.3 })
+        .collect();
+    for kind in [RegularizerKind::Deen, RegularizerKind::Dae] {
+        let mut reg = Regularizer::new(kind, &config, 2, 1, &mut rng);
+        assert_eq!(reg.kind(), kind);
+        let report = reg.fit(&data, config.epochs, &mut rng);
+        assert!(report.loss.is_finite() && report.steps > 0, "{report:?}");
+        let mut scratch = reg.scratch(300);
+        assert!(scratch.fits(&reg, 300) && !scratch.fits(&reg, 301));
+        let (mut real, mut fake) = (vec![0.0; 300], vec![0.0; 300]);
+        reg.energy(
+            test.obs(),
+            test.act(),
+            test.next_obs(),
+            300,
+            &mut scratch,
+            &mut real,
+        );
+        reg.energy(
+            test.obs(),
+            test.act(),
+            &shifted,
+            300,
+            &mut scratch,
+            &mut fake,
+        );
+        let lower = real.iter().zip(&fake).filter(|(r, f)| r < f).count();
+        assert!(
+            lower >= 285,
+            "{kind}: only {lower}/300 real transitions have lower energy than their impossible twins"
+        );
+        // The batched, allocation-free path agrees with the model's own evaluation.
+        if let Regularizer::Deen(deen) = &reg {
+            let direct = deen.energy_rows(&transition_rows(&test));
+            for (a, b) in real.iter().zip(&direct) {
+                assert!((a - b).abs() <= 1e-5 * a.abs().max(1.0), "{a} vs {b}");
+            }
+        }
+    }
+}
+
+#[test]
+fn the_none_regularizer_is_free() {
+    let mut rng = StdRng::seed_from_u64(38);
+    let mut reg = Regularizer::new(
+        RegularizerKind::None,
+        &EnergyConfig::default(),
+        2,
+        1,
+        &mut rng,
+    );
+    let data = oscillator(10, &mut rng);
+    assert_eq!(reg.fit(&data, 5, &mut rng).samples, 10);
+    let mut scratch = reg.scratch(10);
+    let mut out = vec![f32::NAN; 10];
+    reg.energy(
+        data.obs(),
+        data.act(),
+        data.next_obs(),
+        10,
+        &mut scratch,
+        &mut out,
+    );
+    assert!(out.iter().all(|v| *v == 0.0));
+}
+
+#[test]
+fn kinds_parse_and_serialise_lowercase() {
+    for &kind in RegularizerKind::ALL {
+        assert_eq!(kind.name().parse::<RegularizerKind>().unwrap(), kind);
+        assert_eq!(serde_json::to_string(&kind).unwrap(), format!("\"{kind}\""));
+    }
+    assert_eq!(
+        "DEEN".parse::<RegularizerKind>().unwrap(),
+        RegularizerKind::Deen
+    );
+    let err = "vae".parse::<RegularizerKind>().unwrap_err();
+    assert!(err.to_string().contains("none, dae, deen"), "{err}");
+    fn assert_traits<T: Clone + Send + Sync + 'static>() {}
+    assert_traits::<Regularizer>();
+    assert_traits::<EnergyScratch>();
+}
+
+/// One DEEN training step of the half-cheetah size (5 × 500, batch 32, 42 inputs) and one
+/// planning step's energies (500 rows). `cargo test --release -p planner-service --lib
+/// energy::tests::timing -- --ignored --nocapture`
+#[test]
+#[ignore = "timing, prints numbers"]
+fn timing() {
+    let mut rng = StdRng::seed_from_u64(39);
+    let config = EnergyConfig {
+        hidden_layers: 5,
+        hidden_size: 500,
+        epochs: 1,
+        batch_size: 32,
+        noise_sigma: 0.37,
+        learning_rate: 1e-3,
+    };
+    let dim = 2 * 18 + 6;
+    let mut deen = Deen::new(dim, &config, &mut rng);
+    let set: Vec<f32> = (0..1024 * dim)
+        .map(|_| rng.sample(StandardNormal))
+        .collect();
+    let mut ws = DeenWorkspace::new(&deen, 32);
+    let batch: Vec<usize> = (0..32).collect();
+    let _flush = crate::nn::FlushDenormals::new();
+    for _ in 0..10 {
+        deen.train_step(&set, &batch, &mut ws, &mut rng);
+    }
+    let reps = 100;
+    let t = std::time::Instant::now();
+    for _ in 0..reps {
+        deen.train_step(&set, &batch, &mut ws, &mut rng);
+    }
+    println!(
+        "DEEN train step (batch 32, 5 × 500): {:.3} ms",
+        t.elapsed().as_secs_f64() * 1e3 / reps as f64
+    );
+    let rows = 500;
+    let reg = Regularizer::Deen(deen);
+    let mut scratch = reg.scratch(rows);
+    let (obs, act) = (&set[..rows * 18], &set[..rows * 6]);
+    let mut out = vec![0.0; rows];
+    let t = std::time::Instant::now();
+    for _ in 0..reps {
+        reg.energy(obs, act, obs, rows, &mut scratch, &mut out);
+    }
+    println!(
+        "DEEN energy, 500 rows: {:.3} ms",
+        t.elapsed().as_secs_f64() * 1e3 / reps as f64
+    );
+}

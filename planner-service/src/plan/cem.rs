@@ -1,0 +1,539 @@
+//! The cross-entropy method over action sequences, as PETS (Chua et al. 2018) runs it.
+//!
+//! Each iteration draws a population of action sequences from a diagonal Gaussian truncated at
+//! ±2 standard deviations, scores the whole population at once through a [`PopulationObjective`],
+//! and refits the Gaussian to the best `elites`. Following PETS:
+//! - the variance of every coordinate is capped by its distance to the action bounds,
+//!   `min((mean − lb)²/4, (ub − mean)²/4, var)`, so ±2σ never leaves the bounds;
+//! - the refit is smoothed, `mean ← α·mean + (1 − α)·elite_mean` (same for the variance), with
+//!   `α` = [`CemConfig::smoothing`] (0.1: mostly the new estimate);
+//! - the search stops early once every coordinate's variance is below
+//!   [`CemConfig::min_variance`];
+//! - every solve starts from the variance `(ub − lb)²/16` and from the warm-start mean, which
+//!   [`Cem::shift`] moves one step forward after an action is taken.
+//!
+//! One deviation: the first iteration always runs, so every solve has scored its answer (PETS
+//! returns the untried initial mean when the bounds are narrower than `4·sqrt(min_variance)`).
+//!
+//! All buffers are allocated in [`Cem::new`]; [`Cem::optimize`] allocates nothing.
+
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+
+/// Scores a whole population of action sequences at once (higher is better).
+///
+/// Batching is the point: the objective behind the planner pushes all candidates through the
+/// networks together, step by step, instead of one sequence at a time.
+pub trait PopulationObjective {
+    /// `actions` holds `returns.len()` candidates, each `horizon × act_dim` numbers, row-major.
+    /// Write one score per candidate into `returns`. Non-finite scores are allowed: the
+    /// optimiser ranks them below every finite one.
+    fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]);
+}
+
+/// The CEM hyperparameters (PETS names in brackets).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CemConfig {
+    /// Planning horizon in steps (`plan_hor`).
+    pub horizon: usize,
+    /// Candidates per iteration (`popsize`).
+    pub population: usize,
+    /// Candidates the distribution is refitted to (`num_elites`).
+    pub elites: usize,
+    /// Maximum iterations per solve (`max_iters`).
+    pub iterations: usize,
+    /// Weight of the previous distribution in the refit (`alpha`, 0.1).
+    pub smoothing: f32,
+    /// Stop once every coordinate's variance is below this (`epsilon`, 0.001).
+    pub min_variance: f32,
+    /// Imagined rollouts per candidate, averaged (`npart`); particle `p` uses ensemble member
+    /// `p mod B`.
+    pub particles: usize,
+}
+
+impl CemConfig {
+    /// Checks the values against each other; the planner refuses an invalid configuration.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        for (name, value) in [
+            ("horizon", self.horizon),
+            ("population", self.population),
+            ("elites", self.elites),
+            ("iterations", self.iterations),
+            ("particles", self.particles),
+        ] {
+            if value == 0 {
+                return Err(ConfigError::Zero(name));
+            }
+        }
+        if self.elites > self.population {
+            return Err(ConfigError::TooManyElites {
+                elites: self.elites,
+                population: self.population,
+            });
+        }
+        if !(0.0..1.0).contains(&self.smoothing) {
+            return Err(ConfigError::Smoothing(self.smoothing));
+        }
+        if !(self.min_variance.is_finite() && self.min_variance >= 0.0) {
+            return Err(ConfigError::MinVariance(self.min_variance));
+        }
+        Ok(())
+    }
+}
+
+/// Why a planner configuration was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ConfigError {
+    #[error("CEM `{0}` must be at least 1")]
+    Zero(&'static str),
+    #[error("CEM elites ({elites}) exceed the population ({population})")]
+    TooManyElites { elites: usize, population: usize },
+    #[error("CEM smoothing must lie in [0, 1), got {0}")]
+    Smoothing(f32),
+    #[error("CEM min_variance must be finite and non-negative, got {0}")]
+    MinVariance(f32),
+    #[error("action bounds must be finite with low < high in every dimension")]
+    Bounds,
+    #[error("energy weight must be finite and non-negative, got {0}")]
+    EnergyWeight(f32),
+}
+
+/// What one solve did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CemOutcome {
+    /// Iterations run (at least 1).
+    pub iterations: u32,
+    /// Mean score of the last iteration's elites; `-inf` if every one of them was non-finite.
+    pub elite_return: f32,
+}
+
+/// A CEM optimiser for sequences of `horizon` actions within fixed bounds.
+#[derive(Debug)]
+pub struct Cem {
+    config: CemConfig,
+    act_dim: usize,
+    /// Bounds, initial mean and initial variance per coordinate (`horizon × act_dim`).
+    lower: Vec<f32>,
+    upper: Vec<f32>,
+    init_mean: Vec<f32>,
+    init_var: Vec<f32>,
+    /// The distribution; `mean` persists between solves as the warm start.
+    mean: Vec<f32>,
+    var: Vec<f32>,
+    /// Per-iteration working buffers.
+    std: Vec<f32>,
+    samples: Vec<f32>,
+    returns: Vec<f32>,
+    order: Vec<usize>,
+    rng: StdRng,
+}
+
+impl Cem {
+    /// An optimiser for actions bounded by `lower`/`upper` (one entry per action dimension),
+    /// seeded for reproducible solves.
+    pub fn new(
+        config: CemConfig,
+        lower: &[f32],
+        upper: &[f32],
+        seed: u64,
+    ) -> Result<Self, ConfigError> {
+        config.validate()?;
+        let bounds_ok = lower.len() == upper.len()
+            && !lower.is_empty()
+            && lower
+                .iter()
+                .zip(upper)
+                .all(|(l, u)| l.is_finite() && u.is_finite() && l < u);
+        if !bounds_ok {
+            return Err(ConfigError::Bounds);
+        }
+        let act_dim = lower.len();
+        let dim = config.horizon * act_dim;
+        let lower: Vec<f32> = lower.iter().copied().cycle().take(dim).collect();
+        let upper: Vec<f32> = upper.iter().copied().cycle().take(dim).collect();
+        let init_mean: Vec<f32> = lower
+            .iter()
+            .zip(&upper)
+            .map(|(l, u)| 0.5 * (l + u))
+            .collect();
+        let init_var: Vec<f32> = lower
+            .iter()
+            .zip(&upper)
+            .map(|(l, u)| (u - l) * (u - l) / 16.0)
+            .collect();
+        let population = config.population;
+        Ok(Self {
+            act_dim,
+            mean: init_mean.clone(),
+            var: init_var.clone(),
+            std: vec![0.0; dim],
+            samples: vec![0.0; population * dim],
+            returns: vec![0.0; population],
+            order: (0..population).collect(),
+            rng: StdRng::seed_from_u64(seed),
+            lower,
+            upper,
+            init_mean,
+            init_var,
+            config,
+        })
+    }
+
+    pub fn config(&self) -> &CemConfig {
+        &self.config
+    }
+
+    pub fn act_dim(&self) -> usize {
+        self.act_dim
+    }
+
+    /// Forgets the warm start: the next solve starts from the middle of the bounds.
+    pub fn reset(&mut self) {
+        self.mean.copy_from_slice(&self.init_mean);
+    }
+
+    /// Warm start for the next time step: drops the first action of the current mean, moves the
+    /// rest one step forward and appends the initial mean's action at the end.
+    pub fn shift(&mut self) {
+        let a = self.act_dim;
+        let dim = self.mean.len();
+        self.mean.copy_within(a.., 0);
+        self.mean[dim - a..].copy_from_slice(&self.init_mean[dim - a..]);
+    }
+
+    /// The current mean sequence (`horizon × act_dim`): after a solve, the plan.
+    pub fn mean(&self) -> &[f32] {
+        &self.mean
+    }
+
+    /// Overwrites the mean (the warm start of the next solve), e.g. to restore a saved plan.
+    pub fn set_mean(&mut self, mean: &[f32]) {
+        self.mean.copy_from_slice(mean);
+    }
+
+    /// The first action of the current mean: what MPC applies.
+    pub fn first_action(&self) -> &[f32] {
+        &self.mean[..self.act_dim]
+    }
+
+    /// The last population scored (`population × horizon × act_dim`).
+    pub fn population(&self) -> &[f32] {
+        &self.samples
+    }
+
+    /// Indices into [`Cem::population`] of the last iteration's elites, best first is not
+    /// guaranteed (the selection is a partition, not a sort).
+    pub fn elites(&self) -> &[usize] {
+        &self.order[..self.config.elites]
+    }
+
+    /// Runs one solve from the warm-start mean, leaving the result in [`Cem::mean`].
+    pub fn optimize<O: PopulationObjective + ?Sized>(&mut self, objective: &mut O) -> CemOutcome {
+        self.var.copy_from_slice(&self.init_var);
+        let mut iterations = 0;
+        let mut elite_return = f32::NEG_INFINITY;
+        while iterations < self.config.iterations
+            && (iterations == 0 || self.max_variance() > self.config.min_variance)
+        {
+            self.sample();
+            objective.evaluate(&self.samples, &mut self.returns);
+            elite_return = self.refit();
+            iterations += 1;
+        }
+        CemOutcome {
+            iterations: iterations as u32,
+            elite_return,
+        }
+    }
+
+    fn max_variance(&self) -> f32 {
+        self.var.iter().copied().fold(0.0, f32::max)
+    }
+
+    /// Draws the population from the truncated Gaussian, its variance capped by the bounds.
+    fn sample(&mut self) {
+        for ((((s, &m), &v), &lo), &hi) in self
+            .std
+            .iter_mut()
+            .zip(&self.mean)
+            .zip(&self.var)
+            .zip(&self.lower)
+            .zip(&self.upper)
+        {
+            let to_lower = m - lo;
+            let to_upper = hi - m;
+            let capped = (to_lower * to_lower / 4.0)
+                .min(to_upper * to_upper / 4.0)
+                .min(v);
+            *s = capped.max(0.0).sqrt();
+        }
+        let dim = self.mean.len();
+        for candidate in self.samples.chunks_exact_mut(dim) {
+            for ((((x, &m), &s), &lo), &hi) in candidate
+                .iter_mut()
+                .zip(&self.mean)
+                .zip(&self.std)
+                .zip(&self.lower)
+                .zip(&self.upper)
+            {
+                // ±2σ lies within the bounds by the cap above; the clamp only absorbs rounding.
+                *x = (m + s * truncated_standard_normal(&mut self.rng)).clamp(lo, hi);
+            }
+        }
+    }
+
+    /// Selects the elites and moves the distribution towards them; returns their mean score.
+    fn refit(&mut self) -> f32 {
+        for r in &mut self.returns {
+            if !r.is_finite() {
+                *r = f32::NEG_INFINITY;
+            }
+        }
+        let (elites, returns) = (self.config.elites, &self.returns);
+        for (i, o) in self.order.iter_mut().enumerate() {
+            *o = i;
+        }
+        if elites < self.order.len() {
+            // Descending by score: the first `elites` indices end up holding the best ones.
+            self.order
+                .select_nth_unstable_by(elites - 1, |&a, &b| returns[b].total_cmp(&returns[a]));
+        }
+        let dim = self.mean.len();
+        let alpha = self.config.smoothing;
+        let inv = 1.0 / elites as f32;
+        for j in 0..dim {
+            let mut sum = 0.0;
+            for &e in &self.order[..elites] {
+                sum += self.samples[e * dim + j];
+            }
+            let elite_mean = sum * inv;
+            let mut sq = 0.0;
+            for &e in &self.order[..elites] {
+                let d = self.samples[e * dim + j] - elite_mean;
+                sq += d * d;
+            }
+            let elite_var = sq * inv;
+            self.mean[j] = alpha * self.mean[j] + (1.0 - alpha) * elite_mean;
+            self.var[j] = alpha * self.var[j] + (1.0 - alpha) * elite_var;
+        }
+        self.order[..elites]
+            .iter()
+            .map(|&e| returns[e])
+            .sum::<f32>()
+            * inv
+    }
+}
+
+/// A standard normal truncated to [−2, 2], by rejection (accepts 95.4 % of draws).
+fn truncated_standard_normal(rng: &mut StdRng) -> f32 {
+    loop {
+        let z: f32 = rng.sample(StandardNormal);
+        if z.abs() <= 2.0 {
+            return z;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(horizon: usize) -> CemConfig {
+        CemConfig {
+            horizon,
+            population: 200,
+            elites: 20,
+            iterations: 30,
+            smoothing: 0.1,
+            min_variance: 1e-6,
+            particles: 1,
+        }
+    }
+
+    /// `−‖a − target‖²` summed over the sequence; records the bounds it saw violated.
+    struct Quadratic {
+        target: Vec<f32>,
+        lower: f32,
+        upper: f32,
+        out_of_bounds: usize,
+        calls: usize,
+    }
+
+    impl PopulationObjective for Quadratic {
+        fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]) {
+            self.calls += 1;
+            let dim = self.target.len();
+            assert_eq!(actions.len(), returns.len() * dim);
+            for (candidate, r) in actions.chunks_exact(dim).zip(returns.iter_mut()) {
+                self.out_of_bounds += candidate
+                    .iter()
+                    .filter(|&&a| a < self.lower || a > self.upper)
+                    .count();
+                *r = -candidate
+                    .iter()
+                    .zip(&self.target)
+                    .map(|(a, t)| (a - t) * (a - t))
+                    .sum::<f32>();
+            }
+        }
+    }
+
+    #[test]
+    fn finds_an_interior_maximiser() {
+        let (lo, hi) = ([-3.0, -1.0], [3.0, 1.0]);
+        let mut cem = Cem::new(config(5), &lo, &hi, 7).unwrap();
+        let target: Vec<f32> = (0..10)
+            .map(|i| {
+                if i % 2 == 0 {
+                    1.7 - 0.5 * i as f32
+                } else {
+                    -0.4
+                }
+            })
+            .collect();
+        let mut objective = Quadratic {
+            target: target.clone(),
+            lower: -3.0,
+            upper: 3.0,
+            out_of_bounds: 0,
+            calls: 0,
+        };
+        let outcome = cem.optimize(&mut objective);
+        for (m, t) in cem.mean().iter().zip(&target) {
+            assert!(
+                (m - t).abs() < 0.02,
+                "mean {:?} vs target {target:?}",
+                cem.mean()
+            );
+        }
+        assert!(outcome.elite_return > -1e-3, "{outcome:?}");
+        assert_eq!(objective.out_of_bounds, 0);
+        assert_eq!(outcome.iterations as usize, objective.calls);
+    }
+
+    #[test]
+    fn finds_a_maximiser_on_the_bound_and_never_leaves_the_bounds() {
+        // The unconstrained optimum (2.5) lies outside [−1, 1]: the best feasible action is 1.
+        let mut cem = Cem::new(config(4), &[-1.0], &[1.0], 3).unwrap();
+        let mut objective = Quadratic {
+            target: vec![2.5; 4],
+            lower: -1.0,
+            upper: 1.0,
+            out_of_bounds: 0,
+            calls: 0,
+        };
+        cem.optimize(&mut objective);
+        assert_eq!(objective.out_of_bounds, 0);
+        // The cap on the variance near a bound slows the approach to it (as in PETS), so the
+        // mean gets close to the bound rather than onto it.
+        for &m in cem.mean() {
+            assert!(m > 0.9 && m <= 1.0, "{:?}", cem.mean());
+        }
+        let average = cem.mean().iter().sum::<f32>() / 4.0;
+        assert!(average > 0.97, "{:?}", cem.mean());
+        for &a in cem.population() {
+            assert!((-1.0..=1.0).contains(&a));
+        }
+    }
+
+    #[test]
+    fn stops_early_once_the_variance_collapses() {
+        let mut cfg = config(2);
+        cfg.iterations = 200;
+        cfg.min_variance = 1e-3;
+        let mut cem = Cem::new(cfg, &[-1.0], &[1.0], 1).unwrap();
+        let mut objective = Quadratic {
+            target: vec![0.3, -0.2],
+            lower: -1.0,
+            upper: 1.0,
+            out_of_bounds: 0,
+            calls: 0,
+        };
+        let outcome = cem.optimize(&mut objective);
+        assert!(
+            outcome.iterations > 1 && outcome.iterations < 200,
+            "{outcome:?}"
+        );
+        assert!(cem.var.iter().all(|&v| v <= 1e-3));
+    }
+
+    #[test]
+    fn non_finite_scores_never_win() {
+        // Candidates with a positive first action score NaN, or +inf, which must not count as
+        // good: the optimum among the finite ones is at −0.5.
+        struct Poisoned;
+        impl PopulationObjective for Poisoned {
+            fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]) {
+                for (a, r) in actions.iter().zip(returns.iter_mut()) {
+                    *r = if *a > 0.0 {
+                        if *a > 0.5 { f32::INFINITY } else { f32::NAN }
+                    } else {
+                        -(a + 0.5) * (a + 0.5)
+                    };
+                }
+            }
+        }
+        let mut cem = Cem::new(config(1), &[-1.0], &[1.0], 5).unwrap();
+        let outcome = cem.optimize(&mut Poisoned);
+        assert!((cem.mean()[0] + 0.5).abs() < 0.02, "{:?}", cem.mean());
+        assert!(outcome.elite_return.is_finite());
+    }
+
+    #[test]
+    fn warm_start_shifts_by_one_step_and_appends_the_initial_mean() {
+        let mut cem = Cem::new(config(3), &[-1.0, 0.0], &[1.0, 4.0], 0).unwrap();
+        cem.set_mean(&[0.1, 1.0, 0.2, 2.0, 0.3, 3.0]);
+        cem.shift();
+        assert_eq!(cem.mean(), &[0.2, 2.0, 0.3, 3.0, 0.0, 2.0]);
+        assert_eq!(cem.first_action(), &[0.2, 2.0]);
+        cem.reset();
+        assert_eq!(cem.mean(), &[0.0, 2.0, 0.0, 2.0, 0.0, 2.0]);
+    }
+
+    #[test]
+    fn same_seed_same_solution() {
+        let run = |seed| {
+            let mut cem = Cem::new(config(3), &[-2.0], &[2.0], seed).unwrap();
+            let mut objective = Quadratic {
+                target: vec![0.5; 3],
+                lower: -2.0,
+                upper: 2.0,
+                out_of_bounds: 0,
+                calls: 0,
+            };
+            let mut cfg_short = cem.config().clone();
+            cfg_short.iterations = 2;
+            cem.config = cfg_short;
+            cem.optimize(&mut objective);
+            cem.mean().to_vec()
+        };
+        assert_eq!(run(11), run(11));
+        assert_ne!(run(11), run(12));
+    }
+
+    #[test]
+    fn refuses_invalid_configurations() {
+        let mut cfg = config(3);
+        cfg.elites = 300;
+        assert!(matches!(
+            cfg.validate(),
+            Err(ConfigError::TooManyElites { .. })
+        ));
+        let mut cfg = config(3);
+        cfg.horizon = 0;
+        assert_eq!(cfg.validate(), Err(ConfigError::Zero("horizon")));
+        let mut cfg = config(3);
+        cfg.smoothing = 1.0;
+        assert!(cfg.validate().is_err());
+        assert_eq!(
+            Cem::new(config(3), &[1.0], &[1.0], 0).unwrap_err(),
+            ConfigError::Bounds
+        );
+        assert_eq!(
+            Cem::new(config(3), &[0.0, 1.0], &[1.0], 0).unwrap_err(),
+            ConfigError::Bounds
+        );
+    }
+}

@@ -1,0 +1,550 @@
+//! Batched imagination: scores candidate action sequences by rolling the learned dynamics
+//! forward from the current observation (eq. 5 of the paper),
+//!
+//! `return = Σ_τ [ r(s_τ, a_τ, s_τ₊₁) − α·E(s_τ, a_τ, s_τ₊₁) ]`,
+//!
+//! with `r` the task's own reward ([`proto::TaskSpec::reward`], the function the simulator uses),
+//! `E` the regulariser's energy and `α` the energy weight.
+//!
+//! - **Particles (PETS TS∞).** Each candidate is imagined `P` times; particle `p` follows
+//!   ensemble member `p mod B` for the whole horizon and, when sampling is on, draws its next
+//!   state from the member's predicted Gaussian. The candidate's return is the particles' mean.
+//!   `P = 1`, `B = 1` without sampling is the paper's single-model setting.
+//! - **Termination.** Once a particle reaches a terminal state (`TaskSpec::is_terminal`, e.g. the
+//!   ant falling) it stops accruing reward and energy; the transition into the terminal state
+//!   still counts.
+//! - **Non-finite returns** (a diverging model) are reported as `-inf`, so they never win.
+//! - **Batching.** The whole population advances one horizon step at a time, so every network
+//!   call is a large matrix product. The population is split into one chunk per rayon thread;
+//!   each chunk owns its buffers and scratch and runs single-threaded kernels. Within a chunk
+//!   the rows are ordered particle-major with particles grouped by ensemble member, so each
+//!   member sees one contiguous block of rows.
+//! - **No allocation.** Every buffer is allocated when the imagination is built; the network
+//!   scratch space is allocated on the first call with a model (and again only if a model of
+//!   another shape arrives).
+
+use crate::dynamics::{DynamicsScratch, Ensemble};
+use crate::energy::{EnergyScratch, Regularizer};
+use crate::plan::cem::CemConfig;
+use proto::TaskSpec;
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use rand_distr::StandardNormal;
+use rayon::prelude::*;
+
+/// Scores populations of action sequences with a learned model; owns all working memory.
+pub struct Imagination {
+    ctx: Context,
+    /// Candidates per chunk (the last chunk may hold fewer).
+    chunk_len: usize,
+    chunks: Vec<Chunk>,
+}
+
+/// What every chunk needs to know, shared read-only across threads.
+#[derive(Clone, Copy)]
+struct Context {
+    task: &'static TaskSpec,
+    horizon: usize,
+    particles: usize,
+    energy_weight: f32,
+    sample: bool,
+}
+
+/// One thread's share of the population and all the memory it works in.
+struct Chunk {
+    /// Candidates this chunk holds.
+    capacity: usize,
+    /// Rows are `particles × candidates`: states before and after the step, the step's actions,
+    /// Gaussian noise for sampling, and the step's reward and energy per row.
+    state: Vec<f32>,
+    next: Vec<f32>,
+    act: Vec<f32>,
+    noise: Vec<f32>,
+    reward: Vec<f32>,
+    energy: Vec<f32>,
+    /// Per row: accumulated regularised return, accumulated energy, still alive.
+    ret: Vec<f32>,
+    energy_sum: Vec<f32>,
+    alive: Vec<bool>,
+    /// Per candidate: the particles' mean return and mean energy per step.
+    candidate_energy: Vec<f32>,
+    scratch: Option<Scratch>,
+    rng: StdRng,
+}
+
+/// Network working memory, tied to the shapes of the models it was made for.
+struct Scratch {
+    dynamics: DynamicsScratch,
+    energy: EnergyScratch,
+}
+
+impl Imagination {
+    /// Imagination for `config.population` candidates of `config.horizon` steps with
+    /// `config.particles` particles each, split into `chunks` parallel chunks (at least 1; the
+    /// number of rayon threads is the natural choice). `seed` seeds the sampling noise.
+    pub fn new(
+        task: &'static TaskSpec,
+        config: &CemConfig,
+        energy_weight: f32,
+        sample: bool,
+        chunks: usize,
+        seed: u64,
+    ) -> Self {
+        let population = config.population.max(1);
+        let chunks = chunks.clamp(1, population);
+        let chunk_len = population.div_ceil(chunks);
+        let chunks = (0..population.div_ceil(chunk_len))
+            .map(|c| {
+                let capacity = chunk_len.min(population - c * chunk_len);
+                Chunk::new(task, config.particles, capacity, seed_for_chunk(seed, c))
+            })
+            .collect();
+        let ctx = Context { task, horizon: config.horizon, particles: config.particles, energy_weight, sample };
+        Self { ctx, chunk_len, chunks }
+    }
+
+    /// Candidates this imagination scores per call.
+    pub fn population(&self) -> usize {
+        self.chunks.iter().map(|c| c.capacity).sum()
+    }
+
+    /// Scores every candidate of `actions` (`population × horizon × act_dim`) from `obs` into
+    /// `returns` (`population`).
+    pub fn evaluate(
+        &mut self,
+        obs: &[f32],
+        actions: &[f32],
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+        returns: &mut [f32],
+    ) {
+        let ctx = self.ctx;
+        let seq = ctx.horizon * ctx.task.act_dim;
+        assert_eq!(obs.len(), ctx.task.obs_dim, "observation dimension");
+        assert_eq!(returns.len(), self.population(), "population");
+        assert_eq!(actions.len(), returns.len() * seq, "action sequences");
+        self.prepare(dynamics, regularizer);
+        let chunk_len = self.chunk_len;
+        self.chunks
+            .par_iter_mut()
+            .zip(returns.par_chunks_mut(chunk_len))
+            .zip(actions.par_chunks(chunk_len * seq))
+            .for_each(|((chunk, returns), actions)| {
+                chunk.imagine(&ctx, obs, actions, returns.len(), dynamics, regularizer, None);
+                chunk.write_returns(&ctx, returns);
+            });
+    }
+
+    /// Mean energy per imagined step of candidate `i` in the last [`Imagination::evaluate`]
+    /// (averaged over particles; 0 without a regulariser).
+    pub fn candidate_energy(&self, i: usize) -> f32 {
+        self.chunks[i / self.chunk_len].candidate_energy[i % self.chunk_len]
+    }
+
+    /// Imagines one action sequence (`horizon × act_dim`) from `obs` and writes, per step, the
+    /// particles' mean reward and mean energy. Returns the sequence's regularised return, scored
+    /// exactly as [`Imagination::evaluate`] scores a candidate.
+    pub fn rollout(
+        &mut self,
+        obs: &[f32],
+        actions: &[f32],
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+        rewards: &mut [f32],
+        energies: &mut [f32],
+    ) -> f32 {
+        let ctx = self.ctx;
+        assert_eq!(obs.len(), ctx.task.obs_dim, "observation dimension");
+        assert_eq!(actions.len(), ctx.horizon * ctx.task.act_dim, "action sequence");
+        assert_eq!((rewards.len(), energies.len()), (ctx.horizon, ctx.horizon), "per-step outputs");
+        self.prepare(dynamics, regularizer);
+        let chunk = &mut self.chunks[0];
+        chunk.imagine(&ctx, obs, actions, 1, dynamics, regularizer, Some((rewards, energies)));
+        let mut ret = [0.0];
+        chunk.write_returns(&ctx, &mut ret);
+        ret[0]
+    }
+
+    /// Makes sure every chunk has network scratch space that fits these models.
+    fn prepare(&mut self, dynamics: &Ensemble, regularizer: &Regularizer) {
+        let rows_per_chunk = |c: &Chunk| c.capacity * self.ctx.particles;
+        for chunk in &mut self.chunks {
+            let rows = rows_per_chunk(chunk);
+            let fits = chunk
+                .scratch
+                .as_ref()
+                .is_some_and(|s| s.dynamics.fits(dynamics, rows) && s.energy.fits(regularizer, rows));
+            if !fits {
+                chunk.scratch =
+                    Some(Scratch { dynamics: dynamics.scratch(rows), energy: regularizer.scratch(rows) });
+            }
+        }
+    }
+}
+
+/// Decorrelated seeds for the chunks' noise generators (splitmix64 of seed and chunk index).
+fn seed_for_chunk(seed: u64, chunk: usize) -> u64 {
+    let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(chunk as u64 + 1));
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+impl Chunk {
+    fn new(task: &TaskSpec, particles: usize, capacity: usize, seed: u64) -> Self {
+        let rows = particles * capacity;
+        let (o, a) = (task.obs_dim, task.act_dim);
+        Self {
+            capacity,
+            state: vec![0.0; rows * o],
+            next: vec![0.0; rows * o],
+            act: vec![0.0; rows * a],
+            noise: vec![0.0; rows * o],
+            reward: vec![0.0; rows],
+            energy: vec![0.0; rows],
+            ret: vec![0.0; rows],
+            energy_sum: vec![0.0; rows],
+            alive: vec![true; rows],
+            candidate_energy: vec![0.0; capacity],
+            scratch: None,
+            rng: StdRng::seed_from_u64(seed),
+        }
+    }
+
+    /// Rolls `n` candidates (their sequences in `actions`, `n × horizon × act_dim`) forward
+    /// from `obs`, accumulating per-row returns; with `record`, also writes each step's mean
+    /// reward and energy over all rows.
+    #[allow(clippy::too_many_arguments)]
+    fn imagine(
+        &mut self,
+        ctx: &Context,
+        obs: &[f32],
+        actions: &[f32],
+        n: usize,
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+        mut record: Option<(&mut [f32], &mut [f32])>,
+    ) {
+        let (o, a, h) = (ctx.task.obs_dim, ctx.task.act_dim, ctx.horizon);
+        let rows = ctx.particles * n;
+        let members = dynamics.members();
+        let with_energy = !matches!(regularizer, Regularizer::None);
+        for s in self.state[..rows * o].chunks_exact_mut(o) {
+            s.copy_from_slice(obs);
+        }
+        self.ret[..rows].fill(0.0);
+        self.energy_sum[..rows].fill(0.0);
+        self.alive[..rows].fill(true);
+        self.energy[..rows].fill(0.0);
+        let scratch = self.scratch.as_mut().expect("prepared before imagining");
+        for t in 0..h {
+            // Row `k·n + i` is particle slot `k` of candidate `i`.
+            for slot in self.act[..rows * a].chunks_exact_mut(n * a) {
+                for (i, row) in slot.chunks_exact_mut(a).enumerate() {
+                    let at = i * h * a + t * a;
+                    row.copy_from_slice(&actions[at..at + a]);
+                }
+            }
+            if ctx.sample {
+                for z in &mut self.noise[..rows * o] {
+                    *z = self.rng.sample(StandardNormal);
+                }
+            }
+            let mut first_slot = 0;
+            for member in 0..members.min(ctx.particles) {
+                let slots = particles_of_member(ctx.particles, members, member);
+                let (r0, r1) = (first_slot * n, (first_slot + slots) * n);
+                let noise = ctx.sample.then(|| &self.noise[r0 * o..r1 * o]);
+                dynamics.predict_next(
+                    member,
+                    &self.state[r0 * o..r1 * o],
+                    &self.act[r0 * a..r1 * a],
+                    r1 - r0,
+                    &mut scratch.dynamics,
+                    noise,
+                    &mut self.next[r0 * o..r1 * o],
+                );
+                first_slot += slots;
+            }
+            if with_energy {
+                regularizer.energy(
+                    &self.state[..rows * o],
+                    &self.act[..rows * a],
+                    &self.next[..rows * o],
+                    rows,
+                    &mut scratch.energy,
+                    &mut self.energy[..rows],
+                );
+            }
+            for r in 0..rows {
+                if !self.alive[r] {
+                    self.reward[r] = 0.0;
+                    self.energy[r] = 0.0;
+                    continue;
+                }
+                let (s, u, s1) = (&self.state[r * o..(r + 1) * o], &self.act[r * a..(r + 1) * a], &self.next[r * o..(r + 1) * o]);
+                let reward = ctx.task.reward(s, u, s1);
+                self.reward[r] = reward;
+                self.ret[r] += reward - ctx.energy_weight * self.energy[r];
+                self.energy_sum[r] += self.energy[r];
+                if ctx.task.is_terminal(s1) {
+                    self.alive[r] = false;
+                }
+            }
+            if let Some((rewards, energies)) = record.as_mut() {
+                let inv = 1.0 / rows as f32;
+                rewards[t] = self.reward[..rows].iter().sum::<f32>() * inv;
+                energies[t] = self.energy[..rows].iter().sum::<f32>() * inv;
+            }
+            std::mem::swap(&mut self.state, &mut self.next);
+        }
+    }
+
+    /// The particles' mean return per candidate (non-finite → `-inf`), and their mean energy
+    /// per step into `candidate_energy`.
+    fn write_returns(&mut self, ctx: &Context, returns: &mut [f32]) {
+        let n = returns.len();
+        let inv_p = 1.0 / ctx.particles as f32;
+        let inv_step = inv_p / ctx.horizon as f32;
+        for (i, out) in returns.iter_mut().enumerate() {
+            let (mut ret, mut energy) = (0.0, 0.0);
+            for k in 0..ctx.particles {
+                ret += self.ret[k * n + i];
+                energy += self.energy_sum[k * n + i];
+            }
+            let ret = ret * inv_p;
+            *out = if ret.is_finite() { ret } else { f32::NEG_INFINITY };
+            self.candidate_energy[i] = energy * inv_step;
+        }
+    }
+}
+
+/// How many of `particles` particles follow ensemble member `member` of `members`
+/// (particle `p` follows member `p mod members`).
+fn particles_of_member(particles: usize, members: usize, member: usize) -> usize {
+    if member >= particles { 0 } else { (particles - member).div_ceil(members) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dynamics::DynamicsConfig;
+    use crate::energy::{EnergyConfig, RegularizerKind};
+    use crate::nn::Normalizer;
+    use proto::TaskId;
+
+    fn cem(horizon: usize, population: usize, particles: usize) -> CemConfig {
+        CemConfig { horizon, population, elites: 1, iterations: 1, smoothing: 0.1, min_variance: 1e-3, particles }
+    }
+
+    fn ensemble(task: TaskId, members: usize, seed: u64) -> Ensemble {
+        let config = DynamicsConfig { hidden_layers: 2, hidden_size: 24, ensemble_size: members, ..Default::default() };
+        Ensemble::new(task.spec(), &config, &mut StdRng::seed_from_u64(seed))
+    }
+
+    fn deen(task: TaskId, seed: u64) -> Regularizer {
+        let spec = task.spec();
+        let config = EnergyConfig { hidden_layers: 2, hidden_size: 16, ..Default::default() };
+        Regularizer::new(RegularizerKind::Deen, &config, spec.obs_dim, spec.act_dim, &mut StdRng::seed_from_u64(seed))
+    }
+
+    fn random_sequences(task: &TaskSpec, n: usize, horizon: usize, seed: u64) -> Vec<f32> {
+        let mut rng = StdRng::seed_from_u64(seed);
+        (0..n * horizon)
+            .flat_map(|_| {
+                (0..task.act_dim)
+                    .map(|d| rng.random_range(task.action_low[d]..task.action_high[d]))
+                    .collect::<Vec<_>>()
+            })
+            .collect()
+    }
+
+    /// One sequence, one member, one row at a time, mean prediction: the plain reading of
+    /// eq. 5 with termination. Returns the return and the number of steps that accrued.
+    fn reference(
+        task: &'static TaskSpec,
+        obs: &[f32],
+        seq: &[f32],
+        dynamics: &Ensemble,
+        member: usize,
+        regularizer: &Regularizer,
+        alpha: f32,
+    ) -> (f32, usize) {
+        let (o, a) = (task.obs_dim, task.act_dim);
+        let mut scratch = dynamics.scratch(1);
+        let mut energy_scratch = regularizer.scratch(1);
+        let mut s = obs.to_vec();
+        let mut s1 = vec![0.0; o];
+        let mut ret = 0.0;
+        for (t, u) in seq.chunks_exact(a).enumerate() {
+            dynamics.predict_next(member, &s, u, 1, &mut scratch, None, &mut s1);
+            let mut e = [0.0];
+            regularizer.energy(&s, u, &s1, 1, &mut energy_scratch, &mut e);
+            ret += task.reward(&s, u, &s1) - alpha * e[0];
+            if task.is_terminal(&s1) {
+                return (ret, t + 1);
+            }
+            std::mem::swap(&mut s, &mut s1);
+        }
+        (ret, seq.len() / a)
+    }
+
+    fn assert_close(a: f32, b: f32, what: &str) {
+        assert!((a - b).abs() <= 1e-4 * (1.0 + b.abs()), "{what}: {a} vs {b}");
+    }
+
+    #[test]
+    fn matches_the_sequential_reference_for_any_chunking_and_particle_layout() {
+        let task = TaskId::Cartpole.spec();
+        let (horizon, population, alpha) = (6, 7, 0.3);
+        let obs = [0.1, 2.5, -0.2, 0.4];
+        let actions = random_sequences(task, population, horizon, 1);
+        let regularizer = deen(TaskId::Cartpole, 2);
+        for (members, particles) in [(1, 1), (2, 4), (3, 2), (2, 5)] {
+            let dynamics = ensemble(TaskId::Cartpole, members, 3);
+            let expected: Vec<f32> = actions
+                .chunks_exact(horizon * task.act_dim)
+                .map(|seq| {
+                    (0..particles)
+                        .map(|p| reference(task, &obs, seq, &dynamics, p % members, &regularizer, alpha).0)
+                        .sum::<f32>()
+                        / particles as f32
+                })
+                .collect();
+            for chunks in [1, 2, 3, 7] {
+                let config = cem(horizon, population, particles);
+                let mut imagination = Imagination::new(task, &config, alpha, false, chunks, 0);
+                let mut returns = vec![0.0; population];
+                imagination.evaluate(&obs, &actions, &dynamics, &regularizer, &mut returns);
+                for (i, (r, e)) in returns.iter().zip(&expected).enumerate() {
+                    assert_close(*r, *e, &format!("B={members} P={particles} chunks={chunks} candidate {i}"));
+                }
+                // A second call reuses every buffer and gives the same answer.
+                let mut again = vec![0.0; population];
+                imagination.evaluate(&obs, &actions, &dynamics, &regularizer, &mut again);
+                assert_eq!(returns, again);
+            }
+        }
+    }
+
+    #[test]
+    fn energy_is_subtracted_with_its_weight() {
+        let task = TaskId::Cartpole.spec();
+        let obs = [0.0, 0.3, 0.0, 0.0];
+        let actions = random_sequences(task, 4, 5, 9);
+        let dynamics = ensemble(TaskId::Cartpole, 1, 4);
+        let regularizer = deen(TaskId::Cartpole, 5);
+        let score = |alpha: f32, reg: &Regularizer| {
+            let mut imagination = Imagination::new(task, &cem(5, 4, 1), alpha, false, 2, 0);
+            let mut returns = vec![0.0; 4];
+            imagination.evaluate(&obs, &actions, &dynamics, reg, &mut returns);
+            let energies: Vec<f32> = (0..4).map(|i| imagination.candidate_energy(i)).collect();
+            (returns, energies)
+        };
+        let (plain, no_energy) = score(0.0, &Regularizer::None);
+        assert!(no_energy.iter().all(|&e| e == 0.0));
+        let (unweighted, energy) = score(0.0, &regularizer);
+        assert_eq!(plain, unweighted);
+        let (weighted, _) = score(2.0, &regularizer);
+        for i in 0..4 {
+            // candidate_energy is per step: the horizon's total is 5 times it.
+            assert_close(weighted[i], plain[i] - 2.0 * 5.0 * energy[i], "regularised return");
+        }
+    }
+
+    /// An ant model that predicts the delta `delta` (to within ~1e-4) whatever the input: the
+    /// target normaliser has a tiny spread around it, scaling the network's output away.
+    fn constant_delta_ant(delta: &[f32]) -> Ensemble {
+        let spec = TaskId::Ant.spec();
+        let mut dynamics = ensemble(TaskId::Ant, 1, 6);
+        let rows: Vec<f32> = [1e-5f32, -1e-5]
+            .iter()
+            .flat_map(|&jitter| delta.iter().map(move |d| d + jitter))
+            .collect();
+        let input = Normalizer::identity(spec.state_feature_dim + spec.act_dim);
+        dynamics.member_mut(0).set_normalizers(input, Normalizer::fit(&rows, spec.obs_dim));
+        dynamics
+    }
+
+    #[test]
+    fn terminal_states_stop_reward_accrual() {
+        let task = TaskId::Ant.spec();
+        let mut delta = vec![0.0; task.obs_dim];
+        delta[0] = -0.1; // the torso sinks 0.1 per step: 0.45, 0.35, 0.25, 0.15 (fallen)
+        delta[13] = 0.5; // forward velocity grows, so every step's reward is positive
+        let dynamics = constant_delta_ant(&delta);
+        let mut obs = vec![0.0; task.obs_dim];
+        obs[0] = 0.55;
+        let (horizon, population) = (10, 5);
+        let actions = random_sequences(task, population, horizon, 2);
+        let mut imagination = Imagination::new(task, &cem(horizon, population, 2), 0.0, false, 2, 0);
+        let mut returns = vec![0.0; population];
+        imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
+        for (seq, r) in actions.chunks_exact(horizon * task.act_dim).zip(&returns) {
+            let (expected, steps) = reference(task, &obs, seq, &dynamics, 0, &Regularizer::None, 0.0);
+            assert_eq!(steps, 4, "the model should make the ant fall on the fourth step");
+            assert_close(*r, expected, "return up to the fall");
+        }
+        // Without the fall the same model earns strictly more over the horizon.
+        delta[0] = 0.0;
+        let standing = constant_delta_ant(&delta);
+        let mut upright = vec![0.0; population];
+        imagination.evaluate(&obs, &actions, &standing, &Regularizer::None, &mut upright);
+        for (r, u) in returns.iter().zip(&upright) {
+            assert!(u > r, "{u} should exceed {r}");
+        }
+    }
+
+    #[test]
+    fn diverging_models_score_minus_infinity() {
+        let task = TaskId::Ant.spec();
+        let mut delta = vec![0.0; task.obs_dim];
+        delta[13] = f32::MAX; // the forward velocity overflows to +inf after two steps
+        let dynamics = constant_delta_ant(&delta);
+        let mut obs = vec![0.0; task.obs_dim];
+        obs[0] = 0.55;
+        let actions = random_sequences(task, 3, 4, 0);
+        let mut imagination = Imagination::new(task, &cem(4, 3, 1), 0.0, false, 1, 0);
+        let mut returns = vec![0.0; 3];
+        imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
+        assert!(returns.iter().all(|&r| r == f32::NEG_INFINITY), "{returns:?}");
+    }
+
+    #[test]
+    fn sampling_is_reproducible_and_differs_from_the_mean() {
+        let task = TaskId::Cartpole.spec();
+        let obs = [0.0, 1.0, 0.0, 0.0];
+        let (horizon, population) = (8, 6);
+        let actions = random_sequences(task, population, horizon, 4);
+        let dynamics = ensemble(TaskId::Cartpole, 2, 8);
+        let run = |sample: bool, seed: u64| {
+            let mut imagination = Imagination::new(task, &cem(horizon, population, 4), 0.0, sample, 2, seed);
+            let mut returns = vec![0.0; population];
+            imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
+            returns
+        };
+        let sampled = run(true, 1);
+        assert_eq!(sampled, run(true, 1));
+        assert_ne!(sampled, run(true, 2));
+        assert_ne!(sampled, run(false, 1));
+        assert!(sampled.iter().all(|r| r.is_finite()));
+    }
+
+    #[test]
+    fn rollout_records_the_steps_of_one_sequence() {
+        let task = TaskId::Cartpole.spec();
+        let obs = [0.2, 0.5, 0.0, 0.1];
+        let horizon = 5;
+        let seq = random_sequences(task, 1, horizon, 3);
+        let dynamics = ensemble(TaskId::Cartpole, 1, 1);
+        let regularizer = deen(TaskId::Cartpole, 7);
+        let mut imagination = Imagination::new(task, &cem(horizon, 9, 1), 0.5, false, 2, 0);
+        let (mut rewards, mut energies) = (vec![0.0; horizon], vec![0.0; horizon]);
+        let ret = imagination.rollout(&obs, &seq, &dynamics, &regularizer, &mut rewards, &mut energies);
+        let (expected, _) = reference(task, &obs, &seq, &dynamics, 0, &regularizer, 0.5);
+        assert_close(ret, expected, "rollout return");
+        let from_steps: f32 = rewards.iter().zip(&energies).map(|(r, e)| r - 0.5 * e).sum();
+        assert_close(from_steps, expected, "per-step record");
+        assert!(energies.iter().all(|&e| e != 0.0));
+    }
+}
