@@ -99,8 +99,18 @@ impl Imagination {
                 Chunk::new(task, config.particles, capacity, seed_for_chunk(seed, c))
             })
             .collect();
-        let ctx = Context { task, horizon: config.horizon, particles: config.particles, energy_weight, sample };
-        Self { ctx, chunk_len, chunks }
+        let ctx = Context {
+            task,
+            horizon: config.horizon,
+            particles: config.particles,
+            energy_weight,
+            sample,
+        };
+        Self {
+            ctx,
+            chunk_len,
+            chunks,
+        }
     }
 
     /// Candidates this imagination scores per call.
@@ -130,7 +140,15 @@ impl Imagination {
             .zip(returns.par_chunks_mut(chunk_len))
             .zip(actions.par_chunks(chunk_len * seq))
             .for_each(|((chunk, returns), actions)| {
-                chunk.imagine(&ctx, obs, actions, returns.len(), dynamics, regularizer, None);
+                chunk.imagine(
+                    &ctx,
+                    obs,
+                    actions,
+                    returns.len(),
+                    dynamics,
+                    regularizer,
+                    None,
+                );
                 chunk.write_returns(&ctx, returns);
             });
     }
@@ -155,11 +173,27 @@ impl Imagination {
     ) -> f32 {
         let ctx = self.ctx;
         assert_eq!(obs.len(), ctx.task.obs_dim, "observation dimension");
-        assert_eq!(actions.len(), ctx.horizon * ctx.task.act_dim, "action sequence");
-        assert_eq!((rewards.len(), energies.len()), (ctx.horizon, ctx.horizon), "per-step outputs");
+        assert_eq!(
+            actions.len(),
+            ctx.horizon * ctx.task.act_dim,
+            "action sequence"
+        );
+        assert_eq!(
+            (rewards.len(), energies.len()),
+            (ctx.horizon, ctx.horizon),
+            "per-step outputs"
+        );
         self.prepare(dynamics, regularizer);
         let chunk = &mut self.chunks[0];
-        chunk.imagine(&ctx, obs, actions, 1, dynamics, regularizer, Some((rewards, energies)));
+        chunk.imagine(
+            &ctx,
+            obs,
+            actions,
+            1,
+            dynamics,
+            regularizer,
+            Some((rewards, energies)),
+        );
         let mut ret = [0.0];
         chunk.write_returns(&ctx, &mut ret);
         ret[0]
@@ -170,13 +204,14 @@ impl Imagination {
         let rows_per_chunk = |c: &Chunk| c.capacity * self.ctx.particles;
         for chunk in &mut self.chunks {
             let rows = rows_per_chunk(chunk);
-            let fits = chunk
-                .scratch
-                .as_ref()
-                .is_some_and(|s| s.dynamics.fits(dynamics, rows) && s.energy.fits(regularizer, rows));
+            let fits = chunk.scratch.as_ref().is_some_and(|s| {
+                s.dynamics.fits(dynamics, rows) && s.energy.fits(regularizer, rows)
+            });
             if !fits {
-                chunk.scratch =
-                    Some(Scratch { dynamics: dynamics.scratch(rows), energy: regularizer.scratch(rows) });
+                chunk.scratch = Some(Scratch {
+                    dynamics: dynamics.scratch(rows),
+                    energy: regularizer.scratch(rows),
+                });
             }
         }
     }
@@ -282,7 +317,11 @@ impl Chunk {
                     self.energy[r] = 0.0;
                     continue;
                 }
-                let (s, u, s1) = (&self.state[r * o..(r + 1) * o], &self.act[r * a..(r + 1) * a], &self.next[r * o..(r + 1) * o]);
+                let (s, u, s1) = (
+                    &self.state[r * o..(r + 1) * o],
+                    &self.act[r * a..(r + 1) * a],
+                    &self.next[r * o..(r + 1) * o],
+                );
                 let reward = ctx.task.reward(s, u, s1);
                 self.reward[r] = reward;
                 self.ret[r] += reward - ctx.energy_weight * self.energy[r];
@@ -313,7 +352,11 @@ impl Chunk {
                 energy += self.energy_sum[k * n + i];
             }
             let ret = ret * inv_p;
-            *out = if ret.is_finite() { ret } else { f32::NEG_INFINITY };
+            *out = if ret.is_finite() {
+                ret
+            } else {
+                f32::NEG_INFINITY
+            };
             self.candidate_energy[i] = energy * inv_step;
         }
     }
@@ -322,7 +365,11 @@ impl Chunk {
 /// How many of `particles` particles follow ensemble member `member` of `members`
 /// (particle `p` follows member `p mod members`).
 fn particles_of_member(particles: usize, members: usize, member: usize) -> usize {
-    if member >= particles { 0 } else { (particles - member).div_ceil(members) }
+    if member >= particles {
+        0
+    } else {
+        (particles - member).div_ceil(members)
+    }
 }
 
 #[cfg(test)]
@@ -334,18 +381,41 @@ mod tests {
     use proto::TaskId;
 
     fn cem(horizon: usize, population: usize, particles: usize) -> CemConfig {
-        CemConfig { horizon, population, elites: 1, iterations: 1, smoothing: 0.1, min_variance: 1e-3, particles }
+        CemConfig {
+            horizon,
+            population,
+            elites: 1,
+            iterations: 1,
+            smoothing: 0.1,
+            min_variance: 1e-3,
+            particles,
+        }
     }
 
     fn ensemble(task: TaskId, members: usize, seed: u64) -> Ensemble {
-        let config = DynamicsConfig { hidden_layers: 2, hidden_size: 24, ensemble_size: members, ..Default::default() };
+        let config = DynamicsConfig {
+            hidden_layers: 2,
+            hidden_size: 24,
+            ensemble_size: members,
+            ..Default::default()
+        };
         Ensemble::new(task.spec(), &config, &mut StdRng::seed_from_u64(seed))
     }
 
     fn deen(task: TaskId, seed: u64) -> Regularizer {
         let spec = task.spec();
-        let config = EnergyConfig { hidden_layers: 2, hidden_size: 16, ..Default::default() };
-        Regularizer::new(RegularizerKind::Deen, &config, spec.obs_dim, spec.act_dim, &mut StdRng::seed_from_u64(seed))
+        let config = EnergyConfig {
+            hidden_layers: 2,
+            hidden_size: 16,
+            ..Default::default()
+        };
+        Regularizer::new(
+            RegularizerKind::Deen,
+            &config,
+            spec.obs_dim,
+            spec.act_dim,
+            &mut StdRng::seed_from_u64(seed),
+        )
     }
 
     fn random_sequences(task: &TaskSpec, n: usize, horizon: usize, seed: u64) -> Vec<f32> {
@@ -390,7 +460,10 @@ mod tests {
     }
 
     fn assert_close(a: f32, b: f32, what: &str) {
-        assert!((a - b).abs() <= 1e-4 * (1.0 + b.abs()), "{what}: {a} vs {b}");
+        assert!(
+            (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
+            "{what}: {a} vs {b}"
+        );
     }
 
     #[test]
@@ -406,7 +479,10 @@ mod tests {
                 .chunks_exact(horizon * task.act_dim)
                 .map(|seq| {
                     (0..particles)
-                        .map(|p| reference(task, &obs, seq, &dynamics, p % members, &regularizer, alpha).0)
+                        .map(|p| {
+                            reference(task, &obs, seq, &dynamics, p % members, &regularizer, alpha)
+                                .0
+                        })
                         .sum::<f32>()
                         / particles as f32
                 })
@@ -417,7 +493,11 @@ mod tests {
                 let mut returns = vec![0.0; population];
                 imagination.evaluate(&obs, &actions, &dynamics, &regularizer, &mut returns);
                 for (i, (r, e)) in returns.iter().zip(&expected).enumerate() {
-                    assert_close(*r, *e, &format!("B={members} P={particles} chunks={chunks} candidate {i}"));
+                    assert_close(
+                        *r,
+                        *e,
+                        &format!("B={members} P={particles} chunks={chunks} candidate {i}"),
+                    );
                 }
                 // A second call reuses every buffer and gives the same answer.
                 let mut again = vec![0.0; population];
@@ -448,7 +528,11 @@ mod tests {
         let (weighted, _) = score(2.0, &regularizer);
         for i in 0..4 {
             // candidate_energy is per step: the horizon's total is 5 times it.
-            assert_close(weighted[i], plain[i] - 2.0 * 5.0 * energy[i], "regularised return");
+            assert_close(
+                weighted[i],
+                plain[i] - 2.0 * 5.0 * energy[i],
+                "regularised return",
+            );
         }
     }
 
@@ -462,7 +546,9 @@ mod tests {
             .flat_map(|&jitter| delta.iter().map(move |d| d + jitter))
             .collect();
         let input = Normalizer::identity(spec.state_feature_dim + spec.act_dim);
-        dynamics.member_mut(0).set_normalizers(input, Normalizer::fit(&rows, spec.obs_dim));
+        dynamics
+            .member_mut(0)
+            .set_normalizers(input, Normalizer::fit(&rows, spec.obs_dim));
         dynamics
     }
 
@@ -477,12 +563,17 @@ mod tests {
         obs[0] = 0.55;
         let (horizon, population) = (10, 5);
         let actions = random_sequences(task, population, horizon, 2);
-        let mut imagination = Imagination::new(task, &cem(horizon, population, 2), 0.0, false, 2, 0);
+        let mut imagination =
+            Imagination::new(task, &cem(horizon, population, 2), 0.0, false, 2, 0);
         let mut returns = vec![0.0; population];
         imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
         for (seq, r) in actions.chunks_exact(horizon * task.act_dim).zip(&returns) {
-            let (expected, steps) = reference(task, &obs, seq, &dynamics, 0, &Regularizer::None, 0.0);
-            assert_eq!(steps, 4, "the model should make the ant fall on the fourth step");
+            let (expected, steps) =
+                reference(task, &obs, seq, &dynamics, 0, &Regularizer::None, 0.0);
+            assert_eq!(
+                steps, 4,
+                "the model should make the ant fall on the fourth step"
+            );
             assert_close(*r, expected, "return up to the fall");
         }
         // Without the fall the same model earns strictly more over the horizon.
@@ -507,7 +598,10 @@ mod tests {
         let mut imagination = Imagination::new(task, &cem(4, 3, 1), 0.0, false, 1, 0);
         let mut returns = vec![0.0; 3];
         imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
-        assert!(returns.iter().all(|&r| r == f32::NEG_INFINITY), "{returns:?}");
+        assert!(
+            returns.iter().all(|&r| r == f32::NEG_INFINITY),
+            "{returns:?}"
+        );
     }
 
     #[test]
@@ -518,7 +612,8 @@ mod tests {
         let actions = random_sequences(task, population, horizon, 4);
         let dynamics = ensemble(TaskId::Cartpole, 2, 8);
         let run = |sample: bool, seed: u64| {
-            let mut imagination = Imagination::new(task, &cem(horizon, population, 4), 0.0, sample, 2, seed);
+            let mut imagination =
+                Imagination::new(task, &cem(horizon, population, 4), 0.0, sample, 2, seed);
             let mut returns = vec![0.0; population];
             imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
             returns
@@ -540,10 +635,21 @@ mod tests {
         let regularizer = deen(TaskId::Cartpole, 7);
         let mut imagination = Imagination::new(task, &cem(horizon, 9, 1), 0.5, false, 2, 0);
         let (mut rewards, mut energies) = (vec![0.0; horizon], vec![0.0; horizon]);
-        let ret = imagination.rollout(&obs, &seq, &dynamics, &regularizer, &mut rewards, &mut energies);
+        let ret = imagination.rollout(
+            &obs,
+            &seq,
+            &dynamics,
+            &regularizer,
+            &mut rewards,
+            &mut energies,
+        );
         let (expected, _) = reference(task, &obs, &seq, &dynamics, 0, &regularizer, 0.5);
         assert_close(ret, expected, "rollout return");
-        let from_steps: f32 = rewards.iter().zip(&energies).map(|(r, e)| r - 0.5 * e).sum();
+        let from_steps: f32 = rewards
+            .iter()
+            .zip(&energies)
+            .map(|(r, e)| r - 0.5 * e)
+            .sum();
         assert_close(from_steps, expected, "per-step record");
         assert!(energies.iter().all(|&e| e != 0.0));
     }
