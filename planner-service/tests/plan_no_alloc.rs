@@ -1,0 +1,156 @@
+//! The planning loop allocates nothing: a counting global allocator watches full `plan` calls
+//! with real (tiny) networks, an ensemble with sampled particles, and a DEEN.
+//!
+//! The planner's own buffers and the networks' scratch are allocated when the planner is built
+//! and on its first call with a model; rayon's pool and gemm-free kernels need nothing per call.
+//! The calls run inside a rayon pool, as the service runs them: a call from a thread outside
+//! the pool goes through rayon's global job injector, a queue that allocates a block every 63
+//! injected jobs. That allocation belongs to rayon, not to the planner, and is why the test
+//! counts inside the pool.
+//!
+//! This file holds a single test so no other test's allocations can interleave with the count.
+
+use planner_service::data::Transitions;
+use planner_service::dynamics::{DynamicsConfig, Ensemble};
+use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
+use planner_service::plan::{CemConfig, MpcPlanner};
+use proto::TaskId;
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+/// Counts allocations (and reallocations) while `COUNTING` is on, on every thread.
+struct CountingAllocator;
+
+static COUNTING: AtomicBool = AtomicBool::new(false);
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: every method forwards to the system allocator unchanged; the counters are atomics.
+unsafe impl GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        // SAFETY: forwarded with the caller's layout.
+        unsafe { System.alloc(layout) }
+    }
+
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        // SAFETY: forwarded with the caller's layout.
+        unsafe { System.alloc_zeroed(layout) }
+    }
+
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        // SAFETY: forwarded unchanged; the caller upholds `realloc`'s contract.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: forwarded unchanged.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: CountingAllocator = CountingAllocator;
+
+/// Random transitions of the task: enough for the models' normalisers and a brief fit.
+fn random_transitions(task: TaskId, n: usize, rng: &mut StdRng) -> Transitions {
+    let spec = task.spec();
+    let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
+    for _ in 0..n {
+        let obs: Vec<f32> = (0..spec.obs_dim)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
+        let act: Vec<f32> = (0..spec.act_dim)
+            .map(|d| rng.random_range(spec.action_low[d]..spec.action_high[d]))
+            .collect();
+        let next: Vec<f32> = obs
+            .iter()
+            .map(|o| o + 0.1 * rng.random_range(-1.0f32..1.0))
+            .collect();
+        data.push(&obs, &act, &next);
+    }
+    data
+}
+
+#[test]
+fn planning_allocates_nothing_after_warm_up() {
+    let task = TaskId::Ant; // the task with termination, so that path is exercised too
+    let spec = task.spec();
+    let mut rng = StdRng::seed_from_u64(0);
+    let data = random_transitions(task, 256, &mut rng);
+    let dynamics_config = DynamicsConfig {
+        hidden_layers: 2,
+        hidden_size: 32,
+        ensemble_size: 3,
+        ..Default::default()
+    };
+    let mut dynamics = Ensemble::new(spec, &dynamics_config, &mut rng);
+    dynamics.fit(&data, 1, &mut rng);
+    let energy_config = EnergyConfig {
+        hidden_layers: 2,
+        hidden_size: 24,
+        ..Default::default()
+    };
+    let mut deen = Regularizer::new(
+        RegularizerKind::Deen,
+        &energy_config,
+        spec.obs_dim,
+        spec.act_dim,
+        &mut rng,
+    );
+    deen.fit(&data, 1, &mut rng);
+
+    let cem = CemConfig {
+        horizon: 7,
+        population: 50,
+        elites: 5,
+        iterations: 3,
+        smoothing: 0.1,
+        min_variance: 1e-3,
+        particles: 4,
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
+    let mut planner = MpcPlanner::with_chunks(spec, cem, 0.05, true, 7, 2).unwrap();
+    let obs: Vec<f32> = (0..spec.obs_dim)
+        .map(|i| if i == 0 { 0.55 } else { 0.01 * i as f32 })
+        .collect();
+
+    let (allocations, checksum) = pool.install(|| {
+        // Warm-up: the first calls create the network scratch; every worker thread runs a
+        // chunk at least once.
+        for _ in 0..10 {
+            planner.plan(&obs, &dynamics, &deen);
+        }
+        planner.reset();
+        ALLOCATIONS.store(0, Ordering::SeqCst);
+        COUNTING.store(true, Ordering::SeqCst);
+        let mut checksum = 0.0;
+        for _ in 0..5 {
+            let outcome = planner.plan(&obs, &dynamics, &deen);
+            checksum += outcome.action[0] + outcome.predicted_return + outcome.mean_energy;
+        }
+        COUNTING.store(false, Ordering::SeqCst);
+        (ALLOCATIONS.load(Ordering::SeqCst), checksum)
+    });
+    assert!(checksum.is_finite(), "the plans were real: {checksum}");
+    assert_eq!(allocations, 0, "allocations during 5 planning calls");
+
+    // The counter does see allocations, so a zero above is meaningful.
+    COUNTING.store(true, Ordering::SeqCst);
+    let plan = planner.imagine_plan(&obs, &dynamics, &deen);
+    COUNTING.store(false, Ordering::SeqCst);
+    assert_eq!(plan.actions.len(), 7 * spec.act_dim);
+    assert!(ALLOCATIONS.load(Ordering::SeqCst) > 0);
+}
