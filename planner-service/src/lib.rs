@@ -9,6 +9,7 @@
 //! - [`plan`]: CEM over action sequences and the batched imagination that scores them.
 
 pub mod agent;
+pub mod bench;
 pub mod config;
 pub mod data;
 pub mod dynamics;

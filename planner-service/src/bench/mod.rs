@@ -1,0 +1,275 @@
+//! `planner-service bench plan|train`: how fast the planner plans and the models train, with
+//! networks of a task preset's sizes (the paper's Table 2).
+//!
+//! The models are fitted briefly on random transitions: the weights only need to be realistic
+//! numbers, since the cost of a planning call does not depend on what the networks learned.
+//! Timings are medians over repeated calls after a warm-up. Throughput counts `2·in·out`
+//! floating-point operations per linear layer per row (the matrix products; activations and
+//! the per-row reward are extra work not counted).
+
+mod plan;
+mod train;
+
+pub use plan::PlanReport;
+pub use train::TrainReport;
+
+use crate::config::{Preset, PresetError};
+use crate::data::Transitions;
+use crate::energy::RegularizerKind;
+use crate::plan::ConfigError;
+use proto::TaskId;
+use rand::RngExt;
+use rand::rngs::StdRng;
+use std::fmt;
+use std::time::Duration;
+
+/// The benchmarks.
+#[derive(clap::Subcommand, Clone, Debug, PartialEq)]
+pub enum BenchCommand {
+    /// Time full MPC planning calls (all CEM iterations) from one observation.
+    Plan {
+        /// Task whose preset sizes the networks and the CEM search.
+        #[arg(long, default_value = "cartpole")]
+        task: TaskId,
+        /// Regulariser in the objective: none, dae or deen (sizes from the preset).
+        #[arg(long, default_value = "none")]
+        regularizer: RegularizerKind,
+        /// Planning calls to time, after the warm-up.
+        #[arg(long, default_value_t = 20)]
+        iterations_to_time: usize,
+        /// Untimed planning calls first (allocating the scratch, waking the threads).
+        #[arg(long, default_value_t = 3)]
+        warmup: usize,
+        /// PETS instead of the paper's single model: a 5-member ensemble, 20 sampled particles.
+        #[arg(long)]
+        pets: bool,
+        /// Threads; default: every core.
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Population chunks planned in parallel; default: one per thread.
+        #[arg(long)]
+        chunks: Option<usize>,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+    /// Time single training steps (one minibatch of the preset's batch size) of the dynamics
+    /// model and of DEEN.
+    Train {
+        #[arg(long, default_value = "cartpole")]
+        task: TaskId,
+        /// Training steps to time for each model, after the warm-up.
+        #[arg(long, default_value_t = 50)]
+        steps: usize,
+        /// Untimed steps first.
+        #[arg(long, default_value_t = 5)]
+        warmup: usize,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+}
+
+/// What a benchmark measured; `Display` prints it for people.
+#[derive(Clone, Debug, PartialEq)]
+pub enum BenchReport {
+    Plan(PlanReport),
+    Train(TrainReport),
+}
+
+impl fmt::Display for BenchReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            BenchReport::Plan(r) => r.fmt(f),
+            BenchReport::Train(r) => r.fmt(f),
+        }
+    }
+}
+
+/// Why a benchmark could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error(transparent)]
+    Preset(#[from] PresetError),
+    #[error(transparent)]
+    Planner(#[from] ConfigError),
+    #[error("cannot start a thread pool: {0}")]
+    Threads(#[from] rayon::ThreadPoolBuildError),
+    #[error("{0} must be at least 1")]
+    Zero(&'static str),
+}
+
+/// Runs one benchmark.
+pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
+    match *cmd {
+        BenchCommand::Plan {
+            task,
+            regularizer,
+            iterations_to_time,
+            warmup,
+            pets,
+            threads,
+            chunks,
+            seed,
+        } => {
+            let settings = plan::Settings {
+                task,
+                regularizer,
+                timed: iterations_to_time,
+                warmup,
+                pets,
+                threads,
+                chunks,
+                seed,
+            };
+            plan::run(&settings).map(BenchReport::Plan)
+        }
+        BenchCommand::Train {
+            task,
+            steps,
+            warmup,
+            seed,
+        } => train::run(task, steps, warmup, seed).map(BenchReport::Train),
+    }
+}
+
+/// The preset of `task` for the paper's method with `regularizer` (PETS' ensemble if `pets`).
+fn preset(task: TaskId, regularizer: RegularizerKind, pets: bool) -> Result<Preset, PresetError> {
+    let method = match (pets, regularizer) {
+        (false, RegularizerKind::None) => "cem",
+        (false, RegularizerKind::Dae) => "cem+dae",
+        (false, RegularizerKind::Deen) => "cem+deen",
+        (true, _) => "pets",
+    };
+    let mut preset = Preset::new(task, Some(method))?;
+    preset.regularizer = regularizer;
+    Ok(preset)
+}
+
+/// `n` transitions with observations and next observations drawn around the origin and
+/// uniformly random actions: enough to give the networks' normalisers and weights
+/// realistic values.
+fn random_transitions(task: TaskId, n: usize, rng: &mut StdRng) -> Transitions {
+    let spec = task.spec();
+    let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
+    let mut obs = vec![0.0; spec.obs_dim];
+    let mut act = vec![0.0; spec.act_dim];
+    let mut next = vec![0.0; spec.obs_dim];
+    for _ in 0..n {
+        for o in &mut obs {
+            *o = rng.random_range(-1.0..1.0);
+        }
+        for (d, a) in act.iter_mut().enumerate() {
+            *a = rng.random_range(spec.action_low[d]..spec.action_high[d]);
+        }
+        for (n, o) in next.iter_mut().zip(&obs) {
+            *n = o + rng.random_range(-0.1..0.1);
+        }
+        data.push(&obs, &act, &next);
+    }
+    data
+}
+
+/// Floating-point operations of one row through an MLP with these layer sizes: `2·in·out`
+/// per linear layer.
+fn flops_per_row(sizes: &[usize]) -> f64 {
+    sizes
+        .windows(2)
+        .map(|w| 2.0 * w[0] as f64 * w[1] as f64)
+        .sum()
+}
+
+/// The median of some durations, in milliseconds.
+fn median_ms(times: &mut [Duration]) -> f64 {
+    times.sort_unstable();
+    let n = times.len();
+    let mid = if n % 2 == 1 {
+        times[n / 2]
+    } else {
+        (times[n / 2 - 1] + times[n / 2]) / 2
+    };
+    mid.as_secs_f64() * 1e3
+}
+
+/// `[in, hidden × layers, out]` as `in-h×l-out` for reports.
+fn describe(sizes: &[usize]) -> String {
+    let hidden = &sizes[1..sizes.len() - 1];
+    match hidden.first() {
+        Some(h) if hidden.iter().all(|x| x == h) => {
+            format!(
+                "{}→{}×{}→{}",
+                sizes[0],
+                hidden.len(),
+                h,
+                sizes[sizes.len() - 1]
+            )
+        }
+        _ => sizes
+            .iter()
+            .map(|s| s.to_string())
+            .collect::<Vec<_>>()
+            .join("→"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(subcommand)]
+        bench: BenchCommand,
+    }
+
+    #[test]
+    fn parses_the_command_line() {
+        let cli = Cli::try_parse_from([
+            "bench",
+            "plan",
+            "--task",
+            "halfcheetah",
+            "--regularizer",
+            "deen",
+            "--iterations-to-time",
+            "7",
+        ])
+        .unwrap();
+        assert_eq!(
+            cli.bench,
+            BenchCommand::Plan {
+                task: TaskId::HalfCheetah,
+                regularizer: RegularizerKind::Deen,
+                iterations_to_time: 7,
+                warmup: 3,
+                pets: false,
+                threads: None,
+                chunks: None,
+                seed: 0,
+            }
+        );
+        assert!(Cli::try_parse_from(["bench", "plan", "--task", "walker"]).is_err());
+        let train = Cli::try_parse_from(["bench", "train", "--task", "ant"]).unwrap();
+        assert!(matches!(
+            train.bench,
+            BenchCommand::Train {
+                task: TaskId::Ant,
+                steps: 50,
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn counts_two_flops_per_weight() {
+        assert_eq!(flops_per_row(&[3, 4, 2]), 2.0 * (12.0 + 8.0));
+        assert_eq!(describe(&[23, 200, 200, 200, 8]), "23→3×200→8");
+        assert_eq!(describe(&[5, 7, 9, 1]), "5→7→9→1");
+    }
+
+    #[test]
+    fn medians() {
+        let ms = Duration::from_millis;
+        assert_eq!(median_ms(&mut [ms(5), ms(1), ms(3)]), 3.0);
+        assert_eq!(median_ms(&mut [ms(4), ms(1), ms(2), ms(3)]), 2.5);
+    }
+}

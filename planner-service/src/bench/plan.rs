@@ -1,0 +1,240 @@
+//! `bench plan`: milliseconds per full MPC planning call and the matrix throughput achieved.
+
+use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
+use crate::dynamics::Ensemble;
+use crate::energy::{Regularizer, RegularizerKind};
+use crate::plan::MpcPlanner;
+use proto::TaskId;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use std::fmt;
+use std::time::Instant;
+
+/// What `bench plan` was asked to do.
+pub(super) struct Settings {
+    pub task: TaskId,
+    pub regularizer: RegularizerKind,
+    pub timed: usize,
+    pub warmup: usize,
+    pub pets: bool,
+    pub threads: Option<usize>,
+    pub chunks: Option<usize>,
+    pub seed: u64,
+}
+
+/// Timing of full planning calls.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlanReport {
+    pub task: TaskId,
+    pub regularizer: RegularizerKind,
+    /// Dynamics layer sizes and ensemble members.
+    pub dynamics_sizes: Vec<usize>,
+    pub members: usize,
+    /// Energy network layer sizes (empty without a regulariser).
+    pub energy_sizes: Vec<usize>,
+    pub horizon: usize,
+    pub population: usize,
+    pub particles: usize,
+    pub threads: usize,
+    /// Population chunks planned in parallel.
+    pub chunks: usize,
+    /// Planning calls timed.
+    pub calls: usize,
+    /// Mean CEM iterations per call (early stopping may cut some).
+    pub mean_iterations: f64,
+    pub median_ms: f64,
+    pub min_ms: f64,
+    /// Matrix-product GFLOP/s at the median call time.
+    pub gflops: f64,
+    /// PyTorch's time for the same planning call on the project's 2-core machine, where known.
+    pub pytorch_ms: Option<f64>,
+}
+
+/// Milliseconds PyTorch takes for one planning call of the paper's single-model setting on the
+/// project's 2-core AVX-512 machine (measured for the project; the target to beat).
+fn pytorch_reference_ms(task: TaskId, regularizer: RegularizerKind, pets: bool) -> Option<f64> {
+    match (task, regularizer, pets) {
+        (TaskId::Cartpole, RegularizerKind::None, false) => Some(52.0),
+        (TaskId::HalfCheetah, RegularizerKind::None, false) => Some(132.0),
+        (TaskId::HalfCheetah, RegularizerKind::Deen, false) => Some(929.0),
+        _ => None,
+    }
+}
+
+pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
+    if s.timed == 0 {
+        return Err(BenchError::Zero("iterations-to-time"));
+    }
+    let preset = preset(s.task, s.regularizer, s.pets)?;
+    let spec = s.task.spec();
+    let mut rng = StdRng::seed_from_u64(s.seed);
+    let data = random_transitions(s.task, 512, &mut rng);
+    let mut dynamics = Ensemble::new(spec, &preset.dynamics, &mut rng);
+    dynamics.fit(&data, 1, &mut rng);
+    let mut regularizer = Regularizer::new(
+        preset.regularizer,
+        &preset.energy,
+        spec.obs_dim,
+        spec.act_dim,
+        &mut rng,
+    );
+    regularizer.fit(&data, 1, &mut rng);
+    let obs = data.row(0).0.to_vec();
+
+    // Planning runs inside its own pool: one population chunk per thread, and no trips
+    // through rayon's global injector.
+    let threads = s
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let chunks = s.chunks.unwrap_or(threads);
+    if threads == 0 || chunks == 0 {
+        return Err(BenchError::Zero(if threads == 0 {
+            "threads"
+        } else {
+            "chunks"
+        }));
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    let (times, iterations) = pool.install(|| -> Result<_, BenchError> {
+        let mut planner = MpcPlanner::new(
+            spec,
+            preset.cem.clone(),
+            preset.energy_weight,
+            preset.sample_dynamics,
+            s.seed,
+        )?;
+        for _ in 0..s.warmup {
+            planner.plan(&obs, &dynamics, &regularizer);
+        }
+        let mut times = Vec::with_capacity(s.timed);
+        let mut iterations = 0u64;
+        for _ in 0..s.timed {
+            let start = Instant::now();
+            let outcome = planner.plan(&obs, &dynamics, &regularizer);
+            times.push(start.elapsed());
+            iterations += u64::from(outcome.iterations);
+        }
+        Ok((times, iterations))
+    })?;
+    let mut times = times;
+    let min_ms = times.iter().min().map_or(0.0, |t| t.as_secs_f64() * 1e3);
+    let median = median_ms(&mut times);
+
+    let dynamics_sizes = dynamics.member(0).mlp().sizes().to_vec();
+    let energy_sizes = match &regularizer {
+        Regularizer::None => Vec::new(),
+        Regularizer::Dae(m) => m.mlp().sizes().to_vec(),
+        Regularizer::Deen(m) => m.mlp().sizes().to_vec(),
+    };
+    let cem = &preset.cem;
+    let mean_iterations = iterations as f64 / s.timed as f64;
+    let rows_per_call = mean_iterations * (cem.population * cem.particles * cem.horizon) as f64;
+    let flops = rows_per_call * (flops_per_row(&dynamics_sizes) + flops_per_row(&energy_sizes));
+    Ok(PlanReport {
+        task: s.task,
+        regularizer: s.regularizer,
+        members: dynamics.members(),
+        dynamics_sizes,
+        energy_sizes,
+        horizon: cem.horizon,
+        population: cem.population,
+        particles: cem.particles,
+        threads,
+        chunks,
+        calls: s.timed,
+        mean_iterations,
+        median_ms: median,
+        min_ms,
+        gflops: flops / (median * 1e-3) / 1e9,
+        pytorch_ms: pytorch_reference_ms(s.task, s.regularizer, s.pets),
+    })
+}
+
+impl fmt::Display for PlanReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "bench plan: {} with regularizer {}",
+            self.task, self.regularizer
+        )?;
+        writeln!(
+            f,
+            "  dynamics   {} × {} member(s)",
+            describe(&self.dynamics_sizes),
+            self.members
+        )?;
+        if !self.energy_sizes.is_empty() {
+            writeln!(f, "  energy     {}", describe(&self.energy_sizes))?;
+        }
+        writeln!(
+            f,
+            "  CEM        horizon {}, population {}, {} particle(s), {:.1} iterations per call",
+            self.horizon, self.population, self.particles, self.mean_iterations
+        )?;
+        writeln!(
+            f,
+            "  parallel   {} thread(s), {} population chunk(s)",
+            self.threads, self.chunks
+        )?;
+        writeln!(
+            f,
+            "  per plan   {:.2} ms median, {:.2} ms best, over {} calls",
+            self.median_ms, self.min_ms, self.calls
+        )?;
+        write!(
+            f,
+            "  throughput {:.1} GFLOP/s (matrix products)",
+            self.gflops
+        )?;
+        if let Some(reference) = self.pytorch_ms {
+            write!(
+                f,
+                "\n  PyTorch    {reference:.0} ms on the same machine: {:.2}× faster",
+                reference / self.median_ms
+            )?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn times_real_planning_calls() {
+        let settings = Settings {
+            task: TaskId::Cartpole,
+            regularizer: RegularizerKind::Deen,
+            timed: 2,
+            warmup: 1,
+            pets: false,
+            threads: Some(2),
+            chunks: None,
+            seed: 1,
+        };
+        let report = run(&settings).unwrap();
+        assert_eq!(report.dynamics_sizes, vec![6, 200, 200, 200, 8]);
+        assert_eq!(report.energy_sizes, vec![9, 200, 200, 200, 1]);
+        assert_eq!(
+            (
+                report.population,
+                report.horizon,
+                report.particles,
+                report.calls
+            ),
+            (400, 25, 1, 2)
+        );
+        assert!(report.mean_iterations >= 1.0 && report.mean_iterations <= 5.0);
+        assert!(report.median_ms > 0.0 && report.min_ms <= report.median_ms);
+        assert!(report.gflops.is_finite() && report.gflops > 0.0);
+        assert_eq!(report.pytorch_ms, None);
+        let text = report.to_string();
+        assert!(
+            text.contains("6→3×200→8") && text.contains("9→3×200→1"),
+            "{text}"
+        );
+    }
+}

@@ -1,0 +1,165 @@
+//! `bench train`: milliseconds per training step (one minibatch) of the dynamics model and of
+//! DEEN, at the preset's sizes and batch sizes.
+
+use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
+use crate::dynamics::{Ensemble, TrainWorkspace, TrainingSet};
+use crate::energy::{Deen, DeenWorkspace, RegularizerKind, transition_rows};
+use crate::nn::{FlushDenormals, Normalizer};
+use proto::TaskId;
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use std::fmt;
+use std::time::{Duration, Instant};
+
+/// Timing of one network's training steps.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepTiming {
+    pub sizes: Vec<usize>,
+    pub batch: usize,
+    pub median_ms: f64,
+    /// Matrix-product GFLOP/s at the median, where the step's operation count is simple to
+    /// state (dynamics: forward plus backward, `6·in·out` per layer per sample).
+    pub gflops: Option<f64>,
+}
+
+/// Timing of training steps of both models of a task's preset.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainReport {
+    pub task: TaskId,
+    pub steps: usize,
+    /// One ensemble member (members train in parallel, each with steps like this one).
+    pub dynamics: StepTiming,
+    pub deen: StepTiming,
+}
+
+/// Transitions to draw minibatches from: enough for several distinct batches.
+const SAMPLES: usize = 2048;
+
+pub(super) fn run(
+    task: TaskId,
+    steps: usize,
+    warmup: usize,
+    seed: u64,
+) -> Result<TrainReport, BenchError> {
+    if steps == 0 {
+        return Err(BenchError::Zero("steps"));
+    }
+    let _flush = FlushDenormals::new(); // as the trainers run
+    let preset = preset(task, RegularizerKind::Deen, false)?;
+    let spec = task.spec();
+    let mut rng = StdRng::seed_from_u64(seed);
+    let data = random_transitions(task, SAMPLES, &mut rng);
+    let batches = |batch: usize, rng: &mut StdRng| -> Vec<Vec<usize>> {
+        (0..warmup + steps)
+            .map(|_| (0..batch).map(|_| rng.random_range(0..SAMPLES)).collect())
+            .collect()
+    };
+
+    let dynamics_batch = preset.dynamics.batch_size;
+    let mut ensemble = Ensemble::new(spec, &preset.dynamics, &mut rng);
+    let (inputs, targets) = TrainingSet::raw(spec, &data);
+    let input_norm = Normalizer::fit(&inputs, spec.state_feature_dim + spec.act_dim);
+    let target_norm = Normalizer::fit(&targets, spec.obs_dim);
+    let set = TrainingSet::standardised(inputs, targets, &input_norm, &target_norm);
+    let model = ensemble.member_mut(0);
+    model.set_normalizers(input_norm, target_norm);
+    let mut workspace = TrainWorkspace::new(model, dynamics_batch);
+    let dynamics_batches = batches(dynamics_batch, &mut rng);
+    let mut dynamics_times = time_steps(&dynamics_batches, warmup, |batch| {
+        model.train_step(&set, batch, &mut workspace);
+    });
+    let dynamics_sizes = model.mlp().sizes().to_vec();
+    let dynamics_ms = median_ms(&mut dynamics_times);
+    let dynamics_flops = 3.0 * flops_per_row(&dynamics_sizes) * dynamics_batch as f64;
+
+    let energy_batch = preset.energy.batch_size;
+    let rows = transition_rows(&data);
+    let mut deen = Deen::new(2 * spec.obs_dim + spec.act_dim, &preset.energy, &mut rng);
+    deen.fit(&rows, 1, &mut rng); // fits the normaliser
+    let mut set = rows;
+    deen.normalizer().normalize_rows(&mut set);
+    let mut workspace = DeenWorkspace::new(&deen, energy_batch);
+    let energy_batches = batches(energy_batch, &mut rng);
+    let mut noise_rng = StdRng::seed_from_u64(seed.wrapping_add(1));
+    let mut deen_times = time_steps(&energy_batches, warmup, |batch| {
+        deen.train_step(&set, batch, &mut workspace, &mut noise_rng);
+    });
+
+    Ok(TrainReport {
+        task,
+        steps,
+        dynamics: StepTiming {
+            sizes: dynamics_sizes,
+            batch: dynamics_batch,
+            median_ms: dynamics_ms,
+            gflops: Some(dynamics_flops / (dynamics_ms * 1e-3) / 1e9),
+        },
+        deen: StepTiming {
+            sizes: deen.mlp().sizes().to_vec(),
+            batch: energy_batch,
+            median_ms: median_ms(&mut deen_times),
+            gflops: None,
+        },
+    })
+}
+
+/// Runs `step` on every batch and returns the durations of those after the first `warmup`.
+fn time_steps(
+    batches: &[Vec<usize>],
+    warmup: usize,
+    mut step: impl FnMut(&[usize]),
+) -> Vec<Duration> {
+    let mut times = Vec::with_capacity(batches.len().saturating_sub(warmup));
+    for (i, batch) in batches.iter().enumerate() {
+        let start = Instant::now();
+        step(batch);
+        if i >= warmup {
+            times.push(start.elapsed());
+        }
+    }
+    times
+}
+
+impl fmt::Display for TrainReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "bench train: {} ({} timed steps each)",
+            self.task, self.steps
+        )?;
+        for (name, t) in [("dynamics", &self.dynamics), ("DEEN", &self.deen)] {
+            write!(
+                f,
+                "  {name:<9} {:<16} batch {:>3}: {:.3} ms per step",
+                describe(&t.sizes),
+                t.batch,
+                t.median_ms
+            )?;
+            if let Some(g) = t.gflops {
+                write!(f, ", {g:.1} GFLOP/s")?;
+            }
+            writeln!(f)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn times_real_training_steps() {
+        let report = run(TaskId::Cartpole, 3, 1, 0).unwrap();
+        assert_eq!((report.dynamics.batch, report.deen.batch), (32, 32));
+        assert_eq!(report.dynamics.sizes, vec![6, 200, 200, 200, 8]);
+        assert_eq!(report.deen.sizes, vec![9, 200, 200, 200, 1]);
+        assert!(report.dynamics.median_ms > 0.0 && report.deen.median_ms > 0.0);
+        assert!(report.dynamics.gflops.is_some_and(|g| g > 0.0));
+        assert!(report.to_string().contains("DEEN"));
+        assert!(matches!(
+            run(TaskId::Cartpole, 0, 0, 0),
+            Err(BenchError::Zero("steps"))
+        ));
+    }
+}
