@@ -194,9 +194,7 @@ impl Imagination {
             regularizer,
             Some((rewards, energies)),
         );
-        let mut ret = [0.0];
-        chunk.write_returns(&ctx, &mut ret);
-        ret[0]
+        chunk.candidate_return(&ctx, 1, 0)
     }
 
     /// Makes sure every chunk has network scratch space that fits these models.
@@ -343,21 +341,23 @@ impl Chunk {
     /// per step into `candidate_energy`.
     fn write_returns(&mut self, ctx: &Context, returns: &mut [f32]) {
         let n = returns.len();
-        let inv_p = 1.0 / ctx.particles as f32;
-        let inv_step = inv_p / ctx.horizon as f32;
+        let inv_step = 1.0 / (ctx.particles * ctx.horizon) as f32;
         for (i, out) in returns.iter_mut().enumerate() {
-            let (mut ret, mut energy) = (0.0, 0.0);
-            for k in 0..ctx.particles {
-                ret += self.ret[k * n + i];
-                energy += self.energy_sum[k * n + i];
-            }
-            let ret = ret * inv_p;
-            *out = if ret.is_finite() {
-                ret
-            } else {
-                f32::NEG_INFINITY
-            };
+            *out = self.candidate_return(ctx, n, i);
+            let energy: f32 = (0..ctx.particles).map(|k| self.energy_sum[k * n + i]).sum();
             self.candidate_energy[i] = energy * inv_step;
+        }
+    }
+
+    /// The particles' mean return of candidate `i` of the `n` last imagined; a non-finite mean
+    /// (a diverging model) is `-inf`, so it never wins.
+    fn candidate_return(&self, ctx: &Context, n: usize, i: usize) -> f32 {
+        let sum: f32 = (0..ctx.particles).map(|k| self.ret[k * n + i]).sum();
+        let ret = sum / ctx.particles as f32;
+        if ret.is_finite() {
+            ret
+        } else {
+            f32::NEG_INFINITY
         }
     }
 }
