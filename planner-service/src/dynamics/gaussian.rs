@@ -10,6 +10,7 @@
 
 use crate::nn::fastmath::{exp, softplus_sigmoid};
 use crate::nn::simd::multiversion;
+use crate::nn::vecops::sum;
 
 /// Weight of the penalty `Σ max − Σ min` on the log-variance bounds (PETS's value).
 pub const BOUND_PENALTY: f32 = 0.01;
@@ -43,38 +44,44 @@ fn nll_element(mean: f32, raw: f32, target: f32, max: f32, min: f32) -> ([f32; 2
 }
 
 multiversion! {
-    /// One target dimension of a batch (feature-major rows of `mean`, `raw` log-variance and
-    /// `target`): writes `scale · ∂ℓ/∂mean` and `scale · ∂ℓ/∂raw` into `grad` and returns
-    /// `[Σ ℓ, Σ ∂ℓ/∂max, Σ ∂ℓ/∂min, Σ (mean − target)²]` over the batch.
-    pub fn nll_row(mean: &[f32], raw: &[f32], target: &[f32], bounds: [f32; 3], grad: (&mut [f32], &mut [f32])) -> [f32; 4] {
+    /// The elementwise part of [`nll_row`]: gradients into `grad`, and `ℓ`, `∂ℓ/∂max`,
+    /// `∂ℓ/∂min` and `(mean − target)²` into the four quarters of `terms`. A pure map, so it
+    /// vectorises; the sums are taken separately.
+    fn nll_terms(mean: &[f32], raw: &[f32], target: &[f32], bounds: [f32; 3], grad: (&mut [f32], &mut [f32]), terms: &mut [f32]) {
         let [max, min, scale] = bounds;
         let n = mean.len();
         let (raw, target) = (&raw[..n], &target[..n]);
         let (d_mean, d_raw) = (&mut grad.0[..n], &mut grad.1[..n]);
-        // Sums in 16 independent lanes so the loop vectorises (see `vecops`).
-        let mut lanes = [[0.0f32; 4]; 16];
-        let full = n - n % 16;
-        for base in (0..full).step_by(16) {
-            for (j, lane) in lanes.iter_mut().enumerate() {
-                let i = base + j;
-                let (g, s) = nll_element(mean[i], raw[i], target[i], max, min);
-                d_mean[i] = scale * g[0];
-                d_raw[i] = scale * g[1];
-                for (acc, v) in lane.iter_mut().zip(s) {
-                    *acc += v;
-                }
-            }
-        }
-        for i in full..n {
+        let (loss, rest) = terms[..4 * n].split_at_mut(n);
+        let (d_max, rest) = rest.split_at_mut(n);
+        let (d_min, sq) = rest.split_at_mut(n);
+        for i in 0..n {
             let (g, s) = nll_element(mean[i], raw[i], target[i], max, min);
             d_mean[i] = scale * g[0];
             d_raw[i] = scale * g[1];
-            for (acc, v) in lanes[0].iter_mut().zip(s) {
-                *acc += v;
-            }
+            loss[i] = s[0];
+            d_max[i] = s[1];
+            d_min[i] = s[2];
+            sq[i] = s[3];
         }
-        std::array::from_fn(|k| lanes.iter().map(|lane| lane[k]).sum())
     }
+}
+
+/// One target dimension of a batch (feature-major rows of `mean`, `raw` log-variance and
+/// `target`): writes `scale · ∂ℓ/∂mean` and `scale · ∂ℓ/∂raw` into `grad` and returns
+/// `[Σ ℓ, Σ ∂ℓ/∂max, Σ ∂ℓ/∂min, Σ (mean − target)²]` over the batch. `terms` is scratch of at
+/// least four times the batch.
+pub fn nll_row(
+    mean: &[f32],
+    raw: &[f32],
+    target: &[f32],
+    bounds: [f32; 3],
+    grad: (&mut [f32], &mut [f32]),
+    terms: &mut [f32],
+) -> [f32; 4] {
+    let n = mean.len();
+    nll_terms(mean, raw, target, bounds, grad, terms);
+    std::array::from_fn(|k| sum(&terms[k * n..(k + 1) * n]))
 }
 
 multiversion! {
@@ -121,12 +128,14 @@ mod tests {
         let (max, min) = (0.3f32, -9.0f32);
         let scale = 1.0 / n as f32;
         let (mut d_mean, mut d_raw) = (vec![0.0; n], vec![0.0; n]);
+        let mut terms = vec![0.0; 4 * n];
         let [total, d_max, d_min, sq] = nll_row(
             &mean,
             &raw,
             &target,
             [max, min, scale],
             (&mut d_mean, &mut d_raw),
+            &mut terms,
         );
         let mut got = d_mean.clone();
         got.extend(&d_raw);

@@ -91,6 +91,8 @@ pub struct TrainWorkspace {
     grads: Vec<f32>,
     /// `∂L/∂[max; min]` of the log-variance bounds.
     bound_grads: Vec<f32>,
+    /// Per-sample terms of the loss, summed per target dimension.
+    terms: Vec<f32>,
 }
 
 impl TrainWorkspace {
@@ -101,6 +103,7 @@ impl TrainWorkspace {
             targets: AlignedBuf::zeros(model.task.obs_dim * tape.ld()),
             grads: vec![0.0; model.mlp.params().len()],
             bound_grads: vec![0.0; 2 * model.task.obs_dim],
+            terms: vec![0.0; 4 * tape.ld()],
             tape,
         }
     }
@@ -261,6 +264,7 @@ impl ProbabilisticModel {
                 &targets[row.clone()],
                 [max[k], min[k], scale],
                 (&mut g_mean[row.clone()], &mut g_raw[row]),
+                &mut ws.terms,
             );
             total += loss;
             ws.bound_grads[k] = scale * d_max + BOUND_PENALTY;

@@ -384,6 +384,30 @@ fn timing() {
         "DEEN train step (batch 32, 5 × 500): {:.3} ms",
         t.elapsed().as_secs_f64() * 1e3 / reps as f64
     );
+    // Where the time goes: the input-gradient pass, the double backprop, the optimiser.
+    let mlp = deen.mlp().clone();
+    let mut tape = crate::nn::InputGradTape::new(&mlp, 32);
+    for (i, v) in tape.input_mut().iter_mut().enumerate() {
+        *v = ((i * 7919) % 1000) as f32 / 500.0 - 1.0;
+    }
+    let mut grads = vec![0.0; mlp.params().len()];
+    let time = |f: &mut dyn FnMut()| {
+        let t = std::time::Instant::now();
+        for _ in 0..reps {
+            f();
+        }
+        t.elapsed().as_secs_f64() * 1e3 / reps as f64
+    };
+    let forward = time(&mut || {
+        mlp.input_gradient_train(&mut tape, 32);
+    });
+    let backward = time(&mut || mlp.input_gradient_backward(&mut tape, &mut grads));
+    let mut params = mlp.params().to_vec();
+    let mut adam = crate::nn::Adam::new(params.len(), 1e-3);
+    let optimiser = time(&mut || adam.step(&mut params, &grads));
+    println!(
+        "  of which: forward + input gradient {forward:.3} ms, double backprop {backward:.3} ms, Adam {optimiser:.3} ms"
+    );
     let rows = 500;
     let reg = Regularizer::Deen(deen);
     let mut scratch = reg.scratch(rows);

@@ -4,8 +4,12 @@
 //! to the loss (so its gradient `λ W` is then normalised by Adam like any other term), and the
 //! models here do the same with [`add_weight_decay`]. Biases are not decayed.
 
+use super::denormals;
 use super::mlp::Mlp;
 use super::simd::multiversion;
+
+/// Parameter vectors shorter than this are updated on one thread.
+const PARALLEL_MIN: usize = 1 << 17;
 
 /// Adam's state for one parameter vector.
 #[derive(Clone, Debug, PartialEq)]
@@ -71,7 +75,23 @@ impl Adam {
             1.0 / bc2.sqrt(),
             self.epsilon,
         ];
-        adam_update(params, grads, &mut self.m, &mut self.v, k);
+        let n = params.len();
+        if n < PARALLEL_MIN || rayon::current_num_threads() < 2 {
+            adam_update(params, grads, &mut self.m, &mut self.v, k);
+            return;
+        }
+        // The update streams five arrays through memory: two cores move them nearly twice as
+        // fast. The caller's floating-point mode is carried to the helper thread.
+        let half = n / 2;
+        let (p0, p1) = params.split_at_mut(half);
+        let (g0, g1) = grads.split_at(half);
+        let (m0, m1) = self.m.split_at_mut(half);
+        let (v0, v1) = self.v.split_at_mut(half);
+        let mode = denormals::current_mode();
+        rayon::join(
+            || adam_update(p0, g0, m0, v0, k),
+            || denormals::with_mode(mode, || adam_update(p1, g1, m1, v1, k)),
+        );
     }
 }
 
@@ -116,6 +136,26 @@ mod tests {
             adam.step(&mut p, &g);
         }
         assert!(p.iter().all(|v| (v - 1.0).abs() < 0.02), "{p:?}");
+    }
+
+    #[test]
+    fn parallel_update_equals_serial_update() {
+        let n = PARALLEL_MIN + 37;
+        let grads: Vec<f32> = (0..n).map(|i| ((i * 31) % 17) as f32 - 8.0).collect();
+        let mut adam = Adam::new(n, 0.01);
+        let mut p = vec![1.0f32; n];
+        adam.step(&mut p, &grads);
+        let (mut m, mut v, mut q) = (vec![0.0; n], vec![0.0; n], vec![1.0f32; n]);
+        let (bc1, bc2) = (1.0 - 0.9f32.powi(1), 1.0 - 0.999f32.powi(1));
+        adam_update(
+            &mut q,
+            &grads,
+            &mut m,
+            &mut v,
+            [0.9, 0.999, 0.01 / bc1, 1.0 / bc2.sqrt(), 1e-8],
+        );
+        assert!(p == q, "the split update differs from the serial one");
+        assert!(p.iter().any(|&x| x != 1.0));
     }
 
     #[test]

@@ -42,7 +42,7 @@ impl Tape {
             out_grad: AlignedBuf::zeros(mlp.out_dim() * ld),
             g: [AlignedBuf::zeros(width * ld), AlignedBuf::zeros(width * ld)],
             input_grad_in: None,
-            gt: AlignedBuf::zeros(ld * width),
+            gt: AlignedBuf::zeros(ld * round_up(width)),
             sizes,
             ld,
             samples: 0,
@@ -179,11 +179,13 @@ fn weight_and_bias_grad(
     grads: &mut [f32],
 ) {
     let (n_in, n_out, samples) = (h.rows(), g.rows(), g.cols());
-    g.transpose_into(gt, n_out);
+    // Rows of Gᵀ start on cache lines, so the kernel's panel loads never straddle two.
+    let ld_gt = round_up(n_out);
+    g.transpose_into(gt, ld_gt);
     matmul_par(
         MatMut::new(&mut grads[mlp.weight_range(l)], n_in, n_out),
         h,
-        MatRef::new(&gt[..samples * n_out], samples, n_out),
+        MatRef::with_stride(gt, samples, n_out, ld_gt),
         Init::Zero,
     );
     for (f, b) in grads[mlp.bias_range(l)].iter_mut().enumerate() {

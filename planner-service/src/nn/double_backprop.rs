@@ -49,7 +49,9 @@ pub struct InputGradTape {
     hdot: Vec<AlignedBuf>,
     /// Ping-pong buffers for `u̇ₗ`, turned into `δ̇ₗ` in place.
     udot: [AlignedBuf; 2],
-    /// Sample-major scratch for the right factors of the weight gradients.
+    /// `[ḣₗ₋₁ hₗ₋₁]` side by side (feature-major, row stride `2 ld`) and `[δₗ; δ̇ₗ]ᵀ`
+    /// (sample-major): the two factors of a weight gradient.
+    hcat: AlignedBuf,
     gt: AlignedBuf,
 }
 
@@ -80,7 +82,8 @@ impl InputGradTape {
             zdot: bufs(hidden),
             hdot: bufs(hidden),
             udot: [AlignedBuf::zeros(width * ld), AlignedBuf::zeros(width * ld)],
-            gt: AlignedBuf::zeros(ld * width),
+            hcat: AlignedBuf::zeros(width * 2 * ld),
+            gt: AlignedBuf::zeros(2 * ld * round_up(width)),
             sizes,
             ld,
             samples: 0,
@@ -255,20 +258,25 @@ impl Mlp {
             } else {
                 tape.hdot[l - 2].as_slice()
             };
-            let gt = tape.gt.as_mut_slice();
-            let w_range = self.weight_range(l - 1);
-            for (h, d, init) in [
-                (hdot_prev, tape.delta[l - 1].as_slice(), Init::Zero),
-                (tape.h[l - 1].as_slice(), &*ddot, Init::Accumulate),
-            ] {
-                transpose(d, n_out, samples, ld, gt, n_out);
-                matmul_par(
-                    MatMut::new(&mut grads[w_range.clone()], n_in, n_out),
-                    MatRef::with_stride(h, n_in, samples, ld),
-                    MatRef::new(&gt[..samples * n_out], samples, n_out),
-                    init,
-                );
+            // One product with the batch twice over as its depth, `[ḣ h] · [δ; δ̇]ᵀ`: the
+            // 1 MB gradient block is written once instead of written and re-read.
+            let (hcat, gt) = (tape.hcat.as_mut_slice(), tape.gt.as_mut_slice());
+            let h_prev = tape.h[l - 1].as_slice();
+            for r in 0..n_in {
+                let row = &mut hcat[r * 2 * ld..r * 2 * ld + 2 * samples];
+                row[..samples].copy_from_slice(&hdot_prev[r * ld..r * ld + samples]);
+                row[samples..].copy_from_slice(&h_prev[r * ld..r * ld + samples]);
             }
+            // Rows of the transposes start on cache lines (aligned panel loads).
+            let ldg = round_up(n_out);
+            transpose(tape.delta[l - 1].as_slice(), n_out, samples, ld, gt, ldg);
+            transpose(ddot, n_out, samples, ld, &mut gt[samples * ldg..], ldg);
+            matmul_par(
+                MatMut::new(&mut grads[self.weight_range(l - 1)], n_in, n_out),
+                MatRef::with_stride(hcat, n_in, 2 * samples, 2 * ld),
+                MatRef::with_stride(gt, 2 * samples, n_out, ldg),
+                Init::Zero,
+            );
             for (g, row) in grads[self.bias_range(l - 1)]
                 .iter_mut()
                 .zip(ddot.chunks(ld))

@@ -283,8 +283,20 @@ pub fn matmul_par(c: MatMut<'_>, x: MatRef<'_>, y: MatRef<'_>, init: Init<'_>) {
 }
 
 /// Writes the transpose of `src` (`rows × cols`, row stride `ld_src`) into `dst`
-/// (`cols × rows`, row stride `ld_dst`).
+/// (`cols × rows`, row stride `ld_dst`). Never allocates.
 pub fn transpose(
+    src: &[f32],
+    rows: usize,
+    cols: usize,
+    ld_src: usize,
+    dst: &mut [f32],
+    ld_dst: usize,
+) {
+    transpose_at(level(), src, rows, cols, ld_src, dst, ld_dst)
+}
+
+fn transpose_at(
+    lvl: SimdLevel,
     src: &[f32],
     rows: usize,
     cols: usize,
@@ -295,17 +307,32 @@ pub fn transpose(
     if rows == 0 || cols == 0 {
         return;
     }
-    assert!((rows - 1) * ld_src + cols <= src.len() && (cols - 1) * ld_dst + rows <= dst.len());
-    // Tiles keep both the reads and the scattered writes within a few cache lines.
-    const TILE: usize = 16;
-    for i0 in (0..rows).step_by(TILE) {
-        for j0 in (0..cols).step_by(TILE) {
-            for i in i0..(i0 + TILE).min(rows) {
-                let row = &src[i * ld_src..];
-                for j in j0..(j0 + TILE).min(cols) {
-                    dst[j * ld_dst + i] = row[j];
-                }
-            }
+    assert!(
+        ld_src >= cols && ld_dst >= rows,
+        "strides shorter than rows"
+    );
+    assert!(
+        (rows - 1) * ld_src + cols <= src.len() && (cols - 1) * ld_dst + rows <= dst.len(),
+        "transpose out of bounds"
+    );
+    // Whole 8 × 8 blocks with register shuffles where the CPU has AVX; the rest element-wise.
+    let (rows8, cols8) = match lvl {
+        #[cfg(target_arch = "x86_64")]
+        SimdLevel::Avx2 | SimdLevel::Avx512 => {
+            let (r8, c8) = (rows / 8, cols / 8);
+            // SAFETY: AVX is part of both levels; the extents were checked above.
+            unsafe {
+                x86::transpose_blocks(src.as_ptr(), ld_src, dst.as_mut_ptr(), ld_dst, r8, c8)
+            };
+            (r8 * 8, c8 * 8)
+        }
+        _ => (0, 0),
+    };
+    for i in 0..rows {
+        let row = &src[i * ld_src..i * ld_src + cols];
+        let start = if i < rows8 { cols8 } else { 0 };
+        for (j, &v) in row.iter().enumerate().skip(start) {
+            dst[j * ld_dst + i] = v;
         }
     }
 }

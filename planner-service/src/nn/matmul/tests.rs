@@ -115,18 +115,50 @@ fn mismatched_shapes_panic() {
 }
 
 #[test]
-fn transpose_round_trips() {
-    let src: Vec<f32> = (0..37 * 23).map(|v| v as f32).collect();
-    let mut t = vec![0.0; 23 * 40];
-    transpose(&src, 37, 23, 23, &mut t, 40);
-    for i in 0..37 {
-        for j in 0..23 {
-            assert_eq!(t[j * 40 + i], src[i * 23 + j]);
+fn transpose_round_trips_at_every_level() {
+    for lvl in SimdLevel::available() {
+        for &(rows, cols) in &[(37, 23), (8, 8), (16, 40), (5, 3), (1, 17)] {
+            let (ld_src, ld_dst) = (cols + 2, rows + 3);
+            let src: Vec<f32> = (0..rows * ld_src).map(|v| v as f32).collect();
+            let mut t = vec![f32::NAN; cols * ld_dst];
+            transpose_at(lvl, &src, rows, cols, ld_src, &mut t, ld_dst);
+            for i in 0..rows {
+                for j in 0..cols {
+                    assert_eq!(
+                        t[j * ld_dst + i],
+                        src[i * ld_src + j],
+                        "{lvl:?} {rows}×{cols} ({i}, {j})"
+                    );
+                }
+            }
+            assert!(t[rows].is_nan(), "{lvl:?}: wrote past the row");
+            let mut back = vec![0.0; rows * ld_src];
+            transpose_at(lvl, &t, cols, rows, ld_dst, &mut back, ld_src);
+            for i in 0..rows {
+                assert_eq!(
+                    back[i * ld_src..i * ld_src + cols],
+                    src[i * ld_src..i * ld_src + cols]
+                );
+            }
         }
     }
-    let mut back = vec![0.0; 37 * 23];
-    transpose(&t, 23, 37, 40, &mut back, 23);
-    assert_eq!(back, src);
+}
+
+/// Time of the transposes the weight gradients need (a 500-feature, 32-sample batch).
+#[test]
+#[ignore = "timing, prints numbers"]
+fn transpose_timing() {
+    let src: Vec<f32> = (0..500 * 32).map(|v| v as f32).collect();
+    let mut dst = vec![0.0; 32 * 512];
+    let reps = 20000;
+    let t = std::time::Instant::now();
+    for _ in 0..reps {
+        transpose(std::hint::black_box(&src), 500, 32, 32, &mut dst, 512);
+    }
+    println!(
+        "transpose 500×32: {:.2} µs",
+        t.elapsed().as_secs_f64() * 1e6 / reps as f64
+    );
 }
 
 /// Kernel throughput against the `gemm` crate on the networks' shapes.

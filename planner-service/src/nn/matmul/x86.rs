@@ -258,3 +258,80 @@ pub(super) unsafe fn drive_avx2(raw: &Raw) {
         i += mr;
     }
 }
+
+/// Transposes the 8 × 8 block at `src` (row stride `ld_src`) into `dst` (row stride `ld_dst`).
+///
+/// # Safety
+/// The CPU must support AVX; both blocks must be inside their buffers.
+#[inline]
+#[target_feature(enable = "avx")]
+unsafe fn transpose8x8(src: *const f32, ld_src: usize, dst: *mut f32, ld_dst: usize) {
+    // SAFETY: the caller guarantees both 8 × 8 blocks are in bounds.
+    unsafe {
+        let r: [__m256; 8] = std::array::from_fn(|k| _mm256_loadu_ps(src.wrapping_add(k * ld_src)));
+        // Interleave pairs of rows, then pairs of pairs, then swap 128-bit halves.
+        let t = [
+            _mm256_unpacklo_ps(r[0], r[1]),
+            _mm256_unpackhi_ps(r[0], r[1]),
+            _mm256_unpacklo_ps(r[2], r[3]),
+            _mm256_unpackhi_ps(r[2], r[3]),
+            _mm256_unpacklo_ps(r[4], r[5]),
+            _mm256_unpackhi_ps(r[4], r[5]),
+            _mm256_unpacklo_ps(r[6], r[7]),
+            _mm256_unpackhi_ps(r[6], r[7]),
+        ];
+        let u = [
+            _mm256_shuffle_ps::<0x44>(t[0], t[2]),
+            _mm256_shuffle_ps::<0xEE>(t[0], t[2]),
+            _mm256_shuffle_ps::<0x44>(t[1], t[3]),
+            _mm256_shuffle_ps::<0xEE>(t[1], t[3]),
+            _mm256_shuffle_ps::<0x44>(t[4], t[6]),
+            _mm256_shuffle_ps::<0xEE>(t[4], t[6]),
+            _mm256_shuffle_ps::<0x44>(t[5], t[7]),
+            _mm256_shuffle_ps::<0xEE>(t[5], t[7]),
+        ];
+        let out = [
+            _mm256_permute2f128_ps::<0x20>(u[0], u[4]),
+            _mm256_permute2f128_ps::<0x20>(u[1], u[5]),
+            _mm256_permute2f128_ps::<0x20>(u[2], u[6]),
+            _mm256_permute2f128_ps::<0x20>(u[3], u[7]),
+            _mm256_permute2f128_ps::<0x31>(u[0], u[4]),
+            _mm256_permute2f128_ps::<0x31>(u[1], u[5]),
+            _mm256_permute2f128_ps::<0x31>(u[2], u[6]),
+            _mm256_permute2f128_ps::<0x31>(u[3], u[7]),
+        ];
+        for (k, v) in out.iter().enumerate() {
+            _mm256_storeu_ps(dst.wrapping_add(k * ld_dst), *v);
+        }
+    }
+}
+
+/// The whole 8 × 8 blocks of a transpose (`rows8 × cols8` of them); the caller does the
+/// ragged edges.
+///
+/// # Safety
+/// The CPU must support AVX; the extents must have been checked by `transpose`.
+#[target_feature(enable = "avx")]
+pub(super) unsafe fn transpose_blocks(
+    src: *const f32,
+    ld_src: usize,
+    dst: *mut f32,
+    ld_dst: usize,
+    rows8: usize,
+    cols8: usize,
+) {
+    for bi in 0..rows8 {
+        for bj in 0..cols8 {
+            let (i, j) = (bi * 8, bj * 8);
+            // SAFETY: block (i, j) of the source and (j, i) of the destination are in bounds.
+            unsafe {
+                transpose8x8(
+                    src.wrapping_add(i * ld_src + j),
+                    ld_src,
+                    dst.wrapping_add(j * ld_dst + i),
+                    ld_dst,
+                )
+            };
+        }
+    }
+}
