@@ -189,10 +189,10 @@ impl fmt::Display for PlanReport {
             self.gflops
         )?;
         if let Some(reference) = self.pytorch_ms {
+            let speedup = reference / self.median_ms;
             write!(
                 f,
-                "\n  PyTorch    {reference:.0} ms on the same machine: {:.2}× faster",
-                reference / self.median_ms
+                "\n  PyTorch    {reference:.0} ms on the same machine: speed-up {speedup:.2}×"
             )?;
         }
         Ok(())

@@ -122,7 +122,7 @@ fn time_steps(
 
 impl fmt::Display for TrainReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        writeln!(
+        write!(
             f,
             "bench train: {} ({} timed steps each)",
             self.task, self.steps
@@ -130,7 +130,7 @@ impl fmt::Display for TrainReport {
         for (name, t) in [("dynamics", &self.dynamics), ("DEEN", &self.deen)] {
             write!(
                 f,
-                "  {name:<9} {:<16} batch {:>3}: {:.3} ms per step",
+                "\n  {name:<9} {:<16} batch {:>3}: {:.3} ms per step",
                 describe(&t.sizes),
                 t.batch,
                 t.median_ms
@@ -138,7 +138,6 @@ impl fmt::Display for TrainReport {
             if let Some(g) = t.gflops {
                 write!(f, ", {g:.1} GFLOP/s")?;
             }
-            writeln!(f)?;
         }
         Ok(())
     }
