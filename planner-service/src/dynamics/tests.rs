@@ -3,6 +3,7 @@
 
 use super::*;
 use crate::data::Transitions;
+use crate::nn::timing::measure;
 use crate::nn::{Activation, Normalizer, reference};
 use proto::{TaskId, TaskSpec};
 use rand::rngs::StdRng;
@@ -320,30 +321,16 @@ fn timing() {
     let mut ws = TrainWorkspace::new(&model, 128);
     let batch: Vec<usize> = (0..128).collect();
     let _flush = crate::nn::FlushDenormals::new();
-    for _ in 0..20 {
+    let step = measure(20, || {
         model.train_step(&set, &batch, &mut ws);
-    }
-    let reps = 300;
-    let t = std::time::Instant::now();
-    for _ in 0..reps {
-        model.train_step(&set, &batch, &mut ws);
-    }
-    println!(
-        "half-cheetah dynamics train step (batch 128, 4 × 200): {:.3} ms",
-        t.elapsed().as_secs_f64() * 1e3 / reps as f64
-    );
+    });
+    println!("half-cheetah dynamics train step (batch 128, 4 × 200): {step}");
     let rows = 500;
     let obs = &data.obs()[..rows * o];
     let act = &data.act()[..rows * a];
     let mut next = vec![0.0; rows * o];
     let mut scratch = model.scratch(rows);
     let eps: Vec<f32> = (0..rows * o).map(|_| rng.sample(StandardNormal)).collect();
-    let t = std::time::Instant::now();
-    for _ in 0..reps {
-        model.predict_next(obs, act, rows, &mut scratch, Some(&eps), &mut next);
-    }
-    println!(
-        "half-cheetah predict_next, 500 rows, sampled: {:.3} ms",
-        t.elapsed().as_secs_f64() * 1e3 / reps as f64
-    );
+    let predict = measure(20, || model.predict_next(obs, act, rows, &mut scratch, Some(&eps), &mut next));
+    println!("half-cheetah predict_next, 500 rows, sampled: {predict}");
 }

@@ -3,6 +3,7 @@
 //! experiment), and the regulariser on transitions.
 
 use super::*;
+use crate::nn::timing::measure;
 use crate::nn::{Activation, reference};
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -372,18 +373,10 @@ fn timing() {
     let mut ws = DeenWorkspace::new(&deen, 32);
     let batch: Vec<usize> = (0..32).collect();
     let _flush = crate::nn::FlushDenormals::new();
-    for _ in 0..10 {
+    let step = measure(10, || {
         deen.train_step(&set, &batch, &mut ws, &mut rng);
-    }
-    let reps = 100;
-    let t = std::time::Instant::now();
-    for _ in 0..reps {
-        deen.train_step(&set, &batch, &mut ws, &mut rng);
-    }
-    println!(
-        "DEEN train step (batch 32, 5 × 500): {:.3} ms",
-        t.elapsed().as_secs_f64() * 1e3 / reps as f64
-    );
+    });
+    println!("DEEN train step (batch 32, 5 × 500): {step}");
     // Where the time goes: the input-gradient pass, the double backprop, the optimiser.
     let mlp = deen.mlp().clone();
     let mut tape = crate::nn::InputGradTape::new(&mlp, 32);
@@ -391,34 +384,19 @@ fn timing() {
         *v = ((i * 7919) % 1000) as f32 / 500.0 - 1.0;
     }
     let mut grads = vec![0.0; mlp.params().len()];
-    let time = |f: &mut dyn FnMut()| {
-        let t = std::time::Instant::now();
-        for _ in 0..reps {
-            f();
-        }
-        t.elapsed().as_secs_f64() * 1e3 / reps as f64
-    };
-    let forward = time(&mut || {
+    let forward = measure(10, || {
         mlp.input_gradient_train(&mut tape, 32);
     });
-    let backward = time(&mut || mlp.input_gradient_backward(&mut tape, &mut grads));
+    let backward = measure(10, || mlp.input_gradient_backward(&mut tape, &mut grads));
     let mut params = mlp.params().to_vec();
     let mut adam = crate::nn::Adam::new(params.len(), 1e-3);
-    let optimiser = time(&mut || adam.step(&mut params, &grads));
-    println!(
-        "  of which: forward + input gradient {forward:.3} ms, double backprop {backward:.3} ms, Adam {optimiser:.3} ms"
-    );
+    let optimiser = measure(10, || adam.step(&mut params, &grads));
+    println!("  of which: forward + input gradient {forward}, double backprop {backward}, Adam {optimiser}");
     let rows = 500;
     let reg = Regularizer::Deen(deen);
     let mut scratch = reg.scratch(rows);
     let (obs, act) = (&set[..rows * 18], &set[..rows * 6]);
     let mut out = vec![0.0; rows];
-    let t = std::time::Instant::now();
-    for _ in 0..reps {
-        reg.energy(obs, act, obs, rows, &mut scratch, &mut out);
-    }
-    println!(
-        "DEEN energy, 500 rows: {:.3} ms",
-        t.elapsed().as_secs_f64() * 1e3 / reps as f64
-    );
+    let energy = measure(3, || reg.energy(obs, act, obs, rows, &mut scratch, &mut out));
+    println!("DEEN energy, 500 rows: {energy}");
 }

@@ -9,7 +9,7 @@ use super::mlp::Mlp;
 use super::simd::multiversion;
 
 /// Parameter vectors shorter than this are updated on one thread.
-const PARALLEL_MIN: usize = 1 << 17;
+const PARALLEL_MIN: usize = 1 << 19;
 
 /// Adam's state for one parameter vector.
 #[derive(Clone, Debug, PartialEq)]

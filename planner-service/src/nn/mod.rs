@@ -22,6 +22,8 @@ pub mod normalizer;
 #[cfg(test)]
 pub(crate) mod reference;
 pub mod simd;
+#[cfg(test)]
+pub(crate) mod timing;
 pub mod train;
 pub mod vecops;
 
