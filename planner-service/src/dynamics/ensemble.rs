@@ -1,9 +1,9 @@
 //! An ensemble of probabilistic models (PETS's "PE"); one member is the paper's single model.
 
 use super::config::DynamicsConfig;
-use super::model::{DynamicsScratch, ProbabilisticModel, TrainingSet};
+use super::model::{DynamicsScratch, ModelParts, ProbabilisticModel, TrainingSet};
 use crate::data::Transitions;
-use crate::nn::{FitReport, FlushDenormals, Normalizer};
+use crate::nn::{FitReport, FlushDenormals, Normalizer, ShapeError};
 use proto::TaskSpec;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -32,6 +32,28 @@ impl Ensemble {
             config: config.clone(),
             members,
         }
+    }
+
+    /// An ensemble with stored members (see [`Ensemble::parts`]), one per part.
+    pub fn from_parts(
+        task: &'static TaskSpec,
+        config: &DynamicsConfig,
+        parts: Vec<ModelParts>,
+    ) -> Result<Self, ShapeError> {
+        ShapeError::check("ensemble members", config.ensemble_size, parts.len())?;
+        let members = parts
+            .into_iter()
+            .map(|p| ProbabilisticModel::from_parts(task, config, p))
+            .collect::<Result<_, _>>()?;
+        Ok(Self {
+            config: config.clone(),
+            members,
+        })
+    }
+
+    /// What determines every member's predictions — what persistence stores.
+    pub fn parts(&self) -> Vec<ModelParts> {
+        self.members.iter().map(ProbabilisticModel::parts).collect()
     }
 
     pub fn config(&self) -> &DynamicsConfig {

@@ -17,9 +17,13 @@ use crate::nn::aligned::AlignedBuf;
 use crate::nn::matmul::transpose;
 use crate::nn::train::run_epochs;
 use crate::nn::vecops::scale_shift;
-use crate::nn::{Activation, Adam, ForwardScratch, Mlp, Normalizer, Tape, add_weight_decay};
+use crate::nn::{
+    Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape, add_weight_decay,
+};
 use proto::TaskSpec;
+use rand::SeedableRng;
 use rand::rngs::StdRng;
+use serde::{Deserialize, Serialize};
 
 /// Model inputs and targets of a set of transitions, standardised, sample-major.
 #[derive(Clone, Debug)]
@@ -143,6 +147,18 @@ impl DynamicsScratch {
     }
 }
 
+/// Everything that determines a model's predictions — what persistence stores. (Adam's
+/// moments are not included: a restored model's optimiser starts afresh.)
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelParts {
+    /// The network's parameters, laid out as [`Mlp::params`].
+    pub params: Vec<f32>,
+    pub input_norm: Normalizer,
+    pub target_norm: Normalizer,
+    pub max_logvar: Vec<f32>,
+    pub min_logvar: Vec<f32>,
+}
+
 /// A Gaussian dynamics model `p(target | s, a)` (see the module docs).
 #[derive(Clone, Debug)]
 pub struct ProbabilisticModel {
@@ -181,6 +197,46 @@ impl ProbabilisticModel {
             logvar_bounds,
             batch_size: config.batch_size.max(1),
             weight_decay: config.weight_decay,
+        }
+    }
+
+    /// A model of the configured size with stored parts (see [`ProbabilisticModel::parts`]).
+    pub fn from_parts(
+        task: &'static TaskSpec,
+        config: &DynamicsConfig,
+        parts: ModelParts,
+    ) -> Result<Self, ShapeError> {
+        let mut rng = StdRng::seed_from_u64(0); // the weights are replaced below
+        let mut model = Self::new(task, config, &mut rng);
+        let o = task.obs_dim;
+        ShapeError::check(
+            "dynamics parameters",
+            model.mlp.params().len(),
+            parts.params.len(),
+        )?;
+        ShapeError::check(
+            "dynamics input statistics",
+            model.mlp.in_dim(),
+            parts.input_norm.dim(),
+        )?;
+        ShapeError::check("dynamics target statistics", o, parts.target_norm.dim())?;
+        ShapeError::check("maximum log-variances", o, parts.max_logvar.len())?;
+        ShapeError::check("minimum log-variances", o, parts.min_logvar.len())?;
+        model.mlp.params_mut().copy_from_slice(&parts.params);
+        model.input_norm = parts.input_norm;
+        model.target_norm = parts.target_norm;
+        model.logvar_bounds = [parts.max_logvar, parts.min_logvar].concat();
+        Ok(model)
+    }
+
+    /// A copy of what determines this model's predictions.
+    pub fn parts(&self) -> ModelParts {
+        ModelParts {
+            params: self.mlp.params().to_vec(),
+            input_norm: self.input_norm.clone(),
+            target_norm: self.target_norm.clone(),
+            max_logvar: self.max_logvar().to_vec(),
+            min_logvar: self.min_logvar().to_vec(),
         }
     }
 

@@ -271,6 +271,55 @@ fn ensemble_members_differ_and_all_learn() {
 }
 
 #[test]
+fn parts_restore_identical_predictions_and_reject_wrong_shapes() {
+    let mut rng = StdRng::seed_from_u64(26);
+    let data = dataset(300, 0.05, &mut rng);
+    let config = DynamicsConfig {
+        ensemble_size: 2,
+        ..small_config(2)
+    };
+    let mut ensemble = Ensemble::new(cartpole(), &config, &mut rng);
+    ensemble.fit(&data, 2, &mut rng);
+    let parts = ensemble.parts();
+    let json = serde_json::to_string(&parts).unwrap();
+    let restored =
+        Ensemble::from_parts(cartpole(), &config, serde_json::from_str(&json).unwrap()).unwrap();
+    let (mut a, mut b) = ([0.0; 8], [0.0; 8]);
+    let eps = [0.5, -1.0, 0.2, 1.5, -0.3, 0.0, 0.8, -2.0];
+    for member in 0..2 {
+        let mut scratch = ensemble.scratch(2);
+        ensemble.predict_next(
+            member,
+            &data.obs()[..8],
+            &data.act()[..2],
+            2,
+            &mut scratch,
+            Some(&eps),
+            &mut a,
+        );
+        restored.predict_next(
+            member,
+            &data.obs()[..8],
+            &data.act()[..2],
+            2,
+            &mut scratch,
+            Some(&eps),
+            &mut b,
+        );
+        assert_eq!(a, b);
+    }
+    let mut short = parts.clone();
+    short[1].max_logvar.pop();
+    let err = Ensemble::from_parts(cartpole(), &config, short).unwrap_err();
+    assert_eq!(
+        (err.what, err.expected, err.got),
+        ("maximum log-variances", 4, 3)
+    );
+    let err = Ensemble::from_parts(cartpole(), &config, parts[..1].to_vec()).unwrap_err();
+    assert_eq!(err.what, "ensemble members");
+}
+
+#[test]
 fn models_are_shareable_across_threads() {
     fn assert_traits<T: Clone + Send + Sync + 'static>() {}
     assert_traits::<Ensemble>();
@@ -331,6 +380,8 @@ fn timing() {
     let mut next = vec![0.0; rows * o];
     let mut scratch = model.scratch(rows);
     let eps: Vec<f32> = (0..rows * o).map(|_| rng.sample(StandardNormal)).collect();
-    let predict = measure(20, || model.predict_next(obs, act, rows, &mut scratch, Some(&eps), &mut next));
+    let predict = measure(20, || {
+        model.predict_next(obs, act, rows, &mut scratch, Some(&eps), &mut next)
+    });
     println!("half-cheetah predict_next, 500 rows, sampled: {predict}");
 }

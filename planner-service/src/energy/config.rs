@@ -34,6 +34,15 @@ impl Default for EnergyConfig {
     }
 }
 
+/// Everything that determines an energy model's outputs — what persistence stores. (Adam's
+/// moments are not included: a restored model's optimiser starts afresh.)
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EnergyParts {
+    /// The network's parameters, laid out as [`crate::nn::Mlp::params`].
+    pub params: Vec<f32>,
+    pub normalizer: crate::nn::Normalizer,
+}
+
 /// Layer sizes `[dim, hidden…, out]` of an energy network.
 pub(crate) fn layer_sizes(dim: usize, config: &EnergyConfig, out: usize) -> Vec<usize> {
     let mut sizes = vec![dim];

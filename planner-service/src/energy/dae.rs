@@ -7,15 +7,15 @@
 //! is the baseline the paper compares with. Works in standardised coordinates like
 //! [`super::deen::Deen`].
 
-use super::config::{EnergyConfig, layer_sizes};
+use super::config::{EnergyConfig, EnergyParts, layer_sizes};
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::train::run_epochs;
 use crate::nn::vecops::add_squared_diff;
 use crate::nn::{
-    Activation, Adam, FitReport, FlushDenormals, ForwardScratch, Mlp, Normalizer, Tape,
+    Activation, Adam, FitReport, FlushDenormals, ForwardScratch, Mlp, Normalizer, ShapeError, Tape,
 };
-use rand::RngExt;
 use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 use std::time::Instant;
 
@@ -77,6 +77,32 @@ impl Dae {
             normalizer: Normalizer::identity(dim),
             sigma: config.noise_sigma,
             batch_size: config.batch_size.max(1),
+        }
+    }
+
+    /// A model of the configured size with stored parts (see [`Dae::parts`]).
+    pub fn from_parts(
+        dim: usize,
+        config: &EnergyConfig,
+        parts: EnergyParts,
+    ) -> Result<Self, ShapeError> {
+        let mut model = Self::new(dim, config, &mut StdRng::seed_from_u64(0)); // weights replaced
+        ShapeError::check(
+            "energy parameters",
+            model.mlp.params().len(),
+            parts.params.len(),
+        )?;
+        ShapeError::check("energy statistics", dim, parts.normalizer.dim())?;
+        model.mlp.params_mut().copy_from_slice(&parts.params);
+        model.normalizer = parts.normalizer;
+        Ok(model)
+    }
+
+    /// A copy of what determines this model's outputs.
+    pub fn parts(&self) -> EnergyParts {
+        EnergyParts {
+            params: self.mlp.params().to_vec(),
+            normalizer: self.normalizer.clone(),
         }
     }
 

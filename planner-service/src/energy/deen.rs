@@ -11,15 +11,16 @@
 //! The model works in standardised coordinates (its [`Normalizer`] is fitted on the training
 //! data at every fit); [`Deen::energy_rows`] and [`Deen::score_rows`] take raw vectors.
 
-use super::config::{EnergyConfig, layer_sizes};
+use super::config::{EnergyConfig, EnergyParts, layer_sizes};
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::matmul::transpose;
 use crate::nn::train::run_epochs;
 use crate::nn::{
     Activation, Adam, FitReport, FlushDenormals, ForwardScratch, InputGradTape, Mlp, Normalizer,
+    ShapeError,
 };
-use rand::RngExt;
 use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 use std::time::Instant;
 
@@ -79,6 +80,32 @@ impl Deen {
             normalizer: Normalizer::identity(dim),
             sigma: config.noise_sigma,
             batch_size: config.batch_size.max(1),
+        }
+    }
+
+    /// A model of the configured size with stored parts (see [`Deen::parts`]).
+    pub fn from_parts(
+        dim: usize,
+        config: &EnergyConfig,
+        parts: EnergyParts,
+    ) -> Result<Self, ShapeError> {
+        let mut model = Self::new(dim, config, &mut StdRng::seed_from_u64(0)); // weights replaced
+        ShapeError::check(
+            "energy parameters",
+            model.mlp.params().len(),
+            parts.params.len(),
+        )?;
+        ShapeError::check("energy statistics", dim, parts.normalizer.dim())?;
+        model.mlp.params_mut().copy_from_slice(&parts.params);
+        model.normalizer = parts.normalizer;
+        Ok(model)
+    }
+
+    /// A copy of what determines this model's outputs.
+    pub fn parts(&self) -> EnergyParts {
+        EnergyParts {
+            params: self.mlp.params().to_vec(),
+            normalizer: self.normalizer.clone(),
         }
     }
 

@@ -23,12 +23,12 @@ pub mod config;
 pub mod dae;
 pub mod deen;
 
-pub use config::EnergyConfig;
+pub use config::{EnergyConfig, EnergyParts};
 pub use dae::{Dae, DaeWorkspace};
 pub use deen::{Deen, DeenWorkspace};
 
 use crate::data::Transitions;
-use crate::nn::{FitReport, ForwardScratch, Normalizer};
+use crate::nn::{FitReport, ForwardScratch, Normalizer, ShapeError};
 use rand::rngs::StdRng;
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -143,6 +143,41 @@ impl Regularizer {
             RegularizerKind::None => Regularizer::None,
             RegularizerKind::Dae => Regularizer::Dae(Dae::new(dim, config, rng)),
             RegularizerKind::Deen => Regularizer::Deen(Deen::new(dim, config, rng)),
+        }
+    }
+
+    /// A regulariser of `kind` with stored parts (`None` for the `None` kind; see
+    /// [`Regularizer::parts`]).
+    pub fn from_parts(
+        kind: RegularizerKind,
+        config: &EnergyConfig,
+        obs_dim: usize,
+        act_dim: usize,
+        parts: Option<EnergyParts>,
+    ) -> Result<Self, ShapeError> {
+        let dim = 2 * obs_dim + act_dim;
+        match (kind, parts) {
+            (RegularizerKind::None, None) => Ok(Regularizer::None),
+            (RegularizerKind::Dae, Some(p)) => {
+                Ok(Regularizer::Dae(Dae::from_parts(dim, config, p)?))
+            }
+            (RegularizerKind::Deen, Some(p)) => {
+                Ok(Regularizer::Deen(Deen::from_parts(dim, config, p)?))
+            }
+            (_, p) => Err(ShapeError {
+                what: "stored energy networks (one for dae and deen, none for none)",
+                expected: usize::from(kind != RegularizerKind::None),
+                got: usize::from(p.is_some()),
+            }),
+        }
+    }
+
+    /// What determines the energies — what persistence stores (`None` for `None`).
+    pub fn parts(&self) -> Option<EnergyParts> {
+        match self {
+            Regularizer::None => None,
+            Regularizer::Dae(m) => Some(m.parts()),
+            Regularizer::Deen(m) => Some(m.parts()),
         }
     }
 

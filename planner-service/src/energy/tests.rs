@@ -309,6 +309,53 @@ fn regularizers_score_real_transitions_as_more_familiar_than_impossible_ones() {
 }
 
 #[test]
+fn parts_restore_identical_energies() {
+    let mut rng = StdRng::seed_from_u64(40);
+    let data = oscillator(200, &mut rng);
+    let config = EnergyConfig {
+        hidden_layers: 2,
+        hidden_size: 16,
+        epochs: 2,
+        batch_size: 32,
+        noise_sigma: 0.2,
+        learning_rate: 1e-3,
+    };
+    for kind in RegularizerKind::ALL.iter().copied() {
+        let mut reg = Regularizer::new(kind, &config, 2, 1, &mut rng);
+        reg.fit(&data, 2, &mut rng);
+        let json = serde_json::to_string(&reg.parts()).unwrap();
+        let restored =
+            Regularizer::from_parts(kind, &config, 2, 1, serde_json::from_str(&json).unwrap())
+                .unwrap();
+        let (mut a, mut b) = (vec![0.0; 200], vec![1.0; 200]);
+        reg.energy(
+            data.obs(),
+            data.act(),
+            data.next_obs(),
+            200,
+            &mut reg.scratch(200),
+            &mut a,
+        );
+        restored.energy(
+            data.obs(),
+            data.act(),
+            data.next_obs(),
+            200,
+            &mut restored.scratch(200),
+            &mut b,
+        );
+        assert_eq!(a, b, "{kind}");
+    }
+    let deen = Regularizer::new(RegularizerKind::Deen, &config, 2, 1, &mut rng);
+    assert!(
+        Regularizer::from_parts(RegularizerKind::Dae, &config, 2, 1, deen.parts()).is_err(),
+        "a DAE has another shape"
+    );
+    assert!(Regularizer::from_parts(RegularizerKind::None, &config, 2, 1, deen.parts()).is_err());
+    assert!(Regularizer::from_parts(RegularizerKind::Deen, &config, 3, 1, deen.parts()).is_err());
+}
+
+#[test]
 fn the_none_regularizer_is_free() {
     let mut rng = StdRng::seed_from_u64(38);
     let mut reg = Regularizer::new(
@@ -391,12 +438,16 @@ fn timing() {
     let mut params = mlp.params().to_vec();
     let mut adam = crate::nn::Adam::new(params.len(), 1e-3);
     let optimiser = measure(10, || adam.step(&mut params, &grads));
-    println!("  of which: forward + input gradient {forward}, double backprop {backward}, Adam {optimiser}");
+    println!(
+        "  of which: forward + input gradient {forward}, double backprop {backward}, Adam {optimiser}"
+    );
     let rows = 500;
     let reg = Regularizer::Deen(deen);
     let mut scratch = reg.scratch(rows);
     let (obs, act) = (&set[..rows * 18], &set[..rows * 6]);
     let mut out = vec![0.0; rows];
-    let energy = measure(3, || reg.energy(obs, act, obs, rows, &mut scratch, &mut out));
+    let energy = measure(3, || {
+        reg.energy(obs, act, obs, rows, &mut scratch, &mut out)
+    });
     println!("DEEN energy, 500 rows: {energy}");
 }

@@ -207,6 +207,30 @@ impl Mlp {
     }
 }
 
+/// Stored numbers that do not fit the shape they are loaded into.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{what}: expected {expected} numbers, got {got}")]
+pub struct ShapeError {
+    pub what: &'static str,
+    pub expected: usize,
+    pub got: usize,
+}
+
+impl ShapeError {
+    /// `Ok` when `got == expected`.
+    pub fn check(what: &'static str, expected: usize, got: usize) -> Result<(), ShapeError> {
+        if expected == got {
+            Ok(())
+        } else {
+            Err(ShapeError {
+                what,
+                expected,
+                got,
+            })
+        }
+    }
+}
+
 /// Number of parameters of a network with these layer sizes.
 pub fn param_count(sizes: &[usize]) -> usize {
     sizes.windows(2).map(|w| w[0] * w[1] + w[1]).sum()

@@ -32,6 +32,7 @@ pub use adam::{Adam, add_weight_decay};
 pub use backprop::Tape;
 pub use denormals::FlushDenormals;
 pub use double_backprop::InputGradTape;
+pub use mlp::ShapeError;
 pub use mlp::{ForwardScratch, Mlp};
 pub use normalizer::Normalizer;
 pub use train::FitReport;

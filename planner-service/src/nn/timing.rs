@@ -30,5 +30,8 @@ pub fn measure(reps: usize, mut f: impl FnMut()) -> Timing {
         .skip(1)
         .collect();
     batches.sort_by(f64::total_cmp);
-    Timing { min_ms: batches[0], median_ms: batches[batches.len() / 2] }
+    Timing {
+        min_ms: batches[0],
+        median_ms: batches[batches.len() / 2],
+    }
 }
