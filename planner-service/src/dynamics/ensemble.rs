@@ -79,10 +79,20 @@ impl Ensemble {
 
     /// Trains every member for `epochs` on `data`, continuing from the current weights after
     /// refitting the input and target statistics on `data`. Members train in parallel.
+    /// Without data or epochs the ensemble is left exactly as it is.
     pub fn fit(&mut self, data: &Transitions, epochs: usize, rng: &mut StdRng) -> FitReport {
         let started = Instant::now();
         let task = self.task();
         let n = data.len();
+        if n == 0 || epochs == 0 {
+            // Nothing to learn from: keep the statistics as well as the weights.
+            return FitReport {
+                samples: n,
+                epochs,
+                loss: f32::NAN,
+                ..FitReport::default()
+            };
+        }
         let (inputs, targets) = TrainingSet::raw(task, data);
         let input_norm = Normalizer::fit(&inputs, task.state_feature_dim + task.act_dim);
         let target_norm = Normalizer::fit(&targets, task.obs_dim);

@@ -330,10 +330,17 @@ fn models_are_shareable_across_threads() {
 fn empty_data_leaves_the_model_untouched() {
     let mut rng = StdRng::seed_from_u64(24);
     let mut ensemble = Ensemble::new(cartpole(), &small_config(3), &mut rng);
-    let before = ensemble.member(0).mlp().clone();
+    ensemble.fit(&dataset(100, 0.1, &mut rng), 1, &mut rng);
+    let before = ensemble.member(0).parts();
     let report = ensemble.fit(&Transitions::new(4, 1), 3, &mut rng);
     assert_eq!((report.samples, report.steps, report.mse), (0, 0, None));
-    assert_eq!(ensemble.member(0).mlp(), &before);
+    let report = ensemble.fit(&dataset(100, 0.1, &mut rng), 0, &mut rng);
+    assert_eq!((report.samples, report.steps), (100, 0));
+    assert_eq!(
+        ensemble.member(0).parts(),
+        before,
+        "weights and statistics unchanged"
+    );
 }
 
 /// Time of one training step of the half-cheetah model (4 × 200, batch 128) and of one

@@ -127,14 +127,24 @@ impl Deen {
     }
 
     /// Refits the normaliser on `rows` (raw, sample-major, `dim` columns) and trains `epochs`
-    /// passes over them, continuing from the current weights.
+    /// passes over them, continuing from the current weights. Without data or epochs the model
+    /// is left exactly as it is.
     pub fn fit(&mut self, rows: &[f32], epochs: usize, rng: &mut StdRng) -> FitReport {
         let started = Instant::now();
+        let n = rows.len() / self.dim();
+        if n == 0 || epochs == 0 {
+            // Nothing to learn from: keep the statistics as well as the weights.
+            return FitReport {
+                samples: n,
+                epochs,
+                loss: f32::NAN,
+                ..FitReport::default()
+            };
+        }
         let _flush = FlushDenormals::new();
         self.normalizer = Normalizer::fit(rows, self.dim());
         let mut set = rows.to_vec();
         self.normalizer.normalize_rows(&mut set);
-        let n = set.len() / self.dim();
         let mut order: Vec<usize> = (0..n).collect();
         let mut ws = DeenWorkspace::new(self, self.batch_size.min(n.max(1)));
         let batch_size = self.batch_size;

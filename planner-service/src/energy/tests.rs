@@ -356,6 +356,32 @@ fn parts_restore_identical_energies() {
 }
 
 #[test]
+fn fitting_nothing_changes_nothing() {
+    let mut rng = StdRng::seed_from_u64(41);
+    let config = EnergyConfig {
+        hidden_layers: 1,
+        hidden_size: 8,
+        epochs: 1,
+        batch_size: 16,
+        noise_sigma: 0.2,
+        learning_rate: 1e-3,
+    };
+    for kind in [RegularizerKind::Dae, RegularizerKind::Deen] {
+        let mut reg = Regularizer::new(kind, &config, 2, 1, &mut rng);
+        reg.fit(&oscillator(50, &mut rng), 1, &mut rng);
+        let before = reg.parts();
+        let report = reg.fit(&Transitions::new(2, 1), 3, &mut rng);
+        assert_eq!((report.samples, report.steps), (0, 0));
+        reg.fit(&oscillator(50, &mut rng), 0, &mut rng);
+        assert_eq!(
+            reg.parts(),
+            before,
+            "{kind}: weights and statistics unchanged"
+        );
+    }
+}
+
+#[test]
 fn the_none_regularizer_is_free() {
     let mut rng = StdRng::seed_from_u64(38);
     let mut reg = Regularizer::new(
