@@ -421,7 +421,7 @@ impl ProbabilisticModel {
         next_obs: &mut [f32],
     ) {
         let task = self.task;
-        let (o, a, f) = (task.obs_dim, task.act_dim, task.state_feature_dim);
+        let (o, a) = (task.obs_dim, task.act_dim);
         assert!(
             scratch.fits_model(self, rows),
             "scratch of {} rows does not fit {rows} rows of this model",
@@ -445,7 +445,6 @@ impl ProbabilisticModel {
                 input[k * ld + i] = self.input_norm.normalize(k, v);
             }
         }
-        debug_assert_eq!(features.len(), f);
         let out = self.mlp.forward(rows, forward);
         let (means, raws) = out.split_at_mut(o * ld);
         if let Some(eps) = noise {
