@@ -3,9 +3,11 @@
 //! No autodiff framework: the networks are MLPs with smooth activations, so the forward pass,
 //! the parameter gradient, the input gradient and the DEEN double backprop are written out
 //! ([`mlp`], [`backprop`], [`double_backprop`]) and each is checked against finite differences.
-//! The time goes into [`matmul`] (a register-blocked kernel) and [`activation`] (vectorised
-//! polynomial exp/log), both compiled for AVX-512/AVX2 and picked at run time ([`simd`]).
-//! Inference ([`Mlp::forward`]) never allocates once its [`ForwardScratch`] exists.
+//! The time goes into [`matmul`] (a register-blocked kernel, used instead of the `gemm` crate
+//! because every `gemm` call allocates; it matches `gemm`'s speed on these shapes) and
+//! [`activation`] (vectorised polynomial exp/log), both compiled for AVX-512/AVX2 and picked at
+//! run time ([`simd`]). Inference ([`Mlp::forward`]) never allocates once its
+//! [`ForwardScratch`] exists; training threads flush denormals ([`denormals`]).
 //!
 //! Batches are feature-major throughout (see [`mlp`]).
 
@@ -32,7 +34,6 @@ pub use adam::{Adam, add_weight_decay};
 pub use backprop::Tape;
 pub use denormals::FlushDenormals;
 pub use double_backprop::InputGradTape;
-pub use mlp::ShapeError;
-pub use mlp::{ForwardScratch, Mlp};
+pub use mlp::{ForwardScratch, Mlp, ShapeError};
 pub use normalizer::Normalizer;
 pub use train::FitReport;
