@@ -21,6 +21,9 @@ enum Command {
     /// Run the planner daemon: serve attach requests and observations over Zenoh until
     /// SIGINT/SIGTERM.
     Serve(ServeArgs),
+    /// Measure planning and training speed at a preset's sizes.
+    #[command(subcommand)]
+    Bench(planner_service::bench::BenchCommand),
 }
 
 #[derive(clap::Args, Debug)]
@@ -117,6 +120,11 @@ fn main() -> Result<()> {
             runtime
                 .block_on(Service::serve(config, shutdown_signal()))
                 .context("planner service")?;
+            Ok(())
+        }
+        Command::Bench(cmd) => {
+            let report = planner_service::bench::run(&cmd)?;
+            println!("{report}");
             Ok(())
         }
     }

@@ -172,7 +172,11 @@ impl Service {
 
         tokio::pin!(shutdown);
         loop {
+            // Biased: observations are drained before liveliness changes. Zenoh delivers an
+            // agent's last observation before its token's deletion, but they arrive on two
+            // channels; an unbiased select could drop the agent first and refuse its last step.
             tokio::select! {
+                biased;
                 query = attach.recv_async() => match query {
                     Ok(query) => service.attach(query).await,
                     Err(e) => { tracing::error!(error = %e, "attach queryable closed"); break; }

@@ -61,6 +61,10 @@ fn new_planner(run: &Run, seed: u64) -> Result<MpcPlanner, ErrorReport> {
     })
 }
 
+fn finite_or_min(x: f32) -> f32 {
+    if x.is_finite() { x } else { f32::MIN }
+}
+
 impl AgentWorker {
     pub(crate) fn new(run: Arc<Run>, name: String, outbox: Outbox) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
@@ -180,6 +184,10 @@ impl AgentWorker {
             };
             self.planner = Some(planner);
             let (action, predicted_return, mean_energy, iterations) = outcome;
+            // A model that diverged on every elite scores −inf; JSON cannot carry that, and
+            // the statistic is informational, so report the most negative finite number.
+            let (predicted_return, mean_energy) =
+                (finite_or_min(predicted_return), finite_or_min(mean_energy));
             (
                 action,
                 ActionSource::Planned,
