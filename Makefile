@@ -12,7 +12,7 @@ EPISODES ?= 10
 SEED ?= 0
 METHOD ?= cem+deen
 
-.PHONY: demo test mujoco toolchain lint fmt
+.PHONY: demo test mujoco python-env toolchain lint fmt
 
 toolchain:
 	@command -v $(CARGO) >/dev/null || { echo "error: cargo not found: install Rust 1.95+ (https://rustup.rs) first" >&2; exit 1; }
@@ -26,9 +26,15 @@ demo: toolchain mujoco
 	$(CARGO) build --release --bins
 	TASK=$(TASK) EPISODES=$(EPISODES) SEED=$(SEED) METHOD=$(METHOD) bash deploy/demo.sh
 
-test: toolchain mujoco
+# eclipse-zenoh for examples/python_controller.py, whose end-to-end test uses this interpreter.
+VENV := .venv
+
+python-env:
+	bash examples/setup-python.sh "$(CURDIR)/$(VENV)"
+
+test: toolchain mujoco python-env
 	$(CARGO) build --workspace --bins
-	$(CARGO) test --workspace --no-fail-fast
+	EBMPC_PYTHON="$(CURDIR)/$(VENV)/bin/python" $(CARGO) test --workspace --no-fail-fast
 
 lint: toolchain mujoco
 	$(CARGO) fmt --all -- --check
