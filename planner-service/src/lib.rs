@@ -16,6 +16,7 @@ pub mod dynamics;
 pub mod energy;
 pub mod models;
 pub mod nn;
+pub mod persist;
 pub mod plan;
 pub mod replay;
 pub mod run;

@@ -4,6 +4,7 @@
 use crate::agent::Accepted;
 use crate::config::Preset;
 use crate::models::Models;
+use crate::persist::{PersistError, RunDir};
 use crate::replay::{EpisodeSummary, ReplayBuffer, ReplayError};
 use crate::service::status::{Latency, LatencyWindow};
 use crate::trainer::{TrainReport, retrain};
@@ -31,6 +32,17 @@ pub struct Run {
     wake_trainer: Notify,
     events: EventSink,
     latencies: Mutex<LatencyWindow>,
+    /// Where checkpoints go (`None`: the run lives in memory only).
+    dir: Option<RunDir>,
+}
+
+/// Why a stored or new run could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    #[error("replay buffer: {0}")]
+    Replay(#[from] ReplayError),
+    #[error(transparent)]
+    Persist(#[from] PersistError),
 }
 
 impl std::fmt::Debug for Run {
@@ -43,22 +55,59 @@ impl std::fmt::Debug for Run {
 }
 
 impl Run {
-    /// A run over `buffer` (new or recovered) with untrained models. If the buffer already holds
-    /// finished episodes, the trainer is woken at once so models catch up with the data.
-    pub fn new(
+    /// Opens the run stored in `dir`, or starts it there: records its spec, recovers its replay
+    /// buffer (cutting a torn tail) and loads the newest usable checkpoint. If the buffer holds
+    /// finished episodes the models were not trained on, the trainer is woken at once so the
+    /// models catch up with the data.
+    pub fn open(
+        name: String,
+        spec: RunSpec,
+        preset: Preset,
+        dir: RunDir,
+        events: EventSink,
+    ) -> Result<Arc<Self>, OpenError> {
+        let task = spec.task.spec();
+        dir.write_spec(&spec)?;
+        let buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        let models = match dir.load_models(task, &preset)? {
+            Some(models) => models,
+            None => Models::untrained(task, &preset, spec.seed),
+        };
+        tracing::info!(
+            run = %name,
+            transitions = buffer.len(),
+            episodes = buffer.episodes().len(),
+            models_version = models.version,
+            path = %dir.root().display(),
+            "run opened"
+        );
+        Ok(Self::with_state(
+            name,
+            spec,
+            preset,
+            buffer,
+            models,
+            Some(dir),
+            events,
+        ))
+    }
+
+    fn with_state(
         name: String,
         spec: RunSpec,
         preset: Preset,
         buffer: ReplayBuffer,
+        models: Models,
+        dir: Option<RunDir>,
         events: EventSink,
     ) -> Arc<Self> {
         let task = spec.task.spec();
-        let models = Models::untrained(task, &preset, spec.seed);
         let stored = buffer
             .episodes()
             .iter()
             .filter(|e| e.end != EpisodeEnd::Interrupted)
             .count() as u32;
+        let covered = models.episodes_covered;
         let run = Arc::new(Self {
             name,
             spec,
@@ -67,13 +116,14 @@ impl Run {
             buffer: Mutex::new(buffer),
             models: RwLock::new(Arc::new(models)),
             episodes_stored: AtomicU32::new(stored),
-            trained_through: watch::Sender::new(0),
+            trained_through: watch::Sender::new(covered),
             training: AtomicBool::new(false),
             wake_trainer: Notify::new(),
             events,
             latencies: Mutex::new(LatencyWindow::default()),
+            dir,
         });
-        if stored > 0 {
+        if stored > covered {
             run.wake_trainer.notify_one();
         }
         run
@@ -234,8 +284,19 @@ impl Run {
             let current = self.models();
             let preset = self.preset.clone();
             let seed = self.spec.seed;
+            let dir = self.dir.clone();
+            let task = self.task;
             let outcome = tokio::task::spawn_blocking(move || {
-                retrain(&current, &data, &preset, episodes, seed)
+                let (models, report) = retrain(&current, &data, &preset, episodes, seed);
+                // Checkpoint before the swap: models in use are always on disk too, so a
+                // restart never plans with models older than the ones agents last saw.
+                if let Some(dir) = dir {
+                    match dir.save_models(&models, task) {
+                        Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
+                        Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
+                    }
+                }
+                (models, report)
             })
             .await;
             self.training.store(false, Ordering::SeqCst);

@@ -13,11 +13,11 @@ pub mod status;
 mod worker;
 
 use crate::config::{Preset, ServiceConfig};
-use crate::replay::ReplayBuffer;
+use crate::persist::{self, RunDir};
 use crate::run::{EventSink, Run};
 use proto::{
     AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorCode, ErrorReport,
-    Keys, PROTOCOL_VERSION, RunEvent, RunEventKind,
+    Keys, PROTOCOL_VERSION, RunEvent, RunEventKind, RunSpec,
 };
 use std::collections::HashMap;
 use std::future::Future;
@@ -145,6 +145,7 @@ impl Service {
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
+        service.resume_stored_runs();
         let planner_id = service.config.planner_id.clone();
         let _alive = session
             .liveliness()
@@ -309,16 +310,8 @@ impl Service {
                     self.config.max_runs
                 )));
             }
-            let run = self.create_run(run_name, &request)?;
-            let trainer = self.runtime.spawn(run.clone().trainer_loop());
-            runs.insert(
-                run_name.to_string(),
-                RunHandle {
-                    run,
-                    agents: HashMap::new(),
-                    trainer,
-                },
-            );
+            let run = self.open_run(run_name, request.spec.clone())?;
+            self.host(&mut runs, run);
         }
         let handle = runs.get_mut(run_name).expect("inserted above");
         let run = handle.run.clone();
@@ -357,9 +350,10 @@ impl Service {
         })
     }
 
-    fn create_run(&self, name: &str, request: &AttachRequest) -> Result<Arc<Run>, ErrorReport> {
+    /// The preset a run spec asks for, with the daemon's and the spec's overrides applied.
+    fn preset_for(&self, spec: &RunSpec) -> Result<Preset, ErrorReport> {
         let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
-        let method = request.spec.preset.as_deref();
+        let method = spec.preset.as_deref();
         if let Some(m) = method
             && !self.config.allowed_presets.is_empty()
             && !self.config.allowed_presets.iter().any(|p| p == m)
@@ -369,38 +363,77 @@ impl Service {
                 self.config.allowed_presets.join(", ")
             )));
         }
-        let mut preset =
-            Preset::new(request.spec.task, method).map_err(|e| refuse(e.to_string()))?;
+        let mut preset = Preset::new(spec.task, method).map_err(|e| refuse(e.to_string()))?;
         preset
             .apply(&self.config.overrides)
             .map_err(|e| refuse(format!("planner config: {e}")))?;
         preset
-            .apply(&request.spec.overrides)
+            .apply(&spec.overrides)
             .map_err(|e| refuse(e.to_string()))?;
         preset
             .cem
             .validate()
             .map_err(|e| refuse(format!("invalid planner configuration: {e}")))?;
-        let path = self
-            .config
-            .data_dir
-            .join("runs")
-            .join(name)
-            .join("replay.log");
-        let buffer = ReplayBuffer::open(&path, request.spec.task.spec()).map_err(|e| {
+        Ok(preset)
+    }
+
+    /// Opens run `name` in the data directory (new, or stored by an earlier daemon).
+    fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, ErrorReport> {
+        let preset = self.preset_for(&spec)?;
+        let dir = RunDir::new(&self.config.data_dir, name);
+        Run::open(name.to_string(), spec, preset, dir, self.event_sink()).map_err(|e| {
             ErrorReport::new(
                 ErrorCode::Internal,
-                format!("cannot open the run's replay buffer: {e}"),
+                format!("cannot open run `{name}`: {e}"),
             )
-        })?;
-        tracing::info!(run = %name, transitions = buffer.len(), episodes = buffer.episodes().len(), path = %path.display(), "run opened");
-        Ok(Run::new(
-            name.to_string(),
-            request.spec.clone(),
-            preset,
-            buffer,
-            self.event_sink(),
-        ))
+        })
+    }
+
+    fn host(&self, runs: &mut HashMap<String, RunHandle>, run: Arc<Run>) {
+        let trainer = self.runtime.spawn(run.clone().trainer_loop());
+        runs.insert(
+            run.name().to_string(),
+            RunHandle {
+                run,
+                agents: HashMap::new(),
+                trainer,
+            },
+        );
+    }
+
+    /// Re-opens every run stored in the data directory, so a restarted daemon carries on where
+    /// it stopped: status lists them at once, their trainers catch up with episodes stored
+    /// after the last checkpoint, and agents re-attach to them. Stored runs are resumed even
+    /// beyond `max_runs` (the limit is on creating runs, never on keeping data). A run that
+    /// cannot be opened is logged and left on disk untouched.
+    fn resume_stored_runs(&self) {
+        let stored = match persist::stored_runs(&self.config.data_dir) {
+            Ok(stored) => stored,
+            Err(e) => {
+                tracing::error!(error = %e, "cannot list stored runs; none resumed");
+                return;
+            }
+        };
+        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+        for (name, dir) in stored {
+            let spec = match dir.read_spec() {
+                Ok(Some(spec)) => spec,
+                Ok(None) => {
+                    tracing::warn!(run = %name, "stored run has no run.json; it resumes when an agent attaches");
+                    continue;
+                }
+                Err(e) => {
+                    tracing::error!(run = %name, error = %e, "cannot read a stored run's spec; not resumed");
+                    continue;
+                }
+            };
+            match self.open_run(&name, spec) {
+                Ok(run) => self.host(&mut runs, run),
+                Err(report) => {
+                    tracing::error!(run = %name, "stored run not resumed: {}", report.message);
+                }
+            }
+        }
     }
 
     /// The status report of this planner.

@@ -1,0 +1,293 @@
+//! Model checkpoints: one safetensors file per models version.
+//!
+//! The network weights are safetensors tensors (`dynamics.{member}` and `energy`, flat f32 in
+//! [`crate::nn::Mlp::params`] order); everything small that a model also needs to predict —
+//! normaliser statistics, learned log-variance bounds, the models version, the episodes the
+//! models were trained on, the regulariser — is a JSON header stored in the safetensors
+//! metadata under [`HEADER_KEY`]. One self-describing file per version means a checkpoint is
+//! written with a single atomic rename and can be inspected with any safetensors reader.
+
+use crate::config::Preset;
+use crate::dynamics::{Ensemble, ModelParts};
+use crate::energy::{EnergyParts, Regularizer, RegularizerKind};
+use crate::models::Models;
+use crate::nn::Normalizer;
+use proto::{TaskId, TaskSpec};
+use safetensors::tensor::{Dtype, TensorView};
+use safetensors::{SafeTensors, serialize};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+
+/// The safetensors metadata key that holds the JSON header.
+pub const HEADER_KEY: &str = "ebmpc";
+
+/// Version of the checkpoint layout (not of the models); bumped when the header changes.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Why a checkpoint could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("safetensors: {0}")]
+    SafeTensors(#[from] safetensors::SafeTensorError),
+    #[error("checkpoint header: {0}")]
+    Header(#[from] serde_json::Error),
+    #[error("checkpoint has no `{HEADER_KEY}` header")]
+    MissingHeader,
+    #[error("checkpoint format {found} is not supported (this build reads {FORMAT_VERSION})")]
+    Format { found: u32 },
+    #[error("checkpoint is for {found}, the run learns {expected}")]
+    Task { found: TaskId, expected: TaskId },
+    #[error("checkpoint tensor `{name}`: {problem}")]
+    Tensor { name: String, problem: String },
+    #[error("checkpoint does not fit the run's preset: {0}")]
+    Shape(#[from] crate::nn::ShapeError),
+}
+
+/// The JSON header: everything but the weights.
+#[derive(Debug, Serialize, Deserialize)]
+struct Header {
+    format: u32,
+    task: TaskId,
+    models_version: u64,
+    episodes_covered: u32,
+    regularizer: RegularizerKind,
+    dynamics: Vec<MemberStats>,
+    energy: Option<Normalizer>,
+}
+
+/// One dynamics member's statistics.
+#[derive(Debug, Serialize, Deserialize)]
+struct MemberStats {
+    input_norm: Normalizer,
+    target_norm: Normalizer,
+    max_logvar: Vec<f32>,
+    min_logvar: Vec<f32>,
+}
+
+fn dynamics_tensor(member: usize) -> String {
+    format!("dynamics.{member}")
+}
+
+const ENERGY_TENSOR: &str = "energy";
+
+/// Encodes `models` of `task` as safetensors bytes.
+pub fn encode(models: &Models, task: TaskId) -> Result<Vec<u8>, CheckpointError> {
+    let members = models.dynamics.parts();
+    let energy = models.regularizer.parts();
+    let header = Header {
+        format: FORMAT_VERSION,
+        task,
+        models_version: models.version,
+        episodes_covered: models.episodes_covered,
+        regularizer: models.regularizer.kind(),
+        dynamics: members
+            .iter()
+            .map(|p| MemberStats {
+                input_norm: p.input_norm.clone(),
+                target_norm: p.target_norm.clone(),
+                max_logvar: p.max_logvar.clone(),
+                min_logvar: p.min_logvar.clone(),
+            })
+            .collect(),
+        energy: energy.as_ref().map(|e| e.normalizer.clone()),
+    };
+    let mut weights: Vec<(String, Vec<u8>, usize)> = members
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (dynamics_tensor(i), le_bytes(&p.params), p.params.len()))
+        .collect();
+    if let Some(e) = &energy {
+        weights.push((
+            ENERGY_TENSOR.to_string(),
+            le_bytes(&e.params),
+            e.params.len(),
+        ));
+    }
+    let views = weights
+        .iter()
+        .map(|(name, bytes, len)| {
+            Ok((
+                name.as_str(),
+                TensorView::new(Dtype::F32, vec![*len], bytes)?,
+            ))
+        })
+        .collect::<Result<Vec<_>, safetensors::SafeTensorError>>()?;
+    let metadata = HashMap::from([(HEADER_KEY.to_string(), serde_json::to_string(&header)?)]);
+    Ok(serialize(views, Some(metadata))?)
+}
+
+/// Decodes a checkpoint into models of the run's `preset` for `task`, checking every shape.
+pub fn decode(
+    bytes: &[u8],
+    task: &'static TaskSpec,
+    preset: &Preset,
+) -> Result<Models, CheckpointError> {
+    let (_, metadata) = SafeTensors::read_metadata(bytes)?;
+    let header_json = metadata
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get(HEADER_KEY))
+        .ok_or(CheckpointError::MissingHeader)?;
+    let header: Header = serde_json::from_str(header_json)?;
+    if header.format != FORMAT_VERSION {
+        return Err(CheckpointError::Format {
+            found: header.format,
+        });
+    }
+    if header.task != task.id {
+        return Err(CheckpointError::Task {
+            found: header.task,
+            expected: task.id,
+        });
+    }
+    let tensors = SafeTensors::deserialize(bytes)?;
+    let parts = header
+        .dynamics
+        .into_iter()
+        .enumerate()
+        .map(|(i, stats)| {
+            Ok(ModelParts {
+                params: read_f32(&tensors, &dynamics_tensor(i))?,
+                input_norm: stats.input_norm,
+                target_norm: stats.target_norm,
+                max_logvar: stats.max_logvar,
+                min_logvar: stats.min_logvar,
+            })
+        })
+        .collect::<Result<Vec<_>, CheckpointError>>()?;
+    let dynamics = Ensemble::from_parts(task, &preset.dynamics, parts)?;
+    let energy = match header.energy {
+        None => None,
+        Some(normalizer) => Some(EnergyParts {
+            params: read_f32(&tensors, ENERGY_TENSOR)?,
+            normalizer,
+        }),
+    };
+    let regularizer = Regularizer::from_parts(
+        header.regularizer,
+        &preset.energy,
+        task.obs_dim,
+        task.act_dim,
+        energy,
+    )?;
+    if regularizer.kind() != preset.regularizer {
+        return Err(CheckpointError::Tensor {
+            name: ENERGY_TENSOR.to_string(),
+            problem: format!(
+                "stored for regulariser {}, the run uses {}",
+                regularizer.kind().name(),
+                preset.regularizer.name()
+            ),
+        });
+    }
+    Ok(Models {
+        version: header.models_version,
+        episodes_covered: header.episodes_covered,
+        dynamics,
+        regularizer,
+    })
+}
+
+fn le_bytes(values: &[f32]) -> Vec<u8> {
+    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+fn read_f32(tensors: &SafeTensors<'_>, name: &str) -> Result<Vec<f32>, CheckpointError> {
+    let problem = |problem: String| CheckpointError::Tensor {
+        name: name.to_string(),
+        problem,
+    };
+    let view = tensors
+        .tensor(name)
+        .map_err(|e| problem(format!("missing ({e})")))?;
+    if view.dtype() != Dtype::F32 {
+        return Err(problem(format!("dtype {:?}, expected F32", view.dtype())));
+    }
+    Ok(view
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::Transitions;
+    use rand::SeedableRng;
+    use rand::rngs::StdRng;
+
+    fn trained(method: &str) -> (Preset, Models) {
+        let task = TaskId::Cartpole.spec();
+        let mut preset = Preset::new(TaskId::Cartpole, Some(method)).unwrap();
+        preset.dynamics.hidden_size = 8;
+        preset.dynamics.ensemble_size = preset.dynamics.ensemble_size.min(2);
+        preset.energy.hidden_size = 8;
+        let mut models = Models::untrained(task, &preset, 3);
+        let mut data = Transitions::new(task.obs_dim, task.act_dim);
+        for i in 0..40 {
+            let s = [i as f32 * 0.1, 0.2, -0.1, 0.05 * i as f32];
+            data.push(&s, &[0.5], &[s[0] + 0.01, 0.2, -0.1, s[3]]);
+        }
+        let mut rng = StdRng::seed_from_u64(1);
+        models.dynamics.fit(&data, 2, &mut rng);
+        models.regularizer.fit(&data, 2, &mut rng);
+        models.version = 4;
+        models.episodes_covered = 7;
+        (preset, models)
+    }
+
+    #[test]
+    fn a_decoded_checkpoint_predicts_exactly_what_was_saved() {
+        for method in ["cem", "cem+dae", "pets+deen"] {
+            let (preset, models) = trained(method);
+            let task = TaskId::Cartpole.spec();
+            let bytes = encode(&models, TaskId::Cartpole).unwrap();
+            let restored = decode(&bytes, task, &preset).unwrap();
+            assert_eq!(restored.version, 4);
+            assert_eq!(restored.episodes_covered, 7);
+            assert_eq!(
+                restored.dynamics.parts(),
+                models.dynamics.parts(),
+                "{method}"
+            );
+            assert_eq!(
+                restored.regularizer.parts(),
+                models.regularizer.parts(),
+                "{method}"
+            );
+            assert_eq!(restored.regularizer.kind(), preset.regularizer);
+        }
+    }
+
+    #[test]
+    fn a_checkpoint_that_does_not_fit_the_run_is_refused() {
+        let (preset, models) = trained("cem+deen");
+        let bytes = encode(&models, TaskId::Cartpole).unwrap();
+        let err = decode(&bytes, TaskId::Ant.spec(), &preset).unwrap_err();
+        assert!(matches!(err, CheckpointError::Task { .. }), "{err}");
+        let mut wider = preset.clone();
+        wider.dynamics.hidden_size = 16;
+        let err = decode(&bytes, TaskId::Cartpole.spec(), &wider).unwrap_err();
+        assert!(matches!(err, CheckpointError::Shape(_)), "{err}");
+        let mut other = preset.clone();
+        other.regularizer = RegularizerKind::Dae;
+        assert!(decode(&bytes, TaskId::Cartpole.spec(), &other).is_err());
+    }
+
+    #[test]
+    fn damaged_bytes_are_an_error_not_a_panic() {
+        let (preset, models) = trained("cem+deen");
+        let bytes = encode(&models, TaskId::Cartpole).unwrap();
+        let task = TaskId::Cartpole.spec();
+        for cut in [0, 7, 8, 100, bytes.len() / 2, bytes.len() - 1] {
+            assert!(
+                decode(&bytes[..cut], task, &preset).is_err(),
+                "cut at {cut}"
+            );
+        }
+        let mut flipped = bytes.clone();
+        flipped[9] ^= 0xff;
+        assert!(decode(&flipped, task, &preset).is_err());
+    }
+}

@@ -1,0 +1,300 @@
+//! What a run keeps on disk so that a restarted daemon resumes it where it stopped.
+//!
+//! ```text
+//! {data_dir}/runs/{run}/run.json                     the run's spec (task, preset, overrides, mode, seed)
+//! {data_dir}/runs/{run}/replay.log                   every transition (see crate::replay)
+//! {data_dir}/runs/{run}/models-{version:08}.safetensors   model checkpoints, newest two kept
+//! ```
+//!
+//! Every file but the append-only replay log is written whole to a temporary file, synced, and
+//! renamed over its final name (then the directory is synced), so a crash at any moment leaves
+//! either the old file or the new one, never a mixture. Loading takes the newest checkpoint
+//! that decodes and fits the run; a damaged one is skipped with a warning, never deleted.
+
+pub mod checkpoint;
+
+use crate::config::Preset;
+use crate::models::Models;
+use checkpoint::CheckpointError;
+use proto::{RunSpec, TaskSpec};
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// Checkpoints kept per run: the newest and one fallback.
+const CHECKPOINTS_KEPT: usize = 2;
+
+const SPEC_FILE: &str = "run.json";
+const CHECKPOINT_PREFIX: &str = "models-";
+const CHECKPOINT_SUFFIX: &str = ".safetensors";
+
+/// Failures of run persistence.
+#[derive(Debug, thiserror::Error)]
+pub enum PersistError {
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("{path}: {source}")]
+    Spec {
+        path: String,
+        source: serde_json::Error,
+    },
+    #[error("{path}: {source}")]
+    Checkpoint {
+        path: String,
+        source: CheckpointError,
+    },
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> PersistError + '_ {
+    move |source| PersistError::Io {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+/// The directory of one run.
+#[derive(Clone, Debug)]
+pub struct RunDir {
+    root: PathBuf,
+}
+
+impl RunDir {
+    /// The directory of run `name` under `data_dir` (not created until something is written).
+    pub fn new(data_dir: &Path, name: &str) -> Self {
+        Self {
+            root: data_dir.join("runs").join(name),
+        }
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    pub fn replay_log(&self) -> PathBuf {
+        self.root.join("replay.log")
+    }
+
+    fn spec_path(&self) -> PathBuf {
+        self.root.join(SPEC_FILE)
+    }
+
+    /// Records the run's spec, so a restarted daemon can re-create the run without its agents.
+    pub fn write_spec(&self, spec: &RunSpec) -> Result<(), PersistError> {
+        let path = self.spec_path();
+        let json = serde_json::to_vec_pretty(spec).map_err(|source| PersistError::Spec {
+            path: path.display().to_string(),
+            source,
+        })?;
+        write_atomically(&path, &json)
+    }
+
+    /// The recorded spec, `None` if this directory never got one (a run from before specs
+    /// were recorded, or one whose creation was interrupted).
+    pub fn read_spec(&self) -> Result<Option<RunSpec>, PersistError> {
+        let path = self.spec_path();
+        let bytes = match fs::read(&path) {
+            Ok(bytes) => bytes,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(io_error(&path)(e)),
+        };
+        serde_json::from_slice(&bytes)
+            .map(Some)
+            .map_err(|source| PersistError::Spec {
+                path: path.display().to_string(),
+                source,
+            })
+    }
+
+    fn checkpoint_path(&self, version: u64) -> PathBuf {
+        self.root.join(format!(
+            "{CHECKPOINT_PREFIX}{version:08}{CHECKPOINT_SUFFIX}"
+        ))
+    }
+
+    /// Stored checkpoint versions, newest first.
+    fn checkpoint_versions(&self) -> Result<Vec<u64>, PersistError> {
+        let entries = match fs::read_dir(&self.root) {
+            Ok(entries) => entries,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(io_error(&self.root)(e)),
+        };
+        let mut versions: Vec<u64> = entries
+            .filter_map(|entry| {
+                let name = entry.ok()?.file_name().into_string().ok()?;
+                name.strip_prefix(CHECKPOINT_PREFIX)?
+                    .strip_suffix(CHECKPOINT_SUFFIX)?
+                    .parse()
+                    .ok()
+            })
+            .collect();
+        versions.sort_unstable_by(|a, b| b.cmp(a));
+        Ok(versions)
+    }
+
+    /// Writes a checkpoint of `models` and removes all but the newest [`CHECKPOINTS_KEPT`].
+    pub fn save_models(&self, models: &Models, task: &TaskSpec) -> Result<PathBuf, PersistError> {
+        let path = self.checkpoint_path(models.version);
+        let bytes =
+            checkpoint::encode(models, task.id).map_err(|source| PersistError::Checkpoint {
+                path: path.display().to_string(),
+                source,
+            })?;
+        write_atomically(&path, &bytes)?;
+        for old in self
+            .checkpoint_versions()?
+            .into_iter()
+            .skip(CHECKPOINTS_KEPT)
+        {
+            let old = self.checkpoint_path(old);
+            if let Err(e) = fs::remove_file(&old) {
+                tracing::warn!(path = %old.display(), error = %e, "cannot remove an old checkpoint");
+            }
+        }
+        Ok(path)
+    }
+
+    /// The newest stored checkpoint that decodes and fits `preset`; `None` if there is none.
+    pub fn load_models(
+        &self,
+        task: &'static TaskSpec,
+        preset: &Preset,
+    ) -> Result<Option<Models>, PersistError> {
+        for version in self.checkpoint_versions()? {
+            let path = self.checkpoint_path(version);
+            let loaded = fs::read(&path).map_err(io_error(&path)).and_then(|bytes| {
+                checkpoint::decode(&bytes, task, preset).map_err(|source| {
+                    PersistError::Checkpoint {
+                        path: path.display().to_string(),
+                        source,
+                    }
+                })
+            });
+            match loaded {
+                Ok(models) => return Ok(Some(models)),
+                Err(e) => tracing::warn!(error = %e, "skipping a checkpoint that cannot be used"),
+            }
+        }
+        Ok(None)
+    }
+}
+
+/// The runs stored under `data_dir`, by name (sorted).
+pub fn stored_runs(data_dir: &Path) -> Result<Vec<(String, RunDir)>, PersistError> {
+    let root = data_dir.join("runs");
+    let entries = match fs::read_dir(&root) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(io_error(&root)(e)),
+    };
+    let mut runs: Vec<(String, RunDir)> = entries
+        .filter_map(|entry| {
+            let entry = entry.ok()?;
+            if !entry.file_type().ok()?.is_dir() {
+                return None;
+            }
+            let name = entry.file_name().into_string().ok()?;
+            Some((name.clone(), RunDir::new(data_dir, &name)))
+        })
+        .collect();
+    runs.sort_by(|a, b| a.0.cmp(&b.0));
+    Ok(runs)
+}
+
+/// Writes `bytes` to `path` so that `path` holds either its old content or all of `bytes`,
+/// whatever happens: a temporary sibling is written and synced, renamed over `path`, and the
+/// directory is synced so the rename itself is durable.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), PersistError> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    fs::create_dir_all(dir).map_err(io_error(dir))?;
+    let mut tmp_name = path.file_name().unwrap_or_default().to_os_string();
+    tmp_name.push(".tmp");
+    let tmp = dir.join(tmp_name);
+    let mut file = fs::File::create(&tmp).map_err(io_error(&tmp))?;
+    file.write_all(bytes).map_err(io_error(&tmp))?;
+    file.sync_all().map_err(io_error(&tmp))?;
+    drop(file);
+    fs::rename(&tmp, path).map_err(io_error(path))?;
+    fs::File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(io_error(dir))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::{PlannerOverrides, TaskId, TrainMode};
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("ebmpc-persist-{name}-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        dir
+    }
+
+    fn small_preset() -> Preset {
+        let mut preset = Preset::new(TaskId::Cartpole, Some("cem+deen")).unwrap();
+        preset.dynamics.hidden_size = 8;
+        preset.energy.hidden_size = 8;
+        preset
+    }
+
+    #[test]
+    fn the_spec_round_trips_and_a_missing_one_is_none() {
+        let data = temp_dir("spec");
+        let dir = RunDir::new(&data, "r1");
+        assert_eq!(dir.read_spec().unwrap(), None);
+        let spec = RunSpec {
+            task: TaskId::Ant,
+            preset: Some("pets+deen".into()),
+            overrides: PlannerOverrides::default(),
+            mode: TrainMode::Async,
+            seed: 9,
+        };
+        dir.write_spec(&spec).unwrap();
+        assert_eq!(dir.read_spec().unwrap(), Some(spec));
+        let runs = stored_runs(&data).unwrap();
+        assert_eq!(runs.len(), 1);
+        assert_eq!(runs[0].0, "r1");
+        fs::write(dir.spec_path(), b"{not json").unwrap();
+        assert!(dir.read_spec().is_err());
+        fs::remove_dir_all(&data).unwrap();
+    }
+
+    #[test]
+    fn the_newest_usable_checkpoint_is_loaded_and_only_two_are_kept() {
+        let data = temp_dir("checkpoints");
+        let dir = RunDir::new(&data, "r");
+        let task = TaskId::Cartpole.spec();
+        let preset = small_preset();
+        assert!(dir.load_models(task, &preset).unwrap().is_none());
+        let mut models = Models::untrained(task, &preset, 1);
+        for version in 1..=4 {
+            models.version = version;
+            models.episodes_covered = version as u32 * 2;
+            dir.save_models(&models, task).unwrap();
+        }
+        assert_eq!(dir.checkpoint_versions().unwrap(), vec![4, 3]);
+        let loaded = dir.load_models(task, &preset).unwrap().unwrap();
+        assert_eq!((loaded.version, loaded.episodes_covered), (4, 8));
+
+        // A damaged newest checkpoint (a disk error: renames never leave half files) is
+        // skipped, and the one before it is used.
+        fs::write(dir.checkpoint_path(4), b"garbage").unwrap();
+        let loaded = dir.load_models(task, &preset).unwrap().unwrap();
+        assert_eq!(loaded.version, 3);
+        assert!(
+            dir.checkpoint_path(4).exists(),
+            "a bad checkpoint is kept for inspection"
+        );
+        // No leftovers of the temporary files.
+        let names: Vec<String> = fs::read_dir(dir.root())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        assert!(names.iter().all(|n| !n.ends_with(".tmp")), "{names:?}");
+        fs::remove_dir_all(&data).unwrap();
+    }
+}
