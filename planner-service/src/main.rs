@@ -1,5 +1,7 @@
 //! `planner-service`: the ebmpc planner daemon and its tools.
 
+mod status_cli;
+
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use planner_service::config::ServiceConfig;
@@ -24,6 +26,8 @@ enum Command {
     /// Measure planning and training speed at a preset's sizes.
     #[command(subcommand)]
     Bench(planner_service::bench::BenchCommand),
+    /// Ask running planners for their runs, agents and planning latencies (a table, or --json).
+    Status(status_cli::StatusArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -127,5 +131,6 @@ fn main() -> Result<()> {
             println!("{report}");
             Ok(())
         }
+        Command::Status(args) => status_cli::run(args),
     }
 }
