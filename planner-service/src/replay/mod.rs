@@ -7,6 +7,7 @@ pub use log::{LogError, Record, ReplayLog};
 
 use crate::data::Transitions;
 use proto::{EpisodeEnd, TaskSpec};
+use std::collections::BTreeMap;
 use std::path::Path;
 
 /// A finished episode, as stored.
@@ -53,6 +54,10 @@ impl ReplayBuffer {
     }
 
     /// Opens the buffer stored at `path` (creating it), recovering every intact record.
+    ///
+    /// Episodes the log holds transitions of but no end (the daemon stopped in their middle)
+    /// are recorded as interrupted here: their transitions stay (they were acknowledged), and
+    /// their agents continue with the next episode number rather than resuming a stale one.
     pub fn open(path: &Path, task: &TaskSpec) -> Result<Self, ReplayError> {
         let (mut log, recovered) = ReplayLog::open(path)?;
         if recovered.truncated_bytes > 0 {
@@ -80,10 +85,40 @@ impl ReplayBuffer {
                 });
             }
         }
+        let mut open_episodes: BTreeMap<(String, u32), EpisodeSummary> = BTreeMap::new();
         for record in records {
+            match &record {
+                Record::Transition {
+                    agent,
+                    episode,
+                    step,
+                    reward,
+                    ..
+                } => {
+                    let open = open_episodes
+                        .entry((agent.clone(), *episode))
+                        .or_insert_with(|| EpisodeSummary {
+                            agent: agent.clone(),
+                            episode: *episode,
+                            steps: 0,
+                            episode_return: 0.0,
+                            end: EpisodeEnd::Interrupted,
+                        });
+                    open.steps = open.steps.max(step + 1);
+                    open.episode_return += reward;
+                }
+                Record::EpisodeEnd { agent, episode, .. } => {
+                    open_episodes.remove(&(agent.clone(), *episode));
+                }
+                Record::Header { .. } => {}
+            }
             buffer.apply(&record);
         }
         buffer.log = Some(log);
+        for (_, summary) in open_episodes {
+            tracing::warn!(path = %path.display(), agent = %summary.agent, episode = summary.episode, steps = summary.steps, "episode left open by a stopped daemon recorded as interrupted");
+            buffer.end_episode(summary)?;
+        }
         Ok(buffer)
     }
 
@@ -213,5 +248,50 @@ mod tests {
         assert_eq!(reopened.episodes(), &[summary]);
         let err = ReplayBuffer::open(&path, TaskId::Ant.spec()).unwrap_err();
         assert!(err.to_string().contains("holds task cartpole"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_episode_left_open_is_recorded_as_interrupted_on_reopening() {
+        let dir = std::env::temp_dir().join(format!("ebmpc-replay-open-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let path = dir.join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        for step in 0..3 {
+            buffer
+                .push("a", 4, step, &[0.0; 4], &[0.1], &[1.0; 4], 0.5)
+                .unwrap();
+            buffer
+                .push("b", 0, step, &[0.0; 4], &[0.1], &[1.0; 4], 1.0)
+                .unwrap();
+        }
+        buffer
+            .end_episode(EpisodeSummary {
+                agent: "b".into(),
+                episode: 0,
+                steps: 3,
+                episode_return: 3.0,
+                end: EpisodeEnd::Terminated,
+            })
+            .unwrap();
+        drop(buffer); // as if the daemon was killed: a's episode 4 never ended
+
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.len(), 6, "every stored transition is kept");
+        let interrupted = EpisodeSummary {
+            agent: "a".into(),
+            episode: 4,
+            steps: 3,
+            episode_return: 1.5,
+            end: EpisodeEnd::Interrupted,
+        };
+        assert_eq!(reopened.episodes().len(), 2);
+        assert_eq!(reopened.episodes()[1], interrupted);
+        drop(reopened);
+        // Recorded once: opening again finds nothing left open.
+        let again = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(again.episodes().len(), 2);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
