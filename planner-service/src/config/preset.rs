@@ -159,6 +159,24 @@ fn table(task: TaskId) -> TaskTable {
             exploration_episodes: 1,
             schedule: EpochSchedule::Constant,
         },
+        TaskId::Pusher => TaskTable {
+            model_layers: 3,
+            model_size: 200,
+            model_epochs: 100,
+            model_batch: 32,
+            energy_layers: 3,
+            energy_size: 200,
+            energy_epochs: 100,
+            energy_batch: 32,
+            sigma: 0.1,
+            alpha: 0.01,
+            horizon: 25,
+            population: 500,
+            elites: 50,
+            iterations: 5,
+            exploration_episodes: 1,
+            schedule: EpochSchedule::Constant,
+        },
         TaskId::HalfCheetah => TaskTable {
             model_layers: 4,
             model_size: 200,
@@ -358,6 +376,19 @@ mod tests {
         assert_eq!(ant.regularizer, RegularizerKind::None);
         assert_eq!(ant.schedule.epochs(&ant, 1), (600, 800));
         assert_eq!(ant.schedule.epochs(&ant, 2), (360, 560));
+        let pusher = Preset::new(TaskId::Pusher, None).unwrap();
+        assert_eq!(
+            (
+                pusher.dynamics.epochs,
+                pusher.energy.epochs,
+                pusher.energy_weight
+            ),
+            (100, 100, 0.01)
+        );
+        assert_eq!(
+            (pusher.cem.population, pusher.cem.elites, pusher.cem.horizon),
+            (500, 50, 25)
+        );
         assert!(Preset::new(TaskId::Cartpole, Some("sac")).is_err());
     }
 

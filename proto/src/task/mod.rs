@@ -6,6 +6,7 @@
 pub mod ant;
 pub mod cartpole;
 pub mod halfcheetah;
+pub mod pusher;
 pub mod reacher3d;
 
 use serde::{Deserialize, Serialize};
@@ -13,6 +14,10 @@ use std::fmt;
 use std::str::FromStr;
 
 /// The tasks ebmpc knows. The wire name is the lowercase identifier (`"cartpole"`).
+///
+/// New variants go at the end: postcard encodes a variant by its index, and replay logs and run
+/// records store it, so reordering would make stored runs name the wrong task.
+/// [`TaskId::ALL`] gives the paper's order.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum TaskId {
@@ -20,6 +25,7 @@ pub enum TaskId {
     Reacher3d,
     HalfCheetah,
     Ant,
+    Pusher,
 }
 
 impl TaskId {
@@ -27,6 +33,7 @@ impl TaskId {
     pub const ALL: &'static [TaskId] = &[
         TaskId::Cartpole,
         TaskId::Reacher3d,
+        TaskId::Pusher,
         TaskId::HalfCheetah,
         TaskId::Ant,
     ];
@@ -38,6 +45,7 @@ impl TaskId {
             TaskId::Reacher3d => "reacher3d",
             TaskId::HalfCheetah => "halfcheetah",
             TaskId::Ant => "ant",
+            TaskId::Pusher => "pusher",
         }
     }
 
@@ -48,6 +56,7 @@ impl TaskId {
             TaskId::Reacher3d => &reacher3d::SPEC,
             TaskId::HalfCheetah => &halfcheetah::SPEC,
             TaskId::Ant => &ant::SPEC,
+            TaskId::Pusher => &pusher::SPEC,
         }
     }
 }
@@ -183,6 +192,22 @@ mod tests {
         }
         let err = "walker".parse::<TaskId>().unwrap_err();
         assert!(err.to_string().contains("cartpole"), "{err}");
+    }
+
+    /// Stored replay logs and run records name their task by postcard's variant index.
+    #[test]
+    fn variant_indices_are_stable() {
+        let indices: Vec<Vec<u8>> = [
+            TaskId::Cartpole,
+            TaskId::Reacher3d,
+            TaskId::HalfCheetah,
+            TaskId::Ant,
+            TaskId::Pusher,
+        ]
+        .iter()
+        .map(|t| postcard::to_stdvec(t).unwrap())
+        .collect();
+        assert_eq!(indices, [[0], [1], [2], [3], [4]]);
     }
 
     #[test]

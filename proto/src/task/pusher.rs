@@ -1,0 +1,112 @@
+//! Pusher (PETS): a 7-joint arm without gravity pushes a cylinder across a table to a fixed goal.
+//!
+//! Observation (20): the 7 joint angles, the 7 joint velocities, the arm's tip position (3) and
+//! the object's position (3), both in the world frame. Actions are joint torques in ±2 N·m,
+//! 150 steps of 0.04 s. Unlike Reacher3D the tip is observed, so the reward needs no forward
+//! kinematics; the goal never moves, so it is a constant here ([`GOAL`]) rather than part of
+//! the observation (sim-bridge's `assets/pusher.xml` marks it with a site, and its tests check
+//! the two agree).
+
+use super::{TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal};
+
+pub(crate) static SPEC: TaskSpec = TaskSpec {
+    id: TaskId::Pusher,
+    obs_dim: 20,
+    act_dim: 7,
+    action_low: &[-2.0; 7],
+    action_high: &[2.0; 7],
+    episode_len: 150,
+    control_dt: 0.04,
+    state_feature_dim: 20,
+    functions: TaskFunctions {
+        reward,
+        is_terminal: never_terminal,
+        state_features: identity_features,
+        target: delta_target,
+        next_obs_from_target: apply_delta,
+    },
+};
+
+/// Joints of the arm.
+pub const JOINTS: usize = 7;
+/// Index of the first joint velocity in the observation.
+pub const QVEL: usize = JOINTS;
+/// Index of the tip's x coordinate in the observation (y and z follow).
+pub const TIP: usize = 2 * JOINTS;
+/// Index of the object's x coordinate in the observation (y and z follow).
+pub const OBJECT: usize = TIP + 3;
+
+/// Where the object's centre must go, in the world frame: on the table, at the height of the
+/// object's centre, so that a perfect push scores a zero distance.
+pub const GOAL: [f32; 3] = [0.45, -0.05, -0.25];
+
+/// Weight of the object–goal distance in the cost.
+pub const GOAL_WEIGHT: f32 = 1.25;
+/// Weight of the object–tip distance in the cost (it draws the arm to the object first).
+pub const TIP_WEIGHT: f32 = 0.5;
+/// Weight of the squared action in the cost.
+pub const ACTION_WEIGHT: f32 = 0.1;
+
+/// `−(1.25 ‖object − goal‖₁ + 0.5 ‖object − tip‖₁ + 0.1 ‖a‖²)`, on the state the action led to.
+fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
+    let object = &next_obs[OBJECT..OBJECT + 3];
+    let tip = &next_obs[TIP..TIP + 3];
+    let to_goal = l1(object, &GOAL);
+    let to_tip = l1(object, tip);
+    -(GOAL_WEIGHT * to_goal + TIP_WEIGHT * to_tip + ACTION_WEIGHT * super::squared_norm(act))
+}
+
+/// `‖a − b‖₁`.
+fn l1(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).sum()
+}
+
+fn identity_features(obs: &[f32], out: &mut [f32]) {
+    out.copy_from_slice(obs);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An observation with the object at `object` and the tip at `tip`.
+    fn state(object: [f32; 3], tip: [f32; 3]) -> [f32; 20] {
+        let mut obs = [0.0; 20];
+        obs[TIP..TIP + 3].copy_from_slice(&tip);
+        obs[OBJECT..OBJECT + 3].copy_from_slice(&object);
+        obs
+    }
+
+    #[test]
+    fn reward_is_the_weighted_l1_cost() {
+        let spec = TaskId::Pusher.spec();
+        let on_goal = state(GOAL, GOAL);
+        assert_eq!(spec.reward(&on_goal, &[0.0; 7], &on_goal), 0.0);
+
+        // Object 0.1 off in x and 0.2 in y; the tip touching it.
+        let object = [GOAL[0] + 0.1, GOAL[1] - 0.2, GOAL[2]];
+        let off = state(object, object);
+        assert!((spec.reward(&on_goal, &[0.0; 7], &off) + 1.25 * 0.3).abs() < 1e-6);
+
+        // The tip 0.2 from the object in z: L1, not Euclidean.
+        let away = state(GOAL, [GOAL[0] + 0.1, GOAL[1], GOAL[2] + 0.2]);
+        assert!((spec.reward(&on_goal, &[0.0; 7], &away) + 0.5 * 0.3).abs() < 1e-6);
+
+        let act = [1.0, -1.0, 0.0, 0.0, 0.0, 0.0, 2.0];
+        assert!((spec.reward(&on_goal, &act, &on_goal) + 0.1 * 6.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn reward_rises_as_the_object_nears_the_goal() {
+        let spec = TaskId::Pusher.spec();
+        let rewards: Vec<f32> = [0.4f32, 0.2, 0.1, 0.05, 0.0]
+            .iter()
+            .map(|d| {
+                let object = [GOAL[0] - d, GOAL[1] + d, GOAL[2]];
+                let next = state(object, [object[0] - 0.06, object[1], object[2]]);
+                spec.reward(&next, &[0.0; 7], &next)
+            })
+            .collect();
+        assert!(rewards.windows(2).all(|w| w[0] < w[1]), "{rewards:?}");
+    }
+}
