@@ -139,14 +139,30 @@ impl MjSim {
         .sum()
     }
 
+    /// Recomputes the positions of bodies and sites for the current state. A physics step
+    /// computes them *before* integrating, so after [`MjSim::advance`] they describe the state
+    /// one substep back; tasks that observe positions call this first.
+    pub fn update_kinematics(&mut self) {
+        self.data.kinematics();
+    }
+
+    /// Index of the named site, for [`MjSim::site_xpos`].
+    pub fn site_id(&self, name: &str) -> Option<usize> {
+        self.data
+            .model()
+            .name_to_id(mujoco_rs::prelude::MjtObjBase::mjOBJ_SITE, name)
+    }
+
+    /// Cartesian position of site `id` as of the last kinematics pass ([`MjSim::set_state`]
+    /// or [`MjSim::update_kinematics`]).
+    pub fn site_xpos(&self, id: usize) -> [f64; 3] {
+        self.data.site_xpos()[id]
+    }
+
     /// Cartesian position of the named site (valid after [`MjSim::set_state`] or a step).
     #[cfg(test)]
     pub fn site_position(&self, name: &str) -> Option<[f64; 3]> {
-        let id = self
-            .data
-            .model()
-            .name_to_id(mujoco_rs::prelude::MjtObjBase::mjOBJ_SITE, name)?;
-        Some(self.data.site_xpos()[id])
+        Some(self.site_xpos(self.site_id(name)?))
     }
 }
 

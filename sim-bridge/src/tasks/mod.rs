@@ -8,6 +8,7 @@
 mod ant;
 mod cartpole;
 mod halfcheetah;
+mod pusher;
 mod reacher3d;
 
 use crate::error::SimError;
@@ -38,6 +39,7 @@ pub(crate) trait TaskSim: Send {
 pub const SIMULATED: &[TaskId] = &[
     TaskId::Cartpole,
     TaskId::Reacher3d,
+    TaskId::Pusher,
     TaskId::HalfCheetah,
     TaskId::Ant,
 ];
@@ -52,6 +54,7 @@ pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
         TaskId::Reacher3d => Ok(Box::new(reacher3d::Reacher3d::new()?)),
         TaskId::HalfCheetah => Ok(Box::new(halfcheetah::HalfCheetah::new()?)),
         TaskId::Ant => Ok(Box::new(ant::Ant::new()?)),
+        TaskId::Pusher => Ok(Box::new(pusher::Pusher::new()?)),
         _ => Err(SimError::NoSimulator {
             task,
             known: SIMULATED
