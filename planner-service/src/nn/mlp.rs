@@ -6,13 +6,19 @@
 //! Activations are *feature-major*: a batch of `n` samples with `d` features is a `d × ld`
 //! matrix whose column `i` is sample `i` (`ld ≥ n`, a multiple of 16). A layer is then
 //! `Z = Wᵀ · H + b` with `Wᵀ` a free strided view (see [`matmul`](super::matmul)).
+//!
+//! Inference ([`Mlp::forward`]) instead reads each `Wᵀ` packed in the kernel's layout
+//! ([`PackedMatrix`]), with the activation fused into the product. The packed copy is made on
+//! the first inference after the network is built or its parameters were handed out mutably
+//! ([`Mlp::params_mut`] drops it), so a planner packs once per model, never per call.
 
 use super::activation::Activation;
 use super::aligned::{AlignedBuf, round_up};
-use super::matmul::{Init, MatMut, MatRef, matmul};
+use super::matmul::{MatMut, MatRef, PackedMatrix, matmul_packed};
 use rand::RngExt;
 use rand::rngs::StdRng;
 use std::ops::Range;
+use std::sync::OnceLock;
 
 /// A dense feed-forward network: `sizes[0]` inputs, hidden layers of `sizes[1..L]` units with
 /// `activation`, and a linear output layer of `sizes[L]` units.
@@ -21,6 +27,29 @@ pub struct Mlp {
     sizes: Vec<usize>,
     activation: Activation,
     params: Vec<f32>,
+    /// Each layer's `Wᵀ` packed for inference; derived from `params`, made on first use.
+    packed: PackedCache,
+}
+
+/// The packed weights: a cache of `params`, so it takes no part in equality.
+#[derive(Clone, Default)]
+struct PackedCache(OnceLock<Vec<PackedMatrix>>);
+
+impl PartialEq for PackedCache {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for PackedCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let state = if self.0.get().is_some() {
+            "packed"
+        } else {
+            "not packed"
+        };
+        f.write_str(state)
+    }
 }
 
 impl Mlp {
@@ -41,6 +70,7 @@ impl Mlp {
             sizes: sizes.to_vec(),
             activation,
             params,
+            packed: PackedCache::default(),
         }
     }
 
@@ -59,6 +89,7 @@ impl Mlp {
             sizes: sizes.to_vec(),
             activation,
             params,
+            packed: PackedCache::default(),
         }
     }
 
@@ -94,8 +125,29 @@ impl Mlp {
         &self.params
     }
 
+    /// Mutable parameters (training). Drops the packed inference weights: the next
+    /// [`Mlp::forward`] packs the new values.
     pub fn params_mut(&mut self) -> &mut [f32] {
+        self.packed = PackedCache::default();
         &mut self.params
+    }
+
+    /// Packs the weights for inference now (what the first [`Mlp::forward`] would do), e.g.
+    /// before a trained model is handed to planners, so no planning call pays for it.
+    pub fn pack_for_inference(&self) {
+        self.packed_weights();
+    }
+
+    /// Each layer's `Wᵀ` in the kernel's layout, packed on first use.
+    fn packed_weights(&self) -> &[PackedMatrix] {
+        self.packed.0.get_or_init(|| {
+            (0..self.layers())
+                .map(|l| {
+                    let (n_in, n_out) = (self.sizes[l], self.sizes[l + 1]);
+                    PackedMatrix::pack(MatRef::new(self.weight(l), n_in, n_out).t())
+                })
+                .collect()
+        })
     }
 
     /// Where layer `l`'s weights sit in [`Mlp::params`] (biases follow directly).
@@ -124,18 +176,6 @@ impl Mlp {
         &self.params[self.bias_range(l)]
     }
 
-    /// `Z = Wₗᵀ · H + bₗ` for `samples` columns of the feature-major `h` (row stride `ld`),
-    /// into `z` (row stride `ld`). Single-threaded: the planner parallelises over samples.
-    pub(crate) fn affine(&self, l: usize, h: &[f32], samples: usize, ld: usize, z: &mut [f32]) {
-        let (n_in, n_out) = (self.sizes[l], self.sizes[l + 1]);
-        matmul(
-            MatMut::with_stride(z, n_out, samples, ld),
-            MatRef::new(self.weight(l), n_in, n_out).t(),
-            MatRef::with_stride(h, n_in, samples, ld),
-            Init::RowBias(self.bias(l)),
-        );
-    }
-
     /// The output for `samples` inputs written feature-major into [`ForwardScratch::input_mut`]:
     /// an `out_dim × scratch.ld()` matrix whose first `samples` columns are the outputs (the
     /// caller may transform it in place). Never allocates.
@@ -157,23 +197,27 @@ impl Mlp {
             scratch.width
         );
         let ld = scratch.ld;
+        let packed = self.packed_weights();
         let ForwardScratch {
             input, ping, pong, ..
         } = scratch;
         let layers = self.layers();
-        for l in 0..layers {
+        for (l, weights) in packed.iter().enumerate() {
             // Layer 0 reads the input; then `ping` and `pong` alternate (even layers write `ping`).
             let (src, dst) = match (l, l % 2) {
                 (0, _) => (input.as_slice(), ping.as_mut_slice()),
                 (_, 1) => (ping.as_slice(), pong.as_mut_slice()),
                 _ => (pong.as_slice(), ping.as_mut_slice()),
             };
-            self.affine(l, src, samples, ld, dst);
-            if l + 1 < layers {
-                for span in spans(self.sizes[l + 1], samples, ld) {
-                    self.activation.apply(&mut dst[span]);
-                }
-            }
+            let (n_in, n_out) = (self.sizes[l], self.sizes[l + 1]);
+            let hidden = l + 1 < layers;
+            matmul_packed(
+                MatMut::with_stride(dst, n_out, samples, ld),
+                weights,
+                MatRef::with_stride(src, n_in, samples, ld),
+                self.bias(l),
+                hidden.then_some(self.activation),
+            );
         }
         let out = if (layers - 1).is_multiple_of(2) {
             ping

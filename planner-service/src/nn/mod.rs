@@ -18,6 +18,8 @@ pub mod backprop;
 pub mod denormals;
 pub mod double_backprop;
 pub mod fastmath;
+#[cfg(target_arch = "x86_64")]
+pub mod fastmath512;
 pub mod matmul;
 pub mod mlp;
 pub mod normalizer;

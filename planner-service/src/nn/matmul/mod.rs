@@ -12,9 +12,14 @@
 //! `f · ld + i`): then the forward pass is `Z = Wᵀ · H`, the backward pass `G' = W · G`, and only
 //! the weight gradient needs a (small) transpose of its right factor.
 
+mod packed;
 mod scalar;
 #[cfg(target_arch = "x86_64")]
 mod x86;
+#[cfg(target_arch = "x86_64")]
+mod x86_packed;
+
+pub use packed::{PACK_ROWS, PackedMatrix, matmul_packed};
 
 use super::denormals;
 use super::simd::{SimdLevel, level};

@@ -23,14 +23,14 @@ const MR256: usize = 6;
 
 /// One element, loaded without the dev profile's raw-pointer dereference checks.
 #[inline(always)]
-unsafe fn load_scalar(p: *const f32) -> f32 {
+pub(super) unsafe fn load_scalar(p: *const f32) -> f32 {
     // SAFETY: the caller guarantees `p` is valid for reads.
     unsafe { _mm_cvtss_f32(_mm_load_ss(p)) }
 }
 
 /// Mask of the valid lanes of the panel starting at column `col` of an `n`-column matrix.
 #[inline(always)]
-fn mask16(n: usize, col: usize) -> __mmask16 {
+pub(super) fn mask16(n: usize, col: usize) -> __mmask16 {
     let left = n.saturating_sub(col);
     if left >= LANES {
         0xFFFF

@@ -1,0 +1,358 @@
+//! Inference layers `C = act(A · Y + b)` with `A` packed once in the kernel's own layout.
+//!
+//! During a planning call the weights never change, while each layer's product runs tens of
+//! thousands of times. A layer's `Wᵀ` is therefore packed once per model into blocks of
+//! [`PACK_ROWS`] output features: within a block, the `PACK_ROWS` weights the kernel broadcasts
+//! at one depth step are adjacent, and the depth steps follow each other. The kernel then reads
+//! its broadcast operand as one sequential stream (one cache line per 1⅓ steps) instead of a
+//! strided walk through the whole weight matrix that the hardware prefetcher follows poorly,
+//! and addresses it with constant offsets rather than a runtime stride.
+//!
+//! The activation is the kernel's epilogue: on AVX-512 it runs on the finished tile in
+//! registers (see [`fastmath512`](crate::nn::fastmath512)), so a hidden layer costs one pass
+//! over memory; elsewhere the tile's rows are activated right after they are stored, while they
+//! are still in L1.
+//!
+//! Why not the `gemm` crate: it allocates on every call (the planner allocates nothing per
+//! call), and on these shapes (200–500 wide layers, 200–250 samples per population chunk) it
+//! is no faster than this kernel before packing (`tests::timing`), and cannot fuse the bias
+//! and the activation into its stores.
+
+use super::{MatMut, MatRef, Raw, RawInit};
+use crate::nn::activation::Activation;
+use crate::nn::aligned::AlignedBuf;
+use crate::nn::simd::{SimdLevel, level};
+
+/// Output features per packed block: the AVX-512 kernel's row block (the AVX2 kernel takes a
+/// block as two halves).
+pub const PACK_ROWS: usize = 12;
+
+/// An `m × k` matrix packed for [`matmul_packed`]: block `b` holds rows `12b..12b + mr`
+/// (`mr = min(12, m − 12b)`) at offset `12b·k`, element `(12b + r, d)` at `12b·k + d·mr + r`.
+#[derive(Clone)]
+pub struct PackedMatrix {
+    rows: usize,
+    depth: usize,
+    data: AlignedBuf,
+}
+
+impl std::fmt::Debug for PackedMatrix {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PackedMatrix({}×{})", self.rows, self.depth)
+    }
+}
+
+impl PackedMatrix {
+    /// Packs any `m × k` view (for a layer: `MatRef::new(weights, in, out).t()`).
+    pub fn pack(a: MatRef<'_>) -> Self {
+        let (m, k) = (a.rows, a.cols);
+        let mut data = AlignedBuf::zeros(m * k);
+        let out = data.as_mut_slice();
+        for i0 in (0..m).step_by(PACK_ROWS) {
+            let mr = PACK_ROWS.min(m - i0);
+            let block = &mut out[i0 * k..(i0 + mr) * k];
+            for d in 0..k {
+                for r in 0..mr {
+                    block[d * mr + r] = a.data[(i0 + r) * a.rs + d * a.cs];
+                }
+            }
+        }
+        Self {
+            rows: m,
+            depth: k,
+            data,
+        }
+    }
+
+    /// `m`: rows of the product (output features).
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// `k`: the inner dimension (input features).
+    pub fn depth(&self) -> usize {
+        self.depth
+    }
+
+    /// Rows `i0..i0 + mr` as a strided view (`i0` a multiple of [`PACK_ROWS`]).
+    fn block(&self, i0: usize) -> MatRef<'_> {
+        let mr = PACK_ROWS.min(self.rows - i0);
+        let data = &self.data.as_slice()[i0 * self.depth..];
+        MatRef::strided(data, mr, self.depth, 1, mr)
+    }
+}
+
+/// `C = act(A · Y + b)` (bias per row of `C`; `act` = `None` for a linear layer) on the
+/// calling thread. `Y` must have unit column stride. Never allocates.
+pub fn matmul_packed(
+    c: MatMut<'_>,
+    a: &PackedMatrix,
+    y: MatRef<'_>,
+    bias: &[f32],
+    act: Option<Activation>,
+) {
+    matmul_packed_at(level(), c, a, y, bias, act)
+}
+
+pub(super) fn matmul_packed_at(
+    lvl: SimdLevel,
+    c: MatMut<'_>,
+    a: &PackedMatrix,
+    y: MatRef<'_>,
+    bias: &[f32],
+    act: Option<Activation>,
+) {
+    let (m, n, k) = (c.rows, c.cols, a.depth);
+    assert_eq!(a.rows, m, "A has {} rows, C has {m}", a.rows);
+    assert_eq!(y.rows, k, "A has {k} columns, Y has {} rows", y.rows);
+    assert_eq!(y.cols, n, "Y has {} columns, C has {n}", y.cols);
+    assert!(y.cs == 1 || n <= 1, "Y needs unit column stride");
+    assert!(bias.len() >= m, "bias too short");
+    if m == 0 || n == 0 {
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if lvl == SimdLevel::Avx512 {
+        let raw = super::x86_packed::PackedRaw {
+            m,
+            n,
+            k,
+            a: a.data.as_slice().as_ptr(),
+            y: y.data.as_ptr(),
+            ld_y: y.rs,
+            c: c.data.as_mut_ptr(),
+            ld_c: c.rs,
+            bias: bias.as_ptr(),
+            act,
+        };
+        // SAFETY: the level guarantees AVX-512F; the views and the packing checked every extent.
+        unsafe { super::x86_packed::drive(&raw) };
+        return;
+    }
+    // Other levels: the general kernel on each block, then the block's rows activated while
+    // they are in L1.
+    let ld_c = c.rs;
+    let c_data = c.data;
+    for i0 in (0..m).step_by(PACK_ROWS) {
+        let block = a.block(i0);
+        let mr = block.rows;
+        let c_block = &mut c_data[i0 * ld_c..];
+        let raw = Raw {
+            m: mr,
+            n,
+            k,
+            x: block.data.as_ptr(),
+            rs_x: block.rs,
+            cs_x: block.cs,
+            y: y.data.as_ptr(),
+            ld_y: y.rs,
+            c: c_block.as_mut_ptr(),
+            ld_c,
+            init: RawInit::RowBias(bias[i0..].as_ptr()),
+        };
+        match lvl {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: the level guarantees AVX2+FMA; every extent was checked above.
+            SimdLevel::Avx2 | SimdLevel::Avx512 => unsafe { super::x86::drive_avx2(&raw) },
+            // SAFETY: every extent was checked above.
+            _ => unsafe { super::scalar::drive(&raw) },
+        }
+        if let Some(act) = act {
+            for r in 0..mr {
+                act.apply(&mut c_block[r * ld_c..r * ld_c + n]);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nn::matmul::matmul;
+    use rand::rngs::StdRng;
+    use rand::{RngExt, SeedableRng};
+
+    fn random(rng: &mut StdRng, n: usize) -> Vec<f32> {
+        (0..n).map(|_| rng.random_range(-2.0..2.0)).collect()
+    }
+
+    /// `act(Wᵀ·H + b)` in f64, for a row-major `k × m` weight matrix and `k × n` `H`.
+    #[allow(clippy::too_many_arguments)]
+    fn reference(
+        w: &[f32],
+        h: &[f32],
+        ld: usize,
+        bias: &[f32],
+        act: Option<Activation>,
+        (m, n, k): (usize, usize, usize),
+    ) -> Vec<f64> {
+        let mut out = vec![0.0; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                let z = bias[i] as f64
+                    + (0..k)
+                        .map(|d| w[d * m + i] as f64 * h[d * ld + j] as f64)
+                        .sum::<f64>();
+                out[i * n + j] = match act {
+                    None => z,
+                    Some(Activation::Swish) => z / (1.0 + (-z).exp()),
+                    Some(Activation::Softplus) => z.max(0.0) + (-z.abs()).exp().ln_1p(),
+                };
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn packing_lays_out_blocks_of_twelve_rows() {
+        // A 14 × 2 matrix: one block of 12 rows, one of 2.
+        let a: Vec<f32> = (0..28).map(|v| v as f32).collect();
+        let p = PackedMatrix::pack(MatRef::new(&a, 14, 2));
+        let data = p.data.as_slice();
+        // Block 0, depth 0: rows 0..12 of column 0; depth 1: rows 0..12 of column 1.
+        assert_eq!(data[..3], [0.0, 2.0, 4.0]);
+        assert_eq!(data[12..14], [1.0, 3.0]);
+        // Block 1 (rows 12, 13) starts at 12·2: depth-major pairs.
+        assert_eq!(data[24..28], [24.0, 26.0, 25.0, 27.0]);
+        assert_eq!((p.rows(), p.depth()), (14, 2));
+    }
+
+    #[test]
+    fn packed_layers_match_the_reference_on_ragged_shapes_at_every_level() {
+        let mut rng = StdRng::seed_from_u64(5);
+        // m, n, k deliberately not multiples of the 12-row block or the 16/32-float panels.
+        let shapes = [
+            (1, 1, 1),
+            (5, 3, 7),
+            (12, 16, 12),
+            (13, 17, 9),
+            (25, 33, 31),
+            (37, 47, 1),
+            (24, 64, 50),
+            (50, 100, 23),
+        ];
+        for lvl in SimdLevel::available() {
+            for &(m, n, k) in &shapes {
+                for act in [None, Some(Activation::Swish), Some(Activation::Softplus)] {
+                    let ld = n + 7;
+                    let w = random(&mut rng, k * m);
+                    let h = random(&mut rng, k * ld);
+                    let bias = random(&mut rng, m);
+                    let packed = PackedMatrix::pack(MatRef::new(&w, k, m).t());
+                    let ld_c = n + 3;
+                    let mut c = vec![f32::NAN; m * ld_c];
+                    matmul_packed_at(
+                        lvl,
+                        MatMut::with_stride(&mut c, m, n, ld_c),
+                        &packed,
+                        MatRef::with_stride(&h, k, n, ld),
+                        &bias,
+                        act,
+                    );
+                    let want = reference(&w, &h, ld, &bias, act, (m, n, k));
+                    for i in 0..m {
+                        for j in 0..ld_c {
+                            let got = c[i * ld_c + j];
+                            if j < n {
+                                let e = want[i * n + j];
+                                assert!(
+                                    (got as f64 - e).abs() < 3e-6 * (k as f64 + 1.0),
+                                    "{lvl:?} {act:?} {m}×{n}×{k} ({i},{j}): {got} vs {e}"
+                                );
+                            } else {
+                                assert!(got.is_nan(), "{lvl:?}: padding ({i},{j}) written");
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn linear_packed_layer_equals_the_general_kernel() {
+        // Same operands and the same summation order: the packed product is bit-identical to
+        // the strided one on every level.
+        let mut rng = StdRng::seed_from_u64(6);
+        let (m, n, k) = (29, 40, 33);
+        let w = random(&mut rng, k * m);
+        let h = random(&mut rng, k * n);
+        let bias = random(&mut rng, m);
+        let packed = PackedMatrix::pack(MatRef::new(&w, k, m).t());
+        for lvl in SimdLevel::available() {
+            let (mut a, mut b) = (vec![0.0; m * n], vec![0.0; m * n]);
+            crate::nn::simd::with_level(lvl, || {
+                matmul(
+                    MatMut::new(&mut a, m, n),
+                    MatRef::new(&w, k, m).t(),
+                    MatRef::new(&h, k, n),
+                    super::super::Init::RowBias(&bias),
+                );
+                matmul_packed(
+                    MatMut::new(&mut b, m, n),
+                    &packed,
+                    MatRef::new(&h, k, n),
+                    &bias,
+                    None,
+                );
+            });
+            assert_eq!(a, b, "{lvl:?}");
+        }
+    }
+
+    /// Hidden layers of the planner's networks: the general kernel on `Wᵀ` followed by an
+    /// activation pass (the previous forward pass) against the packed kernel with its fused
+    /// epilogue. `cargo test --release -p planner-service --lib packed::tests::timing --
+    /// --ignored --nocapture`
+    #[test]
+    #[ignore = "timing, prints numbers"]
+    fn timing() {
+        use crate::nn::timing::measure;
+        let mut rng = StdRng::seed_from_u64(1);
+        // (m, n, k): out features, samples per population chunk, in features.
+        for &(m, n, k, act) in &[
+            (12usize, 32usize, 200usize, Activation::Swish),
+            (12, 32, 500, Activation::Swish),
+            (24, 256, 200, Activation::Swish),
+            (200, 200, 200, Activation::Swish),
+            (200, 250, 200, Activation::Swish),
+            (400, 250, 400, Activation::Swish),
+            (300, 250, 300, Activation::Softplus),
+            (500, 250, 500, Activation::Softplus),
+        ] {
+            let ld = n.div_ceil(16) * 16;
+            let w = random(&mut rng, k * m);
+            let h = random(&mut rng, k * ld);
+            let bias = random(&mut rng, m);
+            let packed = PackedMatrix::pack(MatRef::new(&w, k, m).t());
+            let mut c = vec![0.0; m * ld];
+            let reps = (2e9 / (2.0 * (m * n * k) as f64)) as usize + 1;
+            let general = measure(reps, || {
+                matmul(
+                    MatMut::with_stride(&mut c, m, n, ld),
+                    MatRef::new(&w, k, m).t(),
+                    MatRef::with_stride(&h, k, n, ld),
+                    super::super::Init::RowBias(&bias),
+                );
+                for r in 0..m {
+                    act.apply(&mut c[r * ld..r * ld + n]);
+                }
+            });
+            let fused = measure(reps, || {
+                matmul_packed(
+                    MatMut::with_stride(&mut c, m, n, ld),
+                    &packed,
+                    MatRef::with_stride(&h, k, n, ld),
+                    &bias,
+                    Some(act),
+                )
+            });
+            let gflops = |t: crate::nn::timing::Timing| 2.0 * (m * n * k) as f64 / t.min_ms / 1e6;
+            println!(
+                "{m}×{n}×{k} {act:?}: general + pass {general} = {:.1} GFLOP/s; packed fused {fused} = {:.1} GFLOP/s",
+                gflops(general),
+                gflops(fused)
+            );
+        }
+    }
+}

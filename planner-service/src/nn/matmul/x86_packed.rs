@@ -1,0 +1,134 @@
+//! The AVX-512 kernel for packed layers (see [`packed`](super::packed)).
+//!
+//! A kernel owns up to 12 rows × `NP` 16-float panels of `C` in registers (24 accumulators and
+//! two panel registers for `NP = 2`), starts them at the bias, and per depth step loads one row
+//! segment of `Y` per panel and broadcasts the block's 12 adjacent packed weights — constant
+//! offsets from one pointer that advances by the block height. The finished tile is activated
+//! in registers and stored with masks, so any width works. As in `x86.rs`, rows are unrolled
+//! by a macro and pointer arithmetic is wrapping, for the dev profile's sake.
+
+use super::x86::{load_scalar, mask16};
+use crate::nn::activation::Activation;
+use crate::nn::aligned::LANES;
+use crate::nn::fastmath512::{softplus, swish};
+use std::arch::x86_64::*;
+
+/// One packed product in pointer form; every extent was checked by `matmul_packed`.
+pub(super) struct PackedRaw {
+    pub m: usize,
+    pub n: usize,
+    pub k: usize,
+    pub a: *const f32,
+    pub y: *const f32,
+    pub ld_y: usize,
+    pub c: *mut f32,
+    pub ld_c: usize,
+    pub bias: *const f32,
+    pub act: Option<Activation>,
+}
+
+macro_rules! packed512 {
+    ($name:ident; $($r:literal)+) => {
+        /// A tile of the listed rows × `NP` panels of the block starting at row `i0`.
+        #[inline]
+        #[target_feature(enable = "avx512f")]
+        unsafe fn $name<const NP: usize>(raw: &PackedRaw, i0: usize, p0: usize) {
+            const MR: usize = [$($r),+].len();
+            let PackedRaw { n, k, ld_y, ld_c, .. } = *raw;
+            let mask: [__mmask16; NP] = std::array::from_fn(|j| mask16(n, (p0 + j) * LANES));
+            let mut ap = raw.a.wrapping_add(i0 * k);
+            let mut yp = raw.y.wrapping_add(p0 * LANES);
+            let c = raw.c.wrapping_add(i0 * ld_c + p0 * LANES);
+            // SAFETY: the driver passes only blocks and panels inside the checked extents;
+            // masked lanes are never touched.
+            unsafe {
+                let mut acc = [[_mm512_setzero_ps(); NP]; MR];
+                $( acc[$r] = [_mm512_set1_ps(load_scalar(raw.bias.wrapping_add(i0 + $r))); NP]; )+
+                for _ in 0..k {
+                    let w: [__m512; NP] = std::array::from_fn(|j| _mm512_maskz_loadu_ps(mask[j], yp.wrapping_add(j * LANES)));
+                    $(
+                        let xv = _mm512_set1_ps(load_scalar(ap.wrapping_add($r)));
+                        for j in 0..NP {
+                            acc[$r][j] = _mm512_fmadd_ps(xv, w[j], acc[$r][j]);
+                        }
+                    )+
+                    ap = ap.wrapping_add(MR);
+                    yp = yp.wrapping_add(ld_y);
+                }
+                // Row by row with constant indices, so the accumulators stay in registers (a
+                // loop over `&mut acc` makes LLVM keep a copy in memory inside the k loop).
+                match raw.act {
+                    None => {}
+                    Some(Activation::Swish) => {
+                        $( for j in 0..NP { acc[$r][j] = swish(acc[$r][j]); } )+
+                    }
+                    Some(Activation::Softplus) => {
+                        $( for j in 0..NP { acc[$r][j] = softplus(acc[$r][j]); } )+
+                    }
+                }
+                $( for j in 0..NP {
+                    _mm512_mask_storeu_ps(c.wrapping_add($r * ld_c + j * LANES), mask[j], acc[$r][j]);
+                } )+
+            }
+        }
+    };
+}
+
+packed512!(p512_1; 0);
+packed512!(p512_2; 0 1);
+packed512!(p512_3; 0 1 2);
+packed512!(p512_4; 0 1 2 3);
+packed512!(p512_5; 0 1 2 3 4);
+packed512!(p512_6; 0 1 2 3 4 5);
+packed512!(p512_7; 0 1 2 3 4 5 6);
+packed512!(p512_8; 0 1 2 3 4 5 6 7);
+packed512!(p512_9; 0 1 2 3 4 5 6 7 8);
+packed512!(p512_10; 0 1 2 3 4 5 6 7 8 9);
+packed512!(p512_11; 0 1 2 3 4 5 6 7 8 9 10);
+packed512!(p512_12; 0 1 2 3 4 5 6 7 8 9 10 11);
+
+/// Runs the tile kernel for a block of `mr ≤ 12` rows and `NP` panels.
+#[inline]
+#[target_feature(enable = "avx512f")]
+unsafe fn tile<const NP: usize>(mr: usize, raw: &PackedRaw, i0: usize, p: usize) {
+    // SAFETY: forwarded from the caller.
+    unsafe {
+        match mr {
+            1 => p512_1::<NP>(raw, i0, p),
+            2 => p512_2::<NP>(raw, i0, p),
+            3 => p512_3::<NP>(raw, i0, p),
+            4 => p512_4::<NP>(raw, i0, p),
+            5 => p512_5::<NP>(raw, i0, p),
+            6 => p512_6::<NP>(raw, i0, p),
+            7 => p512_7::<NP>(raw, i0, p),
+            8 => p512_8::<NP>(raw, i0, p),
+            9 => p512_9::<NP>(raw, i0, p),
+            10 => p512_10::<NP>(raw, i0, p),
+            11 => p512_11::<NP>(raw, i0, p),
+            12 => p512_12::<NP>(raw, i0, p),
+            _ => unreachable!("row block of {mr}"),
+        }
+    }
+}
+
+/// Block by block (each block's packed weights stay in L1 while every panel of `Y` passes
+/// through), two panels per tile.
+///
+/// # Safety
+/// The CPU must support AVX-512F and every extent of `raw` must be valid.
+#[target_feature(enable = "avx512f")]
+pub(super) unsafe fn drive(raw: &PackedRaw) {
+    let panels = raw.n.div_ceil(LANES);
+    for i0 in (0..raw.m).step_by(super::packed::PACK_ROWS) {
+        let mr = super::packed::PACK_ROWS.min(raw.m - i0);
+        let mut p = 0;
+        // SAFETY (both calls): the block and the panels named are inside the extents.
+        while p + 2 <= panels {
+            unsafe { tile::<2>(mr, raw, i0, p) };
+            p += 2;
+        }
+        if p < panels {
+            unsafe { tile::<1>(mr, raw, i0, p) };
+        }
+    }
+}
