@@ -65,6 +65,10 @@ pub struct EpisodeRecord {
     pub wall_seconds: f64,
     /// Where the episode's actions came from.
     pub actions: ActionTally,
+    /// Seconds of retraining the planner reported (its models-updated events) while this
+    /// episode waited for its first action or ran: in sync mode with one agent, the retraining
+    /// on the episodes before it. Lets experiment logs separate learning cost from planning cost.
+    pub train_seconds: f64,
 }
 
 /// Counts of an episode's actions by source, and the planner's cost.
@@ -307,15 +311,21 @@ async fn run_episode(
     link.send(&observation(episode, 0, obs, None, None)).await?;
     let mut episode_return = 0.0;
     let mut actions = ActionTally::default();
+    let mut train_seconds = 0.0;
     let mut step = 0;
     loop {
         let (timeout, while_training) = match (step, first_wait) {
             (0, FirstWait::Training(t)) => (t, true),
             _ => (config.action_timeout, false),
         };
-        let action = match wait_for_action(link, env.spec(), episode, step, timeout, while_training)
-            .await?
-        {
+        let wait = Wait {
+            task: env.spec(),
+            episode,
+            step,
+            timeout,
+            while_training,
+        };
+        let action = match wait_for_action(link, wait, &mut train_seconds).await? {
             Waited::Action(action) => action,
             Waited::PlannerLost(reason) => return Ok(EpisodeOutcome::PlannerLost(reason)),
         };
@@ -347,6 +357,7 @@ async fn run_episode(
                 end,
                 wall_seconds,
                 actions,
+                train_seconds,
             }));
         }
     }
@@ -376,15 +387,29 @@ enum Waited {
     PlannerLost(String),
 }
 
-/// Waits for the action for `(episode, step)`, logging what else arrives meanwhile.
-async fn wait_for_action(
-    link: &mut PlannerLink,
-    task: &TaskSpec,
+/// What [`wait_for_action`] waits for, and for how long.
+struct Wait {
+    task: &'static TaskSpec,
     episode: u32,
     step: u32,
     timeout: Duration,
     while_training: bool,
+}
+
+/// Waits for the action for `(episode, step)`, logging what else arrives meanwhile and adding
+/// the seconds of every models update announced to `train_seconds`.
+async fn wait_for_action(
+    link: &mut PlannerLink,
+    wait: Wait,
+    train_seconds: &mut f64,
 ) -> Result<Waited, BridgeError> {
+    let Wait {
+        task,
+        episode,
+        step,
+        timeout,
+        while_training,
+    } = wait;
     let started = tokio::time::Instant::now();
     let deadline = started + timeout;
     loop {
@@ -432,7 +457,12 @@ async fn wait_for_action(
                 });
             }
             Inbound::Error(report) => tracing::warn!("planner reported: {report}"),
-            Inbound::Event(event) => log_event(&event),
+            Inbound::Event(event) => {
+                if let RunEventKind::ModelsUpdated { seconds, .. } = &event.kind {
+                    *train_seconds += f64::from(*seconds);
+                }
+                log_event(&event);
+            }
             // A restarted planner has lost the observation in flight and this agent's session.
             Inbound::PlannerBack => return Ok(Waited::PlannerLost("the planner restarted".into())),
             Inbound::PlannerGone => tracing::warn!(

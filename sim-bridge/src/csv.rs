@@ -1,4 +1,8 @@
-//! The per-episode results file: `episode,return,steps,wall_seconds`, one row per episode.
+//! The per-episode results file, one row per episode:
+//! `episode,return,steps,wall_seconds,planned_steps,plan_ms_mean,train_seconds` — the return,
+//! the time the episode took, how many of its actions were planned (the rest were random
+//! exploration), the planner's mean planning time per planned action, and the retraining time
+//! the planner reported before the episode (see [`EpisodeRecord::train_seconds`]).
 //!
 //! Rows are written and flushed as episodes end, so an interrupted run keeps every finished
 //! episode; learning curves across seeds are then a join on `episode`.
@@ -9,7 +13,8 @@ use std::io::{self, BufWriter, Write};
 use std::path::Path;
 
 /// The header line, naming the columns in order.
-pub const HEADER: &str = "episode,return,steps,wall_seconds";
+pub const HEADER: &str =
+    "episode,return,steps,wall_seconds,planned_steps,plan_ms_mean,train_seconds";
 
 /// A CSV file of episode results.
 #[derive(Debug)]
@@ -39,8 +44,14 @@ impl<W: Write> EpisodeCsv<W> {
     pub fn append(&mut self, r: &EpisodeRecord) -> io::Result<()> {
         writeln!(
             self.out,
-            "{},{},{},{:.3}",
-            r.episode, r.episode_return, r.steps, r.wall_seconds
+            "{},{},{},{:.3},{},{:.3},{:.3}",
+            r.episode,
+            r.episode_return,
+            r.steps,
+            r.wall_seconds,
+            r.actions.planned,
+            r.actions.mean_planning_ms(),
+            r.train_seconds
         )?;
         self.out.flush()
     }
@@ -54,26 +65,36 @@ impl<W: Write> EpisodeCsv<W> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::bridge::ActionTally;
     use proto::EpisodeEnd;
 
     #[test]
     fn writes_a_header_then_one_row_per_episode() {
         let mut csv = EpisodeCsv::new(Vec::new()).unwrap();
-        for (episode, ret) in [(0, 12.5f32), (1, -3.25)] {
+        for (episode, ret, planned) in [(0, 12.5f32, 0), (1, -3.25, 200)] {
+            let actions = ActionTally {
+                planned,
+                random: 200 - planned,
+                planning_ms: 50.0 * f64::from(planned),
+                models_version: u64::from(episode),
+            };
             let record = EpisodeRecord {
                 episode,
                 episode_return: ret,
                 steps: 200,
                 end: EpisodeEnd::TimeLimit,
                 wall_seconds: 1.23456,
-                actions: Default::default(),
+                actions,
+                train_seconds: 2.5 * f64::from(episode),
             };
             csv.append(&record).unwrap();
         }
         let text = String::from_utf8(csv.into_inner()).unwrap();
         assert_eq!(
             text,
-            "episode,return,steps,wall_seconds\n0,12.5,200,1.235\n1,-3.25,200,1.235\n"
+            format!(
+                "{HEADER}\n0,12.5,200,1.235,0,0.000,0.000\n1,-3.25,200,1.235,200,50.000,2.500\n"
+            )
         );
     }
 

@@ -58,7 +58,8 @@ struct RunArgs {
     /// unless --planner-seed is given.
     #[arg(long, env = "EBMPC_SEED", default_value_t = 0)]
     seed: u64,
-    /// Write one CSV row per episode here (`episode,return,steps,wall_seconds`).
+    /// Write one CSV row per episode here (columns: see sim_bridge::csv::HEADER: return, steps,
+    /// wall seconds, planned steps, mean planning ms, training seconds).
     #[arg(long)]
     out: Option<PathBuf>,
 

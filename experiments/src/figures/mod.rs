@@ -1,0 +1,8 @@
+//! The paper's illustrative figures, computed in-process.
+//!
+//! - [`toy`]: Figure 3, DEEN and DAE score estimates on a 1-D Gaussian mixture.
+//! - [`imagination`]: Figure 5, imagined against real rewards of plans optimised with each
+//!   regulariser from a state reached by MPC.
+
+pub mod imagination;
+pub mod toy;

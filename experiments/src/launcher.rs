@@ -1,0 +1,499 @@
+//! The experiment launcher: one planner daemon, one sim-bridge process per (method, seed) run,
+//! all talking over Zenoh on loopback exactly as in a deployment (`deploy/demo.sh` does the same
+//! by hand: a free port, multicast scouting off, the bridges `--connect` to the daemon).
+//!
+//! ```text
+//! <out>/experiment.json        task, scale, episodes, overrides, methods, seeds (resume check)
+//! <out>/runs/<method>-s<seed>.csv   one bridge's episodes; `.csv.partial` while it runs
+//! <out>/episodes.csv           every run's rows with method and seed (results::HEADER)
+//! <out>/learning_curves.{png,svg}
+//! <out>/logs/, <out>/planner/  process logs and the daemon's data (not committed)
+//! ```
+//!
+//! A run counts as done when its `.csv` exists with all its episodes, so re-running the same
+//! command into the same folder skips the finished runs and starts the unfinished ones over
+//! (under a new run name: the daemon's half-filled buffer of the old attempt is left alone).
+
+use crate::manifest::Manifest;
+use crate::progress::Progress;
+use crate::results::{self, EpisodeRow};
+use crate::scale::{self, Scale};
+use anyhow::{Context, Result, bail};
+use proto::TaskId;
+use std::collections::VecDeque;
+use std::io::Read;
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct Experiment {
+    pub task: TaskId,
+    pub methods: Vec<String>,
+    pub seeds: Vec<u64>,
+    pub episodes: u32,
+    pub scale: Scale,
+    /// The experiment folder (created, or resumed if it holds the same experiment).
+    pub out: PathBuf,
+    /// Runs at the same time (each is one bridge; they share the daemon and the cores).
+    pub jobs: usize,
+    /// Folder holding the `planner-service` and `sim-bridge` binaries.
+    pub bin_dir: PathBuf,
+}
+
+/// One (method, seed) run of an experiment.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RunId {
+    pub method: String,
+    pub seed: u64,
+}
+
+impl RunId {
+    /// File stem of the run's files: the method with `+` spelled `-` (file and key friendly).
+    pub fn stem(&self) -> String {
+        format!("{}-s{}", self.method.replace('+', "-"), self.seed)
+    }
+
+    /// The finished run's episode file.
+    pub fn csv(&self, dir: &Path) -> PathBuf {
+        dir.join("runs").join(format!("{}.csv", self.stem()))
+    }
+
+    /// The file the bridge writes while the run is going.
+    pub fn partial_csv(&self, dir: &Path) -> PathBuf {
+        dir.join("runs")
+            .join(format!("{}.csv.partial", self.stem()))
+    }
+}
+
+/// Every run of the manifest, methods first then seeds, with whether it is already complete.
+pub fn runs(dir: &Path, manifest: &Manifest) -> Vec<(RunId, bool)> {
+    let mut out = Vec::new();
+    for method in &manifest.methods {
+        for &seed in &manifest.seeds {
+            let run = RunId {
+                method: method.clone(),
+                seed,
+            };
+            let done = results::count_rows(&run.csv(dir)) >= manifest.episodes as usize;
+            out.push((run, done));
+        }
+    }
+    out
+}
+
+/// The rows of every complete run of the manifest, in manifest order.
+pub fn collect_rows(dir: &Path, manifest: &Manifest) -> Result<Vec<EpisodeRow>> {
+    let task = manifest.task.name();
+    let mut rows = Vec::new();
+    for (run, done) in runs(dir, manifest) {
+        if done {
+            rows.extend(results::read_run_csv(
+                &run.csv(dir),
+                task,
+                &run.method,
+                run.seed,
+            )?);
+        }
+    }
+    Ok(rows)
+}
+
+/// Prepares the folder: checks or writes the manifest and returns it (merged with an existing
+/// one when resuming).
+pub fn prepare(exp: &Experiment) -> Result<Manifest> {
+    for method in &exp.methods {
+        planner_service::config::Preset::new(exp.task, Some(method))
+            .with_context(|| format!("method `{method}`"))?;
+    }
+    std::fs::create_dir_all(exp.out.join("runs"))
+        .with_context(|| format!("creating {}", exp.out.display()))?;
+    std::fs::create_dir_all(exp.out.join("logs"))?;
+    let wanted = Manifest {
+        task: exp.task,
+        scale: exp.scale,
+        episodes: exp.episodes,
+        overrides: exp.scale.overrides(exp.task),
+        methods: exp.methods.clone(),
+        seeds: exp.seeds.clone(),
+    };
+    let manifest = match Manifest::load(&exp.out)? {
+        Some(existing) => wanted.resume(&existing, &exp.out)?,
+        None => wanted,
+    };
+    manifest.save(&exp.out)?;
+    Ok(manifest)
+}
+
+/// Runs the experiment's unfinished runs, `jobs` at a time, and rebuilds `episodes.csv`.
+/// Returns the rows of all complete runs. Fails (after the other runs finished) if any run
+/// failed; its log is named in the error.
+pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
+    let manifest = prepare(exp)?;
+    let all = runs(&exp.out, &manifest);
+    let pending: VecDeque<RunId> = all
+        .iter()
+        .filter(|(_, done)| !done)
+        .map(|(r, _)| r.clone())
+        .collect();
+    let skipped = all.len() - pending.len();
+    tracing::info!(
+        dir = %exp.out.display(),
+        runs = all.len(),
+        skipped,
+        pending = pending.len(),
+        "experiment {} ({} scale): {} episodes per run",
+        exp.task,
+        exp.scale.name(),
+        exp.episodes
+    );
+    let episodes_csv = exp.out.join("episodes.csv");
+    if pending.is_empty() {
+        let rows = collect_rows(&exp.out, &manifest)?;
+        results::write_episodes(&episodes_csv, &rows)?;
+        return Ok(rows);
+    }
+
+    let planner = Daemon::start(
+        &exp.bin_dir.join("planner-service"),
+        &exp.out.join("planner"),
+        &exp.out.join("logs").join("planner.log"),
+    )?;
+    let progress = Progress::new(pending.len(), exp.episodes);
+    let queue = Mutex::new(pending);
+    let failures = Mutex::new(Vec::new());
+    let csv_lock = Mutex::new(());
+    let stamp = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    std::thread::scope(|scope| {
+        for _ in 0..exp.jobs.max(1) {
+            scope.spawn(|| {
+                loop {
+                    let next = queue
+                        .lock()
+                        .unwrap_or_else(std::sync::PoisonError::into_inner)
+                        .pop_front();
+                    let Some(run) = next else { break };
+                    let outcome =
+                        run_one(exp, &manifest, &planner.endpoint, &run, stamp, &progress);
+                    match outcome {
+                        Ok(()) => {
+                            let _guard = csv_lock.lock();
+                            if let Err(e) = collect_rows(&exp.out, &manifest)
+                                .and_then(|rows| Ok(results::write_episodes(&episodes_csv, &rows)?))
+                            {
+                                progress.log(&format!("cannot update episodes.csv: {e:#}"));
+                            }
+                        }
+                        Err(e) => {
+                            progress.log(&format!("run {} failed: {e:#}", run.stem()));
+                            failures
+                                .lock()
+                                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                                .push(format!("{}: {e:#}", run.stem()));
+                        }
+                    }
+                }
+            });
+        }
+    });
+    progress.finish();
+    drop(planner);
+    let rows = collect_rows(&exp.out, &manifest)?;
+    results::write_episodes(&episodes_csv, &rows)?;
+    let failures = failures.into_inner().unwrap_or_default();
+    if !failures.is_empty() {
+        bail!(
+            "{} run(s) failed (re-run the same command to retry them):\n  {}",
+            failures.len(),
+            failures.join("\n  ")
+        );
+    }
+    Ok(rows)
+}
+
+/// Runs one bridge to completion, showing its episodes as they finish.
+fn run_one(
+    exp: &Experiment,
+    manifest: &Manifest,
+    endpoint: &str,
+    run: &RunId,
+    stamp: u64,
+    progress: &Progress,
+) -> Result<()> {
+    let partial = run.partial_csv(&exp.out);
+    let _ = std::fs::remove_file(&partial);
+    let log_path = exp.out.join("logs").join(format!("{}.log", run.stem()));
+    let log = std::fs::File::create(&log_path)
+        .with_context(|| format!("creating {}", log_path.display()))?;
+    let run_name = format!("{}-{}-{stamp}", exp.task.name(), run.stem());
+    let mut cmd = Command::new(exp.bin_dir.join("sim-bridge"));
+    cmd.arg("run")
+        .args([
+            "--task",
+            exp.task.name(),
+            "--run",
+            &run_name,
+            "--agent",
+            "bridge",
+        ])
+        .args(["--episodes", &manifest.episodes.to_string()])
+        .args(["--seed", &run.seed.to_string()])
+        .args(["--preset", &run.method])
+        .args(["--connect", endpoint])
+        .args(["--train-timeout", "86400"])
+        .arg("--out")
+        .arg(&partial)
+        .args(scale::bridge_flags(&manifest.overrides))
+        .env("RUST_LOG", "info,zenoh=warn,mujoco=warn")
+        .stdin(Stdio::null())
+        .stdout(log.try_clone()?)
+        .stderr(log);
+    let mut child = Guard(
+        cmd.spawn()
+            .with_context(|| format!("starting {}", exp.bin_dir.join("sim-bridge").display()))?,
+    );
+    let bar = progress.start_run(&run.stem());
+    let mut seen = 0;
+    let status = loop {
+        let status = child.0.try_wait()?;
+        let done = results::count_rows(&partial);
+        if done > seen {
+            let rows = results::read_run_csv(&partial, exp.task.name(), &run.method, run.seed)
+                .unwrap_or_default();
+            for row in rows.iter().skip(seen) {
+                progress.episode(&bar, &run.stem(), row, manifest.episodes);
+            }
+            seen = done;
+        }
+        if let Some(status) = status {
+            break status;
+        }
+        std::thread::sleep(Duration::from_millis(500));
+    };
+    progress.end_run(bar);
+    if !status.success() {
+        bail!(
+            "sim-bridge exited with {status}; see {}",
+            log_path.display()
+        );
+    }
+    let rows = results::count_rows(&partial);
+    if rows < manifest.episodes as usize {
+        bail!(
+            "sim-bridge finished with {rows} of {} episodes; see {}",
+            manifest.episodes,
+            log_path.display()
+        );
+    }
+    std::fs::rename(&partial, run.csv(&exp.out))?;
+    Ok(())
+}
+
+/// A child process killed when dropped (a bridge whose launcher is going away).
+struct Guard(Child);
+
+impl Drop for Guard {
+    fn drop(&mut self) {
+        if let Ok(None) = self.0.try_wait() {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+}
+
+/// The planner daemon of an experiment, stopped with SIGTERM (a clean shutdown that syncs its
+/// data) when dropped.
+pub struct Daemon {
+    child: Child,
+    pub endpoint: String,
+}
+
+impl Daemon {
+    /// Starts `planner-service serve` on a free loopback port and waits until it serves.
+    pub fn start(bin: &Path, data_dir: &Path, log_path: &Path) -> Result<Self> {
+        if !bin.exists() {
+            bail!(
+                "{} not found: build the binaries first (`cargo build --release --bins`), or point \
+                 --bin-dir at them",
+                bin.display()
+            );
+        }
+        let port = TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .context("finding a free loopback port")?
+            .port();
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let log = std::fs::File::create(log_path)
+            .with_context(|| format!("creating {}", log_path.display()))?;
+        let child = Command::new(bin)
+            .args(["serve", "--listen", &endpoint, "--planner-id"])
+            .arg(format!("experiment-{port}"))
+            .arg("--data-dir")
+            .arg(data_dir)
+            .env("RUST_LOG", "info,zenoh=warn")
+            .stdin(Stdio::null())
+            .stdout(log.try_clone()?)
+            .stderr(log)
+            .spawn()
+            .with_context(|| format!("starting {}", bin.display()))?;
+        let mut daemon = Self { child, endpoint };
+        daemon.wait_until_serving(log_path, Duration::from_secs(120))?;
+        tracing::info!(endpoint = %daemon.endpoint, log = %log_path.display(), "planner daemon serving");
+        Ok(daemon)
+    }
+
+    fn wait_until_serving(&mut self, log_path: &Path, timeout: Duration) -> Result<()> {
+        let started = Instant::now();
+        loop {
+            let mut text = String::new();
+            if let Ok(mut f) = std::fs::File::open(log_path) {
+                let _ = f.read_to_string(&mut text);
+            }
+            if text.contains("planner serving") {
+                return Ok(());
+            }
+            if let Some(status) = self.child.try_wait()? {
+                bail!(
+                    "the planner daemon exited ({status}) before serving; see {}",
+                    log_path.display()
+                );
+            }
+            if started.elapsed() > timeout {
+                bail!(
+                    "the planner daemon did not serve within {timeout:?}; see {}",
+                    log_path.display()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if let Ok(Some(_)) = self.child.try_wait() {
+            return;
+        }
+        let term = Command::new("kill")
+            .arg("-TERM")
+            .arg(self.child.id().to_string())
+            .status();
+        if term.is_ok() {
+            let started = Instant::now();
+            while started.elapsed() < Duration::from_secs(20) {
+                if let Ok(Some(_)) = self.child.try_wait() {
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The folder of the running executable: where `cargo build` puts the sibling binaries.
+pub fn default_bin_dir() -> Result<PathBuf> {
+    let exe = std::env::current_exe().context("locating this executable")?;
+    Ok(exe
+        .parent()
+        .context("the executable has no folder")?
+        .to_path_buf())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn manifest(methods: &[&str], seeds: &[u64], episodes: u32) -> Manifest {
+        Manifest {
+            task: TaskId::Cartpole,
+            scale: Scale::Small,
+            episodes,
+            overrides: Scale::Small.overrides(TaskId::Cartpole),
+            methods: methods.iter().map(|m| m.to_string()).collect(),
+            seeds: seeds.to_vec(),
+        }
+    }
+
+    fn bridge_csv(returns: &[f64]) -> String {
+        let mut text = format!("{}\n", sim_bridge::csv::HEADER);
+        for (e, r) in returns.iter().enumerate() {
+            text.push_str(&format!("{e},{r},200,1.0,200,10.0,2.0\n"));
+        }
+        text
+    }
+
+    #[test]
+    fn resume_skips_complete_runs_only() {
+        let dir =
+            std::env::temp_dir().join(format!("ebmpc-launcher-resume-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("runs")).unwrap();
+        let m = manifest(&["cem", "cem+deen"], &[0, 1], 3);
+        let id = |method: &str, seed| RunId {
+            method: method.into(),
+            seed,
+        };
+        // cem s0: complete. cem s1: only a partial file (interrupted). cem+deen s0: a .csv
+        // with too few episodes (e.g. written by hand). cem+deen s1: nothing.
+        std::fs::write(id("cem", 0).csv(&dir), bridge_csv(&[1.0, 2.0, 3.0])).unwrap();
+        std::fs::write(id("cem", 1).partial_csv(&dir), bridge_csv(&[1.0, 2.0])).unwrap();
+        std::fs::write(id("cem+deen", 0).csv(&dir), bridge_csv(&[5.0])).unwrap();
+        let status: Vec<(String, bool)> = runs(&dir, &m)
+            .into_iter()
+            .map(|(r, done)| (r.stem(), done))
+            .collect();
+        assert_eq!(
+            status,
+            vec![
+                ("cem-s0".to_string(), true),
+                ("cem-s1".to_string(), false),
+                ("cem-deen-s0".to_string(), false),
+                ("cem-deen-s1".to_string(), false),
+            ]
+        );
+        // Only complete runs reach episodes.csv.
+        let rows = collect_rows(&dir, &m).unwrap();
+        assert_eq!(rows.len(), 3);
+        assert!(rows.iter().all(|r| r.method == "cem" && r.seed == 0));
+        assert_eq!(rows[2].episode_return, 3.0);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn prepare_refuses_unknown_methods_and_a_different_experiment() {
+        let dir =
+            std::env::temp_dir().join(format!("ebmpc-launcher-prepare-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut exp = Experiment {
+            task: TaskId::Cartpole,
+            methods: vec!["cem".into()],
+            seeds: vec![0],
+            episodes: 2,
+            scale: Scale::Small,
+            out: dir.clone(),
+            jobs: 1,
+            bin_dir: dir.clone(),
+        };
+        let first = prepare(&exp).unwrap();
+        assert_eq!(first.methods, vec!["cem"]);
+        exp.methods = vec!["cem+deen".into()];
+        exp.seeds = vec![1];
+        let merged = prepare(&exp).unwrap();
+        assert_eq!((merged.methods.len(), merged.seeds.len()), (2, 2));
+        exp.methods = vec!["sgd".into()];
+        assert!(prepare(&exp).is_err());
+        exp.methods = vec!["cem".into()];
+        exp.scale = Scale::Paper;
+        let err = prepare(&exp).unwrap_err();
+        assert!(format!("{err:#}").contains("scale"), "{err:#}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

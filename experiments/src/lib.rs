@@ -1,0 +1,24 @@
+//! Reproducing the paper's comparisons with one command each.
+//!
+//! - [`launcher`]: `experiment` runs a task with several methods and seeds through the real
+//!   deployment path (a `planner-service` daemon and one `sim-bridge` process per run, over
+//!   Zenoh on loopback), resumable, with progress, into `results/<task>/<stamp>/`.
+//! - [`plot`]: learning curves from an experiment's `episodes.csv` (the paper's Figure 4).
+//! - [`figures`]: the paper's Figure 3 (DEEN vs DAE on a 1-D mixture) and Figure 5
+//!   (imagination against reality), computed in-process with the planner's library and the
+//!   simulator's [`sim_bridge::Env`].
+//!
+//! This crate exists so that planner-service never depends on sim-bridge: Figure 5 needs both
+//! the planner (to optimise a plan) and the simulator (to execute it), and the launcher and the
+//! plotting (plotters, indicatif) have no business in the daemon's dependency tree.
+
+pub mod figures;
+pub mod launcher;
+pub mod manifest;
+pub mod plot;
+pub mod progress;
+pub mod results;
+pub mod scale;
+
+/// The methods the planner's presets know (see `planner_service::config::Preset::new`).
+pub const METHODS: &[&str] = &["cem", "cem+dae", "cem+deen", "pets", "pets+deen"];

@@ -1,0 +1,300 @@
+//! `ebmpc-experiment`: reproduces the paper's comparisons and figures.
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand};
+use ebmpc_experiments::figures::{imagination, toy};
+use ebmpc_experiments::launcher::{self, Experiment};
+use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
+use ebmpc_experiments::results;
+use ebmpc_experiments::scale::Scale;
+use proto::TaskId;
+use std::path::{Path, PathBuf};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+use tracing_subscriber::EnvFilter;
+
+/// Reproduces the paper's experiments: learning curves through the real planner daemon and
+/// sim-bridges (Figure 4), imagination against reality (Figure 5), DEEN against DAE on a 1-D
+/// mixture (Figure 3).
+#[derive(Parser, Debug)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Learn a task from scratch with several methods and seeds: one planner daemon, one
+    /// sim-bridge per (method, seed) run over Zenoh. Re-running into the same --out folder
+    /// skips the runs already complete.
+    Experiment(ExperimentArgs),
+    /// Draw the learning curves (mean ± std over seeds per method) of an experiment folder.
+    Plot(PlotArgs),
+    /// Figure 5: after some episodes of training, optimise one plan from a random population
+    /// with each regulariser and compare its imagined rewards with the real ones.
+    Imagination(ImaginationArgs),
+    /// Figure 3: DEEN and DAE score estimates on a 1-D Gaussian mixture against the truth.
+    Toy(ToyArgs),
+}
+
+#[derive(Args, Debug)]
+struct ExperimentArgs {
+    /// Task to learn.
+    #[arg(long)]
+    task: TaskId,
+    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen.
+    #[arg(long, value_delimiter = ',', default_value = "cem,cem+dae,cem+deen")]
+    methods: Vec<String>,
+    /// Sizes: `paper` (Table 2) or `small` (fits a 2-core machine; see the README).
+    #[arg(long, value_enum, default_value_t = Scale::Paper)]
+    scale: Scale,
+    /// Seeds per method (0, 1, …; default: 5 at paper scale, 2 at small).
+    #[arg(long)]
+    seeds: Option<u32>,
+    /// Episodes per run (default: the scale's for the task).
+    #[arg(long)]
+    episodes: Option<u32>,
+    /// Runs at the same time.
+    #[arg(long, default_value_t = 2)]
+    jobs: usize,
+    /// Experiment folder (default: results/<task>/<UTC stamp>); an existing one is resumed.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Folder of the planner-service and sim-bridge binaries (default: this binary's folder).
+    #[arg(long)]
+    bin_dir: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct PlotArgs {
+    /// An experiment folder (its episodes.csv) or an episodes.csv file.
+    path: PathBuf,
+    /// Output stem (default: learning_curves next to the CSV); .png and .svg are written.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct ImaginationArgs {
+    #[arg(long, default_value = "halfcheetah")]
+    task: TaskId,
+    #[arg(long, value_enum, default_value_t = Scale::Paper)]
+    scale: Scale,
+    /// Method whose MPC collects the training data.
+    #[arg(long, default_value = "cem+deen")]
+    method: String,
+    /// Training episodes before the comparison.
+    #[arg(long, default_value_t = 5)]
+    episodes: u32,
+    /// MPC steps into the next episode before the plans are optimised.
+    #[arg(long, default_value_t = 50)]
+    mpc_steps: u32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output folder (default: results/<task>/imagination-<scale>).
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct ToyArgs {
+    /// Training epochs of both estimators.
+    #[arg(long, default_value_t = 1000)]
+    epochs: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output folder.
+    #[arg(long, default_value = "results/figures")]
+    out: PathBuf,
+}
+
+/// `YYYYMMDD-HHMMSS` in UTC, for experiment folders.
+fn stamp() -> String {
+    let secs = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    let (days, rem) = ((secs / 86_400) as i64, secs % 86_400);
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}{month:02}{day:02}-{:02}{:02}{:02}",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
+}
+
+fn experiment(args: ExperimentArgs) -> Result<()> {
+    let seeds = args.seeds.unwrap_or(args.scale.default_seeds());
+    let exp = Experiment {
+        task: args.task,
+        methods: args.methods,
+        seeds: (0..u64::from(seeds)).collect(),
+        episodes: args
+            .episodes
+            .unwrap_or(args.scale.default_episodes(args.task)),
+        scale: args.scale,
+        out: args
+            .out
+            .unwrap_or_else(|| Path::new("results").join(args.task.name()).join(stamp())),
+        jobs: args.jobs,
+        bin_dir: match args.bin_dir {
+            Some(dir) => dir,
+            None => launcher::default_bin_dir()?,
+        },
+    };
+    let started = Instant::now();
+    let outcome = launcher::run(&exp);
+    // Whatever finished is worth a figure, also when some run failed.
+    let csv = exp.out.join("episodes.csv");
+    if csv.exists() {
+        plot_curves(&csv, &exp.out.join("learning_curves"))?;
+    }
+    let rows = outcome?;
+    println!(
+        "{} ({} scale): {} episodes in {} in {:.1} min",
+        exp.task,
+        exp.scale.name(),
+        rows.len(),
+        exp.out.display(),
+        started.elapsed().as_secs_f64() / 60.0
+    );
+    print_summary(&rows);
+    Ok(())
+}
+
+/// Per method: the mean ± std return of the last episode, the mean planning time per step and
+/// the training time per retraining.
+fn print_summary(rows: &[results::EpisodeRow]) {
+    println!(
+        "{:<10} {:>5} {:>18} {:>14} {:>14}",
+        "method", "seeds", "last-episode return", "ms/plan step", "s/retraining"
+    );
+    for curve in results::curves(rows) {
+        let Some(last) = curve.points.last() else {
+            continue;
+        };
+        let mine: Vec<_> = rows.iter().filter(|r| r.method == curve.method).collect();
+        let planned: Vec<_> = mine.iter().filter(|r| r.planned_steps > 0).collect();
+        let plan_ms =
+            planned.iter().map(|r| r.plan_ms_per_step).sum::<f64>() / planned.len().max(1) as f64;
+        let trained: Vec<_> = mine.iter().filter(|r| r.train_seconds > 0.0).collect();
+        let train_s =
+            trained.iter().map(|r| r.train_seconds).sum::<f64>() / trained.len().max(1) as f64;
+        println!(
+            "{:<10} {:>5} {:>11.1} ± {:<6.1} {:>13.1} {:>14.1}",
+            curve.method, last.seeds, last.mean, last.std, plan_ms, train_s
+        );
+    }
+}
+
+fn plot_curves(csv: &Path, stem: &Path) -> Result<()> {
+    let rows = results::read_episodes(csv)?;
+    let task = rows.first().map(|r| r.task.clone()).unwrap_or_default();
+    let figure = LearningCurves {
+        title: format!("{task}: return per episode, mean ± std over seeds"),
+        curves: results::curves(&rows),
+    };
+    let [png, svg] = plot::save(&figure, stem, fonts::ensure())?;
+    println!("wrote {} and {}", png.display(), svg.display());
+    Ok(())
+}
+
+fn plot_command(args: PlotArgs) -> Result<()> {
+    let csv = if args.path.is_dir() {
+        args.path.join("episodes.csv")
+    } else {
+        args.path.clone()
+    };
+    let stem = args.out.unwrap_or_else(|| {
+        csv.parent()
+            .unwrap_or(Path::new("."))
+            .join("learning_curves")
+    });
+    plot_curves(&csv, &stem)
+}
+
+fn imagination_command(args: ImaginationArgs) -> Result<()> {
+    imagination::check_task(args.task)?;
+    let out = args.out.unwrap_or_else(|| {
+        Path::new("results")
+            .join(args.task.name())
+            .join(format!("imagination-{}", args.scale.name()))
+    });
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let config = imagination::ImaginationConfig {
+        task: args.task,
+        scale: args.scale,
+        method: args.method,
+        train_episodes: args.episodes,
+        mpc_steps: args.mpc_steps,
+        seed: args.seed,
+    };
+    let started = Instant::now();
+    let result = imagination::run(&config, |e, ret| {
+        tracing::info!(
+            "training episode {}/{}: return {ret:.2} ({:.0} s so far)",
+            e + 1,
+            config.train_episodes,
+            started.elapsed().as_secs_f64()
+        );
+    })?;
+    std::fs::write(out.join("imagination.csv"), result.to_csv())?;
+    let [png, svg] = plot::save(&result, &out.join("imagination"), fonts::ensure())?;
+    for (kind, imagined, real) in result.totals() {
+        println!(
+            "{:<5} imagined {imagined:>9.2}  real {real:>9.2}  gap {:>8.2}",
+            kind.name(),
+            imagined - real
+        );
+    }
+    println!(
+        "wrote {}, {} and {} in {:.1} min",
+        out.join("imagination.csv").display(),
+        png.display(),
+        svg.display(),
+        started.elapsed().as_secs_f64() / 60.0
+    );
+    Ok(())
+}
+
+fn toy_command(args: ToyArgs) -> Result<()> {
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let config = toy::ToyConfig {
+        epochs: args.epochs,
+        seed: args.seed,
+        ..toy::ToyConfig::default()
+    };
+    let result = toy::run(&config);
+    std::fs::write(args.out.join("toy.csv"), result.to_csv())?;
+    let [png, svg] = plot::save(&result, &args.out.join("toy"), fonts::ensure())?;
+    let (deen, dae) = result.score_rmse();
+    println!("score RMSE against the smoothed truth (|x| ≤ 4): DEEN {deen:.3}, DAE {dae:.3}");
+    println!("wrote {}, {}", png.display(), svg.display());
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Experiment(args) => experiment(args),
+        Command::Plot(args) => plot_command(args),
+        Command::Imagination(args) => imagination_command(args),
+        Command::Toy(args) => toy_command(args),
+    }
+}

@@ -1,0 +1,179 @@
+//! The `ebmpc-experiment` binary end to end: `plot` on a fixture, and `experiment` with stand-in
+//! planner and bridge programs (shell scripts that behave like the real binaries at their
+//! interface: the daemon logs "planner serving", a bridge writes its --out CSV row by row), so
+//! launching, the CSV schema and resuming are checked in seconds and deterministically.
+
+use std::os::unix::fs::PermissionsExt;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn exe() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_ebmpc-experiment"))
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("ebmpc-experiment-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+#[test]
+fn plot_renders_png_and_svg_from_a_fixture() {
+    let dir = temp_dir("plot");
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/episodes.csv");
+    std::fs::copy(&fixture, dir.join("episodes.csv")).unwrap();
+    let out = exe().arg("plot").arg(&dir).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let png = std::fs::read(dir.join("learning_curves.png")).unwrap();
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    assert!(png.len() > 5_000, "{} bytes", png.len());
+    let svg = std::fs::read_to_string(dir.join("learning_curves.svg")).unwrap();
+    assert!(svg.starts_with("<svg"), "{}", &svg[..svg.len().min(80)]);
+    // Two methods: two bands (polygons) and two mean lines.
+    assert!(svg.matches("<polygon").count() >= 2, "{svg}");
+    assert!(svg.matches("<polyline").count() >= 2, "{svg}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Writes an executable shell script.
+fn script(path: &Path, body: &str) {
+    std::fs::write(path, format!("#!/bin/sh\n{body}")).unwrap();
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o755)).unwrap();
+}
+
+/// Stand-ins for `planner-service` and `sim-bridge` in `dir`. The bridge appends its command
+/// line to `calls.log` and writes `--episodes` rows of sim-bridge's CSV format; with
+/// FAIL_SEED=<seed> in its environment it fails after one episode for that seed.
+fn fake_binaries(dir: &Path) {
+    script(
+        &dir.join("planner-service"),
+        "echo 'INFO planner serving'\nexec sleep 300\n",
+    );
+    let calls = dir.join("calls.log");
+    script(
+        &dir.join("sim-bridge"),
+        &format!(
+            r#"echo "$@" >> {calls}
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --out) out="$2"; shift;;
+    --episodes) episodes="$2"; shift;;
+    --seed) seed="$2"; shift;;
+  esac
+  shift
+done
+echo "episode,return,steps,wall_seconds,planned_steps,plan_ms_mean,train_seconds" > "$out"
+e=0
+while [ $e -lt $episodes ]; do
+  echo "$e,$((seed * 100 + e)).5,200,0.010,200,12.500,1.250" >> "$out"
+  if [ "$FAIL_SEED" = "$seed" ]; then exit 3; fi
+  e=$((e + 1))
+done
+"#,
+            calls = calls.display()
+        ),
+    );
+}
+
+fn experiment(bins: &Path, out: &Path, fail_seed: Option<u32>) -> std::process::Output {
+    let mut cmd = exe();
+    cmd.args([
+        "experiment",
+        "--task",
+        "cartpole",
+        "--methods",
+        "cem,cem+deen",
+    ])
+    .args([
+        "--seeds",
+        "2",
+        "--episodes",
+        "3",
+        "--scale",
+        "small",
+        "--jobs",
+        "2",
+    ])
+    .arg("--out")
+    .arg(out)
+    .arg("--bin-dir")
+    .arg(bins);
+    if let Some(seed) = fail_seed {
+        cmd.env("FAIL_SEED", seed.to_string());
+    }
+    cmd.output().unwrap()
+}
+
+fn calls(bins: &Path) -> Vec<String> {
+    std::fs::read_to_string(bins.join("calls.log"))
+        .unwrap_or_default()
+        .lines()
+        .map(str::to_string)
+        .collect()
+}
+
+#[test]
+fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
+    let bins = temp_dir("bins");
+    fake_binaries(&bins);
+    let out = bins.join("results");
+
+    // First attempt: every seed-1 run fails after one episode.
+    let first = experiment(&bins, &out, Some(1));
+    assert!(!first.status.success());
+    let stderr = String::from_utf8_lossy(&first.stderr);
+    assert!(stderr.contains("2 run(s) failed"), "{stderr}");
+    assert_eq!(calls(&bins).len(), 4);
+    // The bridges got the run spec: the method's preset and the small scale's overrides.
+    let all = calls(&bins).join("\n");
+    assert!(
+        all.contains("--preset cem+deen") && all.contains("--population 200"),
+        "{all}"
+    );
+    let csv = std::fs::read_to_string(out.join("episodes.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next().unwrap(),
+        "task,method,seed,episode,return,steps,planned_steps,plan_ms_per_step,train_seconds,wall_seconds"
+    );
+    let rows: Vec<&str> = lines.collect();
+    assert_eq!(rows.len(), 6, "{csv}");
+    assert_eq!(rows[0], "cartpole,cem,0,0,0.5,200,200,12.500,1.250,0.010");
+    assert!(
+        rows.iter().all(|r| r.split(',').nth(2) == Some("0")),
+        "{csv}"
+    );
+    assert!(out.join("runs/cem-s1.csv.partial").exists());
+    assert!(out.join("learning_curves.png").exists());
+
+    // Second attempt: only the two failed runs start again, and all 12 rows are there.
+    let second = experiment(&bins, &out, None);
+    assert!(
+        second.status.success(),
+        "{}",
+        String::from_utf8_lossy(&second.stderr)
+    );
+    let after = calls(&bins);
+    assert_eq!(after.len(), 6, "{after:?}");
+    assert!(
+        after[4..].iter().all(|c| c.contains("--seed 1")),
+        "{after:?}"
+    );
+    let csv = std::fs::read_to_string(out.join("episodes.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 13, "{csv}");
+    assert!(
+        csv.contains("cartpole,cem+deen,1,2,102.5,200,200,12.500,1.250,0.010"),
+        "{csv}"
+    );
+
+    // Third attempt: nothing left to do, nothing started.
+    let third = experiment(&bins, &out, None);
+    assert!(third.status.success());
+    assert_eq!(calls(&bins).len(), 6);
+    std::fs::remove_dir_all(&bins).unwrap();
+}
