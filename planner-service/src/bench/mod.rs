@@ -7,6 +7,7 @@
 //! floating-point operations per linear layer per row (the matrix products; activations and
 //! the per-row reward are extra work not counted).
 
+mod cputime;
 mod plan;
 mod train;
 

@@ -17,9 +17,12 @@ pub struct StepTiming {
     pub sizes: Vec<usize>,
     pub batch: usize,
     pub median_ms: f64,
+    pub min_ms: f64,
     /// Matrix-product GFLOP/s at the median, where the step's operation count is simple to
     /// state (dynamics: forward plus backward, `6·in·out` per layer per sample).
     pub gflops: Option<f64>,
+    /// PyTorch's time for the same step on the project's 2-core machine, where known.
+    pub pytorch_ms: Option<f64>,
 }
 
 /// Timing of training steps of both models of a task's preset.
@@ -30,6 +33,20 @@ pub struct TrainReport {
     /// One ensemble member (members train in parallel, each with steps like this one).
     pub dynamics: StepTiming,
     pub deen: StepTiming,
+}
+
+/// Milliseconds PyTorch takes per training step of `(dynamics, DEEN)` at a task's preset sizes
+/// on the project's 2-core AVX-512 machine (DEEN with denormals flushed); the target to beat.
+fn pytorch_reference_ms(task: TaskId) -> (Option<f64>, Option<f64>) {
+    match task {
+        TaskId::HalfCheetah => (Some(1.9), Some(6.1)),
+        _ => (None, None),
+    }
+}
+
+/// The fastest of some durations, in milliseconds.
+fn min_ms(times: &[Duration]) -> f64 {
+    times.iter().min().map_or(0.0, |t| t.as_secs_f64() * 1e3)
 }
 
 /// Transitions to draw minibatches from: enough for several distinct batches.
@@ -70,6 +87,7 @@ pub(super) fn run(
     });
     let dynamics_sizes = model.mlp().sizes().to_vec();
     let dynamics_ms = median_ms(&mut dynamics_times);
+    let (pytorch_dynamics, pytorch_deen) = pytorch_reference_ms(task);
     let dynamics_flops = 3.0 * flops_per_row(&dynamics_sizes) * dynamics_batch as f64;
 
     let energy_batch = preset.energy.batch_size;
@@ -92,13 +110,17 @@ pub(super) fn run(
             sizes: dynamics_sizes,
             batch: dynamics_batch,
             median_ms: dynamics_ms,
+            min_ms: min_ms(&dynamics_times),
             gflops: Some(dynamics_flops / (dynamics_ms * 1e-3) / 1e9),
+            pytorch_ms: pytorch_dynamics,
         },
         deen: StepTiming {
             sizes: deen.mlp().sizes().to_vec(),
             batch: energy_batch,
             median_ms: median_ms(&mut deen_times),
+            min_ms: min_ms(&deen_times),
             gflops: None,
+            pytorch_ms: pytorch_deen,
         },
     })
 }
@@ -130,13 +152,22 @@ impl fmt::Display for TrainReport {
         for (name, t) in [("dynamics", &self.dynamics), ("DEEN", &self.deen)] {
             write!(
                 f,
-                "\n  {name:<9} {:<16} batch {:>3}: {:.3} ms per step",
+                "\n  {name:<9} {:<16} batch {:>3}: {:.3} ms per step median, {:.3} ms best",
                 describe(&t.sizes),
                 t.batch,
-                t.median_ms
+                t.median_ms,
+                t.min_ms
             )?;
             if let Some(g) = t.gflops {
                 write!(f, ", {g:.1} GFLOP/s")?;
+            }
+            if let Some(reference) = t.pytorch_ms {
+                write!(
+                    f,
+                    " (PyTorch {reference} ms: speed-up {:.2}× median, {:.2}× best)",
+                    reference / t.median_ms,
+                    reference / t.min_ms
+                )?;
             }
         }
         Ok(())
@@ -154,6 +185,12 @@ mod tests {
         assert_eq!(report.dynamics.sizes, vec![6, 200, 200, 200, 8]);
         assert_eq!(report.deen.sizes, vec![9, 200, 200, 200, 1]);
         assert!(report.dynamics.median_ms > 0.0 && report.deen.median_ms > 0.0);
+        assert!(report.deen.min_ms > 0.0 && report.deen.min_ms <= report.deen.median_ms);
+        assert_eq!(report.deen.pytorch_ms, None);
+        assert_eq!(
+            pytorch_reference_ms(TaskId::HalfCheetah),
+            (Some(1.9), Some(6.1))
+        );
         assert!(report.dynamics.gflops.is_some_and(|g| g > 0.0));
         assert!(report.to_string().contains("DEEN"));
         assert!(matches!(
