@@ -3,6 +3,9 @@
 //!
 //! The planner's own buffers and the networks' scratch are allocated when the planner is built
 //! and on its first call with a model; rayon's pool and gemm-free kernels need nothing per call.
+//! The networks' packed inference weights are made once per model (on its first forward pass,
+//! or ahead of time with `Mlp::pack_for_inference`), so a newly trained model of the same
+//! shapes, packed before it is handed over, plans without allocating from its first call.
 //! The calls run inside a rayon pool, as the service runs them: a call from a thread outside
 //! the pool goes through rayon's global job injector, a queue that allocates a block every 63
 //! injected jobs. That allocation belongs to rayon, not to the planner, and is why the test
@@ -81,6 +84,18 @@ fn random_transitions(task: TaskId, n: usize, rng: &mut StdRng) -> Transitions {
     data
 }
 
+/// Packs every network of the models ahead of planning (what a trainer does before publishing).
+fn pack(dynamics: &Ensemble, regularizer: &Regularizer) {
+    for i in 0..dynamics.members() {
+        dynamics.member(i).mlp().pack_for_inference();
+    }
+    match regularizer {
+        Regularizer::None => {}
+        Regularizer::Dae(m) => m.mlp().pack_for_inference(),
+        Regularizer::Deen(m) => m.mlp().pack_for_inference(),
+    }
+}
+
 #[test]
 fn planning_allocates_nothing_after_warm_up() {
     let task = TaskId::Ant; // the task with termination, so that path is exercised too
@@ -146,6 +161,32 @@ fn planning_allocates_nothing_after_warm_up() {
     });
     assert!(checksum.is_finite(), "the plans were real: {checksum}");
     assert_eq!(allocations, 0, "allocations during 5 planning calls");
+
+    // A retrained model of the same shapes, packed before the swap, plans without allocating
+    // from its very first call.
+    let mut dynamics = Ensemble::new(spec, &dynamics_config, &mut rng);
+    dynamics.fit(&data, 2, &mut rng);
+    let mut deen = Regularizer::new(
+        RegularizerKind::Deen,
+        &energy_config,
+        spec.obs_dim,
+        spec.act_dim,
+        &mut rng,
+    );
+    deen.fit(&data, 2, &mut rng);
+    pack(&dynamics, &deen);
+    let (allocations, outcome) = pool.install(|| {
+        ALLOCATIONS.store(0, Ordering::SeqCst);
+        COUNTING.store(true, Ordering::SeqCst);
+        let outcome = planner.plan(&obs, &dynamics, &deen).predicted_return;
+        COUNTING.store(false, Ordering::SeqCst);
+        (ALLOCATIONS.load(Ordering::SeqCst), outcome)
+    });
+    assert!(outcome.is_finite());
+    assert_eq!(
+        allocations, 0,
+        "allocations in the first call with new models"
+    );
 
     // The counter does see allocations, so a zero above is meaningful.
     COUNTING.store(true, Ordering::SeqCst);

@@ -3,11 +3,13 @@
 //! No autodiff framework: the networks are MLPs with smooth activations, so the forward pass,
 //! the parameter gradient, the input gradient and the DEEN double backprop are written out
 //! ([`mlp`], [`backprop`], [`double_backprop`]) and each is checked against finite differences.
-//! The time goes into [`matmul`] (a register-blocked kernel, used instead of the `gemm` crate
-//! because every `gemm` call allocates; it matches `gemm`'s speed on these shapes) and
+//! The time goes into [`matmul`] (register-blocked kernels, used instead of the `gemm` crate
+//! because every `gemm` call allocates; they match or beat `gemm` on these shapes) and
 //! [`activation`] (vectorised polynomial exp/log), both compiled for AVX-512/AVX2 and picked at
-//! run time ([`simd`]). Inference ([`Mlp::forward`]) never allocates once its
-//! [`ForwardScratch`] exists; training threads flush denormals ([`denormals`]).
+//! run time ([`simd`]). Inference ([`Mlp::forward`], the planner's hot loop) reads weights
+//! packed once per model and fuses bias and activation into the kernel ([`fastmath512`]); it
+//! never allocates once its [`ForwardScratch`] exists and the weights are packed. Training
+//! threads flush denormals ([`denormals`]).
 //!
 //! Batches are feature-major throughout (see [`mlp`]).
 

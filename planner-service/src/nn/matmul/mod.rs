@@ -8,6 +8,9 @@
 //! which makes `Wᵀ` free — and streams rows of `Y` in 16-float panels, so `Y` and `C` need
 //! unit column stride. The last panel of a row is masked, so any width works.
 //!
+//! Inference layers take a second entry, [`matmul_packed`]: the weights packed once per model
+//! into the kernel's layout, and bias plus activation fused into the kernel (see `packed.rs`).
+//!
 //! The networks keep their activations *feature-major* (feature `f` of sample `i` at
 //! `f · ld + i`): then the forward pass is `Z = Wᵀ · H`, the backward pass `G' = W · G`, and only
 //! the weight gradient needs a (small) transpose of its right factor.
