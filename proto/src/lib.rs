@@ -1,11 +1,12 @@
 //! The contract between ebmpc processes: the task catalog, the messages, the key expressions
 //! they travel on, the codec that turns them into bytes, the validation every received message
-//! goes through, and how a process joins the Zenoh session.
+//! goes through, how a process joins the Zenoh session, and how it is asked to stop.
 
 pub mod codec;
 pub mod keys;
 pub mod messages;
 pub mod session;
+pub mod shutdown;
 pub mod task;
 pub mod validate;
 

@@ -451,7 +451,8 @@ impl Service {
                     task: run.spec().task.to_string(),
                     method: run.preset().method.clone(),
                     mode: run.mode(),
-                    episodes: run.episodes_stored(),
+                    // Counted from the same snapshot as the returns, so the two always agree.
+                    episodes: returns.len() as u32,
                     transitions: run.transitions_stored(),
                     models_version: run.models().version,
                     training: run.is_training(),

@@ -1,6 +1,6 @@
 //! The planner's status report, served as JSON on `{prefix}/planners/{id}/status`.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// Planning latencies of the most recent actions, for percentiles.
 #[derive(Debug, Default)]
@@ -38,7 +38,7 @@ impl LatencyWindow {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Latency {
     pub p50_ms: f32,
     pub p90_ms: f32,
@@ -46,7 +46,7 @@ pub struct Latency {
     pub samples: usize,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct PlannerStatus {
     pub planner_id: String,
     pub protocol_version: u16,
@@ -54,7 +54,7 @@ pub struct PlannerStatus {
     pub runs: Vec<RunStatus>,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct RunStatus {
     pub name: String,
     pub task: String,
