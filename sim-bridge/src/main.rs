@@ -264,9 +264,9 @@ async fn run(args: RunArgs) -> Result<()> {
     };
     let records = tokio::select! {
         result = bridge::run(&config, on_episode) => result.context("sim-bridge stopped")?,
-        signal = tokio::signal::ctrl_c() => {
-            signal.context("listening for Ctrl-C")?;
-            bail!("interrupted (Ctrl-C); the planner records the open episode as interrupted");
+        signal = proto::shutdown::shutdown_signal() => {
+            let signal = signal.context("listening for stop signals")?;
+            bail!("stopped by {signal}; the planner records the open episode as interrupted");
         }
     };
     if let (Some(e), Some(path)) = (write_error, &out) {
