@@ -48,6 +48,9 @@ pub struct BridgeConfig {
     pub action_timeout: Duration,
     /// How long to wait for the first action of a later episode (the planner may be training).
     pub train_timeout: Duration,
+    /// End every episode after at most this many steps (as a time limit); `None`: the task's
+    /// episode length. For quick tests and demos.
+    pub max_steps: Option<u32>,
 }
 
 /// One finished episode, as the bridge saw it.
@@ -200,6 +203,7 @@ pub async fn run(
     }
     let task = config.spec.task;
     let mut env = Env::new(task)?;
+    env.cap_episode_length(config.max_steps);
     let mut link = PlannerLink::open(
         Keys::new(&config.prefix),
         &config.run,

@@ -20,7 +20,8 @@ pub struct StepOutcome {
     pub reward: f32,
     /// The task's terminal condition holds for `obs` (no reward accrues after it).
     pub terminated: bool,
-    /// The episode reached its time limit (`episode_len` steps) without terminating.
+    /// The episode reached its time limit (`episode_len` steps, or the cap set with
+    /// [`Env::cap_episode_length`]) without terminating.
     pub truncated: bool,
 }
 
@@ -40,6 +41,8 @@ pub struct Env {
     prev_obs: Vec<f32>,
     action: Vec<f32>,
     steps: u32,
+    /// Steps after which an episode is truncated: the task's episode length unless capped.
+    time_limit: u32,
     done: bool,
 }
 
@@ -71,6 +74,7 @@ impl Env {
             prev_obs: vec![0.0; spec.obs_dim],
             action: vec![0.0; spec.act_dim],
             steps: 0,
+            time_limit: spec.episode_len,
             done: false,
         };
         env.reset(0);
@@ -107,6 +111,20 @@ impl Env {
         self.steps
     }
 
+    /// Truncates episodes after at most `max_steps` steps (reported as `truncated`, like the
+    /// task's own time limit), or restores the task's episode length with `None`. A cap above
+    /// the task's episode length changes nothing: episodes are short runs of the real task, for
+    /// quick tests and demos, never longer ones.
+    pub fn cap_episode_length(&mut self, max_steps: Option<u32>) {
+        self.time_limit =
+            max_steps.map_or(self.spec.episode_len, |m| m.clamp(1, self.spec.episode_len));
+    }
+
+    /// Steps after which the current settings truncate an episode.
+    pub fn time_limit(&self) -> u32 {
+        self.time_limit
+    }
+
     /// Advances one control step with `action`, clamped into the task's bounds.
     ///
     /// # Errors
@@ -134,7 +152,7 @@ impl Env {
 
         let reward = self.spec.reward(&self.prev_obs, &self.action, &self.obs);
         let terminated = self.spec.is_terminal(&self.obs);
-        let truncated = !terminated && self.steps >= self.spec.episode_len;
+        let truncated = !terminated && self.steps >= self.time_limit;
         self.done = terminated || truncated;
         Ok(StepOutcome {
             obs: self.obs.clone(),
@@ -322,6 +340,32 @@ mod tests {
         ));
         env.reset(12);
         assert!(env.step(&[0.0]).is_ok());
+    }
+
+    #[test]
+    fn a_capped_episode_is_truncated_early() {
+        let mut env = cartpole();
+        env.cap_episode_length(Some(30));
+        assert_eq!(env.time_limit(), 30);
+        for _ in 0..2 {
+            env.reset(1);
+            for step in 1..=30 {
+                let out = env.step(&[0.5]).unwrap();
+                assert_eq!(out.truncated, step == 30, "step {step}");
+                assert!(!out.terminated);
+            }
+            assert!(matches!(
+                env.step(&[0.0]),
+                Err(SimError::EpisodeOver { steps: 30 })
+            ));
+        }
+        // Caps never lengthen an episode, and never make it empty.
+        env.cap_episode_length(Some(5000));
+        assert_eq!(env.time_limit(), 200);
+        env.cap_episode_length(Some(0));
+        assert_eq!(env.time_limit(), 1);
+        env.cap_episode_length(None);
+        assert_eq!(env.time_limit(), 200);
     }
 
     #[test]

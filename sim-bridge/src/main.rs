@@ -58,6 +58,10 @@ struct RunArgs {
     /// unless --planner-seed is given.
     #[arg(long, env = "EBMPC_SEED", default_value_t = 0)]
     seed: u64,
+    /// End every episode after at most this many steps, reported to the planner as a time
+    /// limit (default: the task's episode length). For quick tests and demos.
+    #[arg(long, env = "EBMPC_MAX_STEPS")]
+    max_steps: Option<u32>,
     /// Write one CSV row per episode here (columns: see sim_bridge::csv::HEADER: return, steps,
     /// wall seconds, planned steps, mean planning ms, training seconds).
     #[arg(long)]
@@ -220,6 +224,9 @@ impl RunArgs {
         if self.episodes == 0 {
             bail!("--episodes must be at least 1");
         }
+        if self.max_steps == Some(0) {
+            bail!("--max-steps must be at least 1");
+        }
         let config = BridgeConfig {
             prefix: self.prefix,
             endpoints: Endpoints {
@@ -234,6 +241,7 @@ impl RunArgs {
             attach_timeout: seconds("attach-timeout", self.attach_timeout)?,
             action_timeout: seconds("action-timeout", self.action_timeout)?,
             train_timeout: seconds("train-timeout", self.train_timeout)?,
+            max_steps: self.max_steps,
             spec: self.spec.into_spec(self.task, self.seed),
         };
         Ok((config, self.out))

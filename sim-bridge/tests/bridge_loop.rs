@@ -163,6 +163,7 @@ fn config(endpoint: &str, episodes: u32) -> BridgeConfig {
         attach_timeout: Duration::from_secs(20),
         action_timeout: Duration::from_secs(20),
         train_timeout: Duration::from_secs(20),
+        max_steps: None,
     }
 }
 
