@@ -23,12 +23,13 @@ use crate::nn::activation::Activation;
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::simd::{SimdLevel, level};
 
-/// Output features per packed block: the AVX-512 kernel's row block (the AVX2 kernel takes a
-/// block as two halves).
-pub const PACK_ROWS: usize = 12;
+/// Output features per packed block: the row block of both the AVX-512 kernel (6 rows × 64
+/// columns of accumulators) and the AVX2 kernel (6 rows × 16).
+pub const PACK_ROWS: usize = 6;
 
-/// An `m × k` matrix packed for [`matmul_packed`]: block `b` holds rows `12b..12b + mr`
-/// (`mr = min(12, m − 12b)`) at offset `12b·k`, element `(12b + r, d)` at `12b·k + d·mr + r`.
+/// An `m × k` matrix packed for [`matmul_packed`]: with `R` = [`PACK_ROWS`], block `b` holds
+/// rows `Rb..Rb + mr` (`mr = min(R, m − Rb)`) at offset `Rb·k`, element `(Rb + r, d)` at
+/// `Rb·k + d·mr + r`.
 #[derive(Clone)]
 pub struct PackedMatrix {
     rows: usize,
@@ -204,23 +205,33 @@ mod tests {
     }
 
     #[test]
-    fn packing_lays_out_blocks_of_twelve_rows() {
-        // A 14 × 2 matrix: one block of 12 rows, one of 2.
-        let a: Vec<f32> = (0..28).map(|v| v as f32).collect();
-        let p = PackedMatrix::pack(MatRef::new(&a, 14, 2));
+    fn packing_lays_out_blocks_of_pack_rows() {
+        // Two full blocks and a ragged one of 2 rows, 3 columns.
+        let (m, k) = (2 * PACK_ROWS + 2, 3);
+        let a: Vec<f32> = (0..m * k).map(|v| v as f32).collect();
+        let p = PackedMatrix::pack(MatRef::new(&a, m, k));
         let data = p.data.as_slice();
-        // Block 0, depth 0: rows 0..12 of column 0; depth 1: rows 0..12 of column 1.
-        assert_eq!(data[..3], [0.0, 2.0, 4.0]);
-        assert_eq!(data[12..14], [1.0, 3.0]);
-        // Block 1 (rows 12, 13) starts at 12·2: depth-major pairs.
-        assert_eq!(data[24..28], [24.0, 26.0, 25.0, 27.0]);
-        assert_eq!((p.rows(), p.depth()), (14, 2));
+        for i in 0..m {
+            let i0 = i / PACK_ROWS * PACK_ROWS;
+            let mr = PACK_ROWS.min(m - i0);
+            for d in 0..k {
+                assert_eq!(data[i0 * k + d * mr + (i - i0)], a[i * k + d], "({i}, {d})");
+            }
+        }
+        // The last block is packed at its own height: its rows are adjacent.
+        let last = 2 * PACK_ROWS;
+        assert_eq!(
+            data[last * k..last * k + 2],
+            [a[last * k], a[(last + 1) * k]]
+        );
+        assert_eq!((p.rows(), p.depth()), (m, k));
     }
 
     #[test]
     fn packed_layers_match_the_reference_on_ragged_shapes_at_every_level() {
         let mut rng = StdRng::seed_from_u64(5);
-        // m, n, k deliberately not multiples of the 12-row block or the 16/32-float panels.
+        // m, n, k deliberately not multiples of the 6-row block, the 16-float panel or the
+        // 4-panel tile: every count of leftover rows and leftover panels (1–3) occurs.
         let shapes = [
             (1, 1, 1),
             (5, 3, 7),
@@ -230,6 +241,8 @@ mod tests {
             (37, 47, 1),
             (24, 64, 50),
             (50, 100, 23),
+            (7, 80, 5),
+            (11, 96, 3),
         ];
         for lvl in SimdLevel::available() {
             for &(m, n, k) in &shapes {
@@ -311,10 +324,7 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(1);
         // (m, n, k): out features, samples per population chunk, in features.
         for &(m, n, k, act) in &[
-            (12usize, 32usize, 200usize, Activation::Swish),
-            (12, 32, 500, Activation::Swish),
-            (24, 256, 200, Activation::Swish),
-            (200, 200, 200, Activation::Swish),
+            (200usize, 200usize, 200usize, Activation::Swish),
             (200, 250, 200, Activation::Swish),
             (400, 250, 400, Activation::Swish),
             (300, 250, 300, Activation::Softplus),
