@@ -5,9 +5,9 @@
 //! segment of `Y` per panel and broadcasts the block's 6 adjacent packed weights — constant
 //! offsets from one pointer that advances by the block height. 6 × 64 was measured against
 //! 12 × 32 and 8 × 48 (same register budget): it needs half the broadcasts of 12 × 32 per
-//! multiply-add and came out a few percent ahead on the 200–500 wide layers. The finished tile is activated
-//! in registers and stored with masks, so any width works. As in `x86.rs`, rows are unrolled
-//! by a macro and pointer arithmetic is wrapping, for the dev profile's sake.
+//! multiply-add and came out a few percent ahead on the 200–500 wide layers. The finished tile
+//! is activated in registers and stored with masks, so any width works. As in `x86.rs`, rows
+//! are unrolled by a macro and pointer arithmetic is wrapping, for the dev profile's sake.
 
 use super::x86::{load_scalar, mask16};
 use crate::nn::activation::Activation;
