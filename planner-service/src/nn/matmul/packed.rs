@@ -232,7 +232,8 @@ mod tests {
     fn packed_layers_match_the_reference_on_ragged_shapes_at_every_level() {
         let mut rng = StdRng::seed_from_u64(5);
         // m, n, k deliberately not multiples of the 6-row block, the 16-float panel or the
-        // 4-panel tile: every count of leftover rows and leftover panels (1–3) occurs.
+        // 4-panel tile: every count of leftover rows and of leftover panels (1–3, and 5 split
+        // as 3 + 2) occurs.
         let shapes = [
             (1, 1, 1),
             (5, 3, 7),
@@ -244,6 +245,7 @@ mod tests {
             (50, 100, 23),
             (7, 80, 5),
             (11, 96, 3),
+            (6, 200, 4),
         ];
         for lvl in SimdLevel::available() {
             for &(m, n, k) in &shapes {

@@ -105,7 +105,7 @@ unsafe fn tile<const NP: usize>(mr: usize, raw: &PackedRaw, i0: usize, p: usize)
 }
 
 /// Block by block (each block's packed weights stay in L1 while every panel of `Y` passes
-/// through), four panels per tile and one narrower tile for the last 1–3 panels.
+/// through), four panels per tile and narrower tiles for the rest.
 ///
 /// # Safety
 /// The CPU must support AVX-512F and every extent of `raw` must be valid.
@@ -114,9 +114,15 @@ pub(super) unsafe fn drive(raw: &PackedRaw) {
     let panels = raw.n.div_ceil(LANES);
     for i0 in (0..raw.m).step_by(super::packed::PACK_ROWS) {
         let mr = super::packed::PACK_ROWS.min(raw.m - i0);
+        // A lone last panel would make a tile with one multiply-add per broadcast: end on
+        // 3 + 2 panels instead of 4 + 1 where there are five or more.
+        let full_tiles = match panels % TILE_PANELS {
+            1 if panels > TILE_PANELS => panels / TILE_PANELS - 1,
+            _ => panels / TILE_PANELS,
+        };
         let mut p = 0;
         // SAFETY (every call): the block and the panels named are inside the extents.
-        while p + TILE_PANELS <= panels {
+        for _ in 0..full_tiles {
             unsafe { tile::<TILE_PANELS>(mr, raw, i0, p) };
             p += TILE_PANELS;
         }
@@ -125,6 +131,10 @@ pub(super) unsafe fn drive(raw: &PackedRaw) {
             1 => unsafe { tile::<1>(mr, raw, i0, p) },
             2 => unsafe { tile::<2>(mr, raw, i0, p) },
             3 => unsafe { tile::<3>(mr, raw, i0, p) },
+            5 => unsafe {
+                tile::<3>(mr, raw, i0, p);
+                tile::<2>(mr, raw, i0, p + 3);
+            },
             left => unreachable!("{left} panels left"),
         }
     }
