@@ -8,6 +8,7 @@ use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
 use ebmpc_experiments::results;
 use ebmpc_experiments::scale::Scale;
 use proto::TaskId;
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use tracing_subscriber::EnvFilter;
@@ -78,8 +79,12 @@ struct PlotArgs {
 struct ImaginationArgs {
     #[arg(long, default_value = "halfcheetah")]
     task: TaskId,
+    /// Sizes of the models and of the MPC that collects the training data.
     #[arg(long, value_enum, default_value_t = Scale::Paper)]
     scale: Scale,
+    /// CEM sizes of the three compared plans (default: --scale).
+    #[arg(long, value_enum)]
+    plan_scale: Option<Scale>,
     /// Method whose MPC collects the training data.
     #[arg(long, default_value = "cem+deen")]
     method: String,
@@ -234,6 +239,7 @@ fn imagination_command(args: ImaginationArgs) -> Result<()> {
     let config = imagination::ImaginationConfig {
         task: args.task,
         scale: args.scale,
+        plan_scale: args.plan_scale.unwrap_or(args.scale),
         method: args.method,
         train_episodes: args.episodes,
         mpc_steps: args.mpc_steps,
@@ -285,10 +291,14 @@ fn toy_command(args: ToyArgs) -> Result<()> {
 }
 
 fn main() -> Result<()> {
+    // MuJoCo's compile-time report and zenoh's chatter are noise here; colours only on a
+    // terminal, so that a run under nohup leaves a readable log.
     tracing_subscriber::fmt()
         .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
+            EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn,mujoco=warn")),
         )
+        .with_ansi(std::io::stderr().is_terminal())
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {

@@ -31,7 +31,11 @@ use std::fmt::Write as _;
 #[derive(Clone, Debug)]
 pub struct ImaginationConfig {
     pub task: TaskId,
+    /// Sizes of the models and of the MPC that collects the data.
     pub scale: Scale,
+    /// CEM sizes of the three compared plans. Exploiting a model takes a strong optimiser, so
+    /// the paper's population and iterations can be used here even when training was small.
+    pub plan_scale: Scale,
     /// The method whose MPC collects the training data (its dynamics model is the one used).
     pub method: String,
     /// Episodes of training before the comparison (the paper: 5).
@@ -160,6 +164,8 @@ pub fn run(
     }
 
     let (_, energy_epochs) = preset.schedule.epochs(&preset, config.train_episodes);
+    let mut plan_preset = Preset::new(task, Some(&config.method))?;
+    plan_preset.apply(&config.plan_scale.overrides(task))?;
     let mut traces = Vec::new();
     for kind in [
         RegularizerKind::None,
@@ -177,11 +183,11 @@ pub fn run(
         let alpha = if kind == RegularizerKind::None {
             0.0
         } else {
-            preset.energy_weight
+            plan_preset.energy_weight
         };
         let mut fresh = MpcPlanner::new(
             spec,
-            preset.cem.clone(),
+            plan_preset.cem.clone(),
             alpha,
             false,
             config.seed.wrapping_add(1000),
