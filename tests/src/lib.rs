@@ -3,6 +3,8 @@
 //! guard that kills it when dropped (also when a test fails), and gives each test its own
 //! temporary directory.
 
+pub mod client;
+
 use anyhow::{Context, Result, bail};
 use std::io::Read;
 use std::net::TcpListener;

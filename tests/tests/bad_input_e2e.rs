@@ -2,12 +2,10 @@
 //! misaddressed or out-of-order observation gets a clear error on the sender's error key, none
 //! reaches the replay buffer, and a well-behaved agent is served throughout.
 
+use ebmpc_e2e::client::{Answer, Client, observation};
 use ebmpc_e2e::{Planner, TempDir, read_csv, run_bridge};
 use planner_service::replay::ReplayBuffer;
-use proto::{
-    AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorCode, ErrorReport, Keys, Observation,
-    PROTOCOL_VERSION, RunSpec, TaskId,
-};
+use proto::{Encoding, ErrorCode, ErrorReport, Observation, RunSpec, TaskId};
 use std::time::Duration;
 
 const SMALL: &str = r#"
@@ -25,121 +23,18 @@ horizon = 5
 cem_iterations = 2
 "#;
 
-struct Client {
-    session: zenoh::Session,
-    keys: Keys,
-    errors: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
-    actions: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
-    run: String,
-    agent: String,
-}
-
-impl Client {
-    async fn connect(endpoint: &str, run: &str, agent: &str) -> Client {
-        let endpoints = proto::session::Endpoints {
-            listen: vec![],
-            connect: vec![endpoint.to_string()],
-        };
-        let session = zenoh::open(proto::session::zenoh_config(&endpoints, None).unwrap())
-            .await
-            .unwrap();
-        let keys = Keys::default();
-        let errors = session
-            .declare_subscriber(keys.error(run, agent))
-            .await
-            .unwrap();
-        let actions = session
-            .declare_subscriber(keys.act(run, agent))
-            .await
-            .unwrap();
-        Client {
-            session,
-            keys,
-            errors,
-            actions,
-            run: run.into(),
-            agent: agent.into(),
-        }
-    }
-
-    async fn attach(&self) {
-        let request = AttachRequest {
-            version: PROTOCOL_VERSION,
-            agent: self.agent.clone(),
-            spec: RunSpec {
-                task: TaskId::Cartpole,
-                preset: None,
-                overrides: Default::default(),
-                mode: Default::default(),
-                seed: 1,
-            },
-        };
-        let payload = proto::encode(&request, Encoding::Postcard).unwrap();
-        for _ in 0..100 {
-            let replies = self
-                .session
-                .get(self.keys.attach(&self.run))
-                .payload(payload.clone())
-                .await
-                .unwrap();
-            if let Ok(reply) = replies.recv_async().await {
-                let bytes = reply
-                    .result()
-                    .expect("attach reply")
-                    .payload()
-                    .to_bytes()
-                    .into_owned();
-                let reply: AttachReply = proto::decode(&bytes, Encoding::Postcard).unwrap();
-                assert!(
-                    matches!(reply.outcome, AttachOutcome::Accepted(_)),
-                    "{reply:?}"
-                );
-                // Give the planner's subscriber a moment to be matched by our publisher.
-                tokio::time::sleep(Duration::from_millis(300)).await;
-                return;
-            }
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-        panic!("attach got no reply");
-    }
-
-    async fn send_raw(&self, run: &str, bytes: Vec<u8>, encoding: &str) {
-        let key = self.keys.obs(run, &self.agent);
-        self.session
-            .put(key, bytes)
-            .encoding(zenoh::bytes::Encoding::from(encoding))
-            .await
-            .unwrap();
-    }
-
-    async fn send(&self, obs: &Observation) {
-        self.send_raw(
-            &self.run.clone(),
-            proto::encode(obs, Encoding::Postcard).unwrap(),
-            Encoding::Postcard.mime(),
-        )
-        .await;
-    }
-
-    async fn next_error(&self) -> ErrorReport {
-        let sample = tokio::time::timeout(Duration::from_secs(20), self.errors.recv_async())
-            .await
-            .expect("an error report")
-            .unwrap();
-        let encoding = Encoding::from_mime(&sample.encoding().to_string());
-        proto::decode(&sample.payload().to_bytes(), encoding).unwrap()
+fn cartpole_spec() -> RunSpec {
+    RunSpec {
+        task: TaskId::Cartpole,
+        preset: None,
+        overrides: Default::default(),
+        mode: Default::default(),
+        seed: 1,
     }
 }
 
 fn obs(episode: u32, step: u32, values: Vec<f32>, reward: Option<f32>) -> Observation {
-    Observation {
-        version: PROTOCOL_VERSION,
-        episode,
-        step,
-        obs: values,
-        reward,
-        end: None,
-    }
+    observation(episode, step, values, reward, None)
 }
 
 #[test]
@@ -175,8 +70,8 @@ fn bad_input_is_reported_and_never_stored() {
         .build()
         .unwrap();
     runtime.block_on(async {
-        let client = Client::connect(&endpoint, "bad", "b").await;
-        client.attach().await;
+        let client = Client::connect(&endpoint, "bad", "b").await.unwrap();
+        client.attach(&cartpole_spec()).await.unwrap();
         let cases: Vec<(Vec<u8>, &str, ErrorCode)> = vec![
             (
                 vec![0xde, 0xad, 0xbe, 0xef, 0x01],
@@ -237,25 +132,24 @@ fn bad_input_is_reported_and_never_stored() {
             ),
         ];
         for (bytes, mime, code) in cases {
-            client.send_raw("bad", bytes.clone(), mime).await;
-            let report = client.next_error().await;
+            client.send_raw("bad", bytes.clone(), mime).await.unwrap();
+            let report = client.next_error().await.unwrap();
             assert_eq!(report.code, code, "{bytes:?} → {report}");
             assert!(!report.message.is_empty());
         }
 
         // An unknown run is named as such.
-        let unknown = Client::connect(&endpoint, "nobody-here", "b").await;
-        unknown.send(&obs(0, 0, vec![0.0; 4], None)).await;
-        assert_eq!(unknown.next_error().await.code, ErrorCode::UnknownRun);
+        let unknown = Client::connect(&endpoint, "nobody-here", "b")
+            .await
+            .unwrap();
+        unknown.send(&obs(0, 0, vec![0.0; 4], None)).await.unwrap();
+        assert_eq!(
+            unknown.next_error().await.unwrap().code,
+            ErrorCode::UnknownRun
+        );
 
         // After all that, a proper step is still answered, and a JSON client gets JSON back.
-        client.send(&obs(0, 0, vec![0.0; 4], None)).await;
-        let action = tokio::time::timeout(Duration::from_secs(20), client.actions.recv_async())
-            .await
-            .expect("an action")
-            .unwrap();
-        let act: proto::Action =
-            proto::decode(&action.payload().to_bytes(), Encoding::Postcard).unwrap();
+        let act = client.step(&obs(0, 0, vec![0.0; 4], None)).await.unwrap();
         assert_eq!((act.episode, act.step, act.action.len()), (0, 0, 1));
         // Step 1 in JSON with a NaN-free but mis-sized observation: a JSON error comes back.
         client
@@ -264,13 +158,20 @@ fn bad_input_is_reported_and_never_stored() {
                 br#"{"version":1,"episode":0,"step":1,"obs":[1,2],"reward":0.5}"#.to_vec(),
                 "application/json",
             )
-            .await;
+            .await
+            .unwrap();
         let sample = client.errors.recv_async().await.unwrap();
         assert_eq!(sample.encoding().to_string(), "application/json");
         let report: ErrorReport = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
         assert_eq!(report.code, ErrorCode::Dimension);
-        client.session.close().await.unwrap();
-        unknown.session.close().await.unwrap();
+        // Steps out of order after a good one: the episode is not advanced by them.
+        client.send(&obs(0, 0, vec![0.0; 4], None)).await.unwrap();
+        match client.answer(Duration::from_secs(20)).await.unwrap() {
+            Answer::Error(report) => assert_eq!(report.code, ErrorCode::OutOfOrder),
+            Answer::Action(a) => panic!("a repeated step 0 was answered: {a:?}"),
+        }
+        client.close().await.unwrap();
+        unknown.close().await.unwrap();
     });
 
     let (status, log, csv) = good.join().unwrap();

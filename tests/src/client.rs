@@ -1,0 +1,270 @@
+//! A scripted agent for end-to-end tests: it speaks the wire protocol directly (attach,
+//! observations, actions, errors, events, status), so a test controls every step and byte and
+//! can check exactly what the daemon answered.
+
+use anyhow::{Context, Result, anyhow, bail};
+use planner_service::service::status::PlannerStatus;
+use proto::{
+    Action, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, EpisodeEnd,
+    ErrorReport, Keys, Observation, PROTOCOL_VERSION, RunEvent, RunSpec,
+};
+use std::time::Duration;
+use zenoh::handlers::FifoChannelHandler;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::Sample;
+
+type Inbox = Subscriber<FifoChannelHandler<Sample>>;
+
+/// How long a test waits for one answer before it calls the daemon unresponsive.
+pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// What the daemon said in answer to an observation.
+#[derive(Debug)]
+pub enum Answer {
+    Action(Action),
+    Error(ErrorReport),
+}
+
+/// One agent of one run, with its own Zenoh session and liveliness token.
+pub struct Client {
+    pub session: zenoh::Session,
+    pub keys: Keys,
+    pub run: String,
+    pub agent: String,
+    pub actions: Inbox,
+    pub errors: Inbox,
+    pub events: Inbox,
+    _token: zenoh::liveliness::LivelinessToken,
+}
+
+impl Client {
+    /// Connects to `endpoint` (multicast scouting off) as `agent` of `run`.
+    pub async fn connect(endpoint: &str, run: &str, agent: &str) -> Result<Client> {
+        let endpoints = proto::session::Endpoints {
+            listen: vec![],
+            connect: vec![endpoint.to_string()],
+        };
+        let session = zenoh::open(proto::session::zenoh_config(&endpoints, None)?)
+            .await
+            .map_err(|e| anyhow!("zenoh open: {e}"))?;
+        let keys = Keys::default();
+        let subscribe = |key: String| {
+            let session = session.clone();
+            async move {
+                session
+                    .declare_subscriber(key)
+                    .await
+                    .map_err(|e| anyhow!("subscribe: {e}"))
+            }
+        };
+        let actions = subscribe(keys.act(run, agent)).await?;
+        let errors = subscribe(keys.error(run, agent)).await?;
+        let events = subscribe(keys.events(run)).await?;
+        let token = session
+            .liveliness()
+            .declare_token(keys.agent_alive(run, agent))
+            .await
+            .map_err(|e| anyhow!("liveliness token: {e}"))?;
+        Ok(Client {
+            session,
+            keys,
+            run: run.into(),
+            agent: agent.into(),
+            actions,
+            errors,
+            events,
+            _token: token,
+        })
+    }
+
+    /// Attaches with `spec`, retrying while no planner answers (it may be starting).
+    pub async fn attach(&self, spec: &RunSpec) -> Result<AttachAccepted> {
+        let request = AttachRequest {
+            version: PROTOCOL_VERSION,
+            agent: self.agent.clone(),
+            spec: spec.clone(),
+        };
+        let payload = proto::encode(&request, Encoding::Postcard)?;
+        for _ in 0..300 {
+            let replies = self
+                .session
+                .get(self.keys.attach(&self.run))
+                .payload(payload.clone())
+                .timeout(Duration::from_secs(5))
+                .await
+                .map_err(|e| anyhow!("attach query: {e}"))?;
+            if let Ok(reply) = replies.recv_async().await {
+                let sample = reply
+                    .result()
+                    .map_err(|e| anyhow!("attach error reply: {e:?}"))?;
+                let reply: AttachReply =
+                    proto::decode(&sample.payload().to_bytes(), Encoding::Postcard)?;
+                return match reply.outcome {
+                    AttachOutcome::Accepted(accepted) => {
+                        // Give the planner's subscriber a moment to match our publications.
+                        tokio::time::sleep(Duration::from_millis(300)).await;
+                        Ok(accepted)
+                    }
+                    AttachOutcome::Rejected(report) => bail!("attach refused: {report}"),
+                };
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        bail!("attach to `{}` got no reply", self.run)
+    }
+
+    /// Publishes raw bytes on this agent's observation key (or another run's) with a MIME type.
+    pub async fn send_raw(&self, run: &str, bytes: Vec<u8>, mime: &str) -> Result<()> {
+        self.session
+            .put(self.keys.obs(run, &self.agent), bytes)
+            .encoding(zenoh::bytes::Encoding::from(mime))
+            .await
+            .map_err(|e| anyhow!("put: {e}"))
+    }
+
+    /// Publishes an observation (postcard).
+    pub async fn send(&self, obs: &Observation) -> Result<()> {
+        let bytes = proto::encode(obs, Encoding::Postcard)?;
+        self.send_raw(&self.run.clone(), bytes, Encoding::Postcard.mime())
+            .await
+    }
+
+    /// The next action or error for this agent.
+    pub async fn answer(&self, timeout: Duration) -> Result<Answer> {
+        tokio::select! {
+            sample = self.actions.recv_async() => {
+                let sample = sample.map_err(|e| anyhow!("actions: {e}"))?;
+                Ok(Answer::Action(decode(&sample)?))
+            }
+            sample = self.errors.recv_async() => {
+                let sample = sample.map_err(|e| anyhow!("errors: {e}"))?;
+                Ok(Answer::Error(decode(&sample)?))
+            }
+            () = tokio::time::sleep(timeout) => bail!("no answer for `{}` within {timeout:?}", self.agent),
+        }
+    }
+
+    /// Sends `obs` and returns the action for it; an error report is an error.
+    pub async fn step(&self, obs: &Observation) -> Result<Action> {
+        self.send(obs).await?;
+        match self.answer(ANSWER_TIMEOUT).await? {
+            Answer::Action(action) if (action.episode, action.step) == (obs.episode, obs.step) => {
+                Ok(action)
+            }
+            Answer::Action(action) => bail!(
+                "action for episode {} step {} answered observation {}/{}",
+                action.episode,
+                action.step,
+                obs.episode,
+                obs.step
+            ),
+            Answer::Error(report) => bail!("step {}/{} refused: {report}", obs.episode, obs.step),
+        }
+    }
+
+    /// The next error report (for tests that provoke one).
+    pub async fn next_error(&self) -> Result<ErrorReport> {
+        let sample = tokio::time::timeout(ANSWER_TIMEOUT, self.errors.recv_async())
+            .await
+            .context("no error report")?
+            .map_err(|e| anyhow!("errors: {e}"))?;
+        decode(&sample)
+    }
+
+    /// Drops actions and error reports already received but not read (answers to messages
+    /// sent before a restart, say) and returns them.
+    pub fn take_pending(&self) -> Result<Vec<Answer>> {
+        let mut pending = Vec::new();
+        while let Ok(Some(sample)) = self.actions.try_recv() {
+            pending.push(Answer::Action(decode(&sample)?));
+        }
+        while let Ok(Some(sample)) = self.errors.try_recv() {
+            pending.push(Answer::Error(decode(&sample)?));
+        }
+        Ok(pending)
+    }
+
+    /// Run events received so far (without waiting).
+    pub fn drain_events(&self) -> Result<Vec<RunEvent>> {
+        let mut events = Vec::new();
+        while let Ok(Some(sample)) = self.events.try_recv() {
+            events.push(decode(&sample)?);
+        }
+        Ok(events)
+    }
+
+    /// Closes the session: the liveliness token goes with it, as when a process dies.
+    pub async fn close(self) -> Result<()> {
+        self.session
+            .close()
+            .await
+            .map_err(|e| anyhow!("close: {e}"))
+    }
+}
+
+/// Decodes a sample in the encoding it declares.
+fn decode<T: serde::de::DeserializeOwned>(sample: &Sample) -> Result<T> {
+    let encoding = Encoding::from_mime(&sample.encoding().to_string());
+    Ok(proto::decode(&sample.payload().to_bytes(), encoding)?)
+}
+
+/// Queries a planner's status over `session`.
+pub async fn status(session: &zenoh::Session, planner_id: &str) -> Result<PlannerStatus> {
+    let replies = session
+        .get(Keys::default().planner_status(planner_id))
+        .timeout(Duration::from_secs(10))
+        .await
+        .map_err(|e| anyhow!("status query: {e}"))?;
+    let reply = replies
+        .recv_async()
+        .await
+        .map_err(|_| anyhow!("planner `{planner_id}` did not answer the status query"))?;
+    let sample = reply
+        .result()
+        .map_err(|e| anyhow!("status error reply: {e:?}"))?;
+    Ok(serde_json::from_slice(&sample.payload().to_bytes())?)
+}
+
+/// An observation message.
+pub fn observation(
+    episode: u32,
+    step: u32,
+    obs: Vec<f32>,
+    reward: Option<f32>,
+    end: Option<EpisodeEnd>,
+) -> Observation {
+    Observation {
+        version: PROTOCOL_VERSION,
+        episode,
+        step,
+        obs,
+        reward,
+        end,
+    }
+}
+
+/// A toy cart-pole-shaped system for scripted agents: deterministic, bounded, and cheap, so a
+/// test can play many steps without a simulator. (The daemon learns whatever it is fed.)
+#[derive(Clone, Debug)]
+pub struct ToySystem {
+    pub state: [f32; 4],
+}
+
+impl ToySystem {
+    pub fn new(seed: u32) -> Self {
+        let s = seed as f32 * 0.01;
+        Self {
+            state: [s, -s, 0.0, 0.0],
+        }
+    }
+
+    /// Applies `action` (first component) and returns the reward of the transition.
+    pub fn step(&mut self, action: &[f32]) -> f32 {
+        let a = action.first().copied().unwrap_or(0.0).clamp(-3.0, 3.0);
+        let [x, theta, v, w] = self.state;
+        let v = 0.95 * v + 0.04 * a;
+        let w = 0.95 * w + 0.04 * (theta.sin() + 0.5 * a);
+        self.state = [x + 0.04 * v, theta + 0.04 * w, v, w];
+        -(x * x) - 0.01 * a * a
+    }
+}
