@@ -41,6 +41,20 @@ impl Models {
         }
     }
 
+    /// Packs every network's weights into the inference layout now, so that the first plan
+    /// with these models neither pays for the packing nor allocates. The trainer calls it
+    /// before a new version is swapped in.
+    pub fn pack_for_inference(&self) {
+        for i in 0..self.dynamics.members() {
+            self.dynamics.member(i).mlp().pack_for_inference();
+        }
+        match &self.regularizer {
+            Regularizer::None => {}
+            Regularizer::Dae(m) => m.mlp().pack_for_inference(),
+            Regularizer::Deen(m) => m.mlp().pack_for_inference(),
+        }
+    }
+
     /// Whether these models have been trained at all.
     pub fn is_trained(&self) -> bool {
         self.version > 0

@@ -40,6 +40,7 @@ pub fn retrain(
     let energy = next.regularizer.fit(data, energy_epochs, &mut rng);
     next.version = current.version + 1;
     next.episodes_covered = episodes;
+    next.pack_for_inference();
     let report = TrainReport {
         models_version: next.version,
         transitions: data.len(),
