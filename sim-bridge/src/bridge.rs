@@ -51,6 +51,10 @@ pub struct BridgeConfig {
     /// End every episode after at most this many steps (as a time limit); `None`: the task's
     /// episode length. For quick tests and demos.
     pub max_steps: Option<u32>,
+    /// Write a PNG frame of every step here, one folder per episode (when the machine can
+    /// render offscreen; otherwise the bridge says so and runs without frames).
+    #[cfg(feature = "render")]
+    pub render: Option<PathBuf>,
 }
 
 /// One finished episode, as the bridge saw it.
@@ -204,6 +208,13 @@ pub async fn run(
     let task = config.spec.task;
     let mut env = Env::new(task)?;
     env.cap_episode_length(config.max_steps);
+    #[cfg(feature = "render")]
+    if let Some(dir) = &config.render {
+        match env.record_frames(dir) {
+            Ok(()) => tracing::info!(dir = %dir.display(), "rendering every episode's frames"),
+            Err(e) => tracing::warn!("--render {}: {e}; running without frames", dir.display()),
+        }
+    }
     let mut link = PlannerLink::open(
         Keys::new(&config.prefix),
         &config.run,

@@ -44,6 +44,9 @@ pub struct Env {
     /// Steps after which an episode is truncated: the task's episode length unless capped.
     time_limit: u32,
     done: bool,
+    /// Frames of every state from the next reset on, when asked for.
+    #[cfg(feature = "render")]
+    frames: Option<crate::render::FrameRecorder>,
 }
 
 impl std::fmt::Debug for Env {
@@ -76,6 +79,8 @@ impl Env {
             steps: 0,
             time_limit: spec.episode_len,
             done: false,
+            #[cfg(feature = "render")]
+            frames: None,
         };
         env.reset(0);
         Ok(env)
@@ -96,6 +101,11 @@ impl Env {
     pub fn reset(&mut self, seed: u64) -> &[f32] {
         self.sim.reset(&mut StdRng::seed_from_u64(seed));
         self.sim.observe(&mut self.obs);
+        #[cfg(feature = "render")]
+        if let Some(frames) = &mut self.frames {
+            frames.begin_episode();
+            frames.capture(self.sim.physics().qpos());
+        }
         self.steps = 0;
         self.done = false;
         &self.obs
@@ -120,6 +130,22 @@ impl Env {
             max_steps.map_or(self.spec.episode_len, |m| m.clamp(1, self.spec.episode_len));
     }
 
+    /// Writes a PNG frame of every state from the next [`Env::reset`] on, one folder per
+    /// episode under `dir` (see [`crate::render`]).
+    ///
+    /// # Errors
+    /// The folder cannot be created, or the machine offers no offscreen OpenGL context; the
+    /// environment then runs as before, without frames.
+    #[cfg(feature = "render")]
+    pub fn record_frames(
+        &mut self,
+        dir: &std::path::Path,
+    ) -> Result<(), crate::render::RenderError> {
+        let recorder = crate::render::FrameRecorder::start(self.sim.physics().xml(), dir)?;
+        self.frames = Some(recorder);
+        Ok(())
+    }
+
     /// Steps after which the current settings truncate an episode.
     pub fn time_limit(&self) -> u32 {
         self.time_limit
@@ -141,6 +167,10 @@ impl Env {
         std::mem::swap(&mut self.prev_obs, &mut self.obs);
         let stable = self.sim.step(&self.action).is_ok();
         self.sim.observe(&mut self.obs);
+        #[cfg(feature = "render")]
+        if let Some(frames) = &mut self.frames {
+            frames.capture(self.sim.physics().qpos());
+        }
         self.steps += 1;
         if !stable || self.obs.iter().any(|v| !v.is_finite()) {
             self.done = true;

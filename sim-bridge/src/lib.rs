@@ -12,6 +12,8 @@ pub mod env;
 pub mod error;
 mod link;
 mod mujoco;
+#[cfg(feature = "render")]
+pub mod render;
 pub mod tasks;
 
 pub use bridge::{BridgeConfig, BridgeError, EpisodeRecord};

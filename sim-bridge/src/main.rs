@@ -62,6 +62,11 @@ struct RunArgs {
     /// limit (default: the task's episode length). For quick tests and demos.
     #[arg(long, env = "EBMPC_MAX_STEPS")]
     max_steps: Option<u32>,
+    /// Write a PNG frame of every step here, one folder per episode (needs an offscreen OpenGL
+    /// context through EGL; without one the bridge says so and runs without frames).
+    #[cfg(feature = "render")]
+    #[arg(long, value_name = "DIR")]
+    render: Option<PathBuf>,
     /// Write one CSV row per episode here (columns: see sim_bridge::csv::HEADER: return, steps,
     /// wall seconds, planned steps, mean planning ms, training seconds).
     #[arg(long)]
@@ -242,6 +247,8 @@ impl RunArgs {
             action_timeout: seconds("action-timeout", self.action_timeout)?,
             train_timeout: seconds("train-timeout", self.train_timeout)?,
             max_steps: self.max_steps,
+            #[cfg(feature = "render")]
+            render: self.render,
             spec: self.spec.into_spec(self.task, self.seed),
         };
         Ok((config, self.out))

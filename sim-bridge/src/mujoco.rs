@@ -33,6 +33,9 @@ pub(crate) struct Unstable;
 pub(crate) struct MjSim {
     data: MjData<Box<MjModel>>,
     substeps: u32,
+    /// The MJCF the model was loaded from (a renderer loads its own copy).
+    #[cfg(feature = "render")]
+    xml: &'static str,
 }
 
 impl MjSim {
@@ -80,7 +83,15 @@ impl MjSim {
         Ok(Self {
             data,
             substeps: config.substeps,
+            #[cfg(feature = "render")]
+            xml: config.xml,
         })
+    }
+
+    /// The MJCF text the model was loaded from.
+    #[cfg(feature = "render")]
+    pub fn xml(&self) -> &'static str {
+        self.xml
     }
 
     /// Generalised positions.

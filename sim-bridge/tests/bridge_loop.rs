@@ -164,6 +164,8 @@ fn config(endpoint: &str, episodes: u32) -> BridgeConfig {
         action_timeout: Duration::from_secs(20),
         train_timeout: Duration::from_secs(20),
         max_steps: None,
+        #[cfg(feature = "render")]
+        render: None,
     }
 }
 

@@ -85,6 +85,11 @@ fn normalize_quaternion(q: &mut [f64]) {
 }
 
 impl TaskSim for Ant {
+    #[cfg(feature = "render")]
+    fn physics(&self) -> &MjSim {
+        &self.sim
+    }
+
     fn reset(&mut self, rng: &mut StdRng) {
         let normal = Normal::new(0.0, RESET_VEL_STD).expect("a positive standard deviation");
         let mut qpos = self.rest_qpos;

@@ -52,6 +52,11 @@ impl Cartpole {
 }
 
 impl TaskSim for Cartpole {
+    #[cfg(feature = "render")]
+    fn physics(&self) -> &MjSim {
+        &self.sim
+    }
+
     fn reset(&mut self, rng: &mut StdRng) {
         let normal = Normal::new(0.0, RESET_STD).expect("a positive standard deviation");
         let mut draw = || normal.sample(rng);

@@ -70,6 +70,11 @@ impl HalfCheetah {
 }
 
 impl TaskSim for HalfCheetah {
+    #[cfg(feature = "render")]
+    fn physics(&self) -> &MjSim {
+        &self.sim
+    }
+
     fn reset(&mut self, rng: &mut StdRng) {
         let normal = Normal::new(0.0, RESET_STD).expect("a positive standard deviation");
         let mut qpos = [0.0; NQ];

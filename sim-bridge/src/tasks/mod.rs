@@ -33,6 +33,10 @@ pub(crate) trait TaskSim: Send {
     /// Puts the system in the state described by `obs` (`obs_dim` numbers, already checked).
     /// Tasks whose observation does not determine the physics state say so with an error.
     fn set_state(&mut self, obs: &[f32]) -> Result<(), SimError>;
+
+    /// The task's MuJoCo model and state, for drawing it.
+    #[cfg(feature = "render")]
+    fn physics(&self) -> &crate::mujoco::MjSim;
 }
 
 /// The tasks that have a simulator, in catalog order.

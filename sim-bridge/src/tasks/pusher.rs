@@ -88,6 +88,11 @@ impl Pusher {
 }
 
 impl TaskSim for Pusher {
+    #[cfg(feature = "render")]
+    fn physics(&self) -> &MjSim {
+        &self.sim
+    }
+
     fn reset(&mut self, rng: &mut StdRng) {
         let normal = Normal::new(0.0, OBJECT_STD).expect("a positive standard deviation");
         let mut qpos = [0.0; NQ];

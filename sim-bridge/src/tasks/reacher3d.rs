@@ -59,6 +59,11 @@ impl Reacher3d {
 }
 
 impl TaskSim for Reacher3d {
+    #[cfg(feature = "render")]
+    fn physics(&self) -> &MjSim {
+        &self.sim
+    }
+
     fn reset(&mut self, rng: &mut StdRng) {
         let normal = Normal::new(0.0, GOAL_STD).expect("a positive standard deviation");
         let start = tip(&REST_POSE);
