@@ -28,24 +28,29 @@ pub struct Binaries {
     pub bridge: PathBuf,
 }
 
-/// Builds `planner-service` and `sim-bridge` once per test process and returns their paths.
+/// Builds `planner-service` and `sim-bridge` once per test process, in the profile the caller
+/// was built in (tests: dev; `cargo bench`: release), and returns their paths.
 pub fn binaries() -> &'static Binaries {
     static BINARIES: OnceLock<Binaries> = OnceLock::new();
     BINARIES.get_or_init(|| {
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let status = Command::new(cargo)
-            .current_dir(workspace())
-            .args(["build", "--workspace", "--bins"])
-            .status()
-            .expect("cargo runs");
-        assert!(status.success(), "building the binaries failed");
-        // Test executables live in target/<profile>/deps; binaries in target/<profile>.
+        // Test and bench executables live in target/<profile>/deps; binaries in target/<profile>.
         let exe = std::env::current_exe().expect("current exe");
         let dir = exe
             .parent()
             .and_then(Path::parent)
             .expect("target/<profile>")
             .to_path_buf();
+        let mut args = vec!["build", "--workspace", "--bins"];
+        if dir.file_name().is_some_and(|name| name == "release") {
+            args.push("--release");
+        }
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let status = Command::new(cargo)
+            .current_dir(workspace())
+            .args(&args)
+            .status()
+            .expect("cargo runs");
+        assert!(status.success(), "building the binaries failed");
         let b = Binaries {
             planner: dir.join("planner-service"),
             bridge: dir.join("sim-bridge"),
