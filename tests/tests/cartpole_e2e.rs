@@ -137,3 +137,69 @@ fn two_cartpole_episodes_random_then_planned() {
         );
     }
 }
+
+/// An agent whose planner is killed mid-run waits for it, attaches again when it is back, and
+/// finishes all its episodes; the restarted planner resumed the run from disk.
+#[test]
+fn the_bridge_rides_out_a_planner_killed_and_restarted() {
+    let dir = TempDir::new("cartpole-restart");
+    let endpoint = ebmpc_e2e::free_endpoint();
+    let mut planner = Planner::start_on(dir.path(), SMALL, &endpoint).expect("planner starts");
+    let csv = dir.path().join("episodes.csv");
+    let mut cmd = std::process::Command::new(&ebmpc_e2e::binaries().bridge);
+    cmd.args([
+        "run", "--task", "cartpole", "--run", "restart", "--agent", "b0",
+    ])
+    .args(["--episodes", "3", "--max-steps", "40", "--seed", "1"])
+    .args(["--connect", &endpoint, "--out"])
+    .arg(&csv)
+    .env("RUST_LOG", "info,zenoh=warn");
+    let mut bridge =
+        ebmpc_e2e::Guarded::spawn("sim-bridge", cmd, dir.path().join("bridge.log")).unwrap();
+    bridge
+        .wait_for_log("episode 1/3 done", Duration::from_secs(180))
+        .unwrap();
+    planner.process.signal("KILL").unwrap();
+    let _ = planner.process.wait(Duration::from_secs(30));
+    drop(planner);
+    std::thread::sleep(Duration::from_millis(500));
+    let mut planner = Planner::start_on(dir.path(), SMALL, &endpoint).expect("planner restarts");
+    assert!(
+        planner.process.log().contains("run opened"),
+        "the run was resumed from disk:\n{}",
+        planner.process.log()
+    );
+
+    let status = bridge.wait(Duration::from_secs(300)).unwrap();
+    let log = bridge.log();
+    assert!(
+        status.success(),
+        "sim-bridge failed: {status}\n{log}\nplanner:\n{}",
+        planner.process.log()
+    );
+    let rows = read_csv(&csv).unwrap();
+    assert_eq!(rows.len(), 3, "{rows:?}");
+    assert!(rows.iter().all(|r| r["steps"] == "40"), "{rows:?}");
+    assert!(
+        log.contains("attaching again") || log.contains("went away"),
+        "the bridge noticed the planner leave:\n{log}"
+    );
+    assert!(
+        planner
+            .process
+            .terminate(Duration::from_secs(30))
+            .unwrap()
+            .success()
+    );
+    let buffer = ReplayBuffer::open(
+        &planner.data_dir.join("runs/restart/replay.log"),
+        TaskId::Cartpole.spec(),
+    )
+    .unwrap();
+    let finished = buffer
+        .episodes()
+        .iter()
+        .filter(|e| e.end != proto::EpisodeEnd::Interrupted)
+        .count();
+    assert_eq!(finished, 3, "{:?}", buffer.episodes());
+}

@@ -44,6 +44,12 @@ fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
 /// queued observations means a misbehaving sender; beyond this they are refused.
 const AGENT_QUEUE: usize = 64;
 
+/// How long a vanished agent's session lingers before it is dropped. An agent's observations
+/// and its liveliness token's deletion travel on different channels, and after a reconnection
+/// (a planner restart) Zenoh does not order them: without the linger, an agent's last
+/// observation, published just before it exits, could find its session already gone.
+const AGENT_LINGER: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// How long a worker may take to finish its message in hand at shutdown.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(10);
 
@@ -191,7 +197,7 @@ impl Service {
                     Err(e) => { tracing::error!(error = %e, "status queryable closed"); break; }
                 },
                 token = agents_alive.recv_async() => match token {
-                    Ok(token) => service.liveliness(token).await,
+                    Ok(token) => service.liveliness(token),
                     Err(e) => { tracing::error!(error = %e, "liveliness subscriber closed"); break; }
                 },
                 () = &mut shutdown => break,
@@ -489,9 +495,10 @@ impl Service {
         }
     }
 
-    /// An agent's liveliness token went away: drop its session (its worker records an open
-    /// episode as interrupted). Agents that come back attach again.
-    async fn liveliness(&self, token: zenoh::sample::Sample) {
+    /// An agent's liveliness token went away: after [`AGENT_LINGER`], drop its session (its
+    /// worker records an open episode as interrupted), unless it attached again meanwhile.
+    /// Agents that come back attach again.
+    fn liveliness(self: &Arc<Self>, token: zenoh::sample::Sample) {
         if token.kind() != zenoh::sample::SampleKind::Delete {
             return;
         }
@@ -499,17 +506,35 @@ impl Service {
         let Some((run, agent)) = self.outbox.keys().parse_agent_alive(key) else {
             return;
         };
-        let removed = {
-            let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-            runs.get_mut(run)
-                .and_then(|handle| handle.agents.remove(agent))
+        let session = {
+            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            runs.get(run)
+                .and_then(|handle| handle.agents.get(agent))
+                .map(|a| a.tx.clone())
         };
-        if let Some(handle) = removed {
-            tracing::info!(%run, %agent, "agent vanished; its session is closed");
-            // Dropping the sender ends the worker once it is done with the message in hand;
-            // it is not awaited here, so a worker waiting for training stalls no one.
-            drop(handle);
-        }
+        let Some(session) = session else { return };
+        let (service, run, agent) = (self.clone(), run.to_string(), agent.to_string());
+        self.runtime.spawn(async move {
+            tokio::time::sleep(AGENT_LINGER).await;
+            let removed = {
+                let mut runs = service.runs.lock().unwrap_or_else(PoisonError::into_inner);
+                runs.get_mut(&run).and_then(|handle| {
+                    // The same session, not one the agent opened by attaching again.
+                    let same = handle
+                        .agents
+                        .get(&agent)
+                        .is_some_and(|a| a.tx.same_channel(&session));
+                    same.then(|| handle.agents.remove(&agent)).flatten()
+                })
+            };
+            drop(session);
+            if let Some(handle) = removed {
+                tracing::info!(%run, %agent, "agent vanished; its session is closed");
+                // Dropping the sender ends the worker once it is done with the messages it
+                // holds; it is not awaited here, so a worker waiting for training stalls no one.
+                drop(handle);
+            }
+        });
     }
 
     /// Hands an observation to its agent's worker, or reports why it cannot be handled.
