@@ -25,20 +25,29 @@ impl Models {
     /// Freshly initialised, untrained models of the preset's sizes.
     pub fn untrained(task: &'static TaskSpec, preset: &Preset, seed: u64) -> Self {
         let mut rng = StdRng::seed_from_u64(seed);
-        let dynamics = Ensemble::new(task, &preset.dynamics, &mut rng);
-        let regularizer = Regularizer::new(
+        let mut dynamics = Ensemble::new(task, &preset.dynamics, &mut rng);
+        let mut regularizer = Regularizer::new(
             preset.regularizer,
             &preset.energy,
             task.obs_dim,
             task.act_dim,
             &mut rng,
         );
+        dynamics.set_inference_precision(preset.inference_precision);
+        regularizer.set_inference_precision(preset.inference_precision);
         Self {
             version: 0,
             episodes_covered: 0,
             dynamics,
             regularizer,
         }
+    }
+
+    /// Sets the number format every network plans in (see [`proto::InferencePrecision`]); the
+    /// weights are packed for it on the next [`Models::pack_for_inference`] or first plan.
+    pub fn set_inference_precision(&mut self, precision: proto::InferencePrecision) {
+        self.dynamics.set_inference_precision(precision);
+        self.regularizer.set_inference_precision(precision);
     }
 
     /// Packs every network's weights into the inference layout now, so that the first plan

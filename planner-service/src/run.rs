@@ -69,10 +69,12 @@ impl Run {
         let task = spec.task.spec();
         dir.write_spec(&spec)?;
         let buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
-        let models = match dir.load_models(task, &preset)? {
+        let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
             None => Models::untrained(task, &preset, spec.seed),
         };
+        models.set_inference_precision(preset.inference_precision);
+        models.pack_for_inference();
         tracing::info!(
             run = %name,
             transitions = buffer.len(),

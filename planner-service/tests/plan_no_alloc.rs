@@ -17,7 +17,7 @@ use planner_service::data::Transitions;
 use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
 use planner_service::plan::{CemConfig, MpcPlanner};
-use proto::TaskId;
+use proto::{InferencePrecision, TaskId};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -96,8 +96,16 @@ fn pack(dynamics: &Ensemble, regularizer: &Regularizer) {
     }
 }
 
+/// Both number formats (bf16 is f32 where the CPU lacks AVX-512 BF16), one after the other:
+/// the allocation counter is global, so no other test may run beside this one.
 #[test]
 fn planning_allocates_nothing_after_warm_up() {
+    for precision in [InferencePrecision::F32, InferencePrecision::Bf16] {
+        allocates_nothing_after_warm_up_in(precision);
+    }
+}
+
+fn allocates_nothing_after_warm_up_in(precision: InferencePrecision) {
     let task = TaskId::Ant; // the task with termination, so that path is exercised too
     let spec = task.spec();
     let mut rng = StdRng::seed_from_u64(0);
@@ -123,6 +131,8 @@ fn planning_allocates_nothing_after_warm_up() {
         &mut rng,
     );
     deen.fit(&data, 1, &mut rng);
+    dynamics.set_inference_precision(precision);
+    deen.set_inference_precision(precision);
 
     let cem = CemConfig {
         horizon: 7,
@@ -174,6 +184,8 @@ fn planning_allocates_nothing_after_warm_up() {
         &mut rng,
     );
     deen.fit(&data, 2, &mut rng);
+    dynamics.set_inference_precision(precision);
+    deen.set_inference_precision(precision);
     pack(&dynamics, &deen);
     let (allocations, outcome) = pool.install(|| {
         ALLOCATIONS.store(0, Ordering::SeqCst);

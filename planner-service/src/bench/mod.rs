@@ -18,7 +18,7 @@ use crate::config::{Preset, PresetError};
 use crate::data::Transitions;
 use crate::energy::RegularizerKind;
 use crate::plan::ConfigError;
-use proto::TaskId;
+use proto::{InferencePrecision, TaskId};
 use rand::RngExt;
 use rand::rngs::StdRng;
 use std::fmt;
@@ -50,6 +50,10 @@ pub enum BenchCommand {
         /// Population chunks planned in parallel; default: one per thread.
         #[arg(long)]
         chunks: Option<usize>,
+        /// Number format of inference: bf16 (the service's default; f32 where the CPU lacks
+        /// AVX-512 BF16) or f32.
+        #[arg(long, default_value = "bf16")]
+        precision: InferencePrecision,
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
@@ -109,6 +113,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
             pets,
             threads,
             chunks,
+            precision,
             seed,
         } => {
             let settings = plan::Settings {
@@ -119,6 +124,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
                 pets,
                 threads,
                 chunks,
+                precision,
                 seed,
             };
             plan::run(&settings).map(BenchReport::Plan)
@@ -233,6 +239,8 @@ mod tests {
             "deen",
             "--iterations-to-time",
             "7",
+            "--precision",
+            "f32",
         ])
         .unwrap();
         assert_eq!(
@@ -245,6 +253,7 @@ mod tests {
                 pets: false,
                 threads: None,
                 chunks: None,
+                precision: InferencePrecision::F32,
                 seed: 0,
             }
         );

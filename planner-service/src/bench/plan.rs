@@ -5,7 +5,7 @@ use super::{BenchError, describe, flops_per_row, median_ms, preset, random_trans
 use crate::dynamics::Ensemble;
 use crate::energy::{Regularizer, RegularizerKind};
 use crate::plan::MpcPlanner;
-use proto::TaskId;
+use proto::{InferencePrecision, TaskId};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use std::fmt;
@@ -20,6 +20,7 @@ pub(super) struct Settings {
     pub pets: bool,
     pub threads: Option<usize>,
     pub chunks: Option<usize>,
+    pub precision: InferencePrecision,
     pub seed: u64,
 }
 
@@ -39,6 +40,8 @@ pub struct PlanReport {
     pub threads: usize,
     /// Population chunks planned in parallel.
     pub chunks: usize,
+    /// The number format inference actually ran in.
+    pub precision: InferencePrecision,
     /// Planning calls timed.
     pub calls: usize,
     /// Mean CEM iterations per call (early stopping may cut some).
@@ -87,6 +90,9 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         &mut rng,
     );
     regularizer.fit(&data, 1, &mut rng);
+    dynamics.set_inference_precision(s.precision);
+    regularizer.set_inference_precision(s.precision);
+    let precision = dynamics.member(0).mlp().inference_precision();
     let obs = data.row(0).0.to_vec();
 
     // Planning runs inside its own pool: one population chunk per thread, and no trips
@@ -156,6 +162,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         particles: cem.particles,
         threads,
         chunks,
+        precision,
         calls: s.timed,
         mean_iterations,
         median_ms: median,
@@ -190,8 +197,8 @@ impl fmt::Display for PlanReport {
         )?;
         writeln!(
             f,
-            "  parallel   {} thread(s), {} population chunk(s)",
-            self.threads, self.chunks
+            "  parallel   {} thread(s), {} population chunk(s), {} inference",
+            self.threads, self.chunks, self.precision
         )?;
         writeln!(
             f,
@@ -241,6 +248,7 @@ mod tests {
             pets: false,
             threads: Some(2),
             chunks: None,
+            precision: InferencePrecision::Bf16,
             seed: 1,
         };
         let report = run(&settings).unwrap();

@@ -15,7 +15,7 @@
 use crate::dynamics::DynamicsConfig;
 use crate::energy::{EnergyConfig, RegularizerKind};
 use crate::plan::CemConfig;
-use proto::{PlannerOverrides, RegularizerChoice, TaskId};
+use proto::{InferencePrecision, PlannerOverrides, RegularizerChoice, TaskId};
 use serde::{Deserialize, Serialize};
 
 /// The methods a preset can be built for (see the module docs).
@@ -42,6 +42,14 @@ pub struct Preset {
     pub exploration_episodes: u32,
     /// How the number of training epochs changes as episodes accumulate.
     pub schedule: EpochSchedule,
+    /// Number format of planning-time inference: bf16 by default, which doubles the
+    /// multiply-add rate on CPUs with AVX-512 BF16 (f32 is used where the CPU lacks it).
+    #[serde(default = "default_precision")]
+    pub inference_precision: InferencePrecision,
+}
+
+fn default_precision() -> InferencePrecision {
+    InferencePrecision::Bf16
 }
 
 /// How training epochs decay with the number of finished episodes (the paper trains less as
@@ -270,6 +278,7 @@ impl Preset {
             sample_dynamics: pets,
             exploration_episodes: t.exploration_episodes,
             schedule: t.schedule,
+            inference_precision: default_precision(),
         })
     }
 
@@ -340,6 +349,9 @@ impl Preset {
         )?;
         if let Some(e) = o.exploration_episodes {
             self.exploration_episodes = e;
+        }
+        if let Some(p) = o.inference_precision {
+            self.inference_precision = p;
         }
         if self.cem.elites > self.cem.population {
             return Err(PresetError::InvalidOverride(format!(

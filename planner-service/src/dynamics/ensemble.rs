@@ -77,6 +77,13 @@ impl Ensemble {
         &mut self.members[i]
     }
 
+    /// Sets the number format of every member's planning-time inference.
+    pub fn set_inference_precision(&mut self, precision: proto::InferencePrecision) {
+        for member in &mut self.members {
+            member.set_inference_precision(precision);
+        }
+    }
+
     /// Trains every member for `epochs` on `data`, continuing from the current weights after
     /// refitting the input and target statistics on `data`. Members train in parallel.
     /// Without data or epochs the ensemble is left exactly as it is.

@@ -244,6 +244,11 @@ impl ProbabilisticModel {
         self.task
     }
 
+    /// Sets the number format of planning-time inference (see [`Mlp::set_inference_precision`]).
+    pub fn set_inference_precision(&mut self, precision: proto::InferencePrecision) {
+        self.mlp.set_inference_precision(precision);
+    }
+
     /// The network: `state_feature_dim + act_dim` inputs, `2 · obs_dim` outputs (means, then
     /// raw log-variances).
     pub fn mlp(&self) -> &Mlp {

@@ -118,6 +118,11 @@ impl Deen {
         self.sigma
     }
 
+    /// Sets the number format of planning-time inference (see [`Mlp::set_inference_precision`]).
+    pub fn set_inference_precision(&mut self, precision: proto::InferencePrecision) {
+        self.mlp.set_inference_precision(precision);
+    }
+
     pub fn mlp(&self) -> &Mlp {
         &self.mlp
     }

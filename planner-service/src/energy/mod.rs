@@ -173,6 +173,15 @@ impl Regularizer {
     }
 
     /// What determines the energies — what persistence stores (`None` for `None`).
+    /// Sets the number format of the energy network's planning-time inference.
+    pub fn set_inference_precision(&mut self, precision: proto::InferencePrecision) {
+        match self {
+            Regularizer::None => {}
+            Regularizer::Dae(m) => m.set_inference_precision(precision),
+            Regularizer::Deen(m) => m.set_inference_precision(precision),
+        }
+    }
+
     pub fn parts(&self) -> Option<EnergyParts> {
         match self {
             Regularizer::None => None,

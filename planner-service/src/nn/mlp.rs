@@ -11,10 +11,17 @@
 //! ([`PackedMatrix`]), with the activation fused into the product. The packed copy is made on
 //! the first inference after the network is built or its parameters were handed out mutably
 //! ([`Mlp::params_mut`] drops it), so a planner packs once per model, never per call.
+//!
+//! The network's [`Precision`] picks the packing: `F32` (the default) packs every layer in
+//! f32; `Bf16`, on CPUs with AVX-512 BF16, keeps the first layer in f32 (it reads the raw
+//! normalised input) and packs every later layer as bf16 pairs, so hidden activations travel
+//! between layers as bf16 and the output comes back in f32.
 
+use super::Precision;
 use super::activation::Activation;
 use super::aligned::{AlignedBuf, round_up};
-use super::matmul::{MatMut, MatRef, PackedMatrix, matmul_packed};
+use super::matmul::{Encoding, MatMut, MatRef, PackedMatrix, matmul_packed};
+use super::simd::bf16_dot_available;
 use rand::RngExt;
 use rand::rngs::StdRng;
 use std::ops::Range;
@@ -31,9 +38,28 @@ pub struct Mlp {
     packed: PackedCache,
 }
 
-/// The packed weights: a cache of `params`, so it takes no part in equality.
-#[derive(Clone, Default)]
-struct PackedCache(OnceLock<Vec<PackedMatrix>>);
+/// The packed weights: a cache of `params` in the chosen precision, so it takes no part in
+/// equality.
+#[derive(Clone)]
+struct PackedCache {
+    precision: Precision,
+    layers: OnceLock<Vec<PackedMatrix>>,
+}
+
+impl PackedCache {
+    fn empty(precision: Precision) -> Self {
+        Self {
+            precision,
+            layers: OnceLock::new(),
+        }
+    }
+}
+
+impl Default for PackedCache {
+    fn default() -> Self {
+        Self::empty(Precision::F32)
+    }
+}
 
 impl PartialEq for PackedCache {
     fn eq(&self, _: &Self) -> bool {
@@ -43,12 +69,12 @@ impl PartialEq for PackedCache {
 
 impl std::fmt::Debug for PackedCache {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let state = if self.0.get().is_some() {
+        let state = if self.layers.get().is_some() {
             "packed"
         } else {
             "not packed"
         };
-        f.write_str(state)
+        write!(f, "{state} ({:?})", self.precision)
     }
 }
 
@@ -128,8 +154,25 @@ impl Mlp {
     /// Mutable parameters (training). Drops the packed inference weights: the next
     /// [`Mlp::forward`] packs the new values.
     pub fn params_mut(&mut self) -> &mut [f32] {
-        self.packed = PackedCache::default();
+        self.packed = PackedCache::empty(self.packed.precision);
         &mut self.params
+    }
+
+    /// Sets the number format of inference (f32 until set); the next [`Mlp::forward`] packs
+    /// the weights for it. Training is unaffected: it always runs in f32.
+    pub fn set_inference_precision(&mut self, precision: Precision) {
+        if precision != self.packed.precision {
+            self.packed = PackedCache::empty(precision);
+        }
+    }
+
+    /// The number format inference runs in: the one asked for, except that bf16 falls back to
+    /// f32 on CPUs without AVX-512 BF16.
+    pub fn inference_precision(&self) -> Precision {
+        match self.packed.precision {
+            Precision::Bf16 if bf16_dot_available() => Precision::Bf16,
+            _ => Precision::F32,
+        }
     }
 
     /// Packs the weights for inference now (what the first [`Mlp::forward`] would do), e.g.
@@ -140,11 +183,17 @@ impl Mlp {
 
     /// Each layer's `Wᵀ` in the kernel's layout, packed on first use.
     fn packed_weights(&self) -> &[PackedMatrix] {
-        self.packed.0.get_or_init(|| {
+        self.packed.layers.get_or_init(|| {
+            let bf16 = self.inference_precision() == Precision::Bf16;
             (0..self.layers())
                 .map(|l| {
                     let (n_in, n_out) = (self.sizes[l], self.sizes[l + 1]);
-                    PackedMatrix::pack(MatRef::new(self.weight(l), n_in, n_out).t())
+                    let wt = MatRef::new(self.weight(l), n_in, n_out).t();
+                    if bf16 && l > 0 {
+                        PackedMatrix::pack_bf16(wt)
+                    } else {
+                        PackedMatrix::pack(wt)
+                    }
                 })
                 .collect()
         })
@@ -211,10 +260,17 @@ impl Mlp {
             };
             let (n_in, n_out) = (self.sizes[l], self.sizes[l + 1]);
             let hidden = l + 1 < layers;
+            // A layer writes its output in the encoding the next layer reads.
+            let out = if hidden {
+                packed[l + 1].encoding()
+            } else {
+                Encoding::F32
+            };
             matmul_packed(
-                MatMut::with_stride(dst, n_out, samples, ld),
+                MatMut::with_stride(dst, out.storage_rows(n_out), samples, ld),
+                out,
                 weights,
-                MatRef::with_stride(src, n_in, samples, ld),
+                MatRef::with_stride(src, weights.encoding().storage_rows(n_in), samples, ld),
                 self.bias(l),
                 hidden.then_some(self.activation),
             );
@@ -394,6 +450,55 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// bf16 inference of networks of the presets' shapes stays within 3 % of the outputs' RMS
+    /// (measured at most 1.9 %; about 2⁻⁸ relative rounding per operand and layer), and
+    /// switching back to f32 restores the exact outputs. The weights are scaled to unit gain
+    /// per layer, so the signal neither vanishes nor explodes through the stack.
+    #[test]
+    fn bf16_inference_stays_close_to_f32() {
+        let mut rng = StdRng::seed_from_u64(3);
+        let shapes = [
+            (vec![42, 500, 500, 500, 500, 500, 1], Activation::Softplus),
+            (vec![24, 200, 200, 200, 200, 36], Activation::Swish),
+            (vec![35, 400, 400, 400, 400, 54], Activation::Swish),
+        ];
+        for (sizes, act) in shapes {
+            let mut mlp = Mlp::new(&sizes, act, &mut rng);
+            for w in mlp.params_mut() {
+                *w *= 3f32.sqrt();
+            }
+            let samples = 64;
+            let x: Vec<f32> = (0..samples * sizes[0])
+                .map(|_| rng.random_range(-2.0..2.0))
+                .collect();
+            let exact = mlp.forward_rows(&x);
+            mlp.set_inference_precision(Precision::Bf16);
+            if !super::bf16_dot_available() {
+                // Without AVX-512 BF16 the request falls back to f32, exactly.
+                assert_eq!(mlp.inference_precision(), Precision::F32);
+                assert_eq!(mlp.forward_rows(&x), exact);
+                continue;
+            }
+            assert_eq!(mlp.inference_precision(), Precision::Bf16);
+            let approx = mlp.forward_rows(&x);
+            assert_ne!(approx, exact, "{sizes:?}: bf16 was not used");
+            let rms =
+                (exact.iter().map(|v| (v * v) as f64).sum::<f64>() / exact.len() as f64).sqrt();
+            let worst = exact
+                .iter()
+                .zip(&approx)
+                .map(|(e, a)| (e - a).abs() as f64)
+                .fold(0.0, f64::max);
+            eprintln!("{sizes:?}: bf16 error at most {worst:.2e}, output RMS {rms:.2e}");
+            assert!(
+                worst <= 0.03 * rms,
+                "{sizes:?}: error {worst} against output RMS {rms}"
+            );
+            mlp.set_inference_precision(Precision::F32);
+            assert_eq!(mlp.forward_rows(&x), exact);
         }
     }
 

@@ -40,4 +40,5 @@ pub use denormals::FlushDenormals;
 pub use double_backprop::InputGradTape;
 pub use mlp::{ForwardScratch, Mlp, ShapeError};
 pub use normalizer::Normalizer;
+pub use proto::InferencePrecision as Precision;
 pub use train::FitReport;

@@ -15,6 +15,8 @@
 //! `f · ld + i`): then the forward pass is `Z = Wᵀ · H`, the backward pass `G' = W · G`, and only
 //! the weight gradient needs a (small) transpose of its right factor.
 
+#[cfg(test)]
+mod bf16_tests;
 mod packed;
 mod scalar;
 #[cfg(target_arch = "x86_64")]
@@ -22,7 +24,9 @@ mod x86;
 #[cfg(target_arch = "x86_64")]
 mod x86_packed;
 
-pub use packed::{PACK_ROWS, PackedMatrix, matmul_packed};
+pub use packed::{
+    Encoding, PACK_ROWS, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed,
+};
 
 use super::denormals;
 use super::simd::{SimdLevel, level};

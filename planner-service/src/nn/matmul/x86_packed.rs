@@ -19,34 +19,97 @@ use std::arch::x86_64::*;
 pub(super) struct PackedRaw {
     pub m: usize,
     pub n: usize,
-    pub k: usize,
+    /// Depth steps: `k` for f32 weights, `⌈k/2⌉` for bf16 pairs.
+    pub steps: usize,
     pub a: *const f32,
+    /// `a` and `y` hold bf16 pairs (see `Encoding::Bf16Pairs`).
+    pub bf16_weights: bool,
     pub y: *const f32,
     pub ld_y: usize,
     pub c: *mut f32,
     pub ld_c: usize,
+    /// Write `C` as bf16 pairs: block rows `2q, 2q + 1` go to storage row `i0/2 + q`.
+    pub bf16_out: bool,
     pub bias: *const f32,
     pub act: Option<Activation>,
 }
 
+/// Word order that interleaves the two halves of `VCVTNE2PS2BF16(hi, lo)` (`lo₀…lo₁₅ hi₀…hi₁₅`)
+/// into pairs `lo_j | hi_j << 16`.
+const INTERLEAVE: [i16; 32] = {
+    let mut idx = [0i16; 32];
+    let mut j = 0;
+    while j < 16 {
+        idx[2 * j] = j as i16;
+        idx[2 * j + 1] = 16 + j as i16;
+        j += 1;
+    }
+    idx
+};
+
+/// Stores two finished rows of 16 lanes as one row of bf16 pairs.
+#[inline]
+#[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+unsafe fn store_pairs(c: *mut f32, mask: __mmask16, lo: __m512, hi: __m512) {
+    // SAFETY: the caller passes a row segment valid for the masked lanes.
+    unsafe {
+        let halves: __m512i = std::mem::transmute(_mm512_cvtne2ps_pbh(hi, lo));
+        let idx = _mm512_loadu_si512(INTERLEAVE.as_ptr().cast());
+        let pairs = _mm512_permutexvar_epi16(idx, halves);
+        _mm512_mask_storeu_epi32(c.cast::<i32>(), mask, pairs);
+    }
+}
+
+/// Activates the finished accumulators in registers and stores them, as f32 rows or as bf16
+/// pairs. Row by row with constant indices, so the accumulators stay in registers (a loop over
+/// `&mut acc` makes LLVM keep a copy in memory inside the k loop).
+macro_rules! epilogue {
+    ($raw:ident, $acc:ident, $mask:ident, $i0:ident, $p0:ident, $np:ident, $mr:ident; $($r:literal)+) => {
+        match $raw.act {
+            None => {}
+            Some(Activation::Swish) => {
+                $( for j in 0..$np { $acc[$r][j] = swish($acc[$r][j]); } )+
+            }
+            Some(Activation::Softplus) => {
+                $( for j in 0..$np { $acc[$r][j] = softplus($acc[$r][j]); } )+
+            }
+        }
+        let ld_c = $raw.ld_c;
+        if $raw.bf16_out {
+            // SAFETY: `bf16_out` is only set on CPUs with AVX-512 BW and BF16.
+            let c = $raw.c.wrapping_add($i0 / 2 * ld_c + $p0 * LANES);
+            for q in (0..$mr).step_by(2) {
+                for j in 0..$np {
+                    let hi = if q + 1 < $mr { $acc[q + 1][j] } else { _mm512_setzero_ps() };
+                    store_pairs(c.wrapping_add(q / 2 * ld_c + j * LANES), $mask[j], $acc[q][j], hi);
+                }
+            }
+        } else {
+            let c = $raw.c.wrapping_add($i0 * ld_c + $p0 * LANES);
+            $( for j in 0..$np {
+                _mm512_mask_storeu_ps(c.wrapping_add($r * ld_c + j * LANES), $mask[j], $acc[$r][j]);
+            } )+
+        }
+    };
+}
+
 macro_rules! packed512 {
-    ($name:ident; $($r:literal)+) => {
-        /// A tile of the listed rows × `NP` panels of the block starting at row `i0`.
+    ($name:ident, $bf16:ident; $($r:literal)+) => {
+        /// An f32 tile of the listed rows × `NP` panels of the block starting at row `i0`.
         #[inline]
         #[target_feature(enable = "avx512f")]
         unsafe fn $name<const NP: usize>(raw: &PackedRaw, i0: usize, p0: usize) {
             const MR: usize = [$($r),+].len();
-            let PackedRaw { n, k, ld_y, ld_c, .. } = *raw;
+            let PackedRaw { n, steps, ld_y, .. } = *raw;
             let mask: [__mmask16; NP] = std::array::from_fn(|j| mask16(n, (p0 + j) * LANES));
-            let mut ap = raw.a.wrapping_add(i0 * k);
+            let mut ap = raw.a.wrapping_add(i0 * steps);
             let mut yp = raw.y.wrapping_add(p0 * LANES);
-            let c = raw.c.wrapping_add(i0 * ld_c + p0 * LANES);
             // SAFETY: the driver passes only blocks and panels inside the checked extents;
             // masked lanes are never touched.
             unsafe {
                 let mut acc = [[_mm512_setzero_ps(); NP]; MR];
                 $( acc[$r] = [_mm512_set1_ps(load_scalar(raw.bias.wrapping_add(i0 + $r))); NP]; )+
-                for _ in 0..k {
+                for _ in 0..steps {
                     let w: [__m512; NP] = std::array::from_fn(|j| _mm512_maskz_loadu_ps(mask[j], yp.wrapping_add(j * LANES)));
                     $(
                         let xv = _mm512_set1_ps(load_scalar(ap.wrapping_add($r)));
@@ -57,31 +120,48 @@ macro_rules! packed512 {
                     ap = ap.wrapping_add(MR);
                     yp = yp.wrapping_add(ld_y);
                 }
-                // Row by row with constant indices, so the accumulators stay in registers (a
-                // loop over `&mut acc` makes LLVM keep a copy in memory inside the k loop).
-                match raw.act {
-                    None => {}
-                    Some(Activation::Swish) => {
-                        $( for j in 0..NP { acc[$r][j] = swish(acc[$r][j]); } )+
-                    }
-                    Some(Activation::Softplus) => {
-                        $( for j in 0..NP { acc[$r][j] = softplus(acc[$r][j]); } )+
-                    }
+                epilogue!(raw, acc, mask, i0, p0, NP, MR; $($r)+);
+            }
+        }
+
+        /// The same tile from bf16 pairs: one `VDPBF16PS` per accumulator does two depth steps.
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+        unsafe fn $bf16<const NP: usize>(raw: &PackedRaw, i0: usize, p0: usize) {
+            const MR: usize = [$($r),+].len();
+            let PackedRaw { n, steps, ld_y, .. } = *raw;
+            let mask: [__mmask16; NP] = std::array::from_fn(|j| mask16(n, (p0 + j) * LANES));
+            let mut ap = raw.a.wrapping_add(i0 * steps);
+            let mut yp = raw.y.wrapping_add(p0 * LANES);
+            // SAFETY: as for the f32 tile; a pair word is loaded and broadcast as 32 raw bits.
+            unsafe {
+                let mut acc = [[_mm512_setzero_ps(); NP]; MR];
+                $( acc[$r] = [_mm512_set1_ps(load_scalar(raw.bias.wrapping_add(i0 + $r))); NP]; )+
+                for _ in 0..steps {
+                    let w: [__m512bh; NP] = std::array::from_fn(|j| {
+                        std::mem::transmute(_mm512_maskz_loadu_ps(mask[j], yp.wrapping_add(j * LANES)))
+                    });
+                    $(
+                        let xv: __m512bh = std::mem::transmute(_mm512_set1_ps(load_scalar(ap.wrapping_add($r))));
+                        for j in 0..NP {
+                            acc[$r][j] = _mm512_dpbf16_ps(acc[$r][j], xv, w[j]);
+                        }
+                    )+
+                    ap = ap.wrapping_add(MR);
+                    yp = yp.wrapping_add(ld_y);
                 }
-                $( for j in 0..NP {
-                    _mm512_mask_storeu_ps(c.wrapping_add($r * ld_c + j * LANES), mask[j], acc[$r][j]);
-                } )+
+                epilogue!(raw, acc, mask, i0, p0, NP, MR; $($r)+);
             }
         }
     };
 }
 
-packed512!(p512_1; 0);
-packed512!(p512_2; 0 1);
-packed512!(p512_3; 0 1 2);
-packed512!(p512_4; 0 1 2 3);
-packed512!(p512_5; 0 1 2 3 4);
-packed512!(p512_6; 0 1 2 3 4 5);
+packed512!(p512_1, bf16_1; 0);
+packed512!(p512_2, bf16_2; 0 1);
+packed512!(p512_3, bf16_3; 0 1 2);
+packed512!(p512_4, bf16_4; 0 1 2 3);
+packed512!(p512_5, bf16_5; 0 1 2 3 4);
+packed512!(p512_6, bf16_6; 0 1 2 3 4 5);
 
 /// Panels per full tile.
 const TILE_PANELS: usize = 4;
@@ -90,15 +170,22 @@ const TILE_PANELS: usize = 4;
 #[inline]
 #[target_feature(enable = "avx512f")]
 unsafe fn tile<const NP: usize>(mr: usize, raw: &PackedRaw, i0: usize, p: usize) {
-    // SAFETY: forwarded from the caller.
+    // SAFETY: forwarded from the caller; the bf16 tiles run only when `matmul_packed` checked
+    // for AVX-512 BF16.
     unsafe {
-        match mr {
-            1 => p512_1::<NP>(raw, i0, p),
-            2 => p512_2::<NP>(raw, i0, p),
-            3 => p512_3::<NP>(raw, i0, p),
-            4 => p512_4::<NP>(raw, i0, p),
-            5 => p512_5::<NP>(raw, i0, p),
-            6 => p512_6::<NP>(raw, i0, p),
+        match (raw.bf16_weights, mr) {
+            (false, 1) => p512_1::<NP>(raw, i0, p),
+            (false, 2) => p512_2::<NP>(raw, i0, p),
+            (false, 3) => p512_3::<NP>(raw, i0, p),
+            (false, 4) => p512_4::<NP>(raw, i0, p),
+            (false, 5) => p512_5::<NP>(raw, i0, p),
+            (false, 6) => p512_6::<NP>(raw, i0, p),
+            (true, 1) => bf16_1::<NP>(raw, i0, p),
+            (true, 2) => bf16_2::<NP>(raw, i0, p),
+            (true, 3) => bf16_3::<NP>(raw, i0, p),
+            (true, 4) => bf16_4::<NP>(raw, i0, p),
+            (true, 5) => bf16_5::<NP>(raw, i0, p),
+            (true, 6) => bf16_6::<NP>(raw, i0, p),
             _ => unreachable!("row block of {mr}"),
         }
     }

@@ -1,0 +1,189 @@
+//! The bf16 encoding and the bf16 packed layers against plain f64 arithmetic.
+//!
+//! The kernels are exact up to f32 summation on bf16-rounded operands: a product of two bf16
+//! numbers is exact in f32, so the reference rounds the operands the same way and sums in f64.
+
+use super::packed::matmul_packed_at;
+use super::{Encoding, MatMut, MatRef, PackedMatrix, bf16_bits, bf16_pair, bf16_value};
+use crate::nn::activation::Activation;
+use crate::nn::simd::{SimdLevel, bf16_dot_available};
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+
+fn round(x: f32) -> f32 {
+    bf16_value(bf16_bits(x))
+}
+
+#[test]
+fn bf16_rounding_is_to_nearest_even_and_keeps_special_values() {
+    // 1 + 2⁻⁸ lies halfway between 1 and 1 + 2⁻⁷: ties go to the even significand (1).
+    assert_eq!(round(1.0 + 2f32.powi(-8)), 1.0);
+    // 1 + 3·2⁻⁸ lies halfway between 1 + 2⁻⁷ and 1 + 2⁻⁶: even is 1 + 2⁻⁶.
+    assert_eq!(round(1.0 + 3.0 * 2f32.powi(-8)), 1.0 + 2f32.powi(-6));
+    // Just above a tie rounds up.
+    assert_eq!(
+        round(1.0 + 2f32.powi(-8) + 2f32.powi(-20)),
+        1.0 + 2f32.powi(-7)
+    );
+    assert_eq!(round(-3.0), -3.0);
+    assert_eq!(round(f32::INFINITY), f32::INFINITY);
+    assert!(round(f32::NAN).is_nan());
+    // A NaN whose payload sits only in the low half must not round to infinity.
+    assert!(round(f32::from_bits(0x7F80_0001)).is_nan());
+    assert_eq!(round(1e-40).to_bits(), 0);
+    assert_eq!(round(-1e-40).to_bits(), 0x8000_0000);
+    // Relative rounding error is at most 2⁻⁸.
+    let mut rng = StdRng::seed_from_u64(0);
+    for _ in 0..10_000 {
+        let x: f32 = rng.random_range(-1e6..1e6);
+        assert!((round(x) - x).abs() <= x.abs() * 2f32.powi(-8), "{x}");
+    }
+    let pair = bf16_pair(1.5, -2.0).to_bits();
+    assert_eq!((pair & 0xFFFF, pair >> 16), (0x3FC0, 0xC000));
+}
+
+/// `act(A · Y + b)` in f64 on bf16-rounded `A` and `Y` (f32 `Y` if `y_f32`), `A` row-major
+/// `m × k`, `Y` row-major `k × n`.
+fn reference(
+    a: &[f32],
+    y: &[f32],
+    bias: &[f32],
+    act: Option<Activation>,
+    (m, n, k): (usize, usize, usize),
+    y_f32: bool,
+) -> Vec<f64> {
+    let mut out = vec![0.0; m * n];
+    for i in 0..m {
+        for j in 0..n {
+            let z = bias[i] as f64
+                + (0..k)
+                    .map(|d| {
+                        let (w, v) = (a[i * k + d], y[d * n + j]);
+                        if y_f32 {
+                            w as f64 * v as f64
+                        } else {
+                            round(w) as f64 * round(v) as f64
+                        }
+                    })
+                    .sum::<f64>();
+            out[i * n + j] = match act {
+                None => z,
+                Some(Activation::Swish) => z / (1.0 + (-z).exp()),
+                Some(Activation::Softplus) => z.max(0.0) + (-z.abs()).exp().ln_1p(),
+            };
+        }
+    }
+    out
+}
+
+/// `k × n` row-major values as bf16 pair rows of stride `ld`.
+fn to_pairs(y: &[f32], k: usize, n: usize, ld: usize) -> Vec<f32> {
+    let rows = Encoding::Bf16Pairs.storage_rows(k);
+    let mut out = vec![f32::NAN; rows * ld];
+    for p in 0..rows {
+        for j in 0..n {
+            let at = |d: usize| if d < k { y[d * n + j] } else { 0.0 };
+            out[p * ld + j] = bf16_pair(at(2 * p), at(2 * p + 1));
+        }
+    }
+    out
+}
+
+/// Element `(i, j)` of a matrix stored in `encoding` with row stride `ld`.
+fn element(c: &[f32], encoding: Encoding, ld: usize, i: usize, j: usize) -> f32 {
+    match encoding {
+        Encoding::F32 => c[i * ld + j],
+        Encoding::Bf16Pairs => {
+            let word = c[i / 2 * ld + j].to_bits();
+            bf16_value(if i.is_multiple_of(2) {
+                word as u16
+            } else {
+                (word >> 16) as u16
+            })
+        }
+    }
+}
+
+#[test]
+fn bf16_layers_match_the_reference_on_ragged_shapes() {
+    if !bf16_dot_available() {
+        eprintln!("skipped: this CPU has no AVX-512 BF16, and the planner never uses bf16 here");
+        return;
+    }
+    let mut rng = StdRng::seed_from_u64(7);
+    // Odd and even depths (a half-empty last pair), ragged row blocks (odd ones leave the last
+    // pair of an output half empty) and every count of leftover panels.
+    let shapes = [
+        (1, 1, 1),
+        (5, 3, 7),
+        (12, 16, 12),
+        (13, 17, 9),
+        (25, 33, 31),
+        (37, 47, 2),
+        (24, 64, 50),
+        (50, 100, 23),
+        (7, 80, 5),
+        (11, 96, 3),
+    ];
+    for &(m, n, k) in &shapes {
+        for (weights, out) in [
+            (Encoding::Bf16Pairs, Encoding::F32),
+            (Encoding::Bf16Pairs, Encoding::Bf16Pairs),
+            (Encoding::F32, Encoding::Bf16Pairs),
+        ] {
+            for act in [None, Some(Activation::Swish), Some(Activation::Softplus)] {
+                let a: Vec<f32> = (0..m * k).map(|_| rng.random_range(-2.0..2.0)).collect();
+                let y: Vec<f32> = (0..k * n).map(|_| rng.random_range(-2.0..2.0)).collect();
+                let bias: Vec<f32> = (0..m).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let ld = n + 5;
+                let (packed, y_stored) = match weights {
+                    Encoding::F32 => {
+                        let mut y_ld = vec![f32::NAN; k * ld];
+                        for d in 0..k {
+                            y_ld[d * ld..d * ld + n].copy_from_slice(&y[d * n..(d + 1) * n]);
+                        }
+                        (PackedMatrix::pack(MatRef::new(&a, m, k)), y_ld)
+                    }
+                    Encoding::Bf16Pairs => (
+                        PackedMatrix::pack_bf16(MatRef::new(&a, m, k)),
+                        to_pairs(&y, k, n, ld),
+                    ),
+                };
+                let ld_c = n + 3;
+                let c_rows = out.storage_rows(m);
+                let mut c = vec![f32::NAN; c_rows * ld_c];
+                matmul_packed_at(
+                    SimdLevel::Avx512,
+                    MatMut::with_stride(&mut c, c_rows, n, ld_c),
+                    out,
+                    &packed,
+                    MatRef::with_stride(&y_stored, weights.storage_rows(k), n, ld),
+                    &bias,
+                    act,
+                );
+                let want = reference(&a, &y, &bias, act, (m, n, k), weights == Encoding::F32);
+                let what = format!("{weights:?}→{out:?} {act:?} {m}×{n}×{k}");
+                for i in 0..m {
+                    for j in 0..n {
+                        let (got, e) = (element(&c, out, ld_c, i, j) as f64, want[i * n + j]);
+                        // f32 summation, plus the output's own rounding when it is bf16.
+                        let mut tol = 3e-6 * (k as f64 + 1.0);
+                        if out == Encoding::Bf16Pairs {
+                            tol += e.abs() * 2f64.powi(-8);
+                        }
+                        assert!((got - e).abs() <= tol, "{what} ({i},{j}): {got} vs {e}");
+                    }
+                }
+                // Padding columns are never written; an odd last output row pairs with zero.
+                for row in c.chunks_exact(ld_c) {
+                    assert!(row[n..].iter().all(|v| v.is_nan()), "{what}: padding");
+                }
+                if out == Encoding::Bf16Pairs && m % 2 == 1 {
+                    for j in 0..n {
+                        assert_eq!(element(&c, out, ld_c, m, j), 0.0, "{what}: pad row");
+                    }
+                }
+            }
+        }
+    }
+}
