@@ -94,6 +94,9 @@ struct ImaginationArgs {
     /// MPC steps into the next episode before the plans are optimised.
     #[arg(long, default_value_t = 50)]
     mpc_steps: u32,
+    /// Number format of the models' inference: bf16 (the service's default) or f32.
+    #[arg(long, default_value = "bf16")]
+    inference_precision: proto::InferencePrecision,
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Output folder (default: results/<task>/imagination-<scale>).
@@ -243,6 +246,7 @@ fn imagination_command(args: ImaginationArgs) -> Result<()> {
         method: args.method,
         train_episodes: args.episodes,
         mpc_steps: args.mpc_steps,
+        inference_precision: args.inference_precision,
         seed: args.seed,
     };
     let started = Instant::now();

@@ -21,7 +21,7 @@ use planner_service::plan::MpcPlanner;
 use planner_service::trainer::retrain;
 use plotters::coord::Shift;
 use plotters::prelude::*;
-use proto::TaskId;
+use proto::{InferencePrecision, TaskId};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use sim_bridge::Env;
@@ -42,6 +42,8 @@ pub struct ImaginationConfig {
     pub train_episodes: u32,
     /// MPC steps into the next episode before the plans are optimised (the paper: 50).
     pub mpc_steps: u32,
+    /// Number format of the models' inference, in data collection and in the compared plans.
+    pub inference_precision: InferencePrecision,
     pub seed: u64,
 }
 
@@ -119,6 +121,7 @@ pub fn run(
     let spec = task.spec();
     let mut preset = Preset::new(task, Some(&config.method))?;
     preset.apply(&config.scale.overrides(task))?;
+    preset.inference_precision = config.inference_precision;
     let mut env = Env::new(task)?;
     let mut rng = StdRng::seed_from_u64(config.seed);
     let mut models = Models::untrained(spec, &preset, config.seed);
