@@ -106,12 +106,17 @@ mod tests {
             max_runs = 4
             [overrides]
             population = 50
+            inference_precision = "f32"
             "#,
         )
         .unwrap();
         assert_eq!(config.planner_id, "lab-1");
         assert_eq!(config.max_runs, 4);
         assert_eq!(config.overrides.population, Some(50));
+        assert_eq!(
+            config.overrides.inference_precision,
+            Some(proto::InferencePrecision::F32)
+        );
         assert_eq!(
             config.max_agents_per_run,
             ServiceConfig::default().max_agents_per_run

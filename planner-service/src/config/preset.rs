@@ -407,16 +407,23 @@ mod tests {
     #[test]
     fn overrides_apply_and_are_checked() {
         let mut p = Preset::new(TaskId::Cartpole, None).unwrap();
+        assert_eq!(p.inference_precision, InferencePrecision::Bf16);
         let o = PlannerOverrides {
             regularizer: Some(RegularizerChoice::Dae),
             population: Some(50),
             elites: Some(5),
+            inference_precision: Some(InferencePrecision::F32),
             ..Default::default()
         };
         p.apply(&o).unwrap();
         assert_eq!(
-            (p.regularizer, p.cem.population, p.cem.elites),
-            (RegularizerKind::Dae, 50, 5)
+            (
+                p.regularizer,
+                p.cem.population,
+                p.cem.elites,
+                p.inference_precision
+            ),
+            (RegularizerKind::Dae, 50, 5, InferencePrecision::F32)
         );
         let bad = PlannerOverrides {
             elites: Some(500),
