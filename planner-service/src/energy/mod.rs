@@ -22,10 +22,12 @@
 pub mod config;
 pub mod dae;
 pub mod deen;
+pub mod denoiser;
 
 pub use config::{EnergyConfig, EnergyParts};
 pub use dae::{Dae, DaeWorkspace};
 pub use deen::{Deen, DeenWorkspace};
+pub use denoiser::{Denoiser, DenoisingLoss};
 
 use crate::data::Transitions;
 use crate::nn::{FitReport, ForwardScratch, Normalizer, ShapeError};
