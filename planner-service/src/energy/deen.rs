@@ -8,8 +8,9 @@
 //! an energy that is low on familiar transitions and grows away from them. The gradient of this
 //! loss needs double backpropagation ([`crate::nn::double_backprop`]).
 //!
-//! The model works in standardised coordinates (its [`Normalizer`](crate::nn::Normalizer) is fitted on the training
-//! data at every fit); [`Deen::energy_rows`] and [`Deen::score_rows`] take raw vectors.
+//! The model works in standardised coordinates (its [`Normalizer`](crate::nn::Normalizer) is
+//! fitted on the training data at every fit); [`Deen::energy_rows`] and [`Deen::score_rows`]
+//! take raw vectors.
 
 use super::denoiser::{Denoiser, DenoisingLoss, Workspace};
 use crate::nn::matmul::transpose;
