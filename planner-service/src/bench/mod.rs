@@ -1,5 +1,6 @@
-//! `planner-service bench plan|train`: how fast the planner plans and the models train, with
-//! networks of a task preset's sizes (the paper's Table 2).
+//! `planner-service bench plan|train|kernel`: how fast the planner plans and the models train,
+//! with networks of a task preset's sizes (the paper's Table 2), and how fast the matrix kernels
+//! underneath run on those networks' layer shapes.
 //!
 //! The models are fitted briefly on random transitions: the weights only need to be realistic
 //! numbers, since the cost of a planning call does not depend on what the networks learned.
@@ -8,9 +9,12 @@
 //! the per-row reward are extra work not counted).
 
 mod cputime;
+mod kernel;
 mod plan;
+mod timing;
 mod train;
 
+pub use kernel::{KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming};
 pub use plan::PlanReport;
 pub use train::TrainReport;
 
@@ -54,12 +58,14 @@ pub enum BenchCommand {
         /// AVX-512 BF16) or f32.
         #[arg(long, default_value = "bf16")]
         precision: InferencePrecision,
+        /// Seed of the random transitions the models are fitted on and of the planner.
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
     /// Time single training steps (one minibatch of the preset's batch size) of the dynamics
     /// model and of DEEN.
     Train {
+        /// Task whose preset sizes the networks and the minibatches.
         #[arg(long, default_value = "cartpole")]
         task: TaskId,
         /// Training steps to time for each model, after the warm-up.
@@ -68,6 +74,20 @@ pub enum BenchCommand {
         /// Untimed steps first.
         #[arg(long, default_value_t = 5)]
         warmup: usize,
+        /// Seed of the random transitions, the minibatches and the weights.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+    /// Time the matrix kernels alone on one thread: each hidden-layer shape of the planner's
+    /// networks through the general kernel plus an activation pass, the packed f32 kernel and
+    /// the packed bf16 kernel (both with the activation fused); dense training products
+    /// against the gemm crate; the weight-gradient transpose.
+    Kernel {
+        /// Milliseconds each timed batch of calls should last (the calls per batch follow from
+        /// one untimed call); every figure is the best and the median of 15 such batches.
+        #[arg(long, default_value_t = 20)]
+        batch_ms: u64,
+        /// Seed of the random matrices.
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
@@ -78,6 +98,7 @@ pub enum BenchCommand {
 pub enum BenchReport {
     Plan(PlanReport),
     Train(TrainReport),
+    Kernel(KernelReport),
 }
 
 impl fmt::Display for BenchReport {
@@ -85,6 +106,7 @@ impl fmt::Display for BenchReport {
         match self {
             BenchReport::Plan(r) => r.fmt(f),
             BenchReport::Train(r) => r.fmt(f),
+            BenchReport::Kernel(r) => r.fmt(f),
         }
     }
 }
@@ -135,6 +157,16 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
             warmup,
             seed,
         } => train::run(task, steps, warmup, seed).map(BenchReport::Train),
+        BenchCommand::Kernel { batch_ms, seed } => {
+            let settings = kernel::Settings {
+                layers: kernel::PLANNER_LAYERS.to_vec(),
+                products: kernel::PRODUCTS.to_vec(),
+                transposes: kernel::TRANSPOSES.to_vec(),
+                batch: Duration::from_millis(batch_ms),
+                seed,
+            };
+            kernel::run(&settings).map(BenchReport::Kernel)
+        }
     }
 }
 
@@ -267,6 +299,23 @@ mod tests {
                 ..
             }
         ));
+        let kernel = Cli::try_parse_from(["bench", "kernel", "--batch-ms", "5"]).unwrap();
+        assert_eq!(
+            kernel.bench,
+            BenchCommand::Kernel {
+                batch_ms: 5,
+                seed: 0
+            }
+        );
+        let kernel = Cli::try_parse_from(["bench", "kernel"]).unwrap();
+        assert_eq!(
+            kernel.bench,
+            BenchCommand::Kernel {
+                batch_ms: 20,
+                seed: 0
+            }
+        );
+        assert!(Cli::try_parse_from(["bench", "kernel", "--batch-ms", "-1"]).is_err());
     }
 
     #[test]

@@ -1,10 +1,11 @@
 //! `bench train`: milliseconds per training step (one minibatch) of the dynamics model and of
-//! DEEN, at the preset's sizes and batch sizes.
+//! DEEN, at the preset's sizes and batch sizes, and how a DEEN step splits into its phases.
 
+use super::timing::{BATCHES, Timing, measure};
 use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
 use crate::dynamics::{Ensemble, TrainWorkspace, TrainingSet};
 use crate::energy::{Deen, DeenWorkspace, RegularizerKind, transition_rows};
-use crate::nn::{FlushDenormals, Normalizer};
+use crate::nn::{Adam, FlushDenormals, InputGradTape, Mlp, Normalizer};
 use proto::TaskId;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -33,6 +34,20 @@ pub struct TrainReport {
     /// One ensemble member (members train in parallel, each with steps like this one).
     pub dynamics: StepTiming,
     pub deen: StepTiming,
+    pub deen_phases: DeenPhases,
+}
+
+/// Where a DEEN step's time goes: its double backprop is the costliest training pass of the
+/// project, and these show which part to work on. Per call, fastest and median of
+/// [`BATCHES`] batches; the rest of a step (drawing the noise, the loss) is the difference.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DeenPhases {
+    /// Forward pass with the input gradient `∂E/∂y` (the score).
+    pub forward: Timing,
+    /// Double backprop: the loss's parameter gradient through the score.
+    pub backward: Timing,
+    /// One Adam update of every parameter.
+    pub optimiser: Timing,
 }
 
 /// Milliseconds PyTorch takes per training step of `(dynamics, DEEN)` at a task's preset sizes
@@ -102,6 +117,7 @@ pub(super) fn run(
     let mut deen_times = time_steps(&energy_batches, warmup, |batch| {
         deen.train_step(&set, batch, &mut workspace, &mut noise_rng);
     });
+    let deen_phases = deen_phases(deen.mlp(), &set, &energy_batches[0], steps);
 
     Ok(TrainReport {
         task,
@@ -122,7 +138,36 @@ pub(super) fn run(
             gflops: None,
             pytorch_ms: pytorch_deen,
         },
+        deen_phases,
     })
+}
+
+/// Times the phases of a DEEN step on one minibatch of `set` (rows of `mlp`'s input), in
+/// batches of about `steps / BATCHES` calls.
+fn deen_phases(mlp: &Mlp, set: &[f32], batch: &[usize], steps: usize) -> DeenPhases {
+    let (dim, samples) = (mlp.in_dim(), batch.len());
+    let mut tape = InputGradTape::new(mlp, samples);
+    let ld = tape.ld();
+    let input = tape.input_mut();
+    for (col, &idx) in batch.iter().enumerate() {
+        for (f, &x) in set[idx * dim..(idx + 1) * dim].iter().enumerate() {
+            input[f * ld + col] = x;
+        }
+    }
+    let reps = steps.div_ceil(BATCHES);
+    let forward = measure(reps, || {
+        mlp.input_gradient_train(&mut tape, samples);
+    });
+    let mut grads = vec![0.0; mlp.params().len()];
+    let backward = measure(reps, || mlp.input_gradient_backward(&mut tape, &mut grads));
+    let mut params = mlp.params().to_vec();
+    let mut adam = Adam::new(params.len(), 1e-3);
+    let optimiser = measure(reps, || adam.step(&mut params, &grads));
+    DeenPhases {
+        forward,
+        backward,
+        optimiser,
+    }
 }
 
 /// Runs `step` on every batch and returns the durations of those after the first `warmup`.
@@ -170,7 +215,13 @@ impl fmt::Display for TrainReport {
                 )?;
             }
         }
-        Ok(())
+        let p = &self.deen_phases;
+        write!(
+            f,
+            "\n  DEEN step phases (best of {BATCHES} batches): forward + input gradient {:.3} ms, \
+             double backprop {:.3} ms, Adam {:.3} ms",
+            p.forward.min_ms, p.backward.min_ms, p.optimiser.min_ms
+        )
     }
 }
 
@@ -192,7 +243,15 @@ mod tests {
             (Some(1.9), Some(6.1))
         );
         assert!(report.dynamics.gflops.is_some_and(|g| g > 0.0));
-        assert!(report.to_string().contains("DEEN"));
+        let p = &report.deen_phases;
+        for t in [p.forward, p.backward, p.optimiser] {
+            assert!(t.min_ms > 0.0 && t.min_ms <= t.median_ms && t.median_ms.is_finite());
+        }
+        let text = report.to_string();
+        assert!(
+            text.contains("DEEN") && text.contains("double backprop"),
+            "{text}"
+        );
         assert!(matches!(
             run(TaskId::Cartpole, 0, 0, 0),
             Err(BenchError::Zero("steps"))

@@ -3,7 +3,6 @@
 
 use super::*;
 use crate::data::Transitions;
-use crate::nn::timing::measure;
 use crate::nn::{Activation, Normalizer, reference};
 use proto::{TaskId, TaskSpec};
 use rand::rngs::StdRng;
@@ -341,54 +340,4 @@ fn empty_data_leaves_the_model_untouched() {
         before,
         "weights and statistics unchanged"
     );
-}
-
-/// Time of one training step of the half-cheetah model (4 × 200, batch 128) and of one
-/// planning step's prediction. `cargo test --release -p planner-service --lib
-/// dynamics::tests::timing -- --ignored --nocapture`
-#[test]
-#[ignore = "timing, prints numbers"]
-fn timing() {
-    let mut rng = StdRng::seed_from_u64(25);
-    let task = TaskId::HalfCheetah.spec();
-    let config = DynamicsConfig {
-        hidden_layers: 4,
-        hidden_size: 200,
-        batch_size: 128,
-        ..DynamicsConfig::default()
-    };
-    let mut model = ProbabilisticModel::new(task, &config, &mut rng);
-    let n = 2048;
-    let (o, a) = (task.obs_dim, task.act_dim);
-    let mut data = Transitions::new(o, a);
-    for _ in 0..n {
-        let s: Vec<f32> = (0..o).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let u: Vec<f32> = (0..a).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let s1: Vec<f32> = s.iter().map(|v| v + rng.random_range(-0.1..0.1)).collect();
-        data.push(&s, &u, &s1);
-    }
-    let (inputs, targets) = TrainingSet::raw(task, &data);
-    let set = TrainingSet::standardised(
-        inputs,
-        targets,
-        model.input_normalizer(),
-        model.target_normalizer(),
-    );
-    let mut ws = TrainWorkspace::new(&model, 128);
-    let batch: Vec<usize> = (0..128).collect();
-    let _flush = crate::nn::FlushDenormals::new();
-    let step = measure(20, || {
-        model.train_step(&set, &batch, &mut ws);
-    });
-    println!("half-cheetah dynamics train step (batch 128, 4 × 200): {step}");
-    let rows = 500;
-    let obs = &data.obs()[..rows * o];
-    let act = &data.act()[..rows * a];
-    let mut next = vec![0.0; rows * o];
-    let mut scratch = model.scratch(rows);
-    let eps: Vec<f32> = (0..rows * o).map(|_| rng.sample(StandardNormal)).collect();
-    let predict = measure(20, || {
-        model.predict_next(obs, act, rows, &mut scratch, Some(&eps), &mut next)
-    });
-    println!("half-cheetah predict_next, 500 rows, sampled: {predict}");
 }

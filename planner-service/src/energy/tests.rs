@@ -3,7 +3,6 @@
 //! experiment), and the regulariser on transitions.
 
 use super::*;
-use crate::nn::timing::measure;
 use crate::nn::{Activation, reference};
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -421,59 +420,4 @@ fn kinds_parse_and_serialise_lowercase() {
     fn assert_traits<T: Clone + Send + Sync + 'static>() {}
     assert_traits::<Regularizer>();
     assert_traits::<EnergyScratch>();
-}
-
-/// One DEEN training step of the half-cheetah size (5 × 500, batch 32, 42 inputs) and one
-/// planning step's energies (500 rows). `cargo test --release -p planner-service --lib
-/// energy::tests::timing -- --ignored --nocapture`
-#[test]
-#[ignore = "timing, prints numbers"]
-fn timing() {
-    let mut rng = StdRng::seed_from_u64(39);
-    let config = EnergyConfig {
-        hidden_layers: 5,
-        hidden_size: 500,
-        epochs: 1,
-        batch_size: 32,
-        noise_sigma: 0.37,
-        learning_rate: 1e-3,
-    };
-    let dim = 2 * 18 + 6;
-    let mut deen = Deen::new(dim, &config, &mut rng);
-    let set: Vec<f32> = (0..1024 * dim)
-        .map(|_| rng.sample(StandardNormal))
-        .collect();
-    let mut ws = DeenWorkspace::new(&deen, 32);
-    let batch: Vec<usize> = (0..32).collect();
-    let _flush = crate::nn::FlushDenormals::new();
-    let step = measure(10, || {
-        deen.train_step(&set, &batch, &mut ws, &mut rng);
-    });
-    println!("DEEN train step (batch 32, 5 × 500): {step}");
-    // Where the time goes: the input-gradient pass, the double backprop, the optimiser.
-    let mlp = deen.mlp().clone();
-    let mut tape = crate::nn::InputGradTape::new(&mlp, 32);
-    for (i, v) in tape.input_mut().iter_mut().enumerate() {
-        *v = ((i * 7919) % 1000) as f32 / 500.0 - 1.0;
-    }
-    let mut grads = vec![0.0; mlp.params().len()];
-    let forward = measure(10, || {
-        mlp.input_gradient_train(&mut tape, 32);
-    });
-    let backward = measure(10, || mlp.input_gradient_backward(&mut tape, &mut grads));
-    let mut params = mlp.params().to_vec();
-    let mut adam = crate::nn::Adam::new(params.len(), 1e-3);
-    let optimiser = measure(10, || adam.step(&mut params, &grads));
-    println!(
-        "  of which: forward + input gradient {forward}, double backprop {backward}, Adam {optimiser}"
-    );
-    let rows = 500;
-    let reg = Regularizer::Deen(deen);
-    let mut scratch = reg.scratch(rows);
-    let (obs, act) = (&set[..rows * 18], &set[..rows * 6]);
-    let mut out = vec![0.0; rows];
-    let energy = measure(3, || {
-        reg.energy(obs, act, obs, rows, &mut scratch, &mut out)
-    });
-    println!("DEEN energy, 500 rows: {energy}");
 }

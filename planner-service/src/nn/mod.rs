@@ -28,8 +28,6 @@ pub mod normalizer;
 #[cfg(test)]
 pub(crate) mod reference;
 pub mod simd;
-#[cfg(test)]
-pub(crate) mod timing;
 pub mod train;
 pub mod vecops;
 

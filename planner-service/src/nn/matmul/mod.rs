@@ -4,9 +4,9 @@
 //! (a bookkeeping `Vec` and packing buffers), and the planner promises zero allocations per
 //! planning step; and on the shapes of these networks (a few dozen to a few hundred samples,
 //! 200–500 wide layers) a register-blocked kernel without packing is as fast or faster (see
-//! `tests::timing`). The kernel broadcasts single elements of `X` — so `X` may have any strides,
-//! which makes `Wᵀ` free — and streams rows of `Y` in 16-float panels, so `Y` and `C` need
-//! unit column stride. The last panel of a row is masked, so any width works.
+//! `planner-service bench kernel`). The kernel broadcasts single elements of `X` — so `X` may
+//! have any strides, which makes `Wᵀ` free — and streams rows of `Y` in 16-float panels, so `Y`
+//! and `C` need unit column stride. The last panel of a row is masked, so any width works.
 //!
 //! Inference layers take a second entry, [`matmul_packed`]: the weights packed once per model
 //! into the kernel's layout, and bias plus activation fused into the kernel (see `packed.rs`).

@@ -1,0 +1,547 @@
+//! `bench kernel`: throughput of the matrix kernels alone, on the shapes of the planner's layers
+//! and of the training passes.
+//!
+//! The design of [`crate::nn::matmul`] rests on three speed claims, and this is where they are
+//! checked on the machine at hand (a full planning call, `bench plan`, mixes the products with
+//! everything else):
+//! - **Packing and the fused epilogue**: a hidden layer `C = act(Wᵀ·H + b)` through the general
+//!   strided kernel followed by a separate activation pass, against the same layer through
+//!   [`matmul_packed`] on weights packed once with the activation fused into the kernel.
+//! - **bf16 layers**: the same layer with weights and activations in bf16 pairs (f32 sums), as
+//!   the planner runs inference by default where the CPU has AVX-512 BF16.
+//! - **Own kernel instead of the `gemm` crate**: the general kernel against `gemm` on dense
+//!   products of the training passes' and planner's shapes. This comparison is why `gemm` is a
+//!   normal dependency of the crate although nothing else calls it: the module docs justify the
+//!   own kernel by it, and a claim nobody can re-measure rots.
+//!
+//! The weight-gradient transposes of the training passes are timed too. Every figure but the
+//! `matmul_par` row runs on the calling thread. Inputs are uniform in `[-1, 1)`, so no product
+//! meets a denormal.
+
+use super::BenchError;
+use super::timing::{BATCHES, Timing, measure_for};
+use crate::nn::Activation;
+use crate::nn::matmul::{
+    Encoding, Init, MatMut, MatRef, PackedMatrix, bf16_pair, matmul, matmul_packed, matmul_par,
+    transpose,
+};
+use crate::nn::simd::{SimdLevel, bf16_dot_available, level};
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use std::fmt;
+use std::hint::black_box;
+use std::time::Duration;
+
+/// A product's shape: `C` is `m × n`, the inner dimension `k`. For a feature-major layer: out
+/// features × samples × in features.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Shape {
+    pub m: usize,
+    pub n: usize,
+    pub k: usize,
+}
+
+impl Shape {
+    pub const fn new(m: usize, n: usize, k: usize) -> Self {
+        Self { m, n, k }
+    }
+
+    /// Floating-point operations of one product: a multiply and an add per `m·n·k`.
+    pub fn flops(self) -> f64 {
+        2.0 * (self.m * self.n * self.k) as f64
+    }
+}
+
+impl fmt::Display for Shape {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}×{}×{}", self.m, self.n, self.k)
+    }
+}
+
+/// The hidden layers of the presets' networks, with a population chunk of 200–250 samples:
+/// 200 wide (cartpole, reacher, half-cheetah dynamics), 400 (ant dynamics), 300 and 500
+/// (softplus energy networks).
+pub const PLANNER_LAYERS: [(Shape, Activation); 5] = [
+    (Shape::new(200, 200, 200), Activation::Swish),
+    (Shape::new(200, 250, 200), Activation::Swish),
+    (Shape::new(400, 250, 400), Activation::Swish),
+    (Shape::new(300, 250, 300), Activation::Softplus),
+    (Shape::new(500, 250, 500), Activation::Softplus),
+];
+
+/// Dense products of training and planning: a 500-wide layer's forward pass on a 32-sample
+/// batch, its weight gradient, a planner chunk, and the same for 200-wide layers.
+pub const PRODUCTS: [Shape; 6] = [
+    Shape::new(500, 32, 500),
+    Shape::new(500, 500, 32),
+    Shape::new(500, 250, 500),
+    Shape::new(200, 128, 200),
+    Shape::new(200, 200, 128),
+    Shape::new(200, 250, 200),
+];
+
+/// The transposes a weight gradient needs (`rows × cols`): a 500-feature layer's deltas on a
+/// 32-sample batch.
+pub const TRANSPOSES: [(usize, usize); 1] = [(500, 32)];
+
+/// What `bench kernel` was asked to do.
+pub(super) struct Settings {
+    pub layers: Vec<(Shape, Activation)>,
+    pub products: Vec<Shape>,
+    pub transposes: Vec<(usize, usize)>,
+    /// About how long each timed batch lasts.
+    pub batch: Duration,
+    pub seed: u64,
+}
+
+/// One kernel's time per product.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Throughput {
+    pub best_ms: f64,
+    pub median_ms: f64,
+    /// GFLOP/s at the best and the median batch (`2·m·n·k` per product).
+    pub best_gflops: f64,
+    pub median_gflops: f64,
+}
+
+impl Throughput {
+    fn new(t: Timing, shape: Shape) -> Self {
+        let gflops = |ms: f64| shape.flops() / (ms * 1e-3) / 1e9;
+        Self {
+            best_ms: t.min_ms,
+            median_ms: t.median_ms,
+            best_gflops: gflops(t.min_ms),
+            median_gflops: gflops(t.median_ms),
+        }
+    }
+}
+
+/// One hidden layer through each inference path.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerTiming {
+    pub shape: Shape,
+    pub activation: Activation,
+    /// [`matmul`] on the strided `Wᵀ` with the bias, then the activation over `C`.
+    pub general: Throughput,
+    /// [`matmul_packed`] on f32 weights, activation fused.
+    pub packed_f32: Throughput,
+    /// [`matmul_packed`] on bf16 weights, bf16-pair input and output; `None` without
+    /// AVX-512 BF16.
+    pub packed_bf16: Option<Throughput>,
+}
+
+/// One dense product through the own kernel and the `gemm` crate.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ProductTiming {
+    pub shape: Shape,
+    /// [`matmul`] on the calling thread.
+    pub ours: Throughput,
+    /// [`matmul_par`]: the rows split across two rayon tasks (as the training passes run).
+    pub ours_parallel: Throughput,
+    /// `gemm::gemm` with `Parallelism::None`.
+    pub gemm: Throughput,
+}
+
+/// One transpose.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TransposeTiming {
+    pub rows: usize,
+    pub cols: usize,
+    pub best_us: f64,
+    pub median_us: f64,
+}
+
+/// Throughput of the matrix kernels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct KernelReport {
+    /// The instruction-set level the kernels dispatched to.
+    pub simd: SimdLevel,
+    /// Whether bf16 layers could run (AVX-512 BF16).
+    pub bf16_available: bool,
+    /// Threads `matmul_par` could use (it splits a product in two at most).
+    pub parallel_threads: usize,
+    pub layers: Vec<LayerTiming>,
+    pub products: Vec<ProductTiming>,
+    pub transposes: Vec<TransposeTiming>,
+}
+
+pub(super) fn run(s: &Settings) -> Result<KernelReport, BenchError> {
+    if s.layers.is_empty() && s.products.is_empty() && s.transposes.is_empty() {
+        return Err(BenchError::Zero("shapes"));
+    }
+    let mut rng = StdRng::seed_from_u64(s.seed);
+    let bf16_available = bf16_dot_available();
+    let layers = s
+        .layers
+        .iter()
+        .map(|&(shape, act)| time_layer(shape, act, bf16_available, s.batch, &mut rng))
+        .collect();
+    let products = s
+        .products
+        .iter()
+        .map(|&shape| time_product(shape, s.batch, &mut rng))
+        .collect();
+    let transposes = s
+        .transposes
+        .iter()
+        .map(|&(rows, cols)| time_transpose(rows, cols, s.batch))
+        .collect();
+    Ok(KernelReport {
+        simd: level(),
+        bf16_available,
+        parallel_threads: rayon::current_num_threads().min(2),
+        layers,
+        products,
+        transposes,
+    })
+}
+
+fn random(rng: &mut StdRng, n: usize) -> Vec<f32> {
+    (0..n).map(|_| rng.random_range(-1.0..1.0)).collect()
+}
+
+/// Times one hidden layer: `W` is `k × m` (in × out, as the networks store it), `H` feature-major
+/// `k × n` with rows padded to a multiple of 16 floats, as the networks' scratch is.
+fn time_layer(
+    shape: Shape,
+    act: Activation,
+    bf16: bool,
+    batch: Duration,
+    rng: &mut StdRng,
+) -> LayerTiming {
+    let Shape { m, n, k } = shape;
+    let ld = n.div_ceil(16) * 16;
+    let w = random(rng, k * m);
+    let h = random(rng, k * ld);
+    let bias = random(rng, m);
+    let wt = MatRef::new(&w, k, m).t();
+    let mut c = vec![0.0; m * ld];
+
+    let general = measure_for(batch, || {
+        matmul(
+            MatMut::with_stride(&mut c, m, n, ld),
+            wt,
+            MatRef::with_stride(&h, k, n, ld),
+            Init::RowBias(&bias),
+        );
+        for row in c.chunks_mut(ld) {
+            act.apply(&mut row[..n]);
+        }
+        black_box(&mut c);
+    });
+
+    let packed = PackedMatrix::pack(wt);
+    let packed_f32 = measure_for(batch, || {
+        matmul_packed(
+            MatMut::with_stride(&mut c, m, n, ld),
+            Encoding::F32,
+            &packed,
+            MatRef::with_stride(&h, k, n, ld),
+            &bias,
+            Some(act),
+        );
+        black_box(&mut c);
+    });
+
+    let packed_bf16 = bf16.then(|| {
+        let packed = PackedMatrix::pack_bf16(wt);
+        let pairs = Encoding::Bf16Pairs;
+        let (y_rows, c_rows) = (pairs.storage_rows(k), pairs.storage_rows(m));
+        let y = to_bf16_pairs(&h, k, n, ld);
+        let mut c = vec![0.0; c_rows * ld];
+        measure_for(batch, || {
+            matmul_packed(
+                MatMut::with_stride(&mut c, c_rows, n, ld),
+                pairs,
+                &packed,
+                MatRef::with_stride(&y, y_rows, n, ld),
+                &bias,
+                Some(act),
+            );
+            black_box(&mut c);
+        })
+    });
+
+    LayerTiming {
+        shape,
+        activation: act,
+        general: Throughput::new(general, shape),
+        packed_f32: Throughput::new(packed_f32, shape),
+        packed_bf16: packed_bf16.map(|t| Throughput::new(t, shape)),
+    }
+}
+
+/// Feature-major `h` (`k` rows of `n` samples, row stride `ld`) in [`Encoding::Bf16Pairs`]:
+/// feature rows `2p` and `2p + 1` share storage row `p`.
+fn to_bf16_pairs(h: &[f32], k: usize, n: usize, ld: usize) -> Vec<f32> {
+    let rows = Encoding::Bf16Pairs.storage_rows(k);
+    let mut y = vec![0.0; rows * ld];
+    for p in 0..rows {
+        for j in 0..n {
+            let high = if 2 * p + 1 < k {
+                h[(2 * p + 1) * ld + j]
+            } else {
+                0.0
+            };
+            y[p * ld + j] = bf16_pair(h[2 * p * ld + j], high);
+        }
+    }
+    y
+}
+
+/// Times `C = X · Y` with all three dense and row-major.
+fn time_product(shape: Shape, batch: Duration, rng: &mut StdRng) -> ProductTiming {
+    let Shape { m, n, k } = shape;
+    let x = random(rng, m * k);
+    let y = random(rng, k * n);
+    let mut c = vec![0.0; m * n];
+    let mut ours_with = |product: fn(MatMut<'_>, MatRef<'_>, MatRef<'_>, Init<'_>)| {
+        measure_for(batch, || {
+            product(
+                MatMut::new(&mut c, m, n),
+                MatRef::new(&x, m, k),
+                MatRef::new(&y, k, n),
+                Init::Zero,
+            );
+            black_box(&mut c);
+        })
+    };
+    let ours = ours_with(matmul);
+    let ours_parallel = ours_with(matmul_par);
+    let gemm = measure_for(batch, || {
+        // SAFETY: `c` is m × n, `x` m × k and `y` k × n, all dense row-major (column stride 1,
+        // row stride the width), and nothing else accesses them during the call.
+        unsafe {
+            gemm::gemm(
+                m,
+                n,
+                k,
+                c.as_mut_ptr(),
+                1,
+                n as isize,
+                false,
+                x.as_ptr(),
+                1,
+                k as isize,
+                y.as_ptr(),
+                1,
+                n as isize,
+                0.0,
+                1.0,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
+        }
+        black_box(&mut c);
+    });
+    ProductTiming {
+        shape,
+        ours: Throughput::new(ours, shape),
+        ours_parallel: Throughput::new(ours_parallel, shape),
+        gemm: Throughput::new(gemm, shape),
+    }
+}
+
+fn time_transpose(rows: usize, cols: usize, batch: Duration) -> TransposeTiming {
+    let src: Vec<f32> = (0..rows * cols).map(|v| v as f32).collect();
+    let ld_dst = rows.div_ceil(16) * 16;
+    let mut dst = vec![0.0; cols * ld_dst];
+    let t = measure_for(batch, || {
+        transpose(black_box(&src), rows, cols, cols, &mut dst, ld_dst);
+        black_box(&mut dst);
+    });
+    TransposeTiming {
+        rows,
+        cols,
+        best_us: t.min_ms * 1e3,
+        median_us: t.median_ms * 1e3,
+    }
+}
+
+/// One table row: a kernel's name and its figures.
+fn write_row(f: &mut fmt::Formatter<'_>, label: &str, kernel: &str, t: &Throughput) -> fmt::Result {
+    write!(
+        f,
+        "\n  {label:<20} {kernel:<22} {:>9.3} {:>9.1} {:>10.3} {:>9.1}",
+        t.best_ms, t.best_gflops, t.median_ms, t.median_gflops
+    )
+}
+
+fn write_header(f: &mut fmt::Formatter<'_>, first: &str) -> fmt::Result {
+    write!(
+        f,
+        "\n  {first:<20} {:<22} {:>9} {:>9} {:>10} {:>9}",
+        "kernel", "best ms", "GFLOP/s", "median ms", "GFLOP/s"
+    )
+}
+
+impl fmt::Display for KernelReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "bench kernel: {:?} kernels, per product the best and the median of {BATCHES} \
+             batches; GFLOP/s count 2·m·n·k",
+            self.simd
+        )?;
+        if !self.layers.is_empty() {
+            write!(
+                f,
+                "\n\n  hidden layers C = act(Wᵀ·H + b), one thread (m×n×k: out × samples × in)"
+            )?;
+            write_header(f, "layer")?;
+            for l in &self.layers {
+                let label = format!(
+                    "{} {}",
+                    l.shape,
+                    format!("{:?}", l.activation).to_lowercase()
+                );
+                write_row(f, &label, "general + act. pass", &l.general)?;
+                write_row(f, "", "packed f32, fused", &l.packed_f32)?;
+                if let Some(t) = &l.packed_bf16 {
+                    write_row(f, "", "packed bf16, fused", t)?;
+                }
+            }
+            if !self.bf16_available {
+                write!(
+                    f,
+                    "\n  (packed bf16: unavailable on this CPU, which lacks AVX-512 BF16)"
+                )?;
+            }
+        }
+        if !self.products.is_empty() {
+            write!(
+                f,
+                "\n\n  dense products C = X·Y against the gemm crate (m×n×k: C is m×n)"
+            )?;
+            write_header(f, "product")?;
+            let parallel = format!("ours, matmul_par ({}t)", self.parallel_threads);
+            for p in &self.products {
+                write_row(f, &p.shape.to_string(), "ours, one thread", &p.ours)?;
+                write_row(f, "", &parallel, &p.ours_parallel)?;
+                write_row(f, "", "gemm, one thread", &p.gemm)?;
+            }
+        }
+        if !self.transposes.is_empty() {
+            writeln!(f)?;
+        }
+        for t in &self.transposes {
+            write!(
+                f,
+                "\n  transpose {}×{} (weight-gradient operand): {:.2} µs best, {:.2} µs median",
+                t.rows, t.cols, t.best_us, t.median_us
+            )?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn finite_positive(t: &Throughput) -> bool {
+        [t.best_ms, t.median_ms, t.best_gflops, t.median_gflops]
+            .iter()
+            .all(|v| v.is_finite() && *v > 0.0)
+            && t.best_ms <= t.median_ms
+            && t.best_gflops >= t.median_gflops
+    }
+
+    #[test]
+    fn times_every_kernel_on_every_shape() {
+        // Odd sizes: ragged row blocks, a padded stride and an unpaired last bf16 row.
+        let settings = Settings {
+            layers: vec![
+                (Shape::new(13, 20, 9), Activation::Swish),
+                (Shape::new(8, 33, 16), Activation::Softplus),
+            ],
+            products: vec![Shape::new(7, 24, 5)],
+            transposes: vec![(19, 6)],
+            batch: Duration::ZERO,
+            seed: 3,
+        };
+        let report = run(&settings).unwrap();
+        assert_eq!(report.simd, level());
+        assert_eq!(report.bf16_available, bf16_dot_available());
+        assert!((1..=2).contains(&report.parallel_threads));
+        assert_eq!(report.layers.len(), 2);
+        for (l, (shape, act)) in report.layers.iter().zip(&settings.layers) {
+            assert_eq!((l.shape, l.activation), (*shape, *act));
+            assert!(finite_positive(&l.general), "{l:?}");
+            assert!(finite_positive(&l.packed_f32), "{l:?}");
+            assert_eq!(l.packed_bf16.is_some(), report.bf16_available);
+            assert!(l.packed_bf16.as_ref().is_none_or(finite_positive), "{l:?}");
+        }
+        let [p] = &report.products[..] else {
+            panic!("one product: {:?}", report.products)
+        };
+        assert_eq!(p.shape, Shape::new(7, 24, 5));
+        assert!(finite_positive(&p.ours) && finite_positive(&p.ours_parallel));
+        assert!(finite_positive(&p.gemm), "{p:?}");
+        let [t] = &report.transposes[..] else {
+            panic!("one transpose: {:?}", report.transposes)
+        };
+        assert_eq!((t.rows, t.cols), (19, 6));
+        assert!(t.best_us > 0.0 && t.best_us <= t.median_us && t.median_us.is_finite());
+
+        let text = report.to_string();
+        for needle in [
+            "13×20×9 swish",
+            "8×33×16 softplus",
+            "7×24×5",
+            "gemm, one thread",
+            "transpose 19×6",
+        ] {
+            assert!(text.contains(needle), "{needle} missing from\n{text}");
+        }
+        assert_eq!(
+            text.contains("packed bf16, fused"),
+            report.bf16_available,
+            "{text}"
+        );
+        assert_eq!(text.contains("unavailable"), !report.bf16_available);
+    }
+
+    #[test]
+    fn the_bf16_operand_holds_the_layer_input() {
+        // The bench times products nobody looks at: check that its bf16-pair input, fed to the
+        // bf16 kernel, gives the layer the f32 kernel gives (to bf16 accuracy: each product
+        // of two operands rounded to 8 significant bits is off by at most 2⁻⁷ of |w·h| ≤ 1).
+        if !bf16_dot_available() {
+            return; // the bench times no bf16 layer on this CPU
+        }
+        let mut rng = StdRng::seed_from_u64(4);
+        let (m, n, k, ld) = (10, 5, 7, 16);
+        let w = random(&mut rng, k * m);
+        let h = random(&mut rng, k * ld);
+        let bias = random(&mut rng, m);
+        let wt = MatRef::new(&w, k, m).t();
+        let mut want = vec![0.0; m * ld];
+        matmul_packed(
+            MatMut::with_stride(&mut want, m, n, ld),
+            Encoding::F32,
+            &PackedMatrix::pack(wt),
+            MatRef::with_stride(&h, k, n, ld),
+            &bias,
+            None,
+        );
+        let y = to_bf16_pairs(&h, k, n, ld);
+        let mut got = vec![0.0; m * ld];
+        matmul_packed(
+            MatMut::with_stride(&mut got, m, n, ld),
+            Encoding::F32,
+            &PackedMatrix::pack_bf16(wt),
+            MatRef::with_stride(&y, k.div_ceil(2), n, ld),
+            &bias,
+            None,
+        );
+        for i in 0..m {
+            for j in 0..n {
+                let (g, e) = (got[i * ld + j], want[i * ld + j]);
+                assert!((g - e).abs() <= k as f32 * 0.008, "({i},{j}): {g} vs {e}");
+            }
+        }
+    }
+}
