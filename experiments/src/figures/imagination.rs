@@ -10,7 +10,7 @@
 //! the plan is executed open-loop from the same state. The paper's point: without regularisation
 //! the optimiser finds plans whose imagined reward the real system does not deliver.
 
-use crate::plot::{FAMILY, Figure, chart, padded_range, plot_err};
+use crate::plot::{FAMILY, Figure, XAxis, chart, padded_range, plot_err};
 use crate::scale::Scale;
 use anyhow::{Context, Result};
 use planner_service::config::Preset;
@@ -301,7 +301,14 @@ impl Figure for ImaginationResult {
                     k => format!("{} (α = {})", k.name().to_uppercase(), t.alpha),
                 }
             );
-            let mut c = chart(area, &title, xr, yr, ("plan step", "reward"), text)?;
+            let mut c = chart(
+                area,
+                &title,
+                (xr, XAxis::Steps),
+                yr,
+                ("plan step", "reward"),
+                text,
+            )?;
             let line = |v: &[f32]| -> Vec<(f64, f64)> {
                 v.iter()
                     .enumerate()

@@ -7,7 +7,7 @@
 //! DEEN's `−E` (shifted by a constant: an energy is only defined up to one), DEEN's score `−∂E/∂x`
 //! and the DAE's score estimate `(g(x) − x)/σ²`, each against the smoothed truth.
 
-use crate::plot::{FAMILY, Figure, chart, color, padded_range, plot_err};
+use crate::plot::{FAMILY, Figure, XAxis, chart, color, padded_range, plot_err};
 use anyhow::Result;
 use planner_service::energy::{Dae, Deen, EnergyConfig};
 use planner_service::nn::Normalizer;
@@ -250,7 +250,7 @@ impl Figure for ToyResult {
                     .iter()
                     .flat_map(|(v, _, _)| v.iter().copied().map(|y| y.max(-12.0))),
             );
-            let mut c = chart(area, title, xr, yr, ("x", unit), text)?;
+            let mut c = chart(area, title, (xr, XAxis::Continuous), yr, ("x", unit), text)?;
             for (i, (values, label, dashed)) in curves.iter().enumerate() {
                 let colour = if *dashed {
                     BLACK.mix(0.6)

@@ -1,7 +1,7 @@
 //! Learning curves (the paper's Figure 4): return per episode for each method, the mean over
 //! seeds as a line and ± one standard deviation as a shaded band.
 
-use super::{Figure, chart, color, padded_range, plot_err};
+use super::{Figure, XAxis, chart, color, padded_range, plot_err};
 use crate::results::Curve;
 use anyhow::Result;
 use plotters::coord::Shift;
@@ -25,7 +25,7 @@ impl Figure for LearningCurves {
         let mut chart = chart(
             root,
             &self.title,
-            (episodes.0.min(0.0), episodes.1),
+            ((episodes.0.min(0.0), episodes.1), XAxis::Steps),
             returns,
             ("episode", "return"),
             text,

@@ -88,11 +88,20 @@ pub fn padded_range(values: impl IntoIterator<Item = f64>) -> (f64, f64) {
     (lo - pad, hi + pad)
 }
 
+/// What the x axis counts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum XAxis {
+    /// A continuous quantity: ticks wherever plotters puts them.
+    Continuous,
+    /// Whole steps (episodes, plan steps): ticks only on integers.
+    Steps,
+}
+
 /// A chart on `area` with `x`/`y` ranges; a caption and axis labels only when `text`.
 pub fn chart<'a, DB: DrawingBackend>(
     area: &'a DrawingArea<DB, Shift>,
     caption: &str,
-    x: (f64, f64),
+    (x, x_axis): ((f64, f64), XAxis),
     y: (f64, f64),
     axes: (&str, &str),
     text: bool,
@@ -118,6 +127,19 @@ pub fn chart<'a, DB: DrawingBackend>(
         .map_err(plot_err)?;
     let mut mesh = chart.configure_mesh();
     mesh.light_line_style(WHITE.mix(0.0));
+    let integer_label = |v: &f64| {
+        if (v - v.round()).abs() < 1e-6 {
+            format!("{}", v.round() as i64)
+        } else {
+            String::new()
+        }
+    };
+    if x_axis == XAxis::Steps {
+        // At most one tick per step, and none between steps.
+        let steps = (x.1.floor() - x.0.ceil()).max(0.0) as usize + 1;
+        mesh.x_labels(steps.min(11))
+            .x_label_formatter(&integer_label);
+    }
     if text {
         mesh.x_desc(axes.0)
             .y_desc(axes.1)
