@@ -9,19 +9,14 @@
 
 use crate::plot::{FAMILY, Figure, XAxis, chart, color, padded_range, plot_err};
 use anyhow::Result;
+use planner_service::energy::mixture::{self, SIGMA, density_and_score};
 use planner_service::energy::{Dae, Deen, EnergyConfig};
 use planner_service::nn::Normalizer;
 use plotters::coord::Shift;
 use plotters::prelude::*;
+use rand::SeedableRng;
 use rand::rngs::StdRng;
-use rand::{RngExt, SeedableRng};
-use rand_distr::StandardNormal;
 use std::fmt::Write as _;
-
-/// Weight, mean and standard deviation of each mixture component (as in the energy tests).
-pub const MIXTURE: [(f64, f64, f64); 3] = [(0.3, -3.0, 0.4), (0.4, 0.0, 0.6), (0.3, 3.0, 0.5)];
-/// The corruption noise of the paper's toy experiment, in raw units.
-pub const SIGMA: f64 = 0.5;
 
 /// Settings of the toy experiment.
 #[derive(Clone, Debug)]
@@ -60,39 +55,10 @@ pub struct ToyResult {
     pub dae_score: Vec<f64>,
 }
 
-/// Density and score of the mixture with every component's variance increased by `extra`.
-fn mixture(y: f64, extra: f64) -> (f64, f64) {
-    let (mut p, mut num) = (0.0, 0.0);
-    for (w, m, s) in MIXTURE {
-        let v = s * s + extra;
-        let density =
-            w * (-(y - m).powi(2) / (2.0 * v)).exp() / (2.0 * std::f64::consts::PI * v).sqrt();
-        p += density;
-        num += density * (m - y) / v;
-    }
-    (p, num / p)
-}
-
-fn samples(n: usize, rng: &mut StdRng) -> Vec<f32> {
-    (0..n)
-        .map(|_| {
-            let mut u: f64 = rng.random();
-            let &(_, m, s) = MIXTURE
-                .iter()
-                .find(|c| {
-                    u -= c.0;
-                    u < 0.0
-                })
-                .unwrap_or(&MIXTURE[2]);
-            (m + s * rng.sample::<f64, _>(StandardNormal)) as f32
-        })
-        .collect()
-}
-
 /// Trains both estimators and evaluates everything on a grid over [−5, 5].
 pub fn run(config: &ToyConfig) -> ToyResult {
     let mut rng = StdRng::seed_from_u64(config.seed);
-    let data = samples(config.samples, &mut rng);
+    let data = mixture::samples(config.samples, &mut rng);
     // The estimators standardise their inputs, and σ is configured in standardised units.
     let sd = f64::from(Normalizer::fit(&data, 1).std()[0]);
     let energy = EnergyConfig {
@@ -112,8 +78,11 @@ pub fn run(config: &ToyConfig) -> ToyResult {
         .map(|i| -5.0 + 10.0 * f64::from(i) / 300.0)
         .collect();
     let grid: Vec<f32> = x.iter().map(|&v| v as f32).collect();
-    let truth: Vec<(f64, f64)> = x.iter().map(|&y| mixture(y, 0.0)).collect();
-    let smoothed: Vec<(f64, f64)> = x.iter().map(|&y| mixture(y, SIGMA * SIGMA)).collect();
+    let truth: Vec<(f64, f64)> = x.iter().map(|&y| density_and_score(y, 0.0)).collect();
+    let smoothed: Vec<(f64, f64)> = x
+        .iter()
+        .map(|&y| density_and_score(y, SIGMA * SIGMA))
+        .collect();
     let smoothed_log_density: Vec<f64> = smoothed.iter().map(|s| s.0.ln()).collect();
     let neg_energy: Vec<f64> = deen
         .energy_rows(&grid)

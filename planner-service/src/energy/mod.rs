@@ -23,6 +23,7 @@ pub mod config;
 pub mod dae;
 pub mod deen;
 pub mod denoiser;
+pub mod mixture;
 
 pub use config::{EnergyConfig, EnergyParts};
 pub use dae::{Dae, DaeWorkspace};

@@ -2,45 +2,18 @@
 //! learn on a 1-D Gaussian mixture against the analytic answer (the paper's Figure 3
 //! experiment), and the regulariser on transitions.
 
+use super::mixture::{SIGMA, density_and_score, samples as mixture_samples};
 use super::*;
 use crate::nn::{Activation, reference};
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 
-/// Weight, mean and standard deviation of each mixture component.
-const MIXTURE: [(f64, f64, f64); 3] = [(0.3, -3.0, 0.4), (0.4, 0.0, 0.6), (0.3, 3.0, 0.5)];
-/// The corruption of the paper's toy experiment, in raw units.
-const SIGMA: f64 = 0.5;
-
-fn mixture_samples(n: usize, rng: &mut StdRng) -> Vec<f32> {
-    (0..n)
-        .map(|_| {
-            let mut u: f64 = rng.random();
-            let &(_, m, s) = MIXTURE
-                .iter()
-                .find(|c| {
-                    u -= c.0;
-                    u < 0.0
-                })
-                .unwrap_or(&MIXTURE[2]);
-            (m + s * rng.sample::<f64, _>(StandardNormal)) as f32
-        })
-        .collect()
-}
-
-/// `∇ log p_σ(y)` of the mixture convolved with `N(0, σ²)`: components of variance `s² + σ²`.
+/// `∇ log p_σ(y)` of the mixture convolved with `N(0, σ²)`.
 fn analytic_score(y: f64) -> f64 {
-    let (mut num, mut den) = (0.0, 0.0);
-    for (w, m, s) in MIXTURE {
-        let v = s * s + SIGMA * SIGMA;
-        let density =
-            w * (-(y - m).powi(2) / (2.0 * v)).exp() / (2.0 * std::f64::consts::PI * v).sqrt();
-        num += density * (m - y) / v;
-        den += density;
-    }
-    num / den
+    density_and_score(y, SIGMA * SIGMA).1
 }
 
+/// Pearson correlation.
 fn correlation(a: &[f64], b: &[f64]) -> f64 {
     let n = a.len() as f64;
     let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
