@@ -139,16 +139,21 @@ fn fill_noise(noise: &mut [f32], ld: usize, d: usize, b: usize, rng: &mut StdRng
     eps
 }
 
-#[test]
-fn deen_loss_gradient_matches_finite_differences() {
-    let mut rng = StdRng::seed_from_u64(35);
+/// The loss of one clean vector `x` and its corruption `y` with noise scale `σ`, in f64, for
+/// parameters `p` of a network of `sizes`.
+type SampleLoss = dyn Fn(&[usize], &[f64], &[f64], &[f64], f64) -> f64;
+
+/// Checks a regulariser's minibatch loss against `per_sample` and its parameter gradient
+/// against finite differences of it.
+fn check_loss_gradient<L: DenoisingLoss>(seed: u64, tolerance: f64, per_sample: &SampleLoss) {
+    let mut rng = StdRng::seed_from_u64(seed);
     let (config, set, batch) = gradient_problem(&mut rng);
-    let deen = Deen::new(3, &config, &mut rng);
-    let mut ws = DeenWorkspace::new(&deen, 8);
+    let model = Denoiser::<L>::new(3, &config, &mut rng);
+    let mut ws = denoiser::Workspace::new(&model, 8);
     let ld = crate::nn::aligned::round_up(8);
     let eps = fill_noise(ws.noise_mut(), ld, 3, batch.len(), &mut rng);
-    let loss = deen.loss_and_grad(&set, &batch, &mut ws);
-    let sizes = deen.mlp().sizes().to_vec();
+    let loss = model.loss_and_grad(&set, &batch, &mut ws);
+    let sizes = model.mlp().sizes().to_vec();
     let sigma = config.noise_sigma as f64;
     let reference_loss = |p: &[f64]| -> f64 {
         let mut total = 0.0;
@@ -160,49 +165,35 @@ fn deen_loss_gradient_matches_finite_differences() {
             let y: Vec<f64> = (0..3)
                 .map(|f| x[f] + sigma * eps[c * 3 + f] as f64)
                 .collect();
-            let s = reference::input_gradient(&sizes, Activation::Softplus, p, &y);
-            total += (0..3)
-                .map(|f| (x[f] - y[f] + sigma * sigma * s[f]).powi(2))
-                .sum::<f64>();
+            total += per_sample(&sizes, p, &x, &y, sigma);
         }
         total / batch.len() as f64
     };
-    let p: Vec<f64> = deen.mlp().params().iter().map(|&v| v as f64).collect();
+    let p: Vec<f64> = model.mlp().params().iter().map(|&v| v as f64).collect();
     assert!((loss as f64 - reference_loss(&p)).abs() < 1e-5 * reference_loss(&p).max(1.0));
     let fd = reference::finite_difference(&p, reference_loss);
-    reference::assert_close(ws.grads(), &fd, 1e-3, "DEEN loss gradient");
+    let what = format!("{} loss gradient", L::NAME);
+    reference::assert_close(ws.grads(), &fd, tolerance, &what);
+}
+
+#[test]
+fn deen_loss_gradient_matches_finite_differences() {
+    // ‖x − y + σ² ∂E/∂y‖² with the input gradient of the reference network.
+    check_loss_gradient::<deen::DeenLoss>(35, 1e-3, &|sizes, p, x, y, sigma| {
+        let s = reference::input_gradient(sizes, Activation::Softplus, p, y);
+        (0..3)
+            .map(|f| (x[f] - y[f] + sigma * sigma * s[f]).powi(2))
+            .sum()
+    });
 }
 
 #[test]
 fn dae_loss_gradient_matches_finite_differences() {
-    let mut rng = StdRng::seed_from_u64(36);
-    let (config, set, batch) = gradient_problem(&mut rng);
-    let dae = Dae::new(3, &config, &mut rng);
-    let mut ws = DaeWorkspace::new(&dae, 8);
-    let ld = crate::nn::aligned::round_up(8);
-    let eps = fill_noise(ws.noise_mut(), ld, 3, batch.len(), &mut rng);
-    let loss = dae.loss_and_grad(&set, &batch, &mut ws);
-    let sizes = dae.mlp().sizes().to_vec();
-    let sigma = config.noise_sigma as f64;
-    let reference_loss = |p: &[f64]| -> f64 {
-        let mut total = 0.0;
-        for (c, &idx) in batch.iter().enumerate() {
-            let x: Vec<f64> = set[idx * 3..idx * 3 + 3]
-                .iter()
-                .map(|&v| v as f64)
-                .collect();
-            let y: Vec<f64> = (0..3)
-                .map(|f| x[f] + sigma * eps[c * 3 + f] as f64)
-                .collect();
-            let g = reference::forward(&sizes, Activation::Softplus, p, &y);
-            total += (0..3).map(|f| (g[f] - x[f]).powi(2)).sum::<f64>();
-        }
-        total / batch.len() as f64
-    };
-    let p: Vec<f64> = dae.mlp().params().iter().map(|&v| v as f64).collect();
-    assert!((loss as f64 - reference_loss(&p)).abs() < 1e-5 * reference_loss(&p).max(1.0));
-    let fd = reference::finite_difference(&p, reference_loss);
-    reference::assert_close(ws.grads(), &fd, 1e-4, "DAE loss gradient");
+    // ‖g(y) − x‖² with the reference network's output.
+    check_loss_gradient::<dae::DaeLoss>(36, 1e-4, &|sizes, p, x, y, _| {
+        let g = reference::forward(sizes, Activation::Softplus, p, y);
+        (0..3).map(|f| (g[f] - x[f]).powi(2)).sum()
+    });
 }
 
 /// Transitions of a damped oscillator `s = (q, p)`, `a` a force: a thin manifold in
