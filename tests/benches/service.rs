@@ -10,7 +10,7 @@
 //! Flags (after `--`): `--steps N` per agent (default 2000), `--agents 1,2,4,8`.
 
 use anyhow::{Context, Result};
-use ebmpc_e2e::client::{Client, ToySystem, observation};
+use ebmpc_e2e::client::{Client, ToySystem, observation, runtime};
 use ebmpc_e2e::{Planner, TempDir};
 use proto::{EpisodeEnd, RunSpec, TaskId, TrainMode};
 use std::time::{Duration, Instant};
@@ -106,9 +106,7 @@ fn main() -> Result<()> {
     let args = parse_args()?;
     let dir = TempDir::new("bench-service");
     let planner = Planner::start(dir.path(), CONFIG)?;
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()?;
+    let runtime = runtime();
     println!(
         "service round trip (loopback, planning replaced by a random action), {} steps per agent",
         args.steps

@@ -40,13 +40,7 @@ pub struct Client {
 impl Client {
     /// Connects to `endpoint` (multicast scouting off) as `agent` of `run`.
     pub async fn connect(endpoint: &str, run: &str, agent: &str) -> Result<Client> {
-        let endpoints = proto::session::Endpoints {
-            listen: vec![],
-            connect: vec![endpoint.to_string()],
-        };
-        let session = zenoh::open(proto::session::zenoh_config(&endpoints, None)?)
-            .await
-            .map_err(|e| anyhow!("zenoh open: {e}"))?;
+        let session = open_session(endpoint).await?;
         let keys = Keys::default();
         let subscribe = |key: String| {
             let session = session.clone();
@@ -200,6 +194,26 @@ impl Client {
             .await
             .map_err(|e| anyhow!("close: {e}"))
     }
+}
+
+/// A Zenoh session connected to `endpoint` only (no listening, multicast scouting off, as
+/// every test process: parallel tests must not find each other's daemons).
+pub async fn open_session(endpoint: &str) -> Result<zenoh::Session> {
+    let endpoints = proto::session::Endpoints {
+        listen: vec![],
+        connect: vec![endpoint.to_string()],
+    };
+    zenoh::open(proto::session::zenoh_config(&endpoints, None)?)
+        .await
+        .map_err(|e| anyhow!("zenoh open: {e}"))
+}
+
+/// A multi-threaded Tokio runtime for a test's scripted agents (which run concurrently).
+pub fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("a tokio runtime")
 }
 
 /// Decodes a sample in the encoding it declares.

@@ -1,15 +1,22 @@
 //! Harness for end-to-end tests that start the real `planner-service` and `sim-bridge`
 //! binaries: it builds them once, picks free loopback ports, keeps every child process in a
 //! guard that kills it when dropped (also when a test fails), and gives each test its own
-//! temporary directory.
+//! temporary directory. Its modules speak for the other parties: [`config`] writes a test
+//! planner's configuration, [`bridge`] runs sim-bridge and reads its episodes, [`client`] is a
+//! scripted agent, and [`python`] runs the Python example controller.
 
+pub mod bridge;
 pub mod client;
+pub mod config;
+pub mod python;
 
 use anyhow::{Context, Result, bail};
+use planner_service::replay::ReplayBuffer;
+use proto::TaskId;
 use std::io::Read;
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Output, Stdio};
+use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::OnceLock;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
@@ -233,60 +240,65 @@ impl Planner {
 
     /// As [`Planner::start`], on a given endpoint (to restart a planner where agents expect it).
     pub fn start_on(dir: &Path, config: &str, endpoint: &str) -> Result<Self> {
-        let config_path = dir.join("planner.toml");
-        std::fs::write(&config_path, config)?;
-        let data_dir = dir.join("data");
-        let mut cmd = Command::new(&binaries().planner);
-        cmd.args(["serve", "--config"])
-            .arg(&config_path)
-            .args(["--listen", endpoint, "--data-dir"])
-            .arg(&data_dir);
-        cmd.env("RUST_LOG", "info,zenoh=warn");
-        let log = dir.join(format!("planner-{}.log", free_port()));
-        let mut process = Guarded::spawn("planner-service", cmd, log)?;
-        process.wait_for_log("planner serving", Duration::from_secs(60))?;
         Ok(Self {
-            process,
+            process: serve(dir, config, Some(endpoint))?,
             endpoint: endpoint.to_string(),
-            data_dir,
+            data_dir: dir.join("data"),
         })
+    }
+
+    /// SIGTERM, then a clean exit within 30 s.
+    ///
+    /// # Errors
+    /// If the daemon does not exit, or exits unsuccessfully (the error holds its log).
+    pub fn stop(&mut self) -> Result<()> {
+        let status = self.process.terminate(Duration::from_secs(30))?;
+        if !status.success() {
+            bail!("planner exit: {status}\n{}", self.process.log());
+        }
+        Ok(())
+    }
+
+    /// The replay buffer the daemon keeps for `run` of `task` (open it once the daemon stopped).
+    pub fn replay(&self, run: &str, task: TaskId) -> Result<ReplayBuffer> {
+        let path = self.data_dir.join("runs").join(run).join("replay.log");
+        ReplayBuffer::open(&path, task.spec()).with_context(|| format!("open {}", path.display()))
     }
 }
 
-/// Runs `sim-bridge run` with `args` against `endpoint` to completion (killed after `timeout`).
-pub fn run_bridge(
-    dir: &Path,
-    endpoint: &str,
-    args: &[&str],
-    timeout: Duration,
-) -> Result<(ExitStatus, String)> {
-    let mut cmd = Command::new(&binaries().bridge);
-    cmd.arg("run").args(args).args(["--connect", endpoint]);
+/// Starts `planner-service serve` with `config` (TOML) written to `dir/planner.toml`, serving
+/// `dir/data` and listening on `listen` (if any: a daemon may also only connect, as its
+/// config's Zenoh file says), and waits until it serves.
+pub fn serve(dir: &Path, config: &str, listen: Option<&str>) -> Result<Guarded> {
+    let config_path = dir.join("planner.toml");
+    std::fs::write(&config_path, config)?;
+    let mut cmd = Command::new(&binaries().planner);
+    cmd.args(["serve", "--config"])
+        .arg(&config_path)
+        .arg("--data-dir")
+        .arg(dir.join("data"));
+    if let Some(endpoint) = listen {
+        cmd.args(["--listen", endpoint]);
+    }
     cmd.env("RUST_LOG", "info,zenoh=warn");
-    let log = dir.join(format!("bridge-{}.log", free_port()));
-    let mut process = Guarded::spawn("sim-bridge", cmd, log)?;
-    let status = process.wait(timeout)?;
-    Ok((status, process.log()))
+    let log = dir.join(format!("planner-{}.log", free_port()));
+    let mut process = Guarded::spawn("planner-service", cmd, log)?;
+    process.wait_for_log("planner serving", Duration::from_secs(60))?;
+    Ok(process)
 }
 
-/// Runs a command to completion and returns its output.
-pub fn output(cmd: &mut Command) -> Result<Output> {
-    Ok(cmd.output()?)
-}
-
-/// Parses a CSV file with a header into rows of (column → value).
-pub fn read_csv(path: &Path) -> Result<Vec<std::collections::BTreeMap<String, String>>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("read {}", path.display()))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().context("empty csv")?.split(',').collect();
-    Ok(lines
-        .filter(|l| !l.trim().is_empty())
-        .map(|l| {
-            header
-                .iter()
-                .map(|h| h.to_string())
-                .zip(l.split(',').map(str::to_string))
-                .collect()
-        })
-        .collect())
+/// Runs `planner-service status --connect endpoint` with `args`; its exit status, stdout and
+/// stderr.
+pub fn status_cli(endpoint: &str, args: &[&str]) -> Result<(ExitStatus, String, String)> {
+    let out = Command::new(&binaries().planner)
+        .args(["status", "--connect", endpoint])
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .context("run planner-service status")?;
+    Ok((
+        out.status,
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    ))
 }

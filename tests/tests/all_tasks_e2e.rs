@@ -5,8 +5,9 @@
 //! the networks are tiny, the population small, and episodes are capped at [`STEPS`] steps by
 //! the bridge (`--max-steps`) so the five tasks take a few minutes on a loaded 2-core machine.
 
-use ebmpc_e2e::{Planner, TempDir, read_csv, run_bridge};
-use planner_service::replay::ReplayBuffer;
+use ebmpc_e2e::bridge::{check_random_then_planned, run_episodes};
+use ebmpc_e2e::config::{PlannerConfig, Sizes};
+use ebmpc_e2e::{Planner, TempDir};
 use proto::TaskId;
 use std::sync::Mutex;
 use std::time::Duration;
@@ -16,21 +17,11 @@ const STEPS: u32 = 50;
 
 /// Tiny networks, a small population and one exploration episode for every task (the
 /// half-cheetah preset explores for three).
-const SMALL: &str = r#"
-planner_id = "e2e-all-tasks"
-[overrides]
-dynamics_hidden_layers = 2
-dynamics_hidden_size = 32
-dynamics_epochs = 5
-energy_hidden_layers = 2
-energy_hidden_size = 32
-energy_epochs = 5
-population = 40
-elites = 5
-horizon = 8
-cem_iterations = 2
-exploration_episodes = 1
-"#;
+fn config() -> String {
+    PlannerConfig::new("e2e-all-tasks", Sizes::SMALL)
+        .exploration_episodes(1)
+        .toml()
+}
 
 /// The tests share two cores: one planner–bridge pair at a time keeps each within its
 /// timeouts however many test threads cargo starts.
@@ -42,8 +33,7 @@ fn random_then_planned(task: TaskId) {
     let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let spec = task.spec();
     let dir = TempDir::new(task.name());
-    let mut planner = Planner::start(dir.path(), SMALL).expect("planner starts");
-    let csv = dir.path().join("episodes.csv");
+    let mut planner = Planner::start(dir.path(), &config()).expect("planner starts");
     let steps = STEPS.to_string();
     let args = [
         "--task",
@@ -52,54 +42,26 @@ fn random_then_planned(task: TaskId) {
         task.name(),
         "--agent",
         "bridge-0",
-        "--episodes",
-        "2",
         "--seed",
         "5",
         "--max-steps",
         &steps,
-        "--out",
-        csv.to_str().unwrap(),
     ];
-    let (status, log) = run_bridge(
-        dir.path(),
-        &planner.endpoint,
-        &args,
-        Duration::from_secs(300),
-    )
-    .unwrap();
-    assert!(
-        status.success(),
-        "{task}: sim-bridge failed: {status}\n{log}\nplanner:\n{}",
-        planner.process.log()
-    );
+    let bridge = run_episodes(dir.path(), &planner, &args, 2, Duration::from_secs(300))
+        .unwrap_or_else(|e| panic!("{task}: {e:?}"));
+    let log = &bridge.log;
 
-    let rows = read_csv(&csv).unwrap();
-    assert_eq!(rows.len(), 2, "{task}: {rows:?}");
     let mut stored = 0;
-    for (episode, row) in rows.iter().enumerate() {
-        let steps: u32 = row["steps"].parse().unwrap();
+    for row in &bridge.episodes {
         // Only the ant can end early: by falling.
         if task == TaskId::Ant {
-            assert!((1..=STEPS).contains(&steps), "{task}: {row:?}");
+            assert!((1..=STEPS).contains(&row.steps), "{task}: {row:?}");
         } else {
-            assert_eq!(steps, STEPS, "{task}: {row:?}");
+            assert_eq!(row.steps, STEPS, "{task}: {row:?}");
         }
-        stored += steps as usize;
-        let ret: f32 = row["return"].parse().unwrap();
-        assert!(ret.is_finite(), "{task}: {row:?}");
-        let planned: u32 = row["planned_steps"].parse().unwrap();
-        let plan_ms: f64 = row["plan_ms_mean"].parse().unwrap();
-        if episode == 0 {
-            assert_eq!(planned, 0, "{task}: exploration is random: {row:?}");
-        } else {
-            assert_eq!(planned, steps, "{task}: every action planned: {row:?}");
-            assert!(
-                plan_ms > 0.0,
-                "{task}: the planner timed its plans: {row:?}"
-            );
-        }
+        stored += row.steps as usize;
     }
+    check_random_then_planned(&bridge.episodes).unwrap_or_else(|e| panic!("{task}: {e:?}"));
 
     // The planned episode used models trained on the exploration episode.
     let planner_log = planner.process.log();
@@ -112,12 +74,8 @@ fn random_then_planned(task: TaskId) {
         "{task}: a planned episode ran on untrained models:\n{log}"
     );
 
-    let status = planner.process.terminate(Duration::from_secs(30)).unwrap();
-    assert!(status.success(), "{task}: planner exit: {status}");
-    let path = planner
-        .data_dir
-        .join(format!("runs/{}/replay.log", task.name()));
-    let buffer = ReplayBuffer::open(&path, spec).unwrap();
+    planner.stop().unwrap_or_else(|e| panic!("{task}: {e:?}"));
+    let buffer = planner.replay(task.name(), task).unwrap();
     assert_eq!(buffer.len(), stored, "{task}");
     assert_eq!(buffer.episodes().len(), 2, "{task}");
     for i in 0..buffer.len() {

@@ -2,26 +2,23 @@
 //! misaddressed or out-of-order observation gets a clear error on the sender's error key, none
 //! reaches the replay buffer, and a well-behaved agent is served throughout.
 
-use ebmpc_e2e::client::{Answer, Client, observation};
-use ebmpc_e2e::{Planner, TempDir, read_csv, run_bridge};
-use planner_service::replay::ReplayBuffer;
+use ebmpc_e2e::bridge::run_episodes;
+use ebmpc_e2e::client::{Answer, Client, observation, runtime};
+use ebmpc_e2e::config::{PlannerConfig, Sizes};
+use ebmpc_e2e::{Planner, TempDir};
 use proto::{Encoding, ErrorCode, ErrorReport, Observation, RunSpec, TaskId};
 use std::time::Duration;
 
-const SMALL: &str = r#"
-planner_id = "bad-input"
-[overrides]
-dynamics_hidden_layers = 2
-dynamics_hidden_size = 16
-dynamics_epochs = 2
-energy_hidden_layers = 2
-energy_hidden_size = 16
-energy_epochs = 2
-population = 20
-elites = 4
-horizon = 5
-cem_iterations = 2
-"#;
+fn config() -> String {
+    PlannerConfig::new(
+        "bad-input",
+        Sizes {
+            epochs: 2,
+            ..Sizes::TINY
+        },
+    )
+    .toml()
+}
 
 fn cartpole_spec() -> RunSpec {
     RunSpec {
@@ -40,37 +37,37 @@ fn obs(episode: u32, step: u32, values: Vec<f32>, reward: Option<f32>) -> Observ
 #[test]
 fn bad_input_is_reported_and_never_stored() {
     let dir = TempDir::new("bad-input");
-    let mut planner = Planner::start(dir.path(), SMALL).expect("planner starts");
+    let mut planner = Planner::start(dir.path(), &config()).expect("planner starts");
     let endpoint = planner.endpoint.clone();
 
-    // A well-behaved agent runs one full episode on its own run while the bad input flows.
-    let good_dir = dir.path().to_path_buf();
-    let good_endpoint = endpoint.clone();
-    let good = std::thread::spawn(move || {
-        let csv = good_dir.join("good.csv");
-        let args = [
-            "--task",
-            "cartpole",
-            "--run",
-            "good",
-            "--agent",
-            "g",
-            "--episodes",
-            "1",
-            "--out",
-            csv.to_str().unwrap(),
-        ];
-        let (status, log) =
-            run_bridge(&good_dir, &good_endpoint, &args, Duration::from_secs(240)).unwrap();
-        (status, log, csv)
+    let good = std::thread::scope(|scope| {
+        // A well-behaved agent runs one full episode on its own run while the bad input flows.
+        let good = scope.spawn(|| {
+            let args = ["--task", "cartpole", "--run", "good", "--agent", "g"];
+            run_episodes(dir.path(), &planner, &args, 1, Duration::from_secs(240))
+        });
+        bad_input_is_refused(&endpoint);
+        good.join().expect("the good agent's thread")
     });
+    let good = good.unwrap_or_else(|e| panic!("the good agent failed: {e:?}"));
+    assert_eq!(good.episodes[0].steps, 200);
+    let planner_log = planner.process.log();
+    assert!(
+        planner_log.contains("rejected"),
+        "errors are logged:\n{planner_log}"
+    );
 
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    runtime.block_on(async {
-        let client = Client::connect(&endpoint, "bad", "b").await.unwrap();
+    planner.stop().unwrap();
+    let bad = planner.replay("bad", TaskId::Cartpole).unwrap();
+    assert_eq!(bad.len(), 0, "no bad observation was stored");
+    let good = planner.replay("good", TaskId::Cartpole).unwrap();
+    assert_eq!(good.len(), 200);
+}
+
+/// Sends every kind of bad input to a run of its own at `endpoint` and checks each report.
+fn bad_input_is_refused(endpoint: &str) {
+    runtime().block_on(async {
+        let client = Client::connect(endpoint, "bad", "b").await.unwrap();
         client.attach(&cartpole_spec()).await.unwrap();
         let cases: Vec<(Vec<u8>, &str, ErrorCode)> = vec![
             (
@@ -139,9 +136,7 @@ fn bad_input_is_reported_and_never_stored() {
         }
 
         // An unknown run is named as such.
-        let unknown = Client::connect(&endpoint, "nobody-here", "b")
-            .await
-            .unwrap();
+        let unknown = Client::connect(endpoint, "nobody-here", "b").await.unwrap();
         unknown.send(&obs(0, 0, vec![0.0; 4], None)).await.unwrap();
         assert_eq!(
             unknown.next_error().await.unwrap().code,
@@ -173,37 +168,4 @@ fn bad_input_is_reported_and_never_stored() {
         client.close().await.unwrap();
         unknown.close().await.unwrap();
     });
-
-    let (status, log, csv) = good.join().unwrap();
-    assert!(
-        status.success(),
-        "the good agent failed: {log}\nplanner:\n{}",
-        planner.process.log()
-    );
-    assert_eq!(read_csv(&csv).unwrap()[0]["steps"], "200");
-    let planner_log = planner.process.log();
-    assert!(
-        planner_log.contains("rejected"),
-        "errors are logged:\n{planner_log}"
-    );
-
-    assert!(
-        planner
-            .process
-            .terminate(Duration::from_secs(30))
-            .unwrap()
-            .success()
-    );
-    let bad = ReplayBuffer::open(
-        &planner.data_dir.join("runs/bad/replay.log"),
-        TaskId::Cartpole.spec(),
-    )
-    .unwrap();
-    assert_eq!(bad.len(), 0, "no bad observation was stored");
-    let good = ReplayBuffer::open(
-        &planner.data_dir.join("runs/good/replay.log"),
-        TaskId::Cartpole.spec(),
-    )
-    .unwrap();
-    assert_eq!(good.len(), 200);
 }

@@ -2,26 +2,16 @@
 //! cartpole over Zenoh on loopback — one random exploration episode, a retraining, then one
 //! planned episode — and every step is answered, stored, and trained on.
 
-use ebmpc_e2e::{Planner, TempDir, read_csv, run_bridge};
-use planner_service::replay::ReplayBuffer;
-use proto::TaskId;
+use ebmpc_e2e::bridge::{check_random_then_planned, read_episodes, run_episodes, spawn_bridge};
+use ebmpc_e2e::config::{PlannerConfig, Sizes};
+use ebmpc_e2e::{Planner, TempDir, free_endpoint};
+use proto::{EpisodeEnd, TaskId};
 use std::time::Duration;
 
 /// Tiny networks and a small population: this test checks the plumbing, not the learning.
-const SMALL: &str = r#"
-planner_id = "e2e"
-[overrides]
-dynamics_hidden_layers = 2
-dynamics_hidden_size = 32
-dynamics_epochs = 5
-energy_hidden_layers = 2
-energy_hidden_size = 32
-energy_epochs = 5
-population = 40
-elites = 5
-horizon = 8
-cem_iterations = 2
-"#;
+fn config() -> String {
+    PlannerConfig::new("e2e", Sizes::SMALL).toml()
+}
 
 /// `(planned, random, models version)` of every "N planned, M random actions; models vK" line
 /// the bridge logs, one per episode.
@@ -48,43 +38,20 @@ fn action_sources(log: &str) -> Vec<(u32, u32, u64)> {
 #[test]
 fn two_cartpole_episodes_random_then_planned() {
     let dir = TempDir::new("cartpole");
-    let mut planner = Planner::start(dir.path(), SMALL).expect("planner starts");
-    let csv = dir.path().join("episodes.csv");
+    let mut planner = Planner::start(dir.path(), &config()).expect("planner starts");
     let args = [
-        "--task",
-        "cartpole",
-        "--run",
-        "skeleton",
-        "--agent",
-        "bridge-0",
-        "--episodes",
-        "2",
-        "--seed",
-        "3",
-        "--out",
-        csv.to_str().unwrap(),
+        "--task", "cartpole", "--run", "skeleton", "--agent", "bridge-0", "--seed", "3",
     ];
-    let (status, log) = run_bridge(
-        dir.path(),
-        &planner.endpoint,
-        &args,
-        Duration::from_secs(300),
-    )
-    .unwrap();
-    assert!(
-        status.success(),
-        "sim-bridge failed: {status}\n{log}\nplanner:\n{}",
-        planner.process.log()
-    );
+    let bridge = run_episodes(dir.path(), &planner, &args, 2, Duration::from_secs(300)).unwrap();
+    let log = &bridge.log;
 
-    // Every step of both episodes was answered: the bridge only counts a step once its action came.
-    let rows = read_csv(&csv).unwrap();
-    assert_eq!(rows.len(), 2, "{rows:?}");
-    for row in &rows {
-        assert_eq!(row["steps"], "200", "{row:?}");
-        let ret: f32 = row["return"].parse().unwrap();
-        assert!(ret.is_finite() && (-20.0..=200.0).contains(&ret), "{row:?}");
+    // Every step of both episodes was answered: the bridge only counts a step once its action
+    // came. The first episode explored, the second was planned.
+    for row in &bridge.episodes {
+        assert_eq!(row.steps, 200, "{row:?}");
+        assert!((-20.0..=200.0).contains(&row.ret), "{row:?}");
     }
+    check_random_then_planned(&bridge.episodes).unwrap();
 
     // Training ran between the episodes and the second episode was planned with its models.
     let planner_log = planner.process.log();
@@ -92,7 +59,7 @@ fn two_cartpole_episodes_random_then_planned() {
         planner_log.contains("models updated"),
         "no training in:\n{planner_log}"
     );
-    let episodes = action_sources(&log);
+    let episodes = action_sources(log);
     assert_eq!(episodes.len(), 2, "per-episode action summaries in:\n{log}");
     assert_eq!(
         episodes[0],
@@ -109,17 +76,8 @@ fn two_cartpole_episodes_random_then_planned() {
     );
 
     // A clean shutdown, then the replay buffer holds every transition of both episodes.
-    let status = planner.process.terminate(Duration::from_secs(30)).unwrap();
-    assert!(
-        status.success(),
-        "planner exit: {status}\n{}",
-        planner.process.log()
-    );
-    let buffer = ReplayBuffer::open(
-        &planner.data_dir.join("runs/skeleton/replay.log"),
-        TaskId::Cartpole.spec(),
-    )
-    .unwrap();
+    planner.stop().unwrap();
+    let buffer = planner.replay("skeleton", TaskId::Cartpole).unwrap();
     assert_eq!(buffer.len(), 400);
     assert_eq!(buffer.episodes().len(), 2);
     for (i, transition) in (0..buffer.len())
@@ -143,19 +101,26 @@ fn two_cartpole_episodes_random_then_planned() {
 #[test]
 fn the_bridge_rides_out_a_planner_killed_and_restarted() {
     let dir = TempDir::new("cartpole-restart");
-    let endpoint = ebmpc_e2e::free_endpoint();
-    let mut planner = Planner::start_on(dir.path(), SMALL, &endpoint).expect("planner starts");
+    let endpoint = free_endpoint();
+    let mut planner = Planner::start_on(dir.path(), &config(), &endpoint).expect("planner starts");
     let csv = dir.path().join("episodes.csv");
-    let mut cmd = std::process::Command::new(&ebmpc_e2e::binaries().bridge);
-    cmd.args([
-        "run", "--task", "cartpole", "--run", "restart", "--agent", "b0",
-    ])
-    .args(["--episodes", "3", "--max-steps", "40", "--seed", "1"])
-    .args(["--connect", &endpoint, "--out"])
-    .arg(&csv)
-    .env("RUST_LOG", "info,zenoh=warn");
-    let mut bridge =
-        ebmpc_e2e::Guarded::spawn("sim-bridge", cmd, dir.path().join("bridge.log")).unwrap();
+    let args = [
+        "--task",
+        "cartpole",
+        "--run",
+        "restart",
+        "--agent",
+        "b0",
+        "--episodes",
+        "3",
+        "--max-steps",
+        "40",
+        "--seed",
+        "1",
+        "--out",
+        csv.to_str().unwrap(),
+    ];
+    let mut bridge = spawn_bridge(dir.path(), &endpoint, &args).unwrap();
     bridge
         .wait_for_log("episode 1/3 done", Duration::from_secs(180))
         .unwrap();
@@ -163,7 +128,8 @@ fn the_bridge_rides_out_a_planner_killed_and_restarted() {
     let _ = planner.process.wait(Duration::from_secs(30));
     drop(planner);
     std::thread::sleep(Duration::from_millis(500));
-    let mut planner = Planner::start_on(dir.path(), SMALL, &endpoint).expect("planner restarts");
+    let mut planner =
+        Planner::start_on(dir.path(), &config(), &endpoint).expect("planner restarts");
     assert!(
         planner.process.log().contains("run opened"),
         "the run was resumed from disk:\n{}",
@@ -177,29 +143,18 @@ fn the_bridge_rides_out_a_planner_killed_and_restarted() {
         "sim-bridge failed: {status}\n{log}\nplanner:\n{}",
         planner.process.log()
     );
-    let rows = read_csv(&csv).unwrap();
-    assert_eq!(rows.len(), 3, "{rows:?}");
-    assert!(rows.iter().all(|r| r["steps"] == "40"), "{rows:?}");
+    let rows = read_episodes(&csv, 3).unwrap();
+    assert!(rows.iter().all(|r| r.steps == 40), "{rows:?}");
     assert!(
         log.contains("attaching again") || log.contains("went away"),
         "the bridge noticed the planner leave:\n{log}"
     );
-    assert!(
-        planner
-            .process
-            .terminate(Duration::from_secs(30))
-            .unwrap()
-            .success()
-    );
-    let buffer = ReplayBuffer::open(
-        &planner.data_dir.join("runs/restart/replay.log"),
-        TaskId::Cartpole.spec(),
-    )
-    .unwrap();
+    planner.stop().unwrap();
+    let buffer = planner.replay("restart", TaskId::Cartpole).unwrap();
     let finished = buffer
         .episodes()
         .iter()
-        .filter(|e| e.end != proto::EpisodeEnd::Interrupted)
+        .filter(|e| e.end != EpisodeEnd::Interrupted)
         .count();
     assert_eq!(finished, 3, "{:?}", buffer.episodes());
 }

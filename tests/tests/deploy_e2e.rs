@@ -7,7 +7,9 @@
 //! status` reaches the planner through it; the access control forwards `ebmpc/**` and nothing
 //! else; a client without a certificate is turned away; `deploy/planner.toml` is a valid config.
 
-use ebmpc_e2e::{Guarded, TempDir, binaries, free_port, workspace};
+use ebmpc_e2e::config::{PlannerConfig, Sizes};
+use ebmpc_e2e::python::run_controller;
+use ebmpc_e2e::{TempDir, free_port, serve, status_cli, workspace};
 use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -109,92 +111,42 @@ fn planner_and_agent_learn_through_a_tls_router_with_access_control() {
     // The planner: a TLS client of the router, listening on nothing (planner.toml layout (b)).
     let planner_zenoh = dir.path().join("planner-zenoh.json5");
     std::fs::write(&planner_zenoh, client_config(&certs, "planner-1", tls_port)).unwrap();
-    let planner_toml = dir.path().join("planner.toml");
-    std::fs::write(
-        &planner_toml,
-        format!(
-            r#"
-planner_id = "site-planner"
-zenoh_config = "{}"
-[overrides]
-dynamics_hidden_layers = 2
-dynamics_hidden_size = 32
-dynamics_epochs = 5
-energy_hidden_layers = 2
-energy_hidden_size = 32
-energy_epochs = 5
-population = 40
-elites = 5
-horizon = 8
-cem_iterations = 2
-"#,
-            planner_zenoh.display()
-        ),
-    )
-    .unwrap();
-    let mut cmd = Command::new(&binaries().planner);
-    cmd.args(["serve", "--config"])
-        .arg(&planner_toml)
-        .arg("--data-dir")
-        .arg(dir.path().join("data"))
-        .env("RUST_LOG", "info,zenoh=warn");
-    let mut planner =
-        Guarded::spawn("planner-service", cmd, dir.path().join("planner.log")).unwrap();
-    planner
-        .wait_for_log("planner serving", Duration::from_secs(60))
-        .unwrap();
+    let config = PlannerConfig::new("site-planner", Sizes::SMALL)
+        .line(format!("zenoh_config = \"{}\"", planner_zenoh.display()))
+        .toml();
+    let mut planner = serve(dir.path(), &config, None).expect("planner serves");
 
     // The agent: the Python example, a TLS client of the router with its own certificate.
     let agent_zenoh = dir.path().join("agent-zenoh.json5");
     std::fs::write(&agent_zenoh, client_config(&certs, "agent-1", tls_port)).unwrap();
-    let python = std::env::var_os("EBMPC_PYTHON")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| workspace().join(".venv/bin/python"));
-    let mut cmd = Command::new(&python);
-    cmd.arg(workspace().join("examples/python_controller.py"))
-        .args(["--zenoh-config"])
-        .arg(&agent_zenoh)
-        .args([
-            "--run",
-            "site-run",
-            "--agent",
-            "agent-1",
-            "--episodes",
-            "2",
-            "--steps",
-            "15",
-            "--override",
-            "exploration_episodes=1",
-        ]);
-    let mut agent = Guarded::spawn("python_controller.py", cmd, dir.path().join("agent.log"))
-        .unwrap_or_else(|e| panic!("{e}: run `make test` (it installs .venv) or set EBMPC_PYTHON"));
-    let status = agent.wait(Duration::from_secs(300)).unwrap();
+    let args = [
+        "--zenoh-config",
+        agent_zenoh.to_str().unwrap(),
+        "--run",
+        "site-run",
+        "--agent",
+        "agent-1",
+        "--episodes",
+        "2",
+        "--steps",
+        "15",
+        "--override",
+        "exploration_episodes=1",
+    ];
+    let (status, agent_log) = run_controller(dir.path(), &args, Duration::from_secs(300)).unwrap();
     assert!(
         status.success(),
-        "agent through the router failed: {status}\n{}\nplanner:\n{}",
-        agent.log(),
+        "agent through the router failed: {status}\n{agent_log}\nplanner:\n{}",
         planner.log()
     );
     assert!(
-        agent
-            .log()
-            .contains("stored: run `site-run` holds 2 episodes, 30 transitions"),
-        "{}",
-        agent.log()
+        agent_log.contains("stored: run `site-run` holds 2 episodes, 30 transitions"),
+        "{agent_log}"
     );
 
     // `status` through the router (its loopback TCP endpoint) finds the planner and its run.
-    let out = Command::new(&binaries().planner)
-        .args(["status", "--connect", &format!("tcp/127.0.0.1:{tcp_port}")])
-        .env("RUST_LOG", "warn")
-        .output()
-        .unwrap();
-    let table = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let (ok, table, err) = status_cli(&format!("tcp/127.0.0.1:{tcp_port}"), &[]).unwrap();
+    assert!(ok.success(), "{err}");
     assert!(table.starts_with("planner site-planner "), "{table}");
     assert!(
         table

@@ -3,27 +3,17 @@
 //! the run is back (listed before any agent returns) with the models of its newest checkpoint,
 //! the broken episode is recorded as interrupted, and the agent carries on with planned actions.
 
-use ebmpc_e2e::client::{Answer, Client, ToySystem, observation, status};
+use ebmpc_e2e::client::{Answer, Client, ToySystem, observation, runtime, status};
+use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir, free_endpoint};
-use planner_service::replay::ReplayBuffer;
 use proto::{Action, ActionSource, EpisodeEnd, RunSpec, TaskId, TrainMode};
 use std::time::{Duration, Instant};
 
-const SMALL: &str = r#"
-planner_id = "durable"
-[overrides]
-dynamics_hidden_layers = 2
-dynamics_hidden_size = 16
-dynamics_epochs = 3
-energy_hidden_layers = 2
-energy_hidden_size = 16
-energy_epochs = 3
-population = 20
-elites = 4
-horizon = 5
-cem_iterations = 2
-exploration_episodes = 1
-"#;
+fn config() -> String {
+    PlannerConfig::new("durable", Sizes::TINY)
+        .exploration_episodes(1)
+        .toml()
+}
 
 const STEPS: u32 = 20;
 
@@ -77,11 +67,8 @@ async fn play(
 fn sigkill_mid_episode_loses_no_acknowledged_transition() {
     let dir = TempDir::new("durability");
     let endpoint = free_endpoint();
-    let mut planner = Planner::start_on(dir.path(), SMALL, &endpoint).expect("planner starts");
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .unwrap();
+    let mut planner = Planner::start_on(dir.path(), &config(), &endpoint).expect("planner starts");
+    let runtime = runtime();
     let mut acked: Vec<Acked> = Vec::new();
     let mut system = ToySystem::new(1);
 
@@ -116,7 +103,8 @@ fn sigkill_mid_episode_loses_no_acknowledged_transition() {
     let killed_log = planner.process.log();
     drop(planner);
 
-    let mut planner = Planner::start_on(dir.path(), SMALL, &endpoint).expect("planner restarts");
+    let mut planner =
+        Planner::start_on(dir.path(), &config(), &endpoint).expect("planner restarts");
     runtime.block_on(async {
         // The run is back before its agent returns, with the checkpointed models.
         let started = Instant::now();
@@ -167,21 +155,11 @@ fn sigkill_mid_episode_loses_no_acknowledged_transition() {
         );
         client.close().await.unwrap();
     });
-    assert!(
-        planner
-            .process
-            .terminate(Duration::from_secs(30))
-            .unwrap()
-            .success(),
-        "SIGTERM shuts down cleanly:\n{}",
-        planner.process.log()
-    );
+    planner
+        .stop()
+        .unwrap_or_else(|e| panic!("SIGTERM shuts down cleanly: {e:?}"));
 
-    let buffer = ReplayBuffer::open(
-        &planner.data_dir.join("runs/durable/replay.log"),
-        TaskId::Cartpole.spec(),
-    )
-    .unwrap();
+    let buffer = planner.replay("durable", TaskId::Cartpole).unwrap();
     let stored = buffer.transitions();
     for (i, (obs, act, next)) in acked.iter().enumerate() {
         let found = (0..stored.len()).any(|r| {

@@ -3,29 +3,19 @@
 //! refuse extra runs and agents at attach with a clear message; an agent that vanishes is
 //! dropped and its open episode recorded as interrupted.
 
-use ebmpc_e2e::client::{Client, ToySystem, observation, status};
+use ebmpc_e2e::client::{Client, ToySystem, observation, open_session, runtime, status};
+use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use planner_service::replay::ReplayBuffer;
 use proto::{EpisodeEnd, PlannerOverrides, RunEventKind, RunSpec, TaskId, TrainMode};
 use std::time::{Duration, Instant};
 
-const CONFIG: &str = r#"
-planner_id = "fleet"
-max_runs = 2
-max_agents_per_run = 3
-[overrides]
-dynamics_hidden_layers = 2
-dynamics_hidden_size = 16
-dynamics_epochs = 3
-energy_hidden_layers = 2
-energy_hidden_size = 16
-energy_epochs = 3
-population = 20
-elites = 4
-horizon = 5
-cem_iterations = 2
-exploration_episodes = 1
-"#;
+fn config() -> String {
+    PlannerConfig::new("fleet", Sizes::TINY)
+        .line("max_runs = 2")
+        .line("max_agents_per_run = 3")
+        .exploration_episodes(1)
+        .toml()
+}
 
 const EPISODES: u32 = 3;
 const STEPS: u32 = 40;
@@ -93,12 +83,9 @@ async fn play(client: Client, seed: u32) -> (Client, Timeline) {
 #[test]
 fn four_agents_on_two_runs_are_served_at_once() {
     let dir = TempDir::new("fleet");
-    let mut planner = Planner::start(dir.path(), CONFIG).expect("planner starts");
+    let mut planner = Planner::start(dir.path(), &config()).expect("planner starts");
     let endpoint = planner.endpoint.clone();
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .unwrap();
+    let runtime = runtime();
     runtime.block_on(async {
         let mut agents = Vec::new();
         for (run, mode) in [("sync", TrainMode::Sync), ("async", TrainMode::Async)] {
@@ -182,18 +169,7 @@ fn four_agents_on_two_runs_are_served_at_once() {
         );
 
         // Status: both runs with all their episodes; the vanished agent is gone.
-        let session = zenoh::open(
-            proto::session::zenoh_config(
-                &proto::session::Endpoints {
-                    listen: vec![],
-                    connect: vec![endpoint.clone()],
-                },
-                None,
-            )
-            .unwrap(),
-        )
-        .await
-        .unwrap();
+        let session = open_session(&endpoint).await.unwrap();
         // ... and the async run's trainer does finish and swap its models in.
         let started = Instant::now();
         let report = loop {
@@ -227,18 +203,8 @@ fn four_agents_on_two_runs_are_served_at_once() {
         session.close().await.unwrap();
     });
 
-    assert!(
-        planner
-            .process
-            .terminate(Duration::from_secs(30))
-            .unwrap()
-            .success()
-    );
-    let sync = ReplayBuffer::open(
-        &planner.data_dir.join("runs/sync/replay.log"),
-        TaskId::Cartpole.spec(),
-    )
-    .unwrap();
+    planner.stop().unwrap();
+    let sync = planner.replay("sync", TaskId::Cartpole).unwrap();
     let ghost = sync
         .episodes()
         .iter()

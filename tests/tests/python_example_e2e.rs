@@ -3,81 +3,21 @@
 //! toy cart-pole, and the planner stores every transition of them; `planner-service status`
 //! shows the run, as a table and as JSON.
 //!
-//! The interpreter is `$EBMPC_PYTHON`, or `.venv/bin/python` in the workspace, where `make test`
-//! installs `eclipse-zenoh`. Without it these tests fail: they never skip.
+//! The interpreter is `$EBMPC_PYTHON`, or `.venv/bin/python` in the workspace (see
+//! [`ebmpc_e2e::python`]). Without it these tests fail: they never skip.
 
-use ebmpc_e2e::{Guarded, Planner, TempDir, binaries, free_endpoint, free_port, workspace};
-use std::path::{Path, PathBuf};
-use std::process::{Command, ExitStatus};
+use ebmpc_e2e::config::{PlannerConfig, Sizes};
+use ebmpc_e2e::python::run_controller;
+use ebmpc_e2e::{Planner, TempDir, free_endpoint, status_cli};
 use std::time::Duration;
 
 /// Tiny networks and a small population: these tests check the interop, not the learning.
-const SMALL: &str = r#"
-planner_id = "py-e2e"
-[overrides]
-dynamics_hidden_layers = 2
-dynamics_hidden_size = 32
-dynamics_epochs = 5
-energy_hidden_layers = 2
-energy_hidden_size = 32
-energy_epochs = 5
-population = 40
-elites = 5
-horizon = 8
-cem_iterations = 2
-"#;
+fn config() -> String {
+    PlannerConfig::new("py-e2e", Sizes::SMALL).toml()
+}
 
 const EPISODES: u32 = 3;
 const STEPS: u32 = 25;
-
-/// The Python interpreter with `eclipse-zenoh`; fails the test (with the fix) if there is none.
-fn python() -> PathBuf {
-    let python = std::env::var_os("EBMPC_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| workspace().join(".venv/bin/python"));
-    let probe = Command::new(&python)
-        .args(["-c", "import zenoh"])
-        .output()
-        .unwrap_or_else(|e| {
-            panic!(
-                "no Python interpreter at {} ({e}): run `make test`, which installs eclipse-zenoh into .venv/, or set EBMPC_PYTHON",
-                python.display()
-            )
-        });
-    assert!(
-        probe.status.success(),
-        "{} cannot import zenoh: run `make test`, which installs eclipse-zenoh into .venv/, or set EBMPC_PYTHON\n{}",
-        python.display(),
-        String::from_utf8_lossy(&probe.stderr)
-    );
-    python
-}
-
-/// Runs the example with `args` to completion; its exit status and everything it printed.
-fn run_controller(dir: &Path, args: &[&str], timeout: Duration) -> (ExitStatus, String) {
-    let mut cmd = Command::new(python());
-    cmd.arg(workspace().join("examples/python_controller.py"))
-        .args(args);
-    let log = dir.join(format!("python-{}.log", free_port()));
-    let mut process = Guarded::spawn("python_controller.py", cmd, log).unwrap();
-    let status = process.wait(timeout).unwrap();
-    (status, process.log())
-}
-
-/// Runs `planner-service status` with `args` against `endpoint`; its exit status and stdout.
-fn status_cli(endpoint: &str, args: &[&str]) -> (ExitStatus, String, String) {
-    let out = Command::new(&binaries().planner)
-        .args(["status", "--connect", endpoint])
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .output()
-        .unwrap();
-    (
-        out.status,
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
 
 /// One "episode N: return R over S steps (P planned, Q random actions; models vK)" line.
 #[derive(Debug, PartialEq)]
@@ -115,7 +55,7 @@ fn episode_lines(log: &str) -> Vec<EpisodeLine> {
 #[test]
 fn python_controller_plays_episodes_that_the_planner_stores() {
     let dir = TempDir::new("python");
-    let mut planner = Planner::start(dir.path(), SMALL).expect("planner starts");
+    let mut planner = Planner::start(dir.path(), &config()).expect("planner starts");
     let (steps, episodes) = (STEPS.to_string(), EPISODES.to_string());
     let args = [
         "--connect",
@@ -134,7 +74,7 @@ fn python_controller_plays_episodes_that_the_planner_stores() {
         "--override",
         "exploration_episodes=1",
     ];
-    let (status, log) = run_controller(dir.path(), &args, Duration::from_secs(300));
+    let (status, log) = run_controller(dir.path(), &args, Duration::from_secs(300)).unwrap();
     assert!(
         status.success(),
         "python controller failed: {status}\n{log}\nplanner:\n{}",
@@ -170,7 +110,7 @@ fn python_controller_plays_episodes_that_the_planner_stores() {
 
     // The planner's status, through the CLI: the run holds every transition, and the returns
     // it computed from the rewards the controller sent are the controller's.
-    let (ok, json, err) = status_cli(&planner.endpoint, &["--json"]);
+    let (ok, json, err) = status_cli(&planner.endpoint, &["--json"]).unwrap();
     assert!(ok.success(), "status --json failed: {err}");
     let reports: serde_json::Value = serde_json::from_str(&json).expect("status --json is JSON");
     let reports = reports.as_array().expect("an array of planner reports");
@@ -202,7 +142,7 @@ fn python_controller_plays_episodes_that_the_planner_stores() {
     );
 
     // The table names the run with its task and counts.
-    let (ok, table, err) = status_cli(&planner.endpoint, &["--planner", "py-e2e"]);
+    let (ok, table, err) = status_cli(&planner.endpoint, &["--planner", "py-e2e"]).unwrap();
     assert!(ok.success(), "status failed: {err}");
     assert!(table.starts_with("planner py-e2e "), "{table}");
     let row = table
@@ -223,8 +163,7 @@ fn python_controller_plays_episodes_that_the_planner_stores() {
         "{table}"
     );
 
-    let status = planner.process.terminate(Duration::from_secs(30)).unwrap();
-    assert!(status.success(), "planner exit: {status}");
+    planner.stop().unwrap();
 }
 
 #[test]
@@ -237,12 +176,13 @@ fn python_controller_fails_on_errors() {
         dir.path(),
         &["--connect", &nowhere, "--attach-timeout", "2"],
         Duration::from_secs(60),
-    );
+    )
+    .unwrap();
     assert_eq!(status.code(), Some(1), "{log}");
     assert!(log.contains("error: no planner answered"), "{log}");
 
     // The planner's error report (an invalid run configuration) ends the controller with it.
-    let planner = Planner::start(dir.path(), SMALL).expect("planner starts");
+    let planner = Planner::start(dir.path(), &config()).expect("planner starts");
     let (status, log) = run_controller(
         dir.path(),
         &[
@@ -254,7 +194,8 @@ fn python_controller_fails_on_errors() {
             "population=0",
         ],
         Duration::from_secs(60),
-    );
+    )
+    .unwrap();
     assert_eq!(status.code(), Some(1), "{log}");
     assert!(log.contains("error: attach refused: refused:"), "{log}");
 
@@ -262,7 +203,8 @@ fn python_controller_fails_on_errors() {
     let (ok, _, err) = status_cli(
         &planner.endpoint,
         &["--planner", "absent", "--timeout", "1"],
-    );
+    )
+    .unwrap();
     assert!(!ok.success());
     assert!(err.contains("no planner answered"), "{err}");
 }
