@@ -1,5 +1,8 @@
 //! `ebmpc-experiment`: reproduces the paper's comparisons and figures.
 
+// Flag docs are `--help` text, where `results/<task>/…` reads as a path pattern, not HTML.
+#![allow(rustdoc::invalid_html_tags)]
+
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use ebmpc_experiments::figures::{imagination, toy};

@@ -3,7 +3,7 @@
 
 mod preset;
 
-pub use preset::{EpochSchedule, Preset, PresetError};
+pub use preset::{DEFAULT_METHOD, EpochSchedule, METHODS, Preset, PresetError};
 
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

@@ -3,7 +3,7 @@
 //! The crate is built for baseline x86-64 (SSE2) so the binary runs anywhere, but the networks
 //! spend their time in activations, elementwise products and matrix kernels that are 4–8× faster
 //! with AVX2/AVX-512. Each hot loop is written once as an `#[inline(always)]` body of plain
-//! loops that LLVM vectorises; [`multiversion!`] compiles that body three times (AVX-512, AVX2+FMA,
+//! loops that LLVM vectorises; `multiversion!` compiles that body three times (AVX-512, AVX2+FMA,
 //! baseline) and picks one at run time from [`level`], detected once per process.
 
 use std::sync::atomic::{AtomicU8, Ordering};

@@ -134,7 +134,7 @@ impl RunDir {
         Ok(versions)
     }
 
-    /// Writes a checkpoint of `models` and removes all but the newest [`CHECKPOINTS_KEPT`].
+    /// Writes a checkpoint of `models` and removes all but the newest `CHECKPOINTS_KEPT` (2).
     pub fn save_models(&self, models: &Models, task: &TaskSpec) -> Result<PathBuf, PersistError> {
         let path = self.checkpoint_path(models.version);
         let bytes =

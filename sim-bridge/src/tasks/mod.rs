@@ -3,7 +3,7 @@
 //! A task module owns its MJCF (in `assets/`), the mapping from physics state to the catalog's
 //! observation, and its initial-state distribution. Rewards and termination are *not* here: they
 //! come from proto's [`proto::TaskSpec`], the one definition the planner uses as well. Adding a
-//! task means adding a module, an arm in [`simulator`] and its name in [`SIMULATED`].
+//! task means adding a module, an arm in `simulator` and its name in [`SIMULATED`].
 
 mod ant;
 mod cartpole;
