@@ -8,6 +8,14 @@
 //! multiply-add and came out a few percent ahead on the 200–500 wide layers. The finished tile
 //! is activated in registers and stored with masks, so any width works. As in `x86.rs`, rows
 //! are unrolled by a macro and pointer arithmetic is wrapping, for the dev profile's sake.
+//!
+//! The macro makes each tile twice: in f32 (one FMA per accumulator and depth step) and in bf16
+//! (one `VDPBF16PS` per accumulator and *pair* of depth steps, with the Y panel and the broadcast
+//! weight each carrying two bf16 values per 32-bit lane). Both share the epilogue, which stores
+//! f32 rows or, for a next layer in bf16, converts pairs of rows to bf16 pairs in registers. The
+//! two bodies differ only in their load and multiply instructions; they stay two macro arms
+//! rather than one generic kernel because the per-type helpers would need `#[target_feature]`,
+//! which rules out the forced inlining the inner loop depends on.
 
 use super::x86::{load_scalar, mask16};
 use crate::nn::activation::Activation;
