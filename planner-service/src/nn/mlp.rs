@@ -399,30 +399,10 @@ mod tests {
     use rand::SeedableRng;
 
     /// A direct, obviously correct evaluation in f64.
-    pub(crate) fn reference_forward(mlp: &Mlp, x: &[f32]) -> Vec<f64> {
-        let mut h: Vec<f64> = x.iter().map(|&v| v as f64).collect();
-        for l in 0..mlp.layers() {
-            let (n_in, n_out) = (mlp.sizes()[l], mlp.sizes()[l + 1]);
-            let (w, b) = (mlp.weight(l), mlp.bias(l));
-            let mut z: Vec<f64> = (0..n_out)
-                .map(|j| {
-                    b[j] as f64
-                        + (0..n_in)
-                            .map(|i| h[i] * w[i * n_out + j] as f64)
-                            .sum::<f64>()
-                })
-                .collect();
-            if l + 1 < mlp.layers() {
-                for v in &mut z {
-                    *v = match mlp.activation() {
-                        Activation::Softplus => v.max(0.0) + (-v.abs()).exp().ln_1p(),
-                        Activation::Swish => *v / (1.0 + (-*v).exp()),
-                    };
-                }
-            }
-            h = z;
-        }
-        h
+    fn reference_forward(mlp: &Mlp, x: &[f32]) -> Vec<f64> {
+        let params: Vec<f64> = mlp.params().iter().map(|&v| f64::from(v)).collect();
+        let x: Vec<f64> = x.iter().map(|&v| f64::from(v)).collect();
+        crate::nn::reference::forward(mlp.sizes(), mlp.activation(), &params, &x)
     }
 
     #[test]

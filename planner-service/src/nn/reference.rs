@@ -12,6 +12,11 @@ fn act(a: Activation, z: f64) -> (f64, f64) {
     }
 }
 
+/// `act(z)` for a hidden layer, or `z` itself for a linear one (`None`).
+pub fn activate(a: Option<Activation>, z: f64) -> f64 {
+    a.map_or(z, |a| act(a, z).0)
+}
+
 /// Per-layer pre-activations `z` and activations `h` (`h[0] = x`) of one sample.
 fn layers(
     sizes: &[usize],

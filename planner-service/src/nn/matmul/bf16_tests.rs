@@ -66,11 +66,7 @@ fn reference(
                         }
                     })
                     .sum::<f64>();
-            out[i * n + j] = match act {
-                None => z,
-                Some(Activation::Swish) => z / (1.0 + (-z).exp()),
-                Some(Activation::Softplus) => z.max(0.0) + (-z.abs()).exp().ln_1p(),
-            };
+            out[i * n + j] = crate::nn::reference::activate(act, z);
         }
     }
     out

@@ -314,11 +314,7 @@ mod tests {
                     + (0..k)
                         .map(|d| w[d * m + i] as f64 * h[d * ld + j] as f64)
                         .sum::<f64>();
-                out[i * n + j] = match act {
-                    None => z,
-                    Some(Activation::Swish) => z / (1.0 + (-z).exp()),
-                    Some(Activation::Softplus) => z.max(0.0) + (-z.abs()).exp().ln_1p(),
-                };
+                out[i * n + j] = crate::nn::reference::activate(act, z);
             }
         }
         out
