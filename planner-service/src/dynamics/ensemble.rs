@@ -92,13 +92,7 @@ impl Ensemble {
         let task = self.task();
         let n = data.len();
         if n == 0 || epochs == 0 {
-            // Nothing to learn from: keep the statistics as well as the weights.
-            return FitReport {
-                samples: n,
-                epochs,
-                loss: f32::NAN,
-                ..FitReport::default()
-            };
+            return FitReport::untrained(n, epochs);
         }
         let (inputs, targets) = TrainingSet::raw(task, data);
         let input_norm = Normalizer::fit(&inputs, task.state_feature_dim + task.act_dim);

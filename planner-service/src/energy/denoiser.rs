@@ -162,13 +162,7 @@ impl<L: DenoisingLoss> Denoiser<L> {
         let started = Instant::now();
         let n = rows.len() / self.dim();
         if n == 0 || epochs == 0 {
-            // Nothing to learn from: keep the statistics as well as the weights.
-            return FitReport {
-                samples: n,
-                epochs,
-                loss: f32::NAN,
-                ..FitReport::default()
-            };
+            return FitReport::untrained(n, epochs);
         }
         let _flush = FlushDenormals::new();
         self.normalizer = Normalizer::fit(rows, self.dim());

@@ -25,6 +25,19 @@ pub struct FitReport {
     pub seconds: f32,
 }
 
+impl FitReport {
+    /// The report of a fit that had no data or no epochs: nothing was trained, so the loss is
+    /// undefined (the model keeps its statistics as well as its weights).
+    pub fn untrained(samples: usize, epochs: usize) -> Self {
+        Self {
+            samples,
+            epochs,
+            loss: f32::NAN,
+            ..Self::default()
+        }
+    }
+}
+
 /// `epochs` passes over `order` (indices of training samples, e.g. a bootstrap resample), each
 /// in freshly shuffled minibatches of `batch_size`; `step` takes one optimiser step on a
 /// minibatch and returns its mean loss. Returns the mean loss of the last epoch (NaN if
