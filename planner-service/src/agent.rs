@@ -183,7 +183,6 @@ impl AgentSession {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::PROTOCOL_VERSION;
 
     fn obs(
         episode: u32,
@@ -192,14 +191,7 @@ mod tests {
         reward: Option<f32>,
         end: Option<EpisodeEnd>,
     ) -> Observation {
-        Observation {
-            version: PROTOCOL_VERSION,
-            episode,
-            step,
-            obs: vec![x; 4],
-            reward,
-            end,
-        }
+        Observation::new(episode, step, vec![x; 4], reward, end)
     }
 
     #[test]

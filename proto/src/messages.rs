@@ -178,6 +178,26 @@ pub struct Observation {
     pub end: Option<EpisodeEnd>,
 }
 
+impl Observation {
+    /// An observation of the current protocol version.
+    pub fn new(
+        episode: u32,
+        step: u32,
+        obs: Vec<f32>,
+        reward: Option<f32>,
+        end: Option<EpisodeEnd>,
+    ) -> Self {
+        Self {
+            version: PROTOCOL_VERSION,
+            episode,
+            step,
+            obs,
+            reward,
+            end,
+        }
+    }
+}
+
 /// Where an action came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]

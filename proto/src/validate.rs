@@ -97,18 +97,10 @@ pub fn validate_action(msg: &Action, task: &TaskSpec) -> Result<(), ValidationEr
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::messages::PROTOCOL_VERSION;
     use crate::task::TaskId;
 
     fn obs(step: u32, values: Vec<f32>, reward: Option<f32>) -> Observation {
-        Observation {
-            version: PROTOCOL_VERSION,
-            episode: 0,
-            step,
-            obs: values,
-            reward,
-            end: None,
-        }
+        Observation::new(0, step, values, reward, None)
     }
 
     #[test]

@@ -18,7 +18,7 @@ use crate::link::{Inbound, PlannerLink};
 use proto::session::Endpoints;
 use proto::{
     Action, ActionSource, AttachAccepted, CodecError, EpisodeEnd, ErrorCode, ErrorReport, Keys,
-    Observation, PROTOCOL_VERSION, PlanStats, RunEvent, RunEventKind, RunSpec, TaskSpec, TrainMode,
+    Observation, PlanStats, RunEvent, RunEventKind, RunSpec, TaskSpec, TrainMode,
 };
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -323,7 +323,8 @@ async fn run_episode(
     let obs = env
         .reset(config.seed.wrapping_add(u64::from(episode)))
         .to_vec();
-    link.send(&observation(episode, 0, obs, None, None)).await?;
+    link.send(&Observation::new(episode, 0, obs, None, None))
+        .await?;
     let mut episode_return = 0.0;
     let mut actions = ActionTally::default();
     let mut train_seconds = 0.0;
@@ -355,7 +356,7 @@ async fn run_episode(
         } else {
             None
         };
-        link.send(&observation(
+        link.send(&Observation::new(
             episode,
             step,
             outcome.obs,
@@ -375,23 +376,6 @@ async fn run_episode(
                 train_seconds,
             }));
         }
-    }
-}
-
-fn observation(
-    episode: u32,
-    step: u32,
-    obs: Vec<f32>,
-    reward: Option<f32>,
-    end: Option<EpisodeEnd>,
-) -> Observation {
-    Observation {
-        version: PROTOCOL_VERSION,
-        episode,
-        step,
-        obs,
-        reward,
-        end,
     }
 }
 

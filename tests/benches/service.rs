@@ -10,9 +10,9 @@
 //! Flags (after `--`): `--steps N` per agent (default 2000), `--agents 1,2,4,8`.
 
 use anyhow::{Context, Result};
-use ebmpc_e2e::client::{Client, ToySystem, observation, runtime};
+use ebmpc_e2e::client::{Client, ToySystem, runtime};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{EpisodeEnd, RunSpec, TaskId, TrainMode};
+use proto::{EpisodeEnd, Observation, RunSpec, TaskId, TrainMode};
 use std::time::{Duration, Instant};
 
 /// No planning: exploration never ends, so every action is random.
@@ -68,10 +68,10 @@ async fn drive(client: Client, steps: u32, seed: u32) -> Result<Vec<Duration>> {
     let mut action = Vec::new();
     for _ in 0..steps {
         let msg = if step == 0 {
-            observation(episode, 0, system.state.to_vec(), None, None)
+            Observation::new(episode, 0, system.state.to_vec(), None, None)
         } else {
             let reward = system.step(&action);
-            observation(episode, step, system.state.to_vec(), Some(reward), None)
+            Observation::new(episode, step, system.state.to_vec(), Some(reward), None)
         };
         let sent = Instant::now();
         action = client.step(&msg).await?.action;
@@ -81,7 +81,7 @@ async fn drive(client: Client, steps: u32, seed: u32) -> Result<Vec<Duration>> {
             let reward = system.step(&action);
             let end = Some(EpisodeEnd::TimeLimit);
             client
-                .send(&observation(
+                .send(&Observation::new(
                     episode,
                     step,
                     system.state.to_vec(),

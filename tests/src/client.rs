@@ -5,8 +5,8 @@
 use anyhow::{Context, Result, anyhow, bail};
 use planner_service::service::status::PlannerStatus;
 use proto::{
-    Action, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, EpisodeEnd,
-    ErrorReport, Keys, Observation, PROTOCOL_VERSION, RunEvent, RunSpec,
+    Action, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorReport, Keys,
+    Observation, PROTOCOL_VERSION, RunEvent, RunSpec,
 };
 use std::time::Duration;
 use zenoh::handlers::FifoChannelHandler;
@@ -237,24 +237,6 @@ pub async fn status(session: &zenoh::Session, planner_id: &str) -> Result<Planne
         .result()
         .map_err(|e| anyhow!("status error reply: {e:?}"))?;
     Ok(serde_json::from_slice(&sample.payload().to_bytes())?)
-}
-
-/// An observation message.
-pub fn observation(
-    episode: u32,
-    step: u32,
-    obs: Vec<f32>,
-    reward: Option<f32>,
-    end: Option<EpisodeEnd>,
-) -> Observation {
-    Observation {
-        version: PROTOCOL_VERSION,
-        episode,
-        step,
-        obs,
-        reward,
-        end,
-    }
 }
 
 /// A toy cart-pole-shaped system for scripted agents: deterministic, bounded, and cheap, so a

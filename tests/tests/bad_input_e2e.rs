@@ -3,7 +3,7 @@
 //! reaches the replay buffer, and a well-behaved agent is served throughout.
 
 use ebmpc_e2e::bridge::run_episodes;
-use ebmpc_e2e::client::{Answer, Client, observation, runtime};
+use ebmpc_e2e::client::{Answer, Client, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
 use proto::{Encoding, ErrorCode, ErrorReport, Observation, RunSpec, TaskId};
@@ -31,7 +31,7 @@ fn cartpole_spec() -> RunSpec {
 }
 
 fn obs(episode: u32, step: u32, values: Vec<f32>, reward: Option<f32>) -> Observation {
-    observation(episode, step, values, reward, None)
+    Observation::new(episode, step, values, reward, None)
 }
 
 #[test]

@@ -3,10 +3,10 @@
 //! the run is back (listed before any agent returns) with the models of its newest checkpoint,
 //! the broken episode is recorded as interrupted, and the agent carries on with planned actions.
 
-use ebmpc_e2e::client::{Answer, Client, ToySystem, observation, runtime, status};
+use ebmpc_e2e::client::{Answer, Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir, free_endpoint};
-use proto::{Action, ActionSource, EpisodeEnd, RunSpec, TaskId, TrainMode};
+use proto::{Action, ActionSource, EpisodeEnd, Observation, RunSpec, TaskId, TrainMode};
 use std::time::{Duration, Instant};
 
 fn config() -> String {
@@ -42,14 +42,14 @@ async fn play(
 ) -> Action {
     let mut obs = system.state.to_vec();
     let mut action = client
-        .step(&observation(episode, 0, obs.clone(), None, None))
+        .step(&Observation::new(episode, 0, obs.clone(), None, None))
         .await
         .expect("step 0 answered");
     for step in 1..=steps {
         let reward = system.step(&action.action);
         let next = system.state.to_vec();
         let end = (finish && step == steps).then_some(EpisodeEnd::TimeLimit);
-        let msg = observation(episode, step, next.clone(), Some(reward), end);
+        let msg = Observation::new(episode, step, next.clone(), Some(reward), end);
         if end.is_some() {
             client.send(&msg).await.unwrap();
             // The episode end gets no action; the next episode's first action acknowledges it.
@@ -88,7 +88,7 @@ fn sigkill_mid_episode_loses_no_acknowledged_transition() {
         let obs = system.state.to_vec();
         let reward = system.step(&last.action);
         let next = system.state.to_vec();
-        let msg = observation(2, STEPS / 2 + 1, next.clone(), Some(reward), None);
+        let msg = Observation::new(2, STEPS / 2 + 1, next.clone(), Some(reward), None);
         client.send(&msg).await.unwrap();
         (client, version, (obs, last.action, next))
     });

@@ -3,10 +3,10 @@
 //! refuse extra runs and agents at attach with a clear message; an agent that vanishes is
 //! dropped and its open episode recorded as interrupted.
 
-use ebmpc_e2e::client::{Client, ToySystem, observation, open_session, runtime, status};
+use ebmpc_e2e::client::{Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{EpisodeEnd, PlannerOverrides, RunEventKind, RunSpec, TaskId, TrainMode};
+use proto::{EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec, TaskId, TrainMode};
 use std::time::{Duration, Instant};
 
 fn config() -> String {
@@ -54,14 +54,20 @@ async fn play(client: Client, seed: u32) -> (Client, Timeline) {
     let mut system = ToySystem::new(seed);
     for episode in 0..EPISODES {
         let mut action = client
-            .step(&observation(episode, 0, system.state.to_vec(), None, None))
+            .step(&Observation::new(
+                episode,
+                0,
+                system.state.to_vec(),
+                None,
+                None,
+            ))
             .await
             .unwrap_or_else(|e| panic!("{}: {e}", client.agent));
         timeline.actions.push(Instant::now());
         for step in 1..=STEPS {
             let reward = system.step(&action.action);
             let end = (step == STEPS).then_some(EpisodeEnd::TimeLimit);
-            let msg = observation(episode, step, system.state.to_vec(), Some(reward), end);
+            let msg = Observation::new(episode, step, system.state.to_vec(), Some(reward), end);
             if end.is_some() {
                 client.send(&msg).await.unwrap();
             } else {
@@ -111,12 +117,18 @@ fn four_agents_on_two_runs_are_served_at_once() {
         extra.close().await.unwrap();
         let mut ghost_system = ToySystem::new(9);
         let first = ghost
-            .step(&observation(0, 0, ghost_system.state.to_vec(), None, None))
+            .step(&Observation::new(
+                0,
+                0,
+                ghost_system.state.to_vec(),
+                None,
+                None,
+            ))
             .await
             .unwrap();
         let reward = ghost_system.step(&first.action);
         ghost
-            .step(&observation(
+            .step(&Observation::new(
                 0,
                 1,
                 ghost_system.state.to_vec(),
