@@ -351,3 +351,23 @@ fn transpose_at(
 
 #[cfg(test)]
 mod tests;
+
+/// Product shapes `(m, n, k)` that exercise every edge of the packed kernels: `m` not a
+/// multiple of the 6-row block (every count of leftover rows), `n` not a multiple of the
+/// 16-float panel or the 4-panel tile (every count of leftover panels: 1–3, and 5 split as
+/// 3 + 2), and odd and even `k` (an odd one leaves the last bf16 pair half empty).
+#[cfg(test)]
+const RAGGED_SHAPES: [(usize, usize, usize); 12] = [
+    (1, 1, 1),
+    (5, 3, 7),
+    (12, 16, 12),
+    (13, 17, 9),
+    (25, 33, 31),
+    (37, 47, 1),
+    (37, 47, 2),
+    (24, 64, 50),
+    (50, 100, 23),
+    (7, 80, 5),
+    (11, 96, 3),
+    (6, 200, 4),
+];

@@ -346,24 +346,8 @@ mod tests {
     #[test]
     fn packed_layers_match_the_reference_on_ragged_shapes_at_every_level() {
         let mut rng = StdRng::seed_from_u64(5);
-        // m, n, k deliberately not multiples of the 6-row block, the 16-float panel or the
-        // 4-panel tile: every count of leftover rows and of leftover panels (1–3, and 5 split
-        // as 3 + 2) occurs.
-        let shapes = [
-            (1, 1, 1),
-            (5, 3, 7),
-            (12, 16, 12),
-            (13, 17, 9),
-            (25, 33, 31),
-            (37, 47, 1),
-            (24, 64, 50),
-            (50, 100, 23),
-            (7, 80, 5),
-            (11, 96, 3),
-            (6, 200, 4),
-        ];
         for lvl in SimdLevel::available() {
-            for &(m, n, k) in &shapes {
+            for &(m, n, k) in &super::super::RAGGED_SHAPES {
                 for act in [None, Some(Activation::Swish), Some(Activation::Softplus)] {
                     let ld = n + 7;
                     let w = random(&mut rng, k * m);
