@@ -32,8 +32,35 @@ pub struct Run {
     wake_trainer: Notify,
     events: EventSink,
     latencies: Mutex<LatencyWindow>,
+    /// What `status` reports of the buffer, kept apart from it so a report never waits for a
+    /// buffer busy writing to disk.
+    tally: Mutex<Tally>,
     /// Where checkpoints go (`None`: the run lives in memory only).
     dir: Option<RunDir>,
+}
+
+/// The counters of a run's buffer that `status` reports.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Tally {
+    /// Finished (not interrupted) episodes.
+    pub episodes: u32,
+    pub transitions: usize,
+    /// The last [`Tally::RETURNS`] finished episodes: agent, episode, return; oldest first.
+    pub last_returns: Vec<(String, u32, f32)>,
+}
+
+impl Tally {
+    /// Finished episodes whose returns are kept.
+    pub const RETURNS: usize = 10;
+
+    fn finished(&mut self, agent: &str, episode: u32, episode_return: f32) {
+        self.episodes += 1;
+        if self.last_returns.len() == Self::RETURNS {
+            self.last_returns.remove(0);
+        }
+        self.last_returns
+            .push((agent.to_string(), episode, episode_return));
+    }
 }
 
 /// Why a stored or new run could not be opened.
@@ -67,7 +94,6 @@ impl Run {
         events: EventSink,
     ) -> Result<Arc<Self>, OpenError> {
         let task = spec.task.spec();
-        dir.write_spec(&spec)?;
         let buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
         let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
@@ -75,6 +101,9 @@ impl Run {
         };
         models.set_inference_precision(preset.inference_precision);
         models.pack_for_inference();
+        // Only a run whose models could be built is recorded: a stored spec is re-opened at
+        // every start, so one that cannot be built must never reach the disk.
+        dir.write_spec(&spec)?;
         tracing::info!(
             run = %name,
             transitions = buffer.len(),
@@ -110,6 +139,15 @@ impl Run {
             .filter(|e| e.end != EpisodeEnd::Interrupted)
             .count() as u32;
         let covered = models.episodes_covered;
+        let mut tally = Tally {
+            transitions: buffer.len(),
+            ..Tally::default()
+        };
+        for e in buffer.episodes() {
+            if e.end != EpisodeEnd::Interrupted {
+                tally.finished(&e.agent, e.episode, e.episode_return);
+            }
+        }
         let run = Arc::new(Self {
             name,
             spec,
@@ -123,6 +161,7 @@ impl Run {
             wake_trainer: Notify::new(),
             events,
             latencies: Mutex::new(LatencyWindow::default()),
+            tally: Mutex::new(tally),
             dir,
         });
         if stored > covered {
@@ -163,8 +202,12 @@ impl Run {
         self.episodes_stored.load(Ordering::SeqCst)
     }
 
-    pub fn transitions_stored(&self) -> usize {
-        self.lock_buffer().len()
+    /// What `status` reports of the buffer, without touching the buffer.
+    pub fn tally(&self) -> Tally {
+        self.tally
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 
     pub fn is_training(&self) -> bool {
@@ -180,16 +223,6 @@ impl Run {
             .map(|e| e.episode + 1)
             .max()
             .unwrap_or(0)
-    }
-
-    /// Returns of the finished episodes, oldest first.
-    pub fn returns(&self) -> Vec<(String, u32, f32)> {
-        self.lock_buffer()
-            .episodes()
-            .iter()
-            .filter(|e| e.end != EpisodeEnd::Interrupted)
-            .map(|e| (e.agent.clone(), e.episode, e.episode_return))
-            .collect()
     }
 
     /// Records how long a planned action took.
@@ -214,6 +247,10 @@ impl Run {
         self.episodes_stored() < self.preset.exploration_episodes || !self.models().is_trained()
     }
 
+    fn lock_tally(&self) -> std::sync::MutexGuard<'_, Tally> {
+        self.tally.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
     fn lock_buffer(&self) -> std::sync::MutexGuard<'_, ReplayBuffer> {
         self.buffer.lock().unwrap_or_else(PoisonError::into_inner)
     }
@@ -235,12 +272,15 @@ impl Run {
         }
         if let Some((obs, act, reward)) = &accepted.transition {
             buffer.push(agent, episode, step - 1, obs, act, next_obs, *reward)?;
+            self.lock_tally().transitions += 1;
         }
         let Some(finished) = &accepted.finished else {
             return Ok(None);
         };
         buffer.end_episode(finished.clone())?;
         drop(buffer);
+        self.lock_tally()
+            .finished(agent, finished.episode, finished.episode_return);
         let stored = self.episodes_stored.fetch_add(1, Ordering::SeqCst) + 1;
         self.emit(RunEventKind::EpisodeFinished {
             agent: agent.to_string(),

@@ -34,7 +34,7 @@ pub fn retrain(
     let started = Instant::now();
     let mut rng =
         StdRng::seed_from_u64(seed ^ (current.version + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let (dynamics_epochs, energy_epochs) = preset.schedule.epochs(preset, episodes);
+    let (dynamics_epochs, energy_epochs) = preset.epochs(episodes);
     let mut next = current.clone();
     let dynamics = next.dynamics.fit(data, dynamics_epochs, &mut rng);
     let energy = next.regularizer.fit(data, energy_epochs, &mut rng);

@@ -166,7 +166,7 @@ pub fn run(
         }
     }
 
-    let (_, energy_epochs) = preset.schedule.epochs(&preset, config.train_episodes);
+    let (_, energy_epochs) = preset.epochs(config.train_episodes);
     let mut plan_preset = Preset::new(task, Some(&config.method))?;
     plan_preset.apply(&config.plan_scale.overrides(task))?;
     let mut traces = Vec::new();

@@ -1,9 +1,12 @@
 //! Configuration of the planner daemon: the service settings (TOML file, overridable from the
 //! command line) and the per-task presets of the paper's Table 2.
 
+mod limits;
 mod preset;
 
-pub use preset::{DEFAULT_METHOD, EpochSchedule, METHODS, Preset, PresetError};
+pub use limits::{Cost, InvalidLimits, LimitExceeded, Limits};
+pub use preset::{DEFAULT_METHOD, METHODS, Preset, PresetError};
+pub use proto::EpochSchedule;
 
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -35,6 +38,8 @@ pub struct ServiceConfig {
     /// Overrides applied to every run's preset before the agent's own (e.g. smaller networks
     /// for a quick test), keyed like the attach message's overrides.
     pub overrides: proto::PlannerOverrides,
+    /// Bounds on everything a client chooses (`[limits]`).
+    pub limits: Limits,
 }
 
 impl Default for ServiceConfig {
@@ -50,6 +55,7 @@ impl Default for ServiceConfig {
             max_agents_per_run: 16,
             allowed_presets: Vec::new(),
             overrides: proto::PlannerOverrides::default(),
+            limits: Limits::default(),
         }
     }
 }
@@ -69,6 +75,8 @@ pub enum ConfigError {
     },
     #[error("invalid planner id: {0}")]
     PlannerId(#[from] proto::keys::InvalidName),
+    #[error(transparent)]
+    Limits(#[from] InvalidLimits),
 }
 
 impl ServiceConfig {
@@ -89,6 +97,7 @@ impl ServiceConfig {
     /// Checks what serde cannot.
     pub fn validate(&self) -> Result<(), ConfigError> {
         proto::validate_name(&self.planner_id)?;
+        self.limits.validate()?;
         Ok(())
     }
 }

@@ -15,7 +15,7 @@
 use crate::dynamics::DynamicsConfig;
 use crate::energy::{EnergyConfig, RegularizerKind};
 use crate::plan::CemConfig;
-use proto::{InferencePrecision, PlannerOverrides, RegularizerChoice, TaskId};
+use proto::{EpochSchedule, InferencePrecision, PlannerOverrides, RegularizerChoice, TaskId};
 use serde::{Deserialize, Serialize};
 
 /// The methods a preset can be built for (see the module docs).
@@ -42,6 +42,10 @@ pub struct Preset {
     pub exploration_episodes: u32,
     /// How the number of training epochs changes as episodes accumulate.
     pub schedule: EpochSchedule,
+    /// Most gradient steps per model in one retraining; `None` (the paper's presets) trains
+    /// the schedule's full epochs however large the buffer has grown.
+    #[serde(default)]
+    pub max_gradient_steps: Option<u64>,
     /// Number format of planning-time inference: bf16 by default, which doubles the
     /// multiply-add rate on CPUs with AVX-512 BF16 (f32 is used where the CPU lacks it).
     #[serde(default = "default_precision")]
@@ -52,29 +56,12 @@ fn default_precision() -> InferencePrecision {
     InferencePrecision::Bf16
 }
 
-/// How training epochs decay with the number of finished episodes (the paper trains less as
-/// the buffer grows, to avoid overfitting it).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case", tag = "kind")]
-pub enum EpochSchedule {
-    /// The configured epochs after every episode.
-    Constant,
-    /// Half-cheetah: `epochs` for both models once `after_episodes` episodes are stored.
-    DropAfter { after_episodes: u32, epochs: u32 },
-    /// Ant: epochs multiplied by `dynamics_factor` / `energy_factor` after every episode
-    /// beyond the exploration ones, never below `min_epochs`.
-    Geometric {
-        dynamics_factor: f32,
-        energy_factor: f32,
-        min_epochs: u32,
-    },
-}
-
-impl EpochSchedule {
-    /// `(dynamics epochs, energy epochs)` for a retraining after `episodes` stored episodes.
-    pub fn epochs(&self, preset: &Preset, episodes: u32) -> (usize, usize) {
-        let (dynamics, energy) = (preset.dynamics.epochs, preset.energy.epochs);
-        match *self {
+impl Preset {
+    /// `(dynamics epochs, energy epochs)` for a retraining after `episodes` stored episodes,
+    /// by the preset's [`EpochSchedule`].
+    pub fn epochs(&self, episodes: u32) -> (usize, usize) {
+        let (dynamics, energy) = (self.dynamics.epochs, self.energy.epochs);
+        match self.schedule {
             EpochSchedule::Constant => (dynamics, energy),
             EpochSchedule::DropAfter {
                 after_episodes,
@@ -86,7 +73,7 @@ impl EpochSchedule {
                 energy_factor,
                 min_epochs,
             } => {
-                let decays = episodes.saturating_sub(preset.exploration_episodes) as i32;
+                let decays = episodes.saturating_sub(self.exploration_episodes) as i32;
                 let decay = |epochs: usize, factor: f32| {
                     ((epochs as f32 * factor.powi(decays)).round() as usize)
                         .max(min_epochs as usize)
@@ -278,21 +265,38 @@ impl Preset {
             sample_dynamics: pets,
             exploration_episodes: t.exploration_episodes,
             schedule: t.schedule,
+            max_gradient_steps: None,
             inference_precision: default_precision(),
         })
     }
 
-    /// Applies `overrides` (fields that are `Some`), checking that the result still makes sense.
+    /// Applies `overrides` (fields that are `Some`), checking that each value and the result
+    /// make sense. Sizes are only checked to be at least 1 here: their upper bounds are the
+    /// daemon's [`super::Limits`], checked on the finished preset.
     pub fn apply(&mut self, o: &PlannerOverrides) -> Result<(), PresetError> {
-        fn set(target: &mut usize, value: Option<u32>, name: &str) -> Result<(), PresetError> {
+        fn count(target: &mut usize, value: Option<u32>, name: &str) -> Result<(), PresetError> {
             match value {
-                Some(0) => Err(PresetError::InvalidOverride(format!(
-                    "{name} must be at least 1"
-                ))),
+                Some(0) => Err(invalid(format!("{name} must be at least 1"))),
                 Some(v) => {
                     *target = v as usize;
                     Ok(())
                 }
+                None => Ok(()),
+            }
+        }
+        /// A real number within `range` (its ends as the range says).
+        fn real(
+            target: &mut f32,
+            value: Option<f32>,
+            name: &str,
+            range: impl std::ops::RangeBounds<f32> + std::fmt::Debug,
+        ) -> Result<(), PresetError> {
+            match value {
+                Some(v) if v.is_finite() && range.contains(&v) => {
+                    *target = v;
+                    Ok(())
+                }
+                Some(v) => Err(invalid(format!("{name} must be in {range:?}, not {v}"))),
                 None => Ok(()),
             }
         }
@@ -303,63 +307,143 @@ impl Preset {
                 RegularizerChoice::Deen => RegularizerKind::Deen,
             };
         }
-        if let Some(w) = o.energy_weight {
-            if !(w.is_finite() && w >= 0.0) {
-                return Err(PresetError::InvalidOverride(format!(
-                    "energy_weight must be finite and ≥ 0, not {w}"
-                )));
-            }
-            self.energy_weight = w;
-        }
-        set(
-            &mut self.dynamics.ensemble_size,
-            o.ensemble_size,
-            "ensemble_size",
+        real(
+            &mut self.energy_weight,
+            o.energy_weight,
+            "energy_weight",
+            0.0..=MAX_ENERGY_WEIGHT,
         )?;
-        set(&mut self.cem.particles, o.particles, "particles")?;
-        set(&mut self.cem.horizon, o.horizon, "horizon")?;
-        set(&mut self.cem.population, o.population, "population")?;
-        set(&mut self.cem.elites, o.elites, "elites")?;
-        set(&mut self.cem.iterations, o.cem_iterations, "cem_iterations")?;
-        set(
-            &mut self.dynamics.epochs,
-            o.dynamics_epochs,
-            "dynamics_epochs",
+        let (d, e, c) = (&mut self.dynamics, &mut self.energy, &mut self.cem);
+        count(&mut d.ensemble_size, o.ensemble_size, "ensemble_size")?;
+        count(&mut c.particles, o.particles, "particles")?;
+        count(&mut c.horizon, o.horizon, "horizon")?;
+        count(&mut c.population, o.population, "population")?;
+        count(&mut c.elites, o.elites, "elites")?;
+        count(&mut c.iterations, o.cem_iterations, "cem_iterations")?;
+        real(&mut c.smoothing, o.cem_smoothing, "cem_smoothing", 0.0..1.0)?;
+        real(
+            &mut c.min_variance,
+            o.cem_min_variance,
+            "cem_min_variance",
+            0.0..=MAX_CEM_MIN_VARIANCE,
         )?;
-        set(
-            &mut self.dynamics.hidden_layers,
+        count(&mut d.epochs, o.dynamics_epochs, "dynamics_epochs")?;
+        count(
+            &mut d.hidden_layers,
             o.dynamics_hidden_layers,
             "dynamics_hidden_layers",
         )?;
-        set(
-            &mut self.dynamics.hidden_size,
+        count(
+            &mut d.hidden_size,
             o.dynamics_hidden_size,
             "dynamics_hidden_size",
         )?;
-        set(&mut self.energy.epochs, o.energy_epochs, "energy_epochs")?;
-        set(
-            &mut self.energy.hidden_layers,
+        count(&mut d.batch_size, o.dynamics_batch_size, "dynamics_batch_size")?;
+        real(
+            &mut d.learning_rate,
+            o.dynamics_learning_rate,
+            "dynamics_learning_rate",
+            LEARNING_RATES,
+        )?;
+        real(
+            &mut d.weight_decay,
+            o.dynamics_weight_decay,
+            "dynamics_weight_decay",
+            0.0..=1.0,
+        )?;
+        count(&mut e.epochs, o.energy_epochs, "energy_epochs")?;
+        count(
+            &mut e.hidden_layers,
             o.energy_hidden_layers,
             "energy_hidden_layers",
         )?;
-        set(
-            &mut self.energy.hidden_size,
-            o.energy_hidden_size,
-            "energy_hidden_size",
+        count(&mut e.hidden_size, o.energy_hidden_size, "energy_hidden_size")?;
+        count(&mut e.batch_size, o.energy_batch_size, "energy_batch_size")?;
+        real(
+            &mut e.learning_rate,
+            o.energy_learning_rate,
+            "energy_learning_rate",
+            LEARNING_RATES,
         )?;
+        real(
+            &mut e.noise_sigma,
+            o.energy_noise_sigma,
+            "energy_noise_sigma",
+            MIN_NOISE_SIGMA..=MAX_NOISE_SIGMA,
+        )?;
+        if let Some(sample) = o.sample_dynamics {
+            self.sample_dynamics = sample;
+        }
         if let Some(e) = o.exploration_episodes {
             self.exploration_episodes = e;
+        }
+        if let Some(schedule) = &o.epoch_schedule {
+            check_schedule(schedule)?;
+            self.schedule = schedule.clone();
+        }
+        match o.max_gradient_steps {
+            Some(0) => return Err(invalid("max_gradient_steps must be at least 1".into())),
+            Some(steps) => self.max_gradient_steps = Some(steps),
+            None => {}
         }
         if let Some(p) = o.inference_precision {
             self.inference_precision = p;
         }
         if self.cem.elites > self.cem.population {
-            return Err(PresetError::InvalidOverride(format!(
+            return Err(invalid(format!(
                 "elites ({}) cannot exceed population ({})",
                 self.cem.elites, self.cem.population
             )));
         }
         Ok(())
+    }
+}
+
+/// Adam step sizes a run may ask for: above 1 every step overshoots.
+const LEARNING_RATES: std::ops::RangeInclusive<f32> = 1e-7..=1.0;
+/// The energy weight's upper end: far above Table 2's 0.001–0.05, where the energy drowns
+/// out the reward entirely.
+const MAX_ENERGY_WEIGHT: f32 = 1e3;
+/// CEM's variance floor, in squared action units (actions are bounded, so more is no search).
+const MAX_CEM_MIN_VARIANCE: f32 = 1e3;
+/// The denoisers' noise scale, in standardised units (Table 2 uses 0.1–0.9).
+const MIN_NOISE_SIGMA: f32 = 1e-4;
+const MAX_NOISE_SIGMA: f32 = 10.0;
+
+fn invalid(message: String) -> PresetError {
+    PresetError::InvalidOverride(message)
+}
+
+/// An epoch schedule's own numbers make sense (its epochs' upper bound is a limit).
+fn check_schedule(schedule: &EpochSchedule) -> Result<(), PresetError> {
+    match *schedule {
+        EpochSchedule::Constant => Ok(()),
+        EpochSchedule::DropAfter { epochs: 0, .. } => Err(invalid(
+            "epoch_schedule.drop_after.epochs must be at least 1".into(),
+        )),
+        EpochSchedule::DropAfter { .. } => Ok(()),
+        EpochSchedule::Geometric {
+            dynamics_factor,
+            energy_factor,
+            min_epochs,
+        } => {
+            for (name, f) in [
+                ("dynamics_factor", dynamics_factor),
+                ("energy_factor", energy_factor),
+            ] {
+                if !(f.is_finite() && f > 0.0 && f <= 1.0) {
+                    return Err(invalid(format!(
+                        "epoch_schedule.geometric.{name} must be in (0, 1], not {f}"
+                    )));
+                }
+            }
+            if min_epochs == 0 {
+                return Err(invalid(
+                    "epoch_schedule.geometric.min_epochs must be at least 1".into(),
+                ));
+            }
+            Ok(())
+        }
     }
 }
 
@@ -374,8 +458,8 @@ mod tests {
         assert_eq!((hc.energy.hidden_layers, hc.energy.hidden_size), (5, 500));
         assert_eq!(hc.energy_weight, 0.05);
         assert_eq!(hc.exploration_episodes, 3);
-        assert_eq!(hc.schedule.epochs(&hc, 5), (300, 100));
-        assert_eq!(hc.schedule.epochs(&hc, 10), (8, 8));
+        assert_eq!(hc.epochs(5), (300, 100));
+        assert_eq!(hc.epochs(10), (8, 8));
         let ant = Preset::new(TaskId::Ant, Some("pets")).unwrap();
         assert_eq!(
             (
@@ -386,8 +470,8 @@ mod tests {
             (5, 20, 7)
         );
         assert_eq!(ant.regularizer, RegularizerKind::None);
-        assert_eq!(ant.schedule.epochs(&ant, 1), (600, 800));
-        assert_eq!(ant.schedule.epochs(&ant, 2), (360, 560));
+        assert_eq!(ant.epochs(1), (600, 800));
+        assert_eq!(ant.epochs(2), (360, 560));
         let pusher = Preset::new(TaskId::Pusher, None).unwrap();
         assert_eq!(
             (

@@ -177,13 +177,8 @@ pub struct ProbabilisticModel {
 impl ProbabilisticModel {
     /// An untrained model of the configured size for `task` (identity normalisers).
     pub fn new(task: &'static TaskSpec, config: &DynamicsConfig, rng: &mut StdRng) -> Self {
-        let in_dim = task.state_feature_dim + task.act_dim;
-        let mut sizes = vec![in_dim];
-        sizes.extend(std::iter::repeat_n(
-            config.hidden_size,
-            config.hidden_layers,
-        ));
-        sizes.push(2 * task.obs_dim);
+        let sizes = super::config::layer_sizes(task, config);
+        let in_dim = sizes[0];
         let mlp = Mlp::new(&sizes, Activation::Swish, rng);
         let mut logvar_bounds = vec![INITIAL_MAX_LOGVAR; task.obs_dim];
         logvar_bounds.extend(std::iter::repeat_n(INITIAL_MIN_LOGVAR, task.obs_dim));

@@ -57,6 +57,30 @@ impl RegularizerKind {
         RegularizerKind::Deen,
     ];
 
+    /// Layer sizes of this regulariser's network for transitions `[s, a, s']` of
+    /// `2 · obs_dim + act_dim` numbers (`None`: this kind has no network).
+    pub fn layer_sizes(
+        self,
+        config: &EnergyConfig,
+        obs_dim: usize,
+        act_dim: usize,
+    ) -> Option<Vec<usize>> {
+        let dim = 2 * obs_dim + act_dim;
+        match self {
+            RegularizerKind::None => None,
+            RegularizerKind::Dae => Some(config::layer_sizes(
+                dim,
+                config,
+                <dae::DaeLoss as DenoisingLoss>::outputs(dim),
+            )),
+            RegularizerKind::Deen => Some(config::layer_sizes(
+                dim,
+                config,
+                <deen::DeenLoss as DenoisingLoss>::outputs(dim),
+            )),
+        }
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             RegularizerKind::None => "none",

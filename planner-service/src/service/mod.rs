@@ -19,10 +19,10 @@ use proto::{
     AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorCode, ErrorReport,
     Keys, PROTOCOL_VERSION, RunEvent, RunEventKind, RunSpec,
 };
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
 use std::sync::{Arc, Mutex, PoisonError};
-use tokio::sync::mpsc;
+use tokio::sync::{Semaphore, mpsc};
 use tokio::task::JoinHandle;
 use worker::{AgentWorker, Incoming};
 use zenoh::bytes::Encoding as ZEncoding;
@@ -52,6 +52,10 @@ const AGENT_LINGER: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// How long a worker may take to finish its message in hand at shutdown.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Attach requests handled at once (each may open a run: disk I/O and model construction);
+/// beyond this a request is refused at once instead of queueing without bound.
+const CONCURRENT_ATTACHES: usize = 8;
 
 struct AgentHandle {
     tx: mpsc::Sender<Incoming>,
@@ -120,6 +124,13 @@ pub struct Service {
     config: ServiceConfig,
     outbox: Outbox,
     runs: Mutex<HashMap<String, RunHandle>>,
+    /// Stored runs that could not be opened, with the reason: listed by `status`, refused at
+    /// attach, left on disk untouched for the operator.
+    failed: Mutex<BTreeMap<String, String>>,
+    /// Held while a new run is opened (off the event loop), so that two agents attaching to
+    /// the same new run at once open it once. Hosted runs are joined without it.
+    opening: tokio::sync::Mutex<()>,
+    attach_slots: Arc<Semaphore>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -148,10 +159,13 @@ impl Service {
             },
             config,
             runs: Mutex::new(HashMap::new()),
+            failed: Mutex::new(BTreeMap::new()),
+            opening: tokio::sync::Mutex::new(()),
+            attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
-        service.resume_stored_runs();
+        service.resume_stored_runs().await;
         let planner_id = service.config.planner_id.clone();
         let _alive = session
             .liveliness()
@@ -184,8 +198,10 @@ impl Service {
             // channels; an unbiased select could drop the agent first and refuse its last step.
             tokio::select! {
                 biased;
+                // Attaching may open a run (disk, model construction): it runs on a task of
+                // its own, so the loop keeps routing every other agent's observations.
                 query = attach.recv_async() => match query {
-                    Ok(query) => service.attach(query).await,
+                    Ok(query) => service.spawn_attach(query),
                     Err(e) => { tracing::error!(error = %e, "attach queryable closed"); break; }
                 },
                 sample = observations.recv_async() => match sample {
@@ -253,12 +269,32 @@ impl Service {
         })
     }
 
+    /// Handles an attach query on a task of its own, or refuses it at once when
+    /// [`CONCURRENT_ATTACHES`] are already in hand.
+    fn spawn_attach(self: &Arc<Self>, query: zenoh::query::Query) {
+        match self.attach_slots.clone().try_acquire_owned() {
+            Ok(slot) => {
+                let service = self.clone();
+                self.runtime.spawn(async move {
+                    service.attach(query).await;
+                    drop(slot);
+                });
+            }
+            Err(_) => {
+                let encoding = query_encoding(&query);
+                let report = ErrorReport::new(
+                    ErrorCode::Refused,
+                    format!("{CONCURRENT_ATTACHES} attach requests are in hand already: try again shortly"),
+                );
+                self.runtime
+                    .spawn(async move { reply_attach(&query, AttachOutcome::Rejected(report), encoding).await });
+            }
+        }
+    }
+
     async fn attach(&self, query: zenoh::query::Query) {
         let key = query.key_expr().as_str().to_string();
-        let encoding = query
-            .encoding()
-            .map(|e| Encoding::from_mime(&e.to_string()))
-            .unwrap_or_default();
+        let encoding = query_encoding(&query);
         let outcome = match self.outbox.keys().parse_attach(&key) {
             None => AttachOutcome::Rejected(ErrorReport::new(
                 ErrorCode::Refused,
@@ -271,7 +307,7 @@ impl Service {
                     .unwrap_or_default();
                 match proto::decode::<AttachRequest>(&bytes, encoding) {
                     Err(e) => AttachOutcome::Rejected(codec_report(&e)),
-                    Ok(request) => match self.attach_agent(run, request) {
+                    Ok(request) => match self.attach_agent(run, request).await {
                         Ok(accepted) => AttachOutcome::Accepted(accepted),
                         Err(report) => AttachOutcome::Rejected(report),
                     },
@@ -281,26 +317,18 @@ impl Service {
         if let AttachOutcome::Rejected(report) = &outcome {
             tracing::warn!(%key, code = ?report.code, "attach refused: {}", report.message);
         }
-        let reply = AttachReply {
-            version: PROTOCOL_VERSION,
-            outcome,
-        };
-        match proto::encode(&reply, encoding) {
-            Ok(bytes) => {
-                if let Err(e) = query
-                    .reply(key.as_str(), bytes)
-                    .encoding(ZEncoding::from(encoding.mime()))
-                    .await
-                {
-                    tracing::warn!(%key, error = %e, "attach reply failed");
-                }
-            }
-            Err(e) => tracing::error!(error = %e, "cannot encode attach reply"),
-        }
+        reply_attach(&query, outcome, encoding).await;
+    }
+
+    fn is_hosted(&self, run: &str) -> bool {
+        self.runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .contains_key(run)
     }
 
     /// Creates or joins the run and starts the agent's worker.
-    fn attach_agent(
+    async fn attach_agent(
         &self,
         run_name: &str,
         request: AttachRequest,
@@ -308,24 +336,20 @@ impl Service {
         let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
         proto::validate_name(run_name).map_err(|e| refuse(e.to_string()))?;
         proto::validate_name(&request.agent).map_err(|e| refuse(e.to_string()))?;
-        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-        if !runs.contains_key(run_name) {
-            if runs.len() >= self.config.max_runs {
-                return Err(refuse(format!(
-                    "this planner already hosts its limit of {} runs",
-                    self.config.max_runs
-                )));
-            }
-            let run = self.open_run(run_name, request.spec.clone())?;
-            self.host(&mut runs, run);
+        if !self.is_hosted(run_name) {
+            self.open_new_run(run_name, &request.spec).await?;
         }
-        let handle = runs.get_mut(run_name).expect("inserted above");
+        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+        let handle = runs.get_mut(run_name).ok_or_else(|| {
+            ErrorReport::new(
+                ErrorCode::Internal,
+                format!("run `{run_name}` closed while attaching: attach again"),
+            )
+        })?;
         let run = handle.run.clone();
-        if run.spec().task != request.spec.task {
+        if let Some(difference) = spec_difference(run.spec(), &request.spec) {
             return Err(refuse(format!(
-                "run `{run_name}` learns {}, not {}: use another run name",
-                run.spec().task,
-                request.spec.task
+                "run `{run_name}` was created with {difference}: attach with the run's spec, or use another run name"
             )));
         }
         if let Some(old) = handle.agents.remove(&request.agent) {
@@ -338,7 +362,13 @@ impl Service {
                 self.config.max_agents_per_run
             )));
         }
-        let worker = AgentWorker::new(run.clone(), request.agent.clone(), self.outbox.clone())?;
+        let magnitudes = self.config.limits.magnitudes(run.task());
+        let worker = AgentWorker::new(
+            run.clone(),
+            request.agent.clone(),
+            self.outbox.clone(),
+            magnitudes,
+        )?;
         let (tx, rx) = mpsc::channel(AGENT_QUEUE);
         let task = self.runtime.spawn(worker.run(rx));
         handle
@@ -380,23 +410,67 @@ impl Service {
             .cem
             .validate()
             .map_err(|e| refuse(format!("invalid planner configuration: {e}")))?;
+        self.config
+            .limits
+            .check(&preset)
+            .map_err(|e| refuse(e.to_string()))?;
         Ok(preset)
     }
 
-    /// Opens run `name` in the data directory (new, or stored by an earlier daemon).
-    fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, ErrorReport> {
-        let preset = self.preset_for(&spec)?;
-        let dir = RunDir::new(&self.config.data_dir, name);
-        Run::open(name.to_string(), spec, preset, dir, self.event_sink()).map_err(|e| {
-            ErrorReport::new(
-                ErrorCode::Internal,
-                format!("cannot open run `{name}`: {e}"),
-            )
-        })
+    /// Opens a run that is not hosted yet (new, or stored but not resumed), one at a time.
+    async fn open_new_run(&self, name: &str, spec: &RunSpec) -> Result<(), ErrorReport> {
+        let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
+        let _opening = self.opening.lock().await;
+        if self.is_hosted(name) {
+            return Ok(()); // another agent opened it meanwhile
+        }
+        if let Some(reason) = self
+            .failed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(name)
+        {
+            return Err(refuse(format!(
+                "run `{name}` is stored here but cannot be opened ({reason}): ask the operator, or use another run name"
+            )));
+        }
+        let hosted = self.runs.lock().unwrap_or_else(PoisonError::into_inner).len();
+        if hosted >= self.config.max_runs {
+            return Err(refuse(format!(
+                "this planner already hosts its limit of {} runs",
+                self.config.max_runs
+            )));
+        }
+        let run = self.open_run(name, spec.clone()).await?;
+        self.host(run);
+        Ok(())
     }
 
-    fn host(&self, runs: &mut HashMap<String, RunHandle>, run: Arc<Run>) {
+    /// Opens run `name` in the data directory (new, or stored by an earlier daemon) on the
+    /// blocking pool: reading its replay log and building its models may take a while, and a
+    /// failure there (even a panic) is this run's alone.
+    async fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, ErrorReport> {
+        let preset = self.preset_for(&spec)?;
+        let dir = RunDir::new(&self.config.data_dir, name);
+        let (owned, events) = (name.to_string(), self.event_sink());
+        let opened =
+            tokio::task::spawn_blocking(move || Run::open(owned, spec, preset, dir, events)).await;
+        let internal = |why: String| {
+            ErrorReport::new(
+                ErrorCode::Internal,
+                format!("cannot open run `{name}`: {why}"),
+            )
+        };
+        match opened {
+            Ok(Ok(run)) => Ok(run),
+            Ok(Err(e)) => Err(internal(e.to_string())),
+            Err(e) => Err(internal(e.to_string())),
+        }
+    }
+
+    fn host(&self, run: Arc<Run>) {
         let trainer = self.runtime.spawn(run.clone().trainer_loop());
+        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         runs.insert(
             run.name().to_string(),
             RunHandle {
@@ -411,8 +485,10 @@ impl Service {
     /// it stopped: status lists them at once, their trainers catch up with episodes stored
     /// after the last checkpoint, and agents re-attach to them. Stored runs are resumed even
     /// beyond `max_runs` (the limit is on creating runs, never on keeping data). A run that
-    /// cannot be opened is logged and left on disk untouched.
-    fn resume_stored_runs(&self) {
+    /// cannot be opened (over today's limits, damaged, even one whose opening panics) is set
+    /// aside: logged, listed by `status` as failed with the reason, refused at attach, and
+    /// left on disk untouched; the daemon serves the others.
+    async fn resume_stored_runs(&self) {
         let stored = match persist::stored_runs(&self.config.data_dir) {
             Ok(stored) => stored,
             Err(e) => {
@@ -420,7 +496,6 @@ impl Service {
                 return;
             }
         };
-        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         for (name, dir) in stored {
             let spec = match dir.read_spec() {
                 Ok(Some(spec)) => spec,
@@ -429,52 +504,76 @@ impl Service {
                     continue;
                 }
                 Err(e) => {
-                    tracing::error!(run = %name, error = %e, "cannot read a stored run's spec; not resumed");
+                    self.set_aside(&name, format!("cannot read its spec: {e}"));
                     continue;
                 }
             };
-            match self.open_run(&name, spec) {
-                Ok(run) => self.host(&mut runs, run),
-                Err(report) => {
-                    tracing::error!(run = %name, "stored run not resumed: {}", report.message);
-                }
+            match self.open_run(&name, spec).await {
+                Ok(run) => self.host(run),
+                Err(report) => self.set_aside(&name, report.message),
             }
         }
     }
 
+    fn set_aside(&self, run: &str, reason: String) {
+        tracing::error!(%run, "stored run set aside, not resumed: {reason}");
+        self.failed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(run.to_string(), reason);
+    }
+
     /// The status report of this planner.
     pub fn status_report(&self) -> status::PlannerStatus {
-        let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-        let mut reports: Vec<status::RunStatus> = runs
-            .values()
-            .map(|h| {
-                let run = &h.run;
-                let returns = run.returns();
-                let mut agents: Vec<String> = h.agents.keys().cloned().collect();
-                agents.sort();
+        // The runs and their agents' names, then each run's counters: no run's replay buffer
+        // is locked, so a run busy on its disk delays no status report.
+        let hosted: Vec<(Arc<Run>, Vec<String>)> = {
+            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            runs.values()
+                .map(|h| {
+                    let mut agents: Vec<String> = h.agents.keys().cloned().collect();
+                    agents.sort();
+                    (h.run.clone(), agents)
+                })
+                .collect()
+        };
+        let mut reports: Vec<status::RunStatus> = hosted
+            .into_iter()
+            .map(|(run, agents)| {
+                let tally = run.tally();
                 status::RunStatus {
                     name: run.name().to_string(),
                     task: run.spec().task.to_string(),
                     method: run.preset().method.clone(),
                     mode: run.mode(),
-                    // Counted from the same snapshot as the returns, so the two always agree.
-                    episodes: returns.len() as u32,
-                    transitions: run.transitions_stored(),
+                    episodes: tally.episodes,
+                    transitions: tally.transitions,
                     models_version: run.models().version,
                     training: run.is_training(),
                     exploring: run.exploring(),
-                    last_returns: returns[returns.len().saturating_sub(10)..].to_vec(),
+                    last_returns: tally.last_returns,
                     agents,
                     planning_latency: run.latency(),
                 }
             })
             .collect();
         reports.sort_by(|a, b| a.name.cmp(&b.name));
+        let failed_runs = self
+            .failed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .iter()
+            .map(|(name, reason)| status::FailedRun {
+                name: name.clone(),
+                reason: reason.clone(),
+            })
+            .collect();
         status::PlannerStatus {
             planner_id: self.config.planner_id.clone(),
             protocol_version: PROTOCOL_VERSION,
             uptime_seconds: self.started.elapsed().as_secs_f64(),
             runs: reports,
+            failed_runs,
         }
     }
 
@@ -587,6 +686,73 @@ impl Service {
             self.outbox.report(run, agent, report, encoding).await;
         }
     }
+}
+
+/// The encoding a query's payload is in (its answer goes back in the same).
+fn query_encoding(query: &zenoh::query::Query) -> Encoding {
+    query
+        .encoding()
+        .map(|e| Encoding::from_mime(&e.to_string()))
+        .unwrap_or_default()
+}
+
+async fn reply_attach(query: &zenoh::query::Query, outcome: AttachOutcome, encoding: Encoding) {
+    let key = query.key_expr().as_str().to_string();
+    let reply = AttachReply {
+        version: PROTOCOL_VERSION,
+        outcome,
+    };
+    match proto::encode(&reply, encoding) {
+        Ok(bytes) => {
+            if let Err(e) = query
+                .reply(key.as_str(), bytes)
+                .encoding(ZEncoding::from(encoding.mime()))
+                .await
+            {
+                tracing::warn!(%key, error = %e, "attach reply failed");
+            }
+        }
+        Err(e) => tracing::error!(error = %e, "cannot encode attach reply"),
+    }
+}
+
+/// How a later attach's spec differs from the run's, in words (`None`: it does not). A run
+/// has one spec: an agent asking for another one would otherwise be served a run it did not
+/// ask for without knowing.
+fn spec_difference(run: &RunSpec, asked: &RunSpec) -> Option<String> {
+    if run.task != asked.task {
+        return Some(format!("task {}, not {}", run.task, asked.task));
+    }
+    let preset = |p: &Option<String>| p.clone().unwrap_or_else(|| "(the default)".into());
+    if run.preset != asked.preset {
+        return Some(format!(
+            "preset {}, not {}",
+            preset(&run.preset),
+            preset(&asked.preset)
+        ));
+    }
+    if run.mode != asked.mode {
+        return Some(format!("mode {:?}, not {:?}", run.mode, asked.mode));
+    }
+    if run.seed != asked.seed {
+        return Some(format!("seed {}, not {}", run.seed, asked.seed));
+    }
+    if run.overrides != asked.overrides {
+        let set = |o: &proto::PlannerOverrides| match serde_json::to_value(o) {
+            Ok(serde_json::Value::Object(fields)) => {
+                let set: serde_json::Map<_, _> =
+                    fields.into_iter().filter(|(_, v)| !v.is_null()).collect();
+                serde_json::Value::Object(set).to_string()
+            }
+            _ => format!("{o:?}"),
+        };
+        return Some(format!(
+            "overrides {}, not {}",
+            set(&run.overrides),
+            set(&asked.overrides)
+        ));
+    }
+    None
 }
 
 /// The error report for bytes that did not decode.

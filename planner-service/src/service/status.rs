@@ -52,6 +52,16 @@ pub struct PlannerStatus {
     pub protocol_version: u16,
     pub uptime_seconds: f64,
     pub runs: Vec<RunStatus>,
+    /// Stored runs this planner could not open, set aside with the reason.
+    #[serde(default)]
+    pub failed_runs: Vec<FailedRun>,
+}
+
+/// A stored run that could not be opened (it stays on disk untouched).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FailedRun {
+    pub name: String,
+    pub reason: String,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -5,6 +5,7 @@ use super::{Outbox, codec_report};
 use crate::agent::AgentSession;
 use crate::plan::MpcPlanner;
 use crate::run::Run;
+use proto::task::Magnitudes;
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
     PlanStats, TrainMode,
@@ -25,6 +26,8 @@ pub(crate) struct AgentWorker {
     run: Arc<Run>,
     name: String,
     outbox: Outbox,
+    /// The largest observation and reward magnitudes accepted from this agent.
+    magnitudes: Magnitudes,
     session: AgentSession,
     /// Taken while a plan runs on the blocking pool, then put back.
     planner: Option<MpcPlanner>,
@@ -66,7 +69,12 @@ fn finite_or_min(x: f32) -> f32 {
 }
 
 impl AgentWorker {
-    pub(crate) fn new(run: Arc<Run>, name: String, outbox: Outbox) -> Result<Self, ErrorReport> {
+    pub(crate) fn new(
+        run: Arc<Run>,
+        name: String,
+        outbox: Outbox,
+        magnitudes: Magnitudes,
+    ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
         Ok(Self {
             session: AgentSession::new(name.clone()),
@@ -76,6 +84,7 @@ impl AgentWorker {
             run,
             name,
             outbox,
+            magnitudes,
         })
     }
 
@@ -101,7 +110,7 @@ impl AgentWorker {
         let msg: Observation =
             proto::decode(&incoming.bytes, incoming.encoding).map_err(|e| codec_report(&e))?;
         let position = |r: ErrorReport| r.at(msg.episode, msg.step);
-        proto::validate::validate_observation(&msg, self.run.task())
+        proto::validate::validate_observation(&msg, self.run.task(), &self.magnitudes)
             .map_err(|e| e.report(msg.episode, msg.step))?;
         let accepted = self.session.observe(&msg)?;
         let must_cover = self
