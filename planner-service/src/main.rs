@@ -78,6 +78,9 @@ impl ServeArgs {
     }
 }
 
+/// How long blocking work (a plan in progress) may delay the exit after the service stopped.
+const SHUTDOWN_BLOCKING_GRACE: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// Resolves when the process is asked to stop (SIGINT or SIGTERM).
 async fn shutdown_signal() {
     match proto::shutdown::shutdown_signal().await {
@@ -104,9 +107,11 @@ fn main() -> Result<()> {
                 .enable_all()
                 .build()
                 .context("tokio runtime")?;
-            runtime
-                .block_on(Service::serve(config, shutdown_signal()))
-                .context("planner service")?;
+            let served = runtime.block_on(Service::serve(config, shutdown_signal()));
+            // A plan still running on the blocking pool (its worker was abandoned) must not
+            // hold the exit: the replay logs are already synced.
+            runtime.shutdown_timeout(SHUTDOWN_BLOCKING_GRACE);
+            served.context("planner service")?;
             Ok(())
         }
         Command::Bench(cmd) => {

@@ -7,7 +7,7 @@ use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
 use crate::replay::{EpisodeSummary, ReplayBuffer, ReplayError};
 use crate::service::status::{Latency, LatencyWindow};
-use crate::trainer::{TrainReport, retrain};
+use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{EpisodeEnd, RunEventKind, RunSpec, TaskSpec, TrainMode};
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
@@ -15,6 +15,14 @@ use tokio::sync::{Notify, watch};
 
 /// Where a run reports what happens to it (the service publishes these on the run's events key).
 pub type EventSink = Arc<dyn Fn(&str, RunEventKind) + Send + Sync>;
+
+/// What the daemon hosting a run gives it: where its events go and how its training is
+/// bounded (time per retraining, the cancel flag raised at shutdown).
+#[derive(Clone)]
+pub struct Hosting {
+    pub events: EventSink,
+    pub train_limits: TrainLimits,
+}
 
 /// One run.
 pub struct Run {
@@ -30,7 +38,7 @@ pub struct Run {
     trained_through: watch::Sender<u32>,
     training: AtomicBool,
     wake_trainer: Notify,
-    events: EventSink,
+    hosting: Hosting,
     latencies: Mutex<LatencyWindow>,
     /// What `status` reports of the buffer, kept apart from it so a report never waits for a
     /// buffer busy writing to disk.
@@ -91,7 +99,7 @@ impl Run {
         spec: RunSpec,
         preset: Preset,
         dir: RunDir,
-        events: EventSink,
+        hosting: Hosting,
     ) -> Result<Arc<Self>, OpenError> {
         let task = spec.task.spec();
         let buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
@@ -119,7 +127,7 @@ impl Run {
             buffer,
             models,
             Some(dir),
-            events,
+            hosting,
         ))
     }
 
@@ -130,7 +138,7 @@ impl Run {
         buffer: ReplayBuffer,
         models: Models,
         dir: Option<RunDir>,
-        events: EventSink,
+        hosting: Hosting,
     ) -> Arc<Self> {
         let task = spec.task.spec();
         let stored = buffer
@@ -159,7 +167,7 @@ impl Run {
             trained_through: watch::Sender::new(covered),
             training: AtomicBool::new(false),
             wake_trainer: Notify::new(),
-            events,
+            hosting,
             latencies: Mutex::new(LatencyWindow::default()),
             tally: Mutex::new(tally),
             dir,
@@ -306,7 +314,7 @@ impl Run {
     }
 
     fn emit(&self, kind: RunEventKind) {
-        (self.events)(&self.name, kind);
+        (self.hosting.events)(&self.name, kind);
     }
 
     /// The trainer: retrains whenever episodes were stored since the last training, until the
@@ -328,30 +336,39 @@ impl Run {
             let seed = self.spec.seed;
             let dir = self.dir.clone();
             let task = self.task;
+            let limits = self.hosting.train_limits.clone();
             let outcome = tokio::task::spawn_blocking(move || {
-                let (models, report) = retrain(&current, &data, &preset, episodes, seed);
+                let trained = retrain(&current, &data, &preset, episodes, seed, &limits)?;
                 // Checkpoint before the swap: models in use are always on disk too, so a
-                // restart never plans with models older than the ones agents last saw.
+                // restart never plans with models older than the ones agents last saw. Only
+                // finite models get here: `retrain` refuses the others.
                 if let Some(dir) = dir {
-                    match dir.save_models(&models, task) {
+                    match dir.save_models(&trained.0, task) {
                         Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
                         Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
                     }
                 }
-                (models, report)
+                Ok(trained)
             })
             .await;
             self.training.store(false, Ordering::SeqCst);
-            match outcome {
-                Ok((models, report)) => self.install(models, report, episodes),
-                Err(e) => {
-                    tracing::error!(run = %self.name, error = %e, "training failed; keeping the previous models");
-                    self.emit(RunEventKind::TrainingFailed {
-                        message: e.to_string(),
-                    });
-                    // Do not leave sync-mode agents waiting forever on models that will not come.
-                    self.trained_through.send_replace(episodes);
+            let failure = match outcome {
+                Ok(Ok((models, report))) => {
+                    self.install(models, report, episodes);
+                    None
                 }
+                Ok(Err(TrainError::Cancelled)) => {
+                    tracing::info!(run = %self.name, "training cancelled");
+                    return;
+                }
+                Ok(Err(e)) => Some(e.to_string()),
+                Err(e) => Some(format!("training panicked: {e}")),
+            };
+            if let Some(message) = failure {
+                tracing::error!(run = %self.name, "training failed; keeping the previous models: {message}");
+                self.emit(RunEventKind::TrainingFailed { message });
+                // Do not leave sync-mode agents waiting forever on models that will not come.
+                self.trained_through.send_replace(episodes);
             }
             if self.episodes_stored() > episodes {
                 self.wake_trainer.notify_one();
@@ -366,6 +383,9 @@ impl Run {
             transitions = report.transitions,
             dynamics_epochs = report.dynamics_epochs,
             energy_epochs = report.energy_epochs,
+            dynamics_steps = report.dynamics_steps,
+            energy_steps = report.energy_steps,
+            cut_short = ?report.cut_short,
             dynamics_loss = report.dynamics_loss,
             energy_loss = report.energy_loss,
             seconds = report.seconds,

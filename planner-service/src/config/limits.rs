@@ -78,6 +78,10 @@ impl Default for Limits {
     }
 }
 
+/// The largest magnitude bound an operator may configure: differences and squares of values
+/// up to it stay within f32's range (10³⁶ < 3.4·10³⁸).
+pub const MAX_MAGNITUDE: f32 = 1e18;
+
 /// A request over one of the limits.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{field} = {value} is over this planner's limit of {limit} ([limits] {setting})")]
@@ -97,7 +101,7 @@ pub enum InvalidLimits {
     NotPositive(&'static str),
     #[error("[limits.magnitudes] names an unknown task: {0}")]
     UnknownTask(#[from] proto::UnknownTask),
-    #[error("[limits.magnitudes.{task}] bounds must be finite and positive")]
+    #[error("[limits.magnitudes.{task}] bounds must be positive and at most {MAX_MAGNITUDE:e}")]
     Magnitude { task: String },
 }
 
@@ -126,7 +130,7 @@ impl Limits {
         }
         for (task, m) in &self.magnitudes {
             task.parse::<TaskId>()?;
-            let ok = |v: f32| v.is_finite() && v > 0.0;
+            let ok = |v: f32| v > 0.0 && v <= MAX_MAGNITUDE;
             if !(ok(m.observation) && ok(m.reward)) {
                 return Err(InvalidLimits::Magnitude { task: task.clone() });
             }
@@ -388,6 +392,8 @@ mod tests {
             "[magnitudes.walker]\nobservation = 1.0\nreward = 1.0",
             "[magnitudes.ant]\nobservation = inf\nreward = 1.0",
             "[magnitudes.ant]\nobservation = 0.0\nreward = 1.0",
+            "[magnitudes.ant]\nobservation = 3e38\nreward = 1.0",
+            "[magnitudes.ant]\nobservation = 1.0\nreward = nan",
         ] {
             let limits: Limits = toml::from_str(bad).unwrap();
             assert!(limits.validate().is_err(), "{bad}");

@@ -525,4 +525,172 @@ mod tests {
         };
         assert!(p.apply(&nan).is_err());
     }
+
+    /// Every preset field can be overridden, each to a value that then lands in the preset.
+    #[test]
+    fn every_preset_field_can_be_overridden() {
+        let mut p = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
+        let schedule = EpochSchedule::Geometric {
+            dynamics_factor: 0.5,
+            energy_factor: 0.25,
+            min_epochs: 3,
+        };
+        let o = PlannerOverrides {
+            regularizer: Some(RegularizerChoice::Deen),
+            energy_weight: Some(0.5),
+            ensemble_size: Some(3),
+            particles: Some(4),
+            horizon: Some(6),
+            population: Some(70),
+            elites: Some(7),
+            cem_iterations: Some(2),
+            cem_smoothing: Some(0.3),
+            cem_min_variance: Some(0.01),
+            sample_dynamics: Some(true),
+            exploration_episodes: Some(2),
+            dynamics_epochs: Some(11),
+            dynamics_hidden_layers: Some(2),
+            dynamics_hidden_size: Some(12),
+            dynamics_batch_size: Some(13),
+            dynamics_learning_rate: Some(2e-3),
+            dynamics_weight_decay: Some(1e-4),
+            energy_epochs: Some(14),
+            energy_hidden_layers: Some(1),
+            energy_hidden_size: Some(15),
+            energy_batch_size: Some(16),
+            energy_learning_rate: Some(3e-3),
+            energy_noise_sigma: Some(0.2),
+            epoch_schedule: Some(schedule.clone()),
+            max_gradient_steps: Some(1000),
+            inference_precision: Some(InferencePrecision::F32),
+        };
+        p.apply(&o).unwrap();
+        let d = &p.dynamics;
+        let e = &p.energy;
+        let c = &p.cem;
+        assert_eq!(p.regularizer, RegularizerKind::Deen);
+        assert_eq!(p.energy_weight, 0.5);
+        assert_eq!(
+            (d.ensemble_size, d.epochs, d.hidden_layers, d.hidden_size, d.batch_size),
+            (3, 11, 2, 12, 13)
+        );
+        assert_eq!((d.learning_rate, d.weight_decay), (2e-3, 1e-4));
+        assert_eq!(
+            (e.epochs, e.hidden_layers, e.hidden_size, e.batch_size),
+            (14, 1, 15, 16)
+        );
+        assert_eq!((e.learning_rate, e.noise_sigma), (3e-3, 0.2));
+        assert_eq!(
+            (c.particles, c.horizon, c.population, c.elites, c.iterations),
+            (4, 6, 70, 7, 2)
+        );
+        assert_eq!((c.smoothing, c.min_variance), (0.3, 0.01));
+        assert!(p.sample_dynamics);
+        assert_eq!(p.exploration_episodes, 2);
+        assert_eq!(p.schedule, schedule);
+        assert_eq!(p.max_gradient_steps, Some(1000));
+        assert_eq!(p.inference_precision, InferencePrecision::F32);
+        // Every field of the preset is reached: a preset field added without an override
+        // makes this list (and so this test) fail to compile.
+        let Preset {
+            method: _,
+            task: _,
+            dynamics: _,
+            regularizer: _,
+            energy: _,
+            energy_weight: _,
+            cem: _,
+            sample_dynamics: _,
+            exploration_episodes: _,
+            schedule: _,
+            max_gradient_steps: _,
+            inference_precision: _,
+        } = p;
+    }
+
+    /// Hostile values of every real-valued and scheduled override are refused, naming the field.
+    #[test]
+    fn hostile_overrides_are_refused_by_name() {
+        let base = Preset::new(TaskId::Cartpole, None).unwrap();
+        let o = PlannerOverrides::default;
+        let cases: Vec<(PlannerOverrides, &str)> = vec![
+            (PlannerOverrides { energy_weight: Some(-1.0), ..o() }, "energy_weight"),
+            (PlannerOverrides { energy_weight: Some(f32::INFINITY), ..o() }, "energy_weight"),
+            (PlannerOverrides { energy_weight: Some(1e30), ..o() }, "energy_weight"),
+            (PlannerOverrides { cem_smoothing: Some(1.0), ..o() }, "cem_smoothing"),
+            (PlannerOverrides { cem_smoothing: Some(f32::NAN), ..o() }, "cem_smoothing"),
+            (PlannerOverrides { cem_min_variance: Some(-0.1), ..o() }, "cem_min_variance"),
+            (PlannerOverrides { cem_min_variance: Some(f32::MAX), ..o() }, "cem_min_variance"),
+            (PlannerOverrides { dynamics_learning_rate: Some(0.0), ..o() }, "dynamics_learning_rate"),
+            (PlannerOverrides { dynamics_learning_rate: Some(1e9), ..o() }, "dynamics_learning_rate"),
+            (PlannerOverrides { dynamics_weight_decay: Some(-1e-3), ..o() }, "dynamics_weight_decay"),
+            (PlannerOverrides { energy_learning_rate: Some(f32::NAN), ..o() }, "energy_learning_rate"),
+            (PlannerOverrides { energy_noise_sigma: Some(0.0), ..o() }, "energy_noise_sigma"),
+            (PlannerOverrides { energy_noise_sigma: Some(1e20), ..o() }, "energy_noise_sigma"),
+            (PlannerOverrides { dynamics_batch_size: Some(0), ..o() }, "dynamics_batch_size"),
+            (PlannerOverrides { energy_batch_size: Some(0), ..o() }, "energy_batch_size"),
+            (PlannerOverrides { max_gradient_steps: Some(0), ..o() }, "max_gradient_steps"),
+            (
+                PlannerOverrides {
+                    epoch_schedule: Some(EpochSchedule::DropAfter { after_episodes: 0, epochs: 0 }),
+                    ..o()
+                },
+                "epoch_schedule.drop_after.epochs",
+            ),
+            (
+                PlannerOverrides {
+                    epoch_schedule: Some(EpochSchedule::Geometric {
+                        dynamics_factor: 2.0,
+                        energy_factor: 0.5,
+                        min_epochs: 1,
+                    }),
+                    ..o()
+                },
+                "epoch_schedule.geometric.dynamics_factor",
+            ),
+            (
+                PlannerOverrides {
+                    epoch_schedule: Some(EpochSchedule::Geometric {
+                        dynamics_factor: 0.5,
+                        energy_factor: f32::NAN,
+                        min_epochs: 1,
+                    }),
+                    ..o()
+                },
+                "epoch_schedule.geometric.energy_factor",
+            ),
+        ];
+        for (overrides, field) in cases {
+            let err = base.clone().apply(&overrides).unwrap_err().to_string();
+            assert!(err.contains(field), "{overrides:?}: {err}");
+        }
+    }
+
+    /// A mistyped override is refused in JSON and TOML; postcard names no fields, and bytes
+    /// beyond the fields it knows are refused as trailing bytes.
+    #[test]
+    fn unknown_override_fields_are_refused() {
+        let err = serde_json::from_str::<PlannerOverrides>(r#"{"populaton": 50}"#).unwrap_err();
+        assert!(err.to_string().contains("populaton"), "{err}");
+        assert!(toml::from_str::<PlannerOverrides>("horizn = 3").is_err());
+        let spec = proto::RunSpec {
+            task: TaskId::Cartpole,
+            preset: None,
+            overrides: PlannerOverrides::default(),
+            mode: Default::default(),
+            seed: 0,
+        };
+        let request = proto::AttachRequest {
+            version: proto::PROTOCOL_VERSION,
+            agent: "a".into(),
+            spec,
+        };
+        let mut bytes = proto::encode(&request, proto::Encoding::Postcard).unwrap();
+        bytes.push(1);
+        assert!(proto::decode::<proto::AttachRequest>(&bytes, proto::Encoding::Postcard).is_err());
+        let json = r#"{"version":1,"agent":"a","spec":{"task":"cartpole","overrides":{"dynamics_hidden_size":64,"hidden_size":64}}}"#;
+        let err = proto::decode::<proto::AttachRequest>(json.as_bytes(), proto::Encoding::Json)
+            .unwrap_err();
+        assert!(err.to_string().contains("hidden_size"), "{err}");
+    }
 }

@@ -15,7 +15,7 @@ use super::gaussian::{
 use crate::data::Transitions;
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::matmul::transpose;
-use crate::nn::train::run_epochs;
+use crate::nn::train::{EpochsRun, FitBudget, run_epochs};
 use crate::nn::vecops::scale_shift;
 use crate::nn::{
     Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape, add_weight_decay,
@@ -345,21 +345,18 @@ impl ProbabilisticModel {
         loss
     }
 
-    /// `epochs` passes over `order` (indices into `set`, e.g. a bootstrap resample), each in
-    /// freshly shuffled minibatches, continuing from the current weights.
-    /// Returns the mean loss of the last epoch and the number of steps.
+    /// `budget.epochs` passes over `order` (indices into `set`, e.g. a bootstrap resample),
+    /// each in freshly shuffled minibatches, continuing from the current weights, until the
+    /// budget says stop.
     pub fn fit(
         &mut self,
         set: &TrainingSet,
         order: &mut [usize],
-        epochs: usize,
+        budget: &FitBudget,
         rng: &mut StdRng,
-    ) -> (f32, usize) {
-        if order.is_empty() || epochs == 0 {
-            return (f32::NAN, 0);
-        }
-        let mut ws = TrainWorkspace::new(self, self.batch_size.min(order.len()));
-        run_epochs(order, self.batch_size, epochs, rng, |batch, _| {
+    ) -> EpochsRun {
+        let mut ws = TrainWorkspace::new(self, self.batch_size.min(order.len().max(1)));
+        run_epochs(order, self.batch_size, budget, rng, |batch, _| {
             self.train_step(set, batch, &mut ws)
         })
     }

@@ -225,9 +225,16 @@ impl Regularizer {
         }
     }
 
-    /// Trains on every transition of `data` for `epochs`, continuing from the current weights
-    /// (the normaliser is refitted on `data`).
-    pub fn fit(&mut self, data: &Transitions, epochs: usize, rng: &mut StdRng) -> FitReport {
+    /// Trains on every transition of `data` for the budget's epochs (or until it says stop),
+    /// continuing from the current weights (the normaliser is refitted on `data`).
+    pub fn fit(
+        &mut self,
+        data: &Transitions,
+        budget: impl Into<crate::nn::train::FitBudget>,
+        rng: &mut StdRng,
+    ) -> FitReport {
+        let budget = budget.into();
+        let epochs = budget.epochs;
         let report = match self {
             Regularizer::None => FitReport {
                 samples: data.len(),
@@ -235,8 +242,8 @@ impl Regularizer {
                 loss: 0.0,
                 ..FitReport::default()
             },
-            Regularizer::Dae(m) => m.fit(&transition_rows(data), epochs, rng),
-            Regularizer::Deen(m) => m.fit(&transition_rows(data), epochs, rng),
+            Regularizer::Dae(m) => m.fit(&transition_rows(data), budget, rng),
+            Regularizer::Deen(m) => m.fit(&transition_rows(data), budget, rng),
         };
         tracing::debug!(?report, kind = %self.kind(), "regularizer trained");
         report

@@ -14,13 +14,15 @@ mod worker;
 
 use crate::config::{Preset, ServiceConfig};
 use crate::persist::{self, RunDir};
-use crate::run::{EventSink, Run};
+use crate::run::{EventSink, Hosting, Run};
+use crate::trainer::TrainLimits;
 use proto::{
     AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorCode, ErrorReport,
     Keys, PROTOCOL_VERSION, RunEvent, RunEventKind, RunSpec,
 };
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use tokio::sync::{Semaphore, mpsc};
 use tokio::task::JoinHandle;
@@ -50,8 +52,10 @@ const AGENT_QUEUE: usize = 64;
 /// observation, published just before it exits, could find its session already gone.
 const AGENT_LINGER: std::time::Duration = std::time::Duration::from_secs(2);
 
-/// How long a worker may take to finish its message in hand at shutdown.
-const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(10);
+/// How long the workers may take, together, to finish their messages in hand at shutdown.
+/// The daemon promises to exit within 10 s of SIGTERM (systemd's `TimeoutStopSec` is well
+/// above); this leaves the rest for closing the session and the blocking pool.
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Attach requests handled at once (each may open a run: disk I/O and model construction);
 /// beyond this a request is refused at once instead of queueing without bound.
@@ -131,6 +135,8 @@ pub struct Service {
     /// the same new run at once open it once. Hosted runs are joined without it.
     opening: tokio::sync::Mutex<()>,
     attach_slots: Arc<Semaphore>,
+    /// Raised at shutdown: every run's training stops before its next minibatch.
+    cancel_training: Arc<AtomicBool>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -162,6 +168,7 @@ impl Service {
             failed: Mutex::new(BTreeMap::new()),
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
+            cancel_training: Arc::new(AtomicBool::new(false)),
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
@@ -228,7 +235,12 @@ impl Service {
     /// Stops every worker (each finishes the message in hand, within a grace period) and every
     /// trainer. The replay logs are synced at every episode end and every transition is
     /// handed to the OS before it is acknowledged, so nothing acknowledged is lost either way.
+    ///
+    /// Everything stops at once: training is cancelled (it ends before its next minibatch),
+    /// and every worker is given the same [`SHUTDOWN_GRACE`], concurrently, so a daemon with
+    /// many agents stops as fast as one with a single agent.
     async fn stop(&self) {
+        self.cancel_training.store(true, Ordering::SeqCst);
         let runs: Vec<RunHandle> = self
             .runs
             .lock()
@@ -236,20 +248,26 @@ impl Service {
             .drain()
             .map(|(_, h)| h)
             .collect();
+        let mut workers = Vec::new();
         for handle in runs {
             handle.trainer.abort();
             for (agent, worker) in handle.agents {
                 drop(worker.tx);
-                let abort = worker.task.abort_handle();
-                if tokio::time::timeout(SHUTDOWN_GRACE, worker.task)
-                    .await
-                    .is_err()
-                {
-                    tracing::warn!(run = %handle.run.name(), %agent, "worker did not finish in time; abandoned");
-                    abort.abort();
-                }
+                workers.push((handle.run.name().to_string(), agent, worker.task));
             }
         }
+        let deadline = tokio::time::Instant::now() + SHUTDOWN_GRACE;
+        let mut finishing = tokio::task::JoinSet::new();
+        for (run, agent, task) in workers {
+            finishing.spawn(async move {
+                let abort = task.abort_handle();
+                if tokio::time::timeout_at(deadline, task).await.is_err() {
+                    tracing::warn!(%run, %agent, "worker did not finish in time; abandoned");
+                    abort.abort();
+                }
+            });
+        }
+        while finishing.join_next().await.is_some() {}
     }
 
     fn event_sink(&self) -> EventSink {
@@ -452,9 +470,16 @@ impl Service {
     async fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, ErrorReport> {
         let preset = self.preset_for(&spec)?;
         let dir = RunDir::new(&self.config.data_dir, name);
-        let (owned, events) = (name.to_string(), self.event_sink());
+        let hosting = Hosting {
+            events: self.event_sink(),
+            train_limits: TrainLimits {
+                max_seconds: self.config.limits.max_retrain_seconds,
+                cancel: self.cancel_training.clone(),
+            },
+        };
+        let owned = name.to_string();
         let opened =
-            tokio::task::spawn_blocking(move || Run::open(owned, spec, preset, dir, events)).await;
+            tokio::task::spawn_blocking(move || Run::open(owned, spec, preset, dir, hosting)).await;
         let internal = |why: String| {
             ErrorReport::new(
                 ErrorCode::Internal,
