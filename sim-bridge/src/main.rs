@@ -208,6 +208,10 @@ impl SpecArgs {
                 energy_hidden_layers: self.energy_hidden_layers,
                 energy_hidden_size: self.energy_hidden_size,
                 inference_precision: self.inference_precision,
+                // The other overrides (batch sizes, learning rates, σ, CEM smoothing, the
+                // epoch schedule, the gradient-step cap) have no flag here: the planner's
+                // `[overrides]` or a controller's attach message sets them.
+                ..PlannerOverrides::default()
             },
             mode: match self.mode {
                 Mode::Sync => TrainMode::Sync,
