@@ -257,9 +257,19 @@ mod tests {
         let long = "x".repeat(100_000);
         let err = validate_name(&long).unwrap_err().to_string();
         assert!(err.len() < 200, "{err}");
-        assert!(err.contains(&format!("`{}…` (100000 bytes)", "x".repeat(32))), "{err}");
-        let err = validate_name("bad\nname\u{1b}[31m").unwrap_err().to_string();
+        assert!(
+            err.contains(&format!("`{}…` (100000 bytes)", "x".repeat(32))),
+            "{err}"
+        );
+        let err = validate_name("bad\nname\u{1b}[31m")
+            .unwrap_err()
+            .to_string();
         assert!(!err.contains('\n') && !err.contains('\u{1b}'), "{err}");
-        assert!(validate_name("ok/").unwrap_err().to_string().contains("`ok/`"));
+        assert!(
+            validate_name("ok/")
+                .unwrap_err()
+                .to_string()
+                .contains("`ok/`")
+        );
     }
 }

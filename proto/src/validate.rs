@@ -156,9 +156,18 @@ mod tests {
             (obs(1, vec![0.0; 4], Some(f32::NAN)), ErrorCode::NonFinite),
             (obs(1, vec![0.0; 4], None), ErrorCode::OutOfOrder),
             (obs(0, vec![0.0; 4], Some(1.0)), ErrorCode::OutOfOrder),
-            (obs(0, vec![0.0, f32::MAX, 0.0, 0.0], None), ErrorCode::OutOfRange),
-            (obs(0, vec![0.0, 0.0, 0.0, -3.4e38], None), ErrorCode::OutOfRange),
-            (obs(0, vec![1.0001e4, 0.0, 0.0, 0.0], None), ErrorCode::OutOfRange),
+            (
+                obs(0, vec![0.0, f32::MAX, 0.0, 0.0], None),
+                ErrorCode::OutOfRange,
+            ),
+            (
+                obs(0, vec![0.0, 0.0, 0.0, -3.4e38], None),
+                ErrorCode::OutOfRange,
+            ),
+            (
+                obs(0, vec![1.0001e4, 0.0, 0.0, 0.0], None),
+                ErrorCode::OutOfRange,
+            ),
             (obs(1, vec![0.0; 4], Some(f32::MIN)), ErrorCode::OutOfRange),
             (obs(1, vec![0.0; 4], Some(2e4)), ErrorCode::OutOfRange),
         ];
@@ -167,14 +176,18 @@ mod tests {
             assert_eq!(err.code(), code, "{err}");
             assert!(!err.to_string().is_empty());
         }
-        let err = validate_observation(&obs(0, vec![0.0; 5], None), task, &task.magnitudes)
-            .unwrap_err();
+        let err =
+            validate_observation(&obs(0, vec![0.0; 5], None), task, &task.magnitudes).unwrap_err();
         assert_eq!(
             err.to_string(),
             "observation has 5 numbers, task cartpole needs 4"
         );
-        let err = validate_observation(&obs(0, vec![0.0, 0.0, 5e5, 0.0], None), task, &task.magnitudes)
-            .unwrap_err();
+        let err = validate_observation(
+            &obs(0, vec![0.0, 0.0, 5e5, 0.0], None),
+            task,
+            &task.magnitudes,
+        )
+        .unwrap_err();
         assert_eq!(
             err.to_string(),
             "observation[2] is 5e5, beyond this task's bound of ±1e4"

@@ -265,7 +265,10 @@ async fn hostile_attaches(endpoint: &str) {
     };
     let bytes = proto::encode(&request, Encoding::Postcard).unwrap();
     let message = refusal(&hostile, "named", bytes, Encoding::Postcard.mime()).await;
-    assert!(message.contains("invalid name") && message.len() < 300, "{message}");
+    assert!(
+        message.contains("invalid name") && message.len() < 300,
+        "{message}"
+    );
     // A second agent asking the good run for another seed or other overrides is refused.
     let mut other = spec(PlannerOverrides::default());
     other.seed = 99;
@@ -334,7 +337,9 @@ fn hostile_attaches_are_refused_and_the_daemon_keeps_serving() {
         assert_eq!(report.failed_runs.len(), 1, "{:?}", report.failed_runs);
         assert_eq!(report.failed_runs[0].name, "poisoned");
         assert!(
-            report.failed_runs[0].reason.contains("dynamics_hidden_size"),
+            report.failed_runs[0]
+                .reason
+                .contains("dynamics_hidden_size"),
             "{:?}",
             report.failed_runs[0]
         );

@@ -151,26 +151,91 @@ impl Limits {
     pub fn check(&self, preset: &Preset) -> Result<(), LimitExceeded> {
         let (d, e, c) = (&preset.dynamics, &preset.energy, &preset.cem);
         let mut sizes = vec![
-            ("ensemble_size", d.ensemble_size as u64, self.max_ensemble_size, "max_ensemble_size"),
-            ("particles", c.particles as u64, self.max_particles, "max_particles"),
+            (
+                "ensemble_size",
+                d.ensemble_size as u64,
+                self.max_ensemble_size,
+                "max_ensemble_size",
+            ),
+            (
+                "particles",
+                c.particles as u64,
+                self.max_particles,
+                "max_particles",
+            ),
             ("horizon", c.horizon as u64, self.max_horizon, "max_horizon"),
-            ("population", c.population as u64, self.max_population, "max_population"),
-            ("elites", c.elites as u64, self.max_population, "max_population"),
-            ("cem_iterations", c.iterations as u64, self.max_cem_iterations, "max_cem_iterations"),
+            (
+                "population",
+                c.population as u64,
+                self.max_population,
+                "max_population",
+            ),
+            (
+                "elites",
+                c.elites as u64,
+                self.max_population,
+                "max_population",
+            ),
+            (
+                "cem_iterations",
+                c.iterations as u64,
+                self.max_cem_iterations,
+                "max_cem_iterations",
+            ),
             (
                 "exploration_episodes",
                 preset.exploration_episodes as u64,
                 self.max_exploration_episodes,
                 "max_exploration_episodes",
             ),
-            ("dynamics_epochs", d.epochs as u64, self.max_epochs, "max_epochs"),
-            ("energy_epochs", e.epochs as u64, self.max_epochs, "max_epochs"),
-            ("dynamics_hidden_layers", d.hidden_layers as u64, self.max_hidden_layers, "max_hidden_layers"),
-            ("energy_hidden_layers", e.hidden_layers as u64, self.max_hidden_layers, "max_hidden_layers"),
-            ("dynamics_hidden_size", d.hidden_size as u64, self.max_hidden_size, "max_hidden_size"),
-            ("energy_hidden_size", e.hidden_size as u64, self.max_hidden_size, "max_hidden_size"),
-            ("dynamics_batch_size", d.batch_size as u64, self.max_batch_size, "max_batch_size"),
-            ("energy_batch_size", e.batch_size as u64, self.max_batch_size, "max_batch_size"),
+            (
+                "dynamics_epochs",
+                d.epochs as u64,
+                self.max_epochs,
+                "max_epochs",
+            ),
+            (
+                "energy_epochs",
+                e.epochs as u64,
+                self.max_epochs,
+                "max_epochs",
+            ),
+            (
+                "dynamics_hidden_layers",
+                d.hidden_layers as u64,
+                self.max_hidden_layers,
+                "max_hidden_layers",
+            ),
+            (
+                "energy_hidden_layers",
+                e.hidden_layers as u64,
+                self.max_hidden_layers,
+                "max_hidden_layers",
+            ),
+            (
+                "dynamics_hidden_size",
+                d.hidden_size as u64,
+                self.max_hidden_size,
+                "max_hidden_size",
+            ),
+            (
+                "energy_hidden_size",
+                e.hidden_size as u64,
+                self.max_hidden_size,
+                "max_hidden_size",
+            ),
+            (
+                "dynamics_batch_size",
+                d.batch_size as u64,
+                self.max_batch_size,
+                "max_batch_size",
+            ),
+            (
+                "energy_batch_size",
+                e.batch_size as u64,
+                self.max_batch_size,
+                "max_batch_size",
+            ),
         ];
         match preset.schedule {
             proto::EpochSchedule::Constant => {}
@@ -191,7 +256,12 @@ impl Limits {
             exceeds(field, value, limit, setting)?;
         }
         let cost = Cost::of(preset);
-        exceeds("model_bytes", cost.model_bytes, self.max_model_bytes, "max_model_bytes")?;
+        exceeds(
+            "model_bytes",
+            cost.model_bytes,
+            self.max_model_bytes,
+            "max_model_bytes",
+        )?;
         exceeds(
             "plan_multiply_adds",
             cost.plan_multiply_adds,
@@ -262,7 +332,11 @@ impl Cost {
 fn parameters(sizes: &[usize]) -> u64 {
     sizes
         .windows(2)
-        .map(|w| (w[0] as u64).saturating_mul(w[1] as u64).saturating_add(w[1] as u64))
+        .map(|w| {
+            (w[0] as u64)
+                .saturating_mul(w[1] as u64)
+                .saturating_add(w[1] as u64)
+        })
         .fold(0, u64::saturating_add)
 }
 
@@ -324,41 +398,144 @@ mod tests {
     fn every_oversized_size_is_named() {
         let limits = Limits::default();
         let cases: Vec<(PlannerOverrides, &str)> = vec![
-            (PlannerOverrides { dynamics_hidden_size: Some(4_000_000_000), ..Default::default() }, "dynamics_hidden_size = 4000000000 is over this planner's limit of 2048 ([limits] max_hidden_size)"),
-            (PlannerOverrides { energy_hidden_size: Some(u32::MAX), ..Default::default() }, "energy_hidden_size"),
-            (PlannerOverrides { dynamics_hidden_layers: Some(u32::MAX), ..Default::default() }, "dynamics_hidden_layers"),
-            (PlannerOverrides { energy_hidden_layers: Some(11), ..Default::default() }, "energy_hidden_layers"),
-            (PlannerOverrides { ensemble_size: Some(u32::MAX), ..Default::default() }, "ensemble_size"),
-            (PlannerOverrides { particles: Some(101), ..Default::default() }, "particles"),
-            (PlannerOverrides { horizon: Some(u32::MAX), ..Default::default() }, "horizon"),
-            (PlannerOverrides { population: Some(u32::MAX), ..Default::default() }, "population"),
-            (PlannerOverrides { cem_iterations: Some(u32::MAX), ..Default::default() }, "cem_iterations"),
-            (PlannerOverrides { exploration_episodes: Some(u32::MAX), ..Default::default() }, "exploration_episodes"),
-            (PlannerOverrides { dynamics_epochs: Some(u32::MAX), ..Default::default() }, "dynamics_epochs"),
-            (PlannerOverrides { energy_epochs: Some(5_001), ..Default::default() }, "energy_epochs"),
-            (PlannerOverrides { dynamics_batch_size: Some(u32::MAX), ..Default::default() }, "dynamics_batch_size"),
-            (PlannerOverrides { energy_batch_size: Some(u32::MAX), ..Default::default() }, "energy_batch_size"),
             (
                 PlannerOverrides {
-                    epoch_schedule: Some(proto::EpochSchedule::DropAfter { after_episodes: 1, epochs: u32::MAX }),
+                    dynamics_hidden_size: Some(4_000_000_000),
+                    ..Default::default()
+                },
+                "dynamics_hidden_size = 4000000000 is over this planner's limit of 2048 ([limits] max_hidden_size)",
+            ),
+            (
+                PlannerOverrides {
+                    energy_hidden_size: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "energy_hidden_size",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_hidden_layers: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "dynamics_hidden_layers",
+            ),
+            (
+                PlannerOverrides {
+                    energy_hidden_layers: Some(11),
+                    ..Default::default()
+                },
+                "energy_hidden_layers",
+            ),
+            (
+                PlannerOverrides {
+                    ensemble_size: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "ensemble_size",
+            ),
+            (
+                PlannerOverrides {
+                    particles: Some(101),
+                    ..Default::default()
+                },
+                "particles",
+            ),
+            (
+                PlannerOverrides {
+                    horizon: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "horizon",
+            ),
+            (
+                PlannerOverrides {
+                    population: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "population",
+            ),
+            (
+                PlannerOverrides {
+                    cem_iterations: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "cem_iterations",
+            ),
+            (
+                PlannerOverrides {
+                    exploration_episodes: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "exploration_episodes",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_epochs: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "dynamics_epochs",
+            ),
+            (
+                PlannerOverrides {
+                    energy_epochs: Some(5_001),
+                    ..Default::default()
+                },
+                "energy_epochs",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_batch_size: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "dynamics_batch_size",
+            ),
+            (
+                PlannerOverrides {
+                    energy_batch_size: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "energy_batch_size",
+            ),
+            (
+                PlannerOverrides {
+                    epoch_schedule: Some(proto::EpochSchedule::DropAfter {
+                        after_episodes: 1,
+                        epochs: u32::MAX,
+                    }),
                     ..Default::default()
                 },
                 "epoch_schedule.drop_after.epochs",
             ),
             (
                 PlannerOverrides {
-                    epoch_schedule: Some(proto::EpochSchedule::Geometric { dynamics_factor: 0.5, energy_factor: 0.5, min_epochs: u32::MAX }),
+                    epoch_schedule: Some(proto::EpochSchedule::Geometric {
+                        dynamics_factor: 0.5,
+                        energy_factor: 0.5,
+                        min_epochs: u32::MAX,
+                    }),
                     ..Default::default()
                 },
                 "epoch_schedule.geometric.min_epochs",
             ),
             // Each size within its limit, together over a budget.
             (
-                PlannerOverrides { ensemble_size: Some(10), dynamics_hidden_size: Some(2048), dynamics_hidden_layers: Some(10), ..Default::default() },
+                PlannerOverrides {
+                    ensemble_size: Some(10),
+                    dynamics_hidden_size: Some(2048),
+                    dynamics_hidden_layers: Some(10),
+                    ..Default::default()
+                },
                 "model_bytes",
             ),
             (
-                PlannerOverrides { population: Some(5000), elites: Some(50), particles: Some(100), horizon: Some(200), cem_iterations: Some(50), ..Default::default() },
+                PlannerOverrides {
+                    population: Some(5000),
+                    elites: Some(50),
+                    particles: Some(100),
+                    horizon: Some(200),
+                    cem_iterations: Some(50),
+                    ..Default::default()
+                },
                 "plan_multiply_adds",
             ),
         ];

@@ -136,4 +136,21 @@ mod tests {
     fn rejects_unknown_keys() {
         assert!(toml::from_str::<ServiceConfig>("max_run = 3").is_err());
     }
+
+    /// The shipped example listens on loopback only, and its `[limits]` block states the
+    /// defaults (so the file documents what an operator gets without it).
+    #[test]
+    fn the_shipped_config_listens_on_loopback_with_the_default_limits() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/planner.toml");
+        let config = ServiceConfig::load(&path).unwrap();
+        assert_eq!(config.listen, ["tcp/127.0.0.1:7447"]);
+        assert_eq!(config.limits, Limits::default());
+    }
+
+    #[test]
+    fn invalid_limits_are_refused_at_load() {
+        let config: ServiceConfig = toml::from_str("[limits]\nmax_horizon = 0\n").unwrap();
+        assert!(matches!(config.validate(), Err(ConfigError::Limits(_))));
+        assert!(toml::from_str::<ServiceConfig>("[limits]\nmax_horizn = 3\n").is_err());
+    }
 }

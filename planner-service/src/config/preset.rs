@@ -338,7 +338,11 @@ impl Preset {
             o.dynamics_hidden_size,
             "dynamics_hidden_size",
         )?;
-        count(&mut d.batch_size, o.dynamics_batch_size, "dynamics_batch_size")?;
+        count(
+            &mut d.batch_size,
+            o.dynamics_batch_size,
+            "dynamics_batch_size",
+        )?;
         real(
             &mut d.learning_rate,
             o.dynamics_learning_rate,
@@ -357,7 +361,11 @@ impl Preset {
             o.energy_hidden_layers,
             "energy_hidden_layers",
         )?;
-        count(&mut e.hidden_size, o.energy_hidden_size, "energy_hidden_size")?;
+        count(
+            &mut e.hidden_size,
+            o.energy_hidden_size,
+            "energy_hidden_size",
+        )?;
         count(&mut e.batch_size, o.energy_batch_size, "energy_batch_size")?;
         real(
             &mut e.learning_rate,
@@ -571,7 +579,13 @@ mod tests {
         assert_eq!(p.regularizer, RegularizerKind::Deen);
         assert_eq!(p.energy_weight, 0.5);
         assert_eq!(
-            (d.ensemble_size, d.epochs, d.hidden_layers, d.hidden_size, d.batch_size),
+            (
+                d.ensemble_size,
+                d.epochs,
+                d.hidden_layers,
+                d.hidden_size,
+                d.batch_size
+            ),
             (3, 11, 2, 12, 13)
         );
         assert_eq!((d.learning_rate, d.weight_decay), (2e-3, 1e-4));
@@ -614,25 +628,124 @@ mod tests {
         let base = Preset::new(TaskId::Cartpole, None).unwrap();
         let o = PlannerOverrides::default;
         let cases: Vec<(PlannerOverrides, &str)> = vec![
-            (PlannerOverrides { energy_weight: Some(-1.0), ..o() }, "energy_weight"),
-            (PlannerOverrides { energy_weight: Some(f32::INFINITY), ..o() }, "energy_weight"),
-            (PlannerOverrides { energy_weight: Some(1e30), ..o() }, "energy_weight"),
-            (PlannerOverrides { cem_smoothing: Some(1.0), ..o() }, "cem_smoothing"),
-            (PlannerOverrides { cem_smoothing: Some(f32::NAN), ..o() }, "cem_smoothing"),
-            (PlannerOverrides { cem_min_variance: Some(-0.1), ..o() }, "cem_min_variance"),
-            (PlannerOverrides { cem_min_variance: Some(f32::MAX), ..o() }, "cem_min_variance"),
-            (PlannerOverrides { dynamics_learning_rate: Some(0.0), ..o() }, "dynamics_learning_rate"),
-            (PlannerOverrides { dynamics_learning_rate: Some(1e9), ..o() }, "dynamics_learning_rate"),
-            (PlannerOverrides { dynamics_weight_decay: Some(-1e-3), ..o() }, "dynamics_weight_decay"),
-            (PlannerOverrides { energy_learning_rate: Some(f32::NAN), ..o() }, "energy_learning_rate"),
-            (PlannerOverrides { energy_noise_sigma: Some(0.0), ..o() }, "energy_noise_sigma"),
-            (PlannerOverrides { energy_noise_sigma: Some(1e20), ..o() }, "energy_noise_sigma"),
-            (PlannerOverrides { dynamics_batch_size: Some(0), ..o() }, "dynamics_batch_size"),
-            (PlannerOverrides { energy_batch_size: Some(0), ..o() }, "energy_batch_size"),
-            (PlannerOverrides { max_gradient_steps: Some(0), ..o() }, "max_gradient_steps"),
             (
                 PlannerOverrides {
-                    epoch_schedule: Some(EpochSchedule::DropAfter { after_episodes: 0, epochs: 0 }),
+                    energy_weight: Some(-1.0),
+                    ..o()
+                },
+                "energy_weight",
+            ),
+            (
+                PlannerOverrides {
+                    energy_weight: Some(f32::INFINITY),
+                    ..o()
+                },
+                "energy_weight",
+            ),
+            (
+                PlannerOverrides {
+                    energy_weight: Some(1e30),
+                    ..o()
+                },
+                "energy_weight",
+            ),
+            (
+                PlannerOverrides {
+                    cem_smoothing: Some(1.0),
+                    ..o()
+                },
+                "cem_smoothing",
+            ),
+            (
+                PlannerOverrides {
+                    cem_smoothing: Some(f32::NAN),
+                    ..o()
+                },
+                "cem_smoothing",
+            ),
+            (
+                PlannerOverrides {
+                    cem_min_variance: Some(-0.1),
+                    ..o()
+                },
+                "cem_min_variance",
+            ),
+            (
+                PlannerOverrides {
+                    cem_min_variance: Some(f32::MAX),
+                    ..o()
+                },
+                "cem_min_variance",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_learning_rate: Some(0.0),
+                    ..o()
+                },
+                "dynamics_learning_rate",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_learning_rate: Some(1e9),
+                    ..o()
+                },
+                "dynamics_learning_rate",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_weight_decay: Some(-1e-3),
+                    ..o()
+                },
+                "dynamics_weight_decay",
+            ),
+            (
+                PlannerOverrides {
+                    energy_learning_rate: Some(f32::NAN),
+                    ..o()
+                },
+                "energy_learning_rate",
+            ),
+            (
+                PlannerOverrides {
+                    energy_noise_sigma: Some(0.0),
+                    ..o()
+                },
+                "energy_noise_sigma",
+            ),
+            (
+                PlannerOverrides {
+                    energy_noise_sigma: Some(1e20),
+                    ..o()
+                },
+                "energy_noise_sigma",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_batch_size: Some(0),
+                    ..o()
+                },
+                "dynamics_batch_size",
+            ),
+            (
+                PlannerOverrides {
+                    energy_batch_size: Some(0),
+                    ..o()
+                },
+                "energy_batch_size",
+            ),
+            (
+                PlannerOverrides {
+                    max_gradient_steps: Some(0),
+                    ..o()
+                },
+                "max_gradient_steps",
+            ),
+            (
+                PlannerOverrides {
+                    epoch_schedule: Some(EpochSchedule::DropAfter {
+                        after_episodes: 0,
+                        epochs: 0,
+                    }),
                     ..o()
                 },
                 "epoch_schedule.drop_after.epochs",

@@ -129,7 +129,16 @@ mod tests {
     /// standardises to finite values.
     #[test]
     fn extreme_finite_data_gives_finite_statistics() {
-        let rows = [f32::MAX, -3.4e38, f32::MIN, 1.0, 3.4e38, f32::MAX, -f32::MAX, 0.0];
+        let rows = [
+            f32::MAX,
+            -3.4e38,
+            f32::MIN,
+            1.0,
+            3.4e38,
+            f32::MAX,
+            -f32::MAX,
+            0.0,
+        ];
         let norm = Normalizer::fit(&rows, 2);
         assert!(norm.mean().iter().all(|m| m.is_finite()), "{norm:?}");
         assert!(

@@ -193,7 +193,10 @@ mod tests {
             ..FitBudget::default()
         };
         let run = run_epochs(&mut order, 4, &capped, &mut rng, |_, _| 2.0);
-        assert_eq!((run.steps, run.stopped, run.loss), (7, Some(Stop::StepCap), 2.0));
+        assert_eq!(
+            (run.steps, run.stopped, run.loss),
+            (7, Some(Stop::StepCap), 2.0)
+        );
 
         let past = FitBudget {
             epochs: 100,

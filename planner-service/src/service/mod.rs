@@ -9,6 +9,7 @@
 //! agents (and runs) proceed concurrently; planning itself runs on the blocking pool, and
 //! training on the run's trainer task, so neither stalls the transport.
 
+mod log_limit;
 pub mod status;
 mod worker;
 
@@ -57,6 +58,11 @@ const AGENT_LINGER: std::time::Duration = std::time::Duration::from_secs(2);
 /// above); this leaves the rest for closing the session and the blocking pool.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
 
+/// Bytes beyond `[limits] max_payload_bytes` that Zenoh's transport accepts in one message
+/// (its key expression and headers), so that a payload just over the limit still arrives
+/// and is refused with a clear error instead of being dropped silently.
+const ZENOH_HEADROOM: u64 = 64 << 10;
+
 /// Attach requests handled at once (each may open a run: disk I/O and model construction);
 /// beyond this a request is refused at once instead of queueing without bound.
 const CONCURRENT_ATTACHES: usize = 8;
@@ -77,6 +83,8 @@ struct RunHandle {
 pub(crate) struct Outbox {
     session: zenoh::Session,
     keys: Keys,
+    /// Refusals are logged at a bounded rate: a client controls how many it causes.
+    refusal_log: Arc<log_limit::LogLimit>,
 }
 
 impl Outbox {
@@ -117,7 +125,10 @@ impl Outbox {
         report: ErrorReport,
         encoding: Encoding,
     ) {
-        tracing::warn!(%run, %agent, code = ?report.code, episode = ?report.episode, step = ?report.step, "rejected: {}", report.message);
+        self.refusal_log.warn(|| {
+            let (run, agent) = (truncated(run), truncated(agent));
+            tracing::warn!(%run, %agent, code = ?report.code, episode = ?report.episode, step = ?report.step, "rejected: {}", report.message);
+        });
         self.publish(&self.keys.error(run, agent), &report, encoding)
             .await;
     }
@@ -155,13 +166,26 @@ impl Service {
             listen: config.listen.clone(),
             connect: config.connect.clone(),
         };
-        let zconfig = proto::session::zenoh_config(&endpoints, base)?;
+        let mut zconfig = proto::session::zenoh_config(&endpoints, base)?;
+        // Zenoh reassembles messages of up to 1 GiB by default: bound it near the payload
+        // limit, so an oversized message is dropped by the transport before it is buffered.
+        let max_message = config
+            .limits
+            .max_payload_bytes
+            .saturating_add(ZENOH_HEADROOM);
+        zconfig
+            .insert_json5(
+                "transport/link/rx/max_message_size",
+                &max_message.to_string(),
+            )
+            .map_err(zenoh_err)?;
         let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
         let keys = Keys::new(&config.prefix);
         let service = Arc::new(Service {
             outbox: Outbox {
                 session: session.clone(),
                 keys: keys.clone(),
+                refusal_log: Arc::default(),
             },
             config,
             runs: Mutex::new(HashMap::new()),
@@ -302,10 +326,13 @@ impl Service {
                 let encoding = query_encoding(&query);
                 let report = ErrorReport::new(
                     ErrorCode::Refused,
-                    format!("{CONCURRENT_ATTACHES} attach requests are in hand already: try again shortly"),
+                    format!(
+                        "{CONCURRENT_ATTACHES} attach requests are in hand already: try again shortly"
+                    ),
                 );
-                self.runtime
-                    .spawn(async move { reply_attach(&query, AttachOutcome::Rejected(report), encoding).await });
+                self.runtime.spawn(async move {
+                    reply_attach(&query, AttachOutcome::Rejected(report), encoding).await
+                });
             }
         }
     }
@@ -316,13 +343,17 @@ impl Service {
         let outcome = match self.outbox.keys().parse_attach(&key) {
             None => AttachOutcome::Rejected(ErrorReport::new(
                 ErrorCode::Refused,
-                format!("`{key}` is not an attach key"),
+                format!("`{}` is not an attach key", truncated(&key)),
             )),
             Some(run) => {
-                let bytes = query
-                    .payload()
-                    .map(|p| p.to_bytes().into_owned())
-                    .unwrap_or_default();
+                let size = query.payload().map_or(0, |p| p.len());
+                let bytes = match self.check_payload(size) {
+                    Ok(()) => query
+                        .payload()
+                        .map(|p| p.to_bytes().into_owned())
+                        .unwrap_or_default(),
+                    Err(report) => return self.refuse_attach(&query, &key, report, encoding).await,
+                };
                 match proto::decode::<AttachRequest>(&bytes, encoding) {
                     Err(e) => AttachOutcome::Rejected(codec_report(&e)),
                     Ok(request) => match self.attach_agent(run, request).await {
@@ -333,9 +364,41 @@ impl Service {
             }
         };
         if let AttachOutcome::Rejected(report) = &outcome {
-            tracing::warn!(%key, code = ?report.code, "attach refused: {}", report.message);
+            let key = truncated(&key);
+            self.outbox.refusal_log.warn(|| {
+                tracing::warn!(%key, code = ?report.code, "attach refused: {}", report.message);
+            });
         }
         reply_attach(&query, outcome, encoding).await;
+    }
+
+    async fn refuse_attach(
+        &self,
+        query: &zenoh::query::Query,
+        key: &str,
+        report: ErrorReport,
+        encoding: Encoding,
+    ) {
+        let key = truncated(key);
+        self.outbox.refusal_log.warn(|| {
+            tracing::warn!(%key, code = ?report.code, "attach refused: {}", report.message);
+        });
+        reply_attach(query, AttachOutcome::Rejected(report), encoding).await;
+    }
+
+    /// Refuses a message of `size` bytes over `[limits] max_payload_bytes`, before anything
+    /// decodes (or copies) it.
+    fn check_payload(&self, size: usize) -> Result<(), ErrorReport> {
+        let limit = self.config.limits.max_payload_bytes;
+        if size as u64 > limit {
+            return Err(ErrorReport::new(
+                ErrorCode::Refused,
+                format!(
+                    "a message of {size} bytes is over this planner's limit of {limit} bytes ([limits] max_payload_bytes)"
+                ),
+            ));
+        }
+        Ok(())
     }
 
     fn is_hosted(&self, run: &str) -> bool {
@@ -452,7 +515,11 @@ impl Service {
                 "run `{name}` is stored here but cannot be opened ({reason}): ask the operator, or use another run name"
             )));
         }
-        let hosted = self.runs.lock().unwrap_or_else(PoisonError::into_inner).len();
+        let hosted = self
+            .runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .len();
         if hosted >= self.config.max_runs {
             return Err(refuse(format!(
                 "this planner already hosts its limit of {} runs",
@@ -670,7 +737,10 @@ impl Service {
             .keys()
             .parse_agent_key(&key, proto::AgentChannel::Obs)
         else {
-            tracing::warn!(%key, "ignoring sample on a key that is not an observation key");
+            let key = truncated(&key);
+            self.outbox.refusal_log.warn(|| {
+                tracing::warn!(%key, "ignoring sample on a key that is not an observation key");
+            });
             return;
         };
         let tx = {
@@ -689,7 +759,8 @@ impl Service {
                 },
             }
         };
-        let result = match tx {
+        let result = match tx.and_then(|tx| self.check_payload(sample.payload().len()).map(|()| tx))
+        {
             Err(report) => Err(report),
             Ok(tx) => {
                 let incoming = Incoming {
@@ -711,6 +782,18 @@ impl Service {
             self.outbox.report(run, agent, report, encoding).await;
         }
     }
+}
+
+/// Characters of a received key shown in a log line: a key is client-chosen.
+const SHOWN_KEY_CHARS: usize = 128;
+
+/// `key` cut to [`SHOWN_KEY_CHARS`], for logs and replies.
+fn truncated(key: &str) -> String {
+    if key.chars().count() <= SHOWN_KEY_CHARS {
+        return key.to_string();
+    }
+    let shown: String = key.chars().take(SHOWN_KEY_CHARS).collect();
+    format!("{shown}… ({} bytes)", key.len())
 }
 
 /// The encoding a query's payload is in (its answer goes back in the same).

@@ -3,7 +3,8 @@
 //! Observation `[x, θ, ẋ, θ̇]`; action: the force on the cart, ±3. 200 steps of 0.04 s.
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal, squared_norm,
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
+    squared_norm,
 };
 
 /// Pole length in metres (the reward's target is the tip straight above the rail's origin).

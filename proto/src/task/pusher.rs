@@ -7,7 +7,9 @@
 //! the observation (sim-bridge's `assets/pusher.xml` marks it with a site, and its tests check
 //! the two agree).
 
-use super::{Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal};
+use super::{
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
+};
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
     id: TaskId::Pusher,

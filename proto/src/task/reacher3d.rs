@@ -6,7 +6,9 @@
 //! ebmpc's arm (sim-bridge's `assets/reacher3d.xml` is built from the constants here, and its
 //! tests check the two agree), so the simulator and the planner share one definition.
 
-use super::{Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal};
+use super::{
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
+};
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
     id: TaskId::Reacher3d,
