@@ -41,6 +41,9 @@ struct Episode {
 #[derive(Debug)]
 pub struct AgentSession {
     name: String,
+    /// The task's episode length: no step beyond it is accepted, so an agent that never ends
+    /// its episode cannot grow one without bound.
+    episode_len: u32,
     current: Option<Episode>,
     /// The last episode number seen; new episodes must be numbered above it.
     last_episode: Option<u32>,
@@ -49,9 +52,10 @@ pub struct AgentSession {
 }
 
 impl AgentSession {
-    pub fn new(name: impl Into<String>) -> Self {
+    pub fn new(name: impl Into<String>, episode_len: u32) -> Self {
         Self {
             name: name.into(),
+            episode_len,
             current: None,
             last_episode: None,
             episodes_finished: 0,
@@ -110,6 +114,12 @@ impl AgentSession {
                 finished: None,
                 abandoned,
             });
+        }
+        if msg.step > self.episode_len {
+            return Err(out_of_order(format!(
+                "step {} is beyond this task's episode length of {} steps: end the episode (`end`) at step {} at the latest",
+                msg.step, self.episode_len, self.episode_len
+            )));
         }
         let Some(current) = self.current.as_mut() else {
             return Err(out_of_order(format!(
@@ -196,7 +206,7 @@ mod tests {
 
     #[test]
     fn an_episode_yields_its_transitions_and_return() {
-        let mut s = AgentSession::new("a");
+        let mut s = AgentSession::new("a", 200);
         let first = s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
         assert_eq!(first.transition, None);
         assert!(first.needs_action());
@@ -220,7 +230,7 @@ mod tests {
 
     #[test]
     fn out_of_order_messages_are_refused_without_changing_state() {
-        let mut s = AgentSession::new("a");
+        let mut s = AgentSession::new("a", 200);
         let err = s.observe(&obs(0, 3, 0.0, Some(0.0), None)).unwrap_err();
         assert_eq!(err.code, ErrorCode::OutOfOrder);
         s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
@@ -250,7 +260,7 @@ mod tests {
 
     #[test]
     fn a_restarted_episode_abandons_the_old_one() {
-        let mut s = AgentSession::new("a");
+        let mut s = AgentSession::new("a", 200);
         s.observe(&obs(4, 0, 0.0, None, None)).unwrap();
         s.acted(0, &[0.0]);
         s.observe(&obs(4, 1, 0.0, Some(1.0), None)).unwrap();
@@ -265,5 +275,25 @@ mod tests {
             s.observe(&obs(3, 0, 0.0, None, None)).unwrap_err().code,
             ErrorCode::OutOfOrder
         );
+    }
+
+    /// No step beyond the task's episode length is accepted; the episode stays where it was.
+    #[test]
+    fn steps_beyond_the_episode_length_are_refused() {
+        let mut s = AgentSession::new("a", 2);
+        s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
+        s.acted(0, &[0.0]);
+        s.observe(&obs(0, 1, 0.0, Some(1.0), None)).unwrap();
+        s.acted(1, &[0.0]);
+        s.observe(&obs(0, 2, 0.0, Some(1.0), None)).unwrap();
+        s.acted(2, &[0.0]);
+        for step in [3, u32::MAX] {
+            let err = s.observe(&obs(0, step, 0.0, Some(1.0), None)).unwrap_err();
+            assert_eq!(err.code, ErrorCode::OutOfOrder);
+            assert!(err.message.contains("episode length of 2"), "{err}");
+        }
+        assert_eq!(s.position(), Some((0, 2)));
+        // Ending the episode (or starting the next) is still accepted.
+        assert!(s.observe(&obs(1, 0, 0.0, None, None)).is_ok());
     }
 }

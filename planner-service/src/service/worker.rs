@@ -77,7 +77,7 @@ impl AgentWorker {
     ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
         Ok(Self {
-            session: AgentSession::new(name.clone()),
+            session: AgentSession::new(name.clone(), run.task().episode_len),
             planner: Some(new_planner(&run, seed)?),
             explore_rng: StdRng::seed_from_u64(seed.rotate_left(17)),
             wait_for_episodes: None,
