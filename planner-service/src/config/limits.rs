@@ -51,6 +51,10 @@ pub struct Limits {
     pub max_retrain_seconds: f64,
     /// Largest message accepted, in bytes, checked on the raw payload before decoding.
     pub max_payload_bytes: u64,
+    /// Seconds an agent's session waits for its next observation before it is closed if the
+    /// agent has no liveliness token (it vanished without its token's deletion reaching us);
+    /// its open episode is recorded as interrupted and its slot freed.
+    pub agent_idle_seconds: u64,
     /// Per task (by name), the largest observation and reward magnitudes accepted instead of
     /// the catalog's (`[limits.magnitudes.cartpole] observation = 1e5, reward = 1e3`).
     pub magnitudes: BTreeMap<String, Magnitudes>,
@@ -73,6 +77,7 @@ impl Default for Limits {
             max_plan_multiply_adds: 4_000_000_000_000,
             max_retrain_seconds: 3_600.0,
             max_payload_bytes: 64 << 10,
+            agent_idle_seconds: 3_600,
             magnitudes: BTreeMap::new(),
         }
     }
@@ -121,6 +126,7 @@ impl Limits {
             ("max_model_bytes", self.max_model_bytes),
             ("max_plan_multiply_adds", self.max_plan_multiply_adds),
             ("max_payload_bytes", self.max_payload_bytes),
+            ("agent_idle_seconds", self.agent_idle_seconds),
         ];
         if let Some((name, _)) = counts.iter().find(|(_, v)| *v == 0) {
             return Err(InvalidLimits::NotPositive(name));
@@ -564,6 +570,7 @@ mod tests {
         assert!(toml::from_str::<Limits>("max_hidden_sizes = 64").is_err());
         for bad in [
             "max_population = 0",
+            "agent_idle_seconds = 0",
             "max_retrain_seconds = -1.0",
             "max_retrain_seconds = nan",
             "[magnitudes.walker]\nobservation = 1.0\nreward = 1.0",

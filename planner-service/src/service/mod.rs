@@ -117,6 +117,21 @@ impl Outbox {
         }
     }
 
+    /// Whether `agent` of `run` holds a liveliness token now.
+    pub(crate) async fn agent_alive(&self, run: &str, agent: &str) -> bool {
+        match self
+            .session
+            .liveliness()
+            .get(self.keys.agent_alive(run, agent))
+            .timeout(std::time::Duration::from_secs(5))
+            .await
+        {
+            Ok(replies) => replies.recv_async().await.is_ok(),
+            // Cannot ask: count the agent as alive rather than close a working session.
+            Err(_) => true,
+        }
+    }
+
     /// Reports an error to the agent that caused it, and logs it.
     pub(crate) async fn report(
         &self,
@@ -433,6 +448,8 @@ impl Service {
                 "run `{run_name}` was created with {difference}: attach with the run's spec, or use another run name"
             )));
         }
+        // Sessions that ended (idle without a liveliness token) free their slots.
+        handle.agents.retain(|_, a| !a.task.is_finished());
         if let Some(old) = handle.agents.remove(&request.agent) {
             // The same agent attaching again (it restarted): its old worker ends, and any
             // episode it left open is recorded as interrupted by the new worker's first step.
@@ -450,6 +467,8 @@ impl Service {
             self.outbox.clone(),
             magnitudes,
         )?;
+        let idle = std::time::Duration::from_secs(self.config.limits.agent_idle_seconds);
+        let worker = worker.idle_after(idle);
         let (tx, rx) = mpsc::channel(AGENT_QUEUE);
         let task = self.runtime.spawn(worker.run(rx));
         handle
@@ -623,7 +642,12 @@ impl Service {
             let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
             runs.values()
                 .map(|h| {
-                    let mut agents: Vec<String> = h.agents.keys().cloned().collect();
+                    let mut agents: Vec<String> = h
+                        .agents
+                        .iter()
+                        .filter(|(_, a)| !a.task.is_finished())
+                        .map(|(name, _)| name.clone())
+                        .collect();
                     agents.sort();
                     (h.run.clone(), agents)
                 })

@@ -34,6 +34,9 @@ pub(crate) struct AgentWorker {
     explore_rng: StdRng,
     /// Sync mode: finished episodes the models must cover before this agent's next episode.
     wait_for_episodes: Option<u32>,
+    /// How long the worker waits for an observation before it checks that the agent still
+    /// holds its liveliness token (and closes the session if not).
+    idle: std::time::Duration,
 }
 
 /// A stable seed per (run seed, agent name), so runs are reproducible.
@@ -81,6 +84,7 @@ impl AgentWorker {
             planner: Some(new_planner(&run, seed)?),
             explore_rng: StdRng::seed_from_u64(seed.rotate_left(17)),
             wait_for_episodes: None,
+            idle: std::time::Duration::MAX,
             run,
             name,
             outbox,
@@ -88,10 +92,32 @@ impl AgentWorker {
         })
     }
 
-    /// Handles observations until the service drops the channel, then records an unfinished
-    /// episode as interrupted.
+    /// Closes the session after `idle` without an observation if the agent then holds no
+    /// liveliness token.
+    pub(crate) fn idle_after(mut self, idle: std::time::Duration) -> Self {
+        self.idle = idle;
+        self
+    }
+
+    /// The next observation; `None` when the service dropped the channel, or when the agent
+    /// was silent for the idle time and holds no liveliness token.
+    async fn next(&self, rx: &mut mpsc::Receiver<Incoming>) -> Option<Incoming> {
+        loop {
+            match tokio::time::timeout(self.idle, rx.recv()).await {
+                Ok(incoming) => return incoming,
+                Err(_) if self.outbox.agent_alive(self.run.name(), &self.name).await => {}
+                Err(_) => {
+                    tracing::info!(run = %self.run.name(), agent = %self.name, idle_seconds = self.idle.as_secs(), "agent idle without a liveliness token; its session is closed");
+                    return None;
+                }
+            }
+        }
+    }
+
+    /// Handles observations until the service drops the channel (or the agent is gone idle),
+    /// then records an unfinished episode as interrupted.
     pub(crate) async fn run(mut self, mut rx: mpsc::Receiver<Incoming>) {
-        while let Some(incoming) = rx.recv().await {
+        while let Some(incoming) = self.next(&mut rx).await {
             let encoding = incoming.encoding;
             if let Err(report) = self.handle(incoming).await {
                 self.outbox
