@@ -10,11 +10,13 @@
 
 mod cputime;
 mod kernel;
+mod peak;
 mod plan;
 mod timing;
 mod train;
 
 pub use kernel::{KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming};
+pub use peak::Peak;
 pub use plan::PlanReport;
 pub use train::TrainReport;
 

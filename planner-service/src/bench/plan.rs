@@ -1,6 +1,7 @@
 //! `bench plan`: milliseconds per full MPC planning call and the matrix throughput achieved.
 
 use super::cputime::process_cpu_time;
+use super::peak::{Peak, percent};
 use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
 use crate::dynamics::Ensemble;
 use crate::energy::{Regularizer, RegularizerKind};
@@ -56,20 +57,12 @@ pub struct PlanReport {
     /// timed calls (below ~0.95: other work took cores away and the times are pessimistic).
     /// `None` where the platform does not report it.
     pub cpu_share: Option<f64>,
-    /// PyTorch's time for the same planning call on the project's 2-core machine, where known.
-    pub pytorch_ms: Option<f64>,
-}
-
-/// Milliseconds PyTorch takes for one planning call of the paper's single-model setting on the
-/// project's 2-core AVX-512 machine (measured for the project; the target to beat).
-fn pytorch_reference_ms(task: TaskId, regularizer: RegularizerKind, pets: bool) -> Option<f64> {
-    match (task, regularizer, pets) {
-        (TaskId::Cartpole, RegularizerKind::None, false) => Some(52.0),
-        (TaskId::HalfCheetah, RegularizerKind::None, false) => Some(132.0),
-        (TaskId::HalfCheetah, RegularizerKind::Deen, false) => Some(929.0),
-        (TaskId::Ant, RegularizerKind::Deen, false) => Some(786.0),
-        _ => None,
-    }
+    /// Matrix-product GFLOP/s per second of CPU time the threads received over all timed
+    /// calls: the rate while running, which other processes on the cores do not lower (time
+    /// the pool's threads spend spinning for work counts against it).
+    pub cpu_gflops: Option<f64>,
+    /// This core's peak, measured before the calls, for the precision inference ran in.
+    pub peak: Peak,
 }
 
 pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
@@ -93,6 +86,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     dynamics.set_inference_precision(s.precision);
     regularizer.set_inference_precision(s.precision);
     let precision = dynamics.member(0).mlp().inference_precision();
+    let peak = Peak::measure();
     let obs = data.row(0).0.to_vec();
 
     // Planning runs inside its own pool: one population chunk per thread, and no trips
@@ -111,32 +105,38 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    let (times, iterations, cpu_share) = pool.install(|| -> Result<_, BenchError> {
-        let mut planner = MpcPlanner::new(
-            spec,
-            preset.cem.clone(),
-            preset.energy_weight,
-            preset.sample_dynamics,
-            s.seed,
-        )?;
-        for _ in 0..s.warmup {
-            planner.plan(&obs, &dynamics, &regularizer);
-        }
-        let mut times = Vec::with_capacity(s.timed);
-        let mut iterations = 0u64;
-        let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
-        for _ in 0..s.timed {
-            let start = Instant::now();
-            let outcome = planner.plan(&obs, &dynamics, &regularizer);
-            times.push(start.elapsed());
-            iterations += u64::from(outcome.iterations);
-        }
-        let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
-        let cpu_share = cpu_before
-            .zip(process_cpu_time())
-            .map(|(before, after)| (after.saturating_sub(before)).as_secs_f64() / wall);
-        Ok((times, iterations, cpu_share))
-    })?;
+    let (times, iterations, cpu_share, cpu_seconds) =
+        pool.install(|| -> Result<_, BenchError> {
+            let mut planner = MpcPlanner::new(
+                spec,
+                preset.cem.clone(),
+                preset.energy_weight,
+                preset.sample_dynamics,
+                s.seed,
+            )?;
+            for _ in 0..s.warmup {
+                planner.plan(&obs, &dynamics, &regularizer);
+            }
+            let mut times = Vec::with_capacity(s.timed);
+            let mut iterations = 0u64;
+            let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
+            for _ in 0..s.timed {
+                let start = Instant::now();
+                let outcome = planner.plan(&obs, &dynamics, &regularizer);
+                times.push(start.elapsed());
+                iterations += u64::from(outcome.iterations);
+            }
+            let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
+            let cpu_seconds = cpu_before
+                .zip(process_cpu_time())
+                .map(|(before, after)| after.saturating_sub(before).as_secs_f64());
+            Ok((
+                times,
+                iterations,
+                cpu_seconds.map(|c| c / wall),
+                cpu_seconds,
+            ))
+        })?;
     let mut times = times;
     let min_ms = times.iter().min().map_or(0.0, |t| t.as_secs_f64() * 1e3);
     let median = median_ms(&mut times);
@@ -170,7 +170,10 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         gflops: flops / (median * 1e-3) / 1e9,
         best_gflops: flops / (min_ms * 1e-3) / 1e9,
         cpu_share,
-        pytorch_ms: pytorch_reference_ms(s.task, s.regularizer, s.pets),
+        cpu_gflops: cpu_seconds
+            .filter(|&c| c > 0.0)
+            .map(|c| flops * s.timed as f64 / c / 1e9),
+        peak,
     })
 }
 
@@ -222,12 +225,22 @@ impl fmt::Display for PlanReport {
                 }
             )?;
         }
-        if let Some(reference) = self.pytorch_ms {
+        let peak = self.peak.for_precision(self.precision);
+        let all_cores = peak.map(|p| p * self.threads as f64);
+        write!(
+            f,
+            "\n  peak       {}\n  of peak    {} best, {} median ({} thread(s) × the {} peak)",
+            self.peak,
+            percent(self.best_gflops, all_cores),
+            percent(self.gflops, all_cores),
+            self.threads,
+            self.precision
+        )?;
+        if let Some(g) = self.cpu_gflops {
             write!(
                 f,
-                "\n  PyTorch    {reference:.0} ms on the same machine: speed-up {:.2}× median, {:.2}× best",
-                reference / self.median_ms,
-                reference / self.min_ms
+                "; per CPU second {g:.1} GFLOP/s per core = {} of peak",
+                percent(g, peak)
             )?;
         }
         Ok(())
@@ -268,10 +281,17 @@ mod tests {
         assert!(report.gflops.is_finite() && report.gflops > 0.0);
         assert!(report.best_gflops >= report.gflops);
         assert!(report.cpu_share.is_none_or(|c| c > 0.0));
-        assert_eq!(report.pytorch_ms, None);
+        assert!(report.cpu_gflops.is_none_or(|g| g.is_finite() && g > 0.0));
+        assert_eq!(
+            report.peak.bf16_gflops.is_some(),
+            report.precision == InferencePrecision::Bf16
+        );
         let text = report.to_string();
         assert!(
-            text.contains("6→3×200→8") && text.contains("9→3×200→1"),
+            text.contains("6→3×200→8")
+                && text.contains("9→3×200→1")
+                && text.contains("of peak")
+                && !text.contains("PyTorch"),
             "{text}"
         );
     }
