@@ -7,7 +7,7 @@
 //! FMA ports limit the rate. A loop with fewer chains measures latency, not throughput: the
 //! project's earlier "85 % of the FMA peak" rested on such a loop and was half the real peak.
 //!
-//! The time is the calling thread's CPU time (`/proc/thread-self/schedstat`), not wall time, so
+//! The time is the calling thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), not wall time, so
 //! another process taking the core away does not lower the measured peak; the best of several
 //! trials is kept. Where the CPU lacks AVX-512 (or AVX-512 BF16) the corresponding peak is
 //! `None`: the kernels then run a different instruction mix and no 512-bit peak applies.
@@ -16,11 +16,13 @@ use std::time::Duration;
 
 /// Independent accumulators, as in `peak.c`.
 const CHAINS: usize = 12;
-/// Loop iterations per trial: 12 · 16 lanes · 2 flops each, ≈ 5 ms at 230 GFLOP/s (short
-/// trials: on a shared machine the best of many short ones finds an undisturbed stretch).
-const ITERATIONS: u64 = 300_000;
-/// Trials per instruction; the fastest is kept.
-const TRIALS: usize = 30;
+/// Loop iterations per trial: 12 · 16 lanes · 2 flops each, ≈ 1 ms at 230 GFLOP/s. Short
+/// trials, because on a shared machine (or a virtual CPU whose physical core is shared) the best
+/// of many short ones is the likeliest to have found an undisturbed stretch.
+const ITERATIONS: u64 = 60_000;
+/// Trials per instruction, f32 and bf16 alternating so that both see the same conditions; the
+/// fastest of each is kept.
+const TRIALS: usize = 150;
 
 /// Measured peak GFLOP/s of one core (a multiply and an add count as two operations; a
 /// `VDPBF16PS` does two multiply-adds per 32-bit lane).
@@ -35,21 +37,32 @@ pub struct Peak {
 impl Peak {
     /// Measures both peaks on the calling thread (about 0.3 s on an idle core).
     pub fn measure() -> Self {
-        let f32_gflops = avx512().then(|| {
-            best_rate(|| {
-                // SAFETY: AVX-512 F was detected just above.
-                unsafe { x86::fma_chains(ITERATIONS) }
-            })
-        });
-        let bf16_gflops = crate::nn::simd::bf16_dot_available().then(|| {
-            best_rate(|| {
-                // SAFETY: AVX-512 BF16 and BW were detected by `bf16_dot_available`.
-                unsafe { x86::dpbf16_chains(ITERATIONS) }
-            })
-        });
+        let f32_ok = avx512();
+        let bf16_ok = crate::nn::simd::bf16_dot_available();
+        // SAFETY (both closures): each runs only where its instructions were detected above.
+        let mut f32_peak = Best::new(f32_ok);
+        let mut bf16_peak = Best::new(bf16_ok);
+        for trial in 0..=TRIALS {
+            let warm_up = trial == 0; // clock ramp-up, the 512-bit units powering on
+            f32_peak.run(warm_up, || unsafe { x86::fma_chains(ITERATIONS) });
+            bf16_peak.run(warm_up, || unsafe { x86::dpbf16_chains(ITERATIONS) });
+        }
         Self {
-            f32_gflops: f32_gflops.flatten(),
-            bf16_gflops: bf16_gflops.flatten(),
+            f32_gflops: f32_peak.rate,
+            bf16_gflops: bf16_peak.rate,
+        }
+    }
+
+    /// The higher of two measurements of each peak (e.g. one before and one after the timed
+    /// work: the less disturbed one is nearer the truth).
+    pub fn max(self, other: Self) -> Self {
+        let max = |a: Option<f64>, b: Option<f64>| match (a, b) {
+            (Some(a), Some(b)) => Some(a.max(b)),
+            (a, b) => a.or(b),
+        };
+        Self {
+            f32_gflops: max(self.f32_gflops, other.f32_gflops),
+            bf16_gflops: max(self.bf16_gflops, other.bf16_gflops),
         }
     }
 
@@ -85,28 +98,49 @@ pub fn percent(part: f64, whole: Option<f64>) -> String {
     whole.map_or("-".to_string(), |w| format!("{:.0}%", 100.0 * part / w))
 }
 
-/// The fastest of [`TRIALS`] runs of `trial`, which returns the flops it did; `None` where the
-/// thread's CPU time cannot be read.
-fn best_rate(mut trial: impl FnMut() -> f64) -> Option<f64> {
-    trial(); // warm-up: clock ramp-up, the 512-bit units powering on
-    let mut best: Option<f64> = None;
-    for _ in 0..TRIALS {
-        let before = thread_cpu_time()?;
-        let flops = trial();
-        let spent = thread_cpu_time()?.saturating_sub(before).as_secs_f64();
-        if spent > 0.0 {
-            let rate = flops / spent / 1e9;
-            best = Some(best.map_or(rate, |b: f64| b.max(rate)));
-        }
-    }
-    best
+/// The fastest rate seen over trials of one instruction's loop.
+struct Best {
+    enabled: bool,
+    rate: Option<f64>,
 }
 
-/// Time the calling thread has spent on a CPU (Linux `schedstat`, nanoseconds).
+impl Best {
+    fn new(enabled: bool) -> Self {
+        Self {
+            enabled,
+            rate: None,
+        }
+    }
+
+    /// Runs `trial` (which returns the flops it did) if enabled and keeps its rate unless this
+    /// is the warm-up or the thread's CPU time cannot be read.
+    fn run(&mut self, warm_up: bool, trial: impl FnOnce() -> f64) {
+        if !self.enabled {
+            return;
+        }
+        let before = thread_cpu_time();
+        let flops = trial();
+        let Some((before, after)) = before.zip(thread_cpu_time()) else {
+            return;
+        };
+        let spent = after.saturating_sub(before).as_secs_f64();
+        if !warm_up && spent > 0.0 {
+            let rate = flops / spent / 1e9;
+            self.rate = Some(self.rate.map_or(rate, |b| b.max(rate)));
+        }
+    }
+}
+
+/// Time the calling thread has spent on a CPU, to the nanosecond (`CLOCK_THREAD_CPUTIME_ID`;
+/// `schedstat` is only updated at scheduler ticks, too coarse for millisecond trials).
 fn thread_cpu_time() -> Option<Duration> {
-    let stat = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    let ns = stat.split_whitespace().next()?.parse::<u64>().ok()?;
-    Some(Duration::from_nanos(ns))
+    let mut t = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `t` is a valid timespec for the call to fill.
+    let ok = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) } == 0;
+    ok.then(|| Duration::new(t.tv_sec as u64, t.tv_nsec as u32))
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -182,6 +216,16 @@ mod tests {
             peak.bf16_gflops
         );
         assert!(peak.to_string().contains("measured peak per core"));
+        let low = Peak {
+            f32_gflops: Some(1.0),
+            bf16_gflops: None,
+        };
+        let high = Peak {
+            f32_gflops: Some(2.0),
+            bf16_gflops: Some(3.0),
+        };
+        assert_eq!(low.max(high), high);
+        assert_eq!(high.max(low), high);
         assert_eq!(percent(50.0, Some(200.0)), "25%");
         assert_eq!(percent(50.0, None), "-");
     }

@@ -61,7 +61,7 @@ pub struct PlanReport {
     /// calls: the rate while running, which other processes on the cores do not lower (time
     /// the pool's threads spend spinning for work counts against it).
     pub cpu_gflops: Option<f64>,
-    /// This core's peak, measured before the calls, for the precision inference ran in.
+    /// This core's peak, measured before and after the calls (the higher of the two).
     pub peak: Peak,
 }
 
@@ -137,6 +137,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
                 cpu_seconds,
             ))
         })?;
+    let peak = peak.max(Peak::measure());
     let mut times = times;
     let min_ms = times.iter().min().map_or(0.0, |t| t.as_secs_f64() * 1e3);
     let median = median_ms(&mut times);

@@ -34,7 +34,7 @@ pub struct TrainReport {
     pub dynamics: StepTiming,
     pub deen: StepTiming,
     pub deen_phases: DeenPhases,
-    /// This core's peak, measured before the steps (training runs in f32).
+    /// This core's peak, measured before and after the steps (the higher; training runs in f32).
     pub peak: Peak,
     /// Threads the training products may use (rayon's pool): the fraction of peak is taken
     /// of this many cores.
@@ -132,7 +132,7 @@ pub(super) fn run(
             gflops: None,
         },
         deen_phases,
-        peak,
+        peak: peak.max(Peak::measure()),
         threads: rayon::current_num_threads(),
     })
 }
