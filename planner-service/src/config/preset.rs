@@ -14,7 +14,7 @@
 
 use crate::dynamics::DynamicsConfig;
 use crate::energy::{EnergyConfig, RegularizerKind};
-use crate::plan::CemConfig;
+use crate::plan::{CemConfig, IcemConfig, Optimizer};
 use proto::{InferencePrecision, PlannerOverrides, RegularizerChoice, TaskId};
 use serde::{Deserialize, Serialize};
 
@@ -274,12 +274,45 @@ impl Preset {
                 smoothing: 0.1,
                 min_variance: 1e-3,
                 particles: if pets { 20 } else { 1 },
+                optimizer: Optimizer::Cem,
+                icem: IcemConfig::default(),
             },
             sample_dynamics: pets,
             exploration_episodes: t.exploration_episodes,
             schedule: t.schedule,
             inference_precision: default_precision(),
         })
+    }
+
+    /// The optimiser overrides: the choice and iCEM's parameters, each checked against its
+    /// range ([`IcemConfig::validate`]); iCEM parameters without iCEM are refused rather than
+    /// silently ignored.
+    fn apply_optimizer(&mut self, o: &PlannerOverrides) -> Result<(), PresetError> {
+        if let Some(optimizer) = o.optimizer {
+            self.cem.optimizer = optimizer;
+        }
+        let icem = [
+            o.icem_noise_beta
+                .map(|v| (&mut self.cem.icem.noise_beta, v)),
+            o.icem_keep_elites
+                .map(|v| (&mut self.cem.icem.keep_elites, v)),
+            o.icem_population_decay
+                .map(|v| (&mut self.cem.icem.population_decay, v)),
+        ];
+        let mut any = false;
+        for (field, value) in icem.into_iter().flatten() {
+            *field = value;
+            any = true;
+        }
+        if any && self.cem.optimizer != Optimizer::Icem {
+            return Err(PresetError::InvalidOverride(
+                "icem_* overrides need optimizer = \"icem\"".to_string(),
+            ));
+        }
+        self.cem
+            .icem
+            .validate()
+            .map_err(|e| PresetError::InvalidOverride(e.to_string()))
     }
 
     /// Applies `overrides` (fields that are `Some`), checking that the result still makes sense.
@@ -353,6 +386,7 @@ impl Preset {
         if let Some(p) = o.inference_precision {
             self.inference_precision = p;
         }
+        self.apply_optimizer(o)?;
         if self.cem.elites > self.cem.population {
             return Err(PresetError::InvalidOverride(format!(
                 "elites ({}) cannot exceed population ({})",

@@ -118,8 +118,10 @@ impl Imagination {
         self.chunks.iter().map(|c| c.capacity).sum()
     }
 
-    /// Scores every candidate of `actions` (`population × horizon × act_dim`) from `obs` into
-    /// `returns` (`population`).
+    /// Scores every candidate of `actions` (`n × horizon × act_dim`) from `obs` into `returns`
+    /// (`n`), for any `n` up to [`Imagination::population`] (iCEM's population shrinks from one
+    /// iteration to the next; the chunks are filled in order, so a smaller population leaves
+    /// the last chunks short or idle).
     pub fn evaluate(
         &mut self,
         obs: &[f32],
@@ -131,7 +133,7 @@ impl Imagination {
         let ctx = self.ctx;
         let seq = ctx.horizon * ctx.task.act_dim;
         assert_eq!(obs.len(), ctx.task.obs_dim, "observation dimension");
-        assert_eq!(returns.len(), self.population(), "population");
+        assert!(returns.len() <= self.population(), "population");
         assert_eq!(actions.len(), returns.len() * seq, "action sequences");
         self.prepare(dynamics, regularizer);
         let chunk_len = self.chunk_len;
@@ -389,6 +391,8 @@ mod tests {
             smoothing: 0.1,
             min_variance: 1e-3,
             particles,
+            optimizer: crate::plan::Optimizer::Cem,
+            icem: crate::plan::IcemConfig::default(),
         }
     }
 
