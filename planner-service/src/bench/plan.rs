@@ -23,6 +23,10 @@ pub(super) struct Settings {
     pub chunks: Option<usize>,
     pub precision: InferencePrecision,
     pub seed: u64,
+    pub optimizer: proto::Optimizer,
+    pub population: Option<usize>,
+    pub elites: Option<usize>,
+    pub iterations: Option<usize>,
 }
 
 /// Timing of full planning calls.
@@ -35,6 +39,7 @@ pub struct PlanReport {
     pub members: usize,
     /// Energy network layer sizes (empty without a regulariser).
     pub energy_sizes: Vec<usize>,
+    pub optimizer: proto::Optimizer,
     pub horizon: usize,
     pub population: usize,
     pub particles: usize,
@@ -45,8 +50,10 @@ pub struct PlanReport {
     pub precision: InferencePrecision,
     /// Planning calls timed.
     pub calls: usize,
-    /// Mean CEM iterations per call (early stopping may cut some).
+    /// Mean iterations per call (early stopping may cut some).
     pub mean_iterations: f64,
+    /// Mean candidate sequences scored per call (iCEM's population decays).
+    pub mean_candidates: f64,
     pub median_ms: f64,
     pub min_ms: f64,
     /// Matrix-product GFLOP/s at the median call time.
@@ -69,7 +76,12 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     if s.timed == 0 {
         return Err(BenchError::Zero("iterations-to-time"));
     }
-    let preset = preset(s.task, s.regularizer, s.pets)?;
+    let mut preset = preset(s.task, s.regularizer, s.pets)?;
+    preset.cem.optimizer = s.optimizer;
+    let cem = &mut preset.cem;
+    cem.population = s.population.unwrap_or(cem.population);
+    cem.elites = s.elites.unwrap_or(cem.elites);
+    cem.iterations = s.iterations.unwrap_or(cem.iterations);
     let spec = s.task.spec();
     let mut rng = StdRng::seed_from_u64(s.seed);
     let data = random_transitions(s.task, 512, &mut rng);
@@ -105,7 +117,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    let (times, iterations, cpu_share, cpu_seconds) =
+    let (times, iterations, candidates, cpu_share, cpu_seconds) =
         pool.install(|| -> Result<_, BenchError> {
             let mut planner = MpcPlanner::new(
                 spec,
@@ -119,12 +131,14 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             }
             let mut times = Vec::with_capacity(s.timed);
             let mut iterations = 0u64;
+            let mut candidates = 0usize;
             let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
             for _ in 0..s.timed {
                 let start = Instant::now();
                 let outcome = planner.plan(&obs, &dynamics, &regularizer);
                 times.push(start.elapsed());
                 iterations += u64::from(outcome.iterations);
+                candidates += candidates_scored(&preset.cem, outcome.iterations as usize);
             }
             let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
             let cpu_seconds = cpu_before
@@ -133,6 +147,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             Ok((
                 times,
                 iterations,
+                candidates,
                 cpu_seconds.map(|c| c / wall),
                 cpu_seconds,
             ))
@@ -150,7 +165,8 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     };
     let cem = &preset.cem;
     let mean_iterations = iterations as f64 / s.timed as f64;
-    let rows_per_call = mean_iterations * (cem.population * cem.particles * cem.horizon) as f64;
+    let mean_candidates = candidates as f64 / s.timed as f64;
+    let rows_per_call = mean_candidates * (cem.particles * cem.horizon) as f64;
     let flops = rows_per_call * (flops_per_row(&dynamics_sizes) + flops_per_row(&energy_sizes));
     Ok(PlanReport {
         task: s.task,
@@ -158,6 +174,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         members: dynamics.members(),
         dynamics_sizes,
         energy_sizes,
+        optimizer: cem.optimizer,
         horizon: cem.horizon,
         population: cem.population,
         particles: cem.particles,
@@ -166,6 +183,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         precision,
         calls: s.timed,
         mean_iterations,
+        mean_candidates,
         median_ms: median,
         min_ms,
         gflops: flops / (median * 1e-3) / 1e9,
@@ -176,6 +194,16 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             .map(|c| flops * s.timed as f64 / c / 1e9),
         peak,
     })
+}
+
+/// Candidate sequences a solve of `iterations` iterations scores.
+fn candidates_scored(cem: &crate::plan::CemConfig, iterations: usize) -> usize {
+    match cem.optimizer {
+        proto::Optimizer::Cem => iterations * cem.population,
+        proto::Optimizer::Icem => (0..iterations)
+            .map(|i| crate::plan::icem::population_at(cem, i))
+            .sum(),
+    }
 }
 
 impl fmt::Display for PlanReport {
@@ -196,8 +224,14 @@ impl fmt::Display for PlanReport {
         }
         writeln!(
             f,
-            "  CEM        horizon {}, population {}, {} particle(s), {:.1} iterations per call",
-            self.horizon, self.population, self.particles, self.mean_iterations
+            "  {:<10} horizon {}, population {}, {} particle(s), {:.1} iterations and {:.0} \
+             candidates per call",
+            self.optimizer.to_string().to_uppercase(),
+            self.horizon,
+            self.population,
+            self.particles,
+            self.mean_iterations,
+            self.mean_candidates
         )?;
         writeln!(
             f,
@@ -264,6 +298,10 @@ mod tests {
             chunks: None,
             precision: InferencePrecision::Bf16,
             seed: 1,
+            optimizer: proto::Optimizer::Cem,
+            population: None,
+            elites: None,
+            iterations: None,
         };
         let report = run(&settings).unwrap();
         assert_eq!(report.dynamics_sizes, vec![6, 200, 200, 200, 8]);
@@ -278,6 +316,22 @@ mod tests {
             (400, 25, 1, 2)
         );
         assert!(report.mean_iterations >= 1.0 && report.mean_iterations <= 5.0);
+        assert_eq!(report.mean_candidates, 400.0 * report.mean_iterations);
+        let icem = run(&Settings {
+            optimizer: proto::Optimizer::Icem,
+            population: Some(100),
+            elites: Some(10),
+            iterations: Some(3),
+            timed: 1,
+            ..settings
+        })
+        .unwrap();
+        assert_eq!(
+            (icem.population, icem.optimizer),
+            (100, proto::Optimizer::Icem)
+        );
+        assert!(icem.mean_candidates <= (100 + 80 + 64) as f64, "{icem:?}");
+        assert!(icem.to_string().contains("ICEM"), "{icem}");
         assert!(report.median_ms > 0.0 && report.min_ms <= report.median_ms);
         assert!(report.gflops.is_finite() && report.gflops > 0.0);
         assert!(report.best_gflops >= report.gflops);

@@ -475,4 +475,79 @@ mod tests {
         };
         assert!(p.apply(&nan).is_err());
     }
+
+    #[test]
+    fn every_preset_plans_with_cem_unless_icem_is_asked_for() {
+        for task in TaskId::ALL {
+            for method in METHODS {
+                let p = Preset::new(*task, Some(method)).unwrap();
+                assert_eq!(p.cem.optimizer, Optimizer::Cem, "{task} {method}");
+            }
+        }
+        let mut p = Preset::new(TaskId::HalfCheetah, None).unwrap();
+        let icem = PlannerOverrides {
+            optimizer: Some(Optimizer::Icem),
+            icem_noise_beta: Some(2.5),
+            icem_keep_elites: Some(0.2),
+            icem_population_decay: Some(1.5),
+            ..Default::default()
+        };
+        p.apply(&icem).unwrap();
+        assert_eq!(p.cem.optimizer, Optimizer::Icem);
+        assert_eq!(
+            p.cem.icem,
+            IcemConfig {
+                noise_beta: 2.5,
+                keep_elites: 0.2,
+                population_decay: 1.5
+            }
+        );
+    }
+
+    #[test]
+    fn hostile_optimizer_overrides_are_refused() {
+        let icem = |o: PlannerOverrides| PlannerOverrides {
+            optimizer: Some(Optimizer::Icem),
+            ..o
+        };
+        for bad in [
+            icem(PlannerOverrides {
+                icem_noise_beta: Some(f32::NAN),
+                ..Default::default()
+            }),
+            icem(PlannerOverrides {
+                icem_noise_beta: Some(1e9),
+                ..Default::default()
+            }),
+            icem(PlannerOverrides {
+                icem_keep_elites: Some(-0.5),
+                ..Default::default()
+            }),
+            icem(PlannerOverrides {
+                icem_population_decay: Some(0.0),
+                ..Default::default()
+            }),
+            icem(PlannerOverrides {
+                icem_population_decay: Some(f32::INFINITY),
+                ..Default::default()
+            }),
+            // iCEM parameters for CEM would be silently ignored: refused instead.
+            PlannerOverrides {
+                icem_noise_beta: Some(1.0),
+                ..Default::default()
+            },
+        ] {
+            let mut p = Preset::new(TaskId::Cartpole, None).unwrap();
+            let err = p.apply(&bad).unwrap_err();
+            assert!(matches!(err, PresetError::InvalidOverride(_)), "{bad:?}");
+        }
+        // The TOML/JSON spelling.
+        let o: PlannerOverrides =
+            serde_json::from_str(r#"{"optimizer": "icem", "icem_noise_beta": 1.5}"#).unwrap();
+        assert_eq!(
+            (o.optimizer, o.icem_noise_beta),
+            (Some(Optimizer::Icem), Some(1.5))
+        );
+        assert!(serde_json::from_str::<PlannerOverrides>(r#"{"optimizer": "mppi"}"#).is_err());
+    }
 }

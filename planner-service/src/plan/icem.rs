@@ -147,8 +147,8 @@ impl ColoredNoise {
 /// An iCEM optimiser for sequences of `horizon` actions within fixed bounds.
 #[derive(Debug)]
 pub struct Icem {
+    /// The shared settings; `config.icem` holds iCEM's own.
     config: CemConfig,
-    icem: IcemConfig,
     act_dim: usize,
     lower: Vec<f32>,
     upper: Vec<f32>,
@@ -177,13 +177,12 @@ impl Icem {
     /// An optimiser for actions bounded by `lower`/`upper` (one entry per action dimension).
     pub fn new(
         config: CemConfig,
-        icem: IcemConfig,
         lower: &[f32],
         upper: &[f32],
         seed: u64,
     ) -> Result<Self, ConfigError> {
         config.validate()?;
-        icem.validate()?;
+        config.icem.validate()?;
         let bounds_ok = lower.len() == upper.len()
             && !lower.is_empty()
             && lower
@@ -208,12 +207,12 @@ impl Icem {
             .map(|(l, u)| (u - l) / 4.0)
             .collect();
         let population = config.population;
-        let keep = keep_count(&icem, config.elites);
+        let keep = keep_count(&config.icem, config.elites);
         Ok(Self {
             act_dim,
             mean: init_mean.clone(),
             std: init_std.clone(),
-            noise: ColoredNoise::new(config.horizon, icem.noise_beta),
+            noise: ColoredNoise::new(config.horizon, config.icem.noise_beta),
             samples: vec![0.0; population * dim],
             returns: vec![0.0; population],
             order: (0..population).collect(),
@@ -227,7 +226,6 @@ impl Icem {
             upper,
             init_mean,
             init_std,
-            icem,
             config,
         })
     }
@@ -278,13 +276,9 @@ impl Icem {
         &self.order[..self.config.elites.min(self.last_population)]
     }
 
-    /// Candidates the `iteration`-th iteration draws: `max(N·γ^(−i), 2K)`, at most `N`.
+    /// Candidates the `iteration`-th iteration draws (see [`population_at`]).
     pub fn population_at(&self, iteration: usize) -> usize {
-        let n = self.config.population as f64;
-        let decayed = n * f64::from(self.icem.population_decay).powi(-(iteration as i32));
-        (decayed.round() as usize)
-            .max(2 * self.config.elites)
-            .min(self.config.population)
+        population_at(&self.config, iteration)
     }
 
     /// Runs one solve from the warm-start mean; the plan is [`Icem::best`].
@@ -399,6 +393,15 @@ impl Icem {
     }
 }
 
+/// Candidates iCEM's `iteration`-th iteration draws: `max(N·γ^(−i), 2K)`, at most `N`.
+pub fn population_at(config: &CemConfig, iteration: usize) -> usize {
+    let n = config.population as f64;
+    let decayed = n * f64::from(config.icem.population_decay).powi(-(iteration as i32));
+    (decayed.round() as usize)
+        .max(2 * config.elites)
+        .min(config.population)
+}
+
 /// Elites kept across iterations and steps: `round(fraction · K)`.
 fn keep_count(icem: &IcemConfig, elites: usize) -> usize {
     ((icem.keep_elites * elites as f32).round() as usize).min(elites)
@@ -470,14 +473,7 @@ mod tests {
         let (mut icem_samples, mut cem_samples) = (0, 0);
         for seed in 0..5 {
             let mut objective = SmoothTarget::new(horizon, act_dim);
-            let mut icem = Icem::new(
-                config(horizon, 100, 6),
-                IcemConfig::default(),
-                &lo,
-                &hi,
-                seed,
-            )
-            .unwrap();
+            let mut icem = Icem::new(config(horizon, 100, 6), &lo, &hi, seed).unwrap();
             icem.optimize(&mut objective);
             icem_error -= objective.score(icem.best());
             icem_samples += objective.scored;
@@ -566,7 +562,7 @@ mod tests {
 
     #[test]
     fn population_decays_to_twice_the_elites_and_samples_stay_in_bounds() {
-        let icem = Icem::new(config(5, 100, 8), IcemConfig::default(), &[-1.0], &[2.0], 0).unwrap();
+        let icem = Icem::new(config(5, 100, 8), &[-1.0], &[2.0], 0).unwrap();
         let sizes: Vec<usize> = (0..8).map(|i| icem.population_at(i)).collect();
         // 100·1.25^−i rounded, never below 2 × 10 elites.
         assert_eq!(sizes, vec![100, 80, 64, 51, 41, 33, 26, 21]);
@@ -594,14 +590,7 @@ mod tests {
     #[test]
     fn kept_elites_shift_with_the_plan_and_the_best_is_kept() {
         let (horizon, act_dim) = (10, 2);
-        let mut icem = Icem::new(
-            config(horizon, 60, 3),
-            IcemConfig::default(),
-            &[-1.0; 2],
-            &[1.0; 2],
-            4,
-        )
-        .unwrap();
+        let mut icem = Icem::new(config(horizon, 60, 3), &[-1.0; 2], &[1.0; 2], 4).unwrap();
         let mut objective = SmoothTarget::new(horizon, act_dim);
         icem.optimize(&mut objective);
         let dim = horizon * act_dim;
@@ -632,14 +621,7 @@ mod tests {
     #[test]
     fn same_seed_same_plan() {
         let run = |seed| {
-            let mut icem = Icem::new(
-                config(6, 40, 3),
-                IcemConfig::default(),
-                &[-1.0],
-                &[1.0],
-                seed,
-            )
-            .unwrap();
+            let mut icem = Icem::new(config(6, 40, 3), &[-1.0], &[1.0], seed).unwrap();
             icem.optimize(&mut SmoothTarget::new(6, 1));
             icem.best().to_vec()
         };
@@ -679,7 +661,9 @@ mod tests {
                 matches!(bad.validate(), Err(ConfigError::Icem(..))),
                 "{bad:?}"
             );
-            assert!(Icem::new(config(3, 20, 2), bad, &[-1.0], &[1.0], 0).is_err());
+            let mut cfg = config(3, 20, 2);
+            cfg.icem = bad;
+            assert!(Icem::new(cfg, &[-1.0], &[1.0], 0).is_err());
         }
         assert_eq!(IcemConfig::default().validate(), Ok(()));
     }

@@ -356,6 +356,55 @@ mod tests {
     }
 
     #[test]
+    fn the_default_preset_plans_exactly_as_plain_cem() {
+        // The optimiser dispatch changes nothing for the paper's method: the default preset's
+        // planner takes, step after step, the actions that `Cem` itself picks with the same
+        // seed over the same imagination.
+        let dynamics = learned_cart();
+        let task = TaskId::Cartpole.spec();
+        let preset = crate::config::Preset::new(TaskId::Cartpole, None).unwrap();
+        assert_eq!(preset.cem.optimizer, Optimizer::Cem);
+        let mut planner =
+            MpcPlanner::with_chunks(task, preset.cem.clone(), 0.0, false, 5, 2).unwrap();
+        let mut cem =
+            crate::plan::Cem::new(preset.cem.clone(), task.action_low, task.action_high, 5)
+                .unwrap();
+        let mut imagination = Imagination::new(task, &preset.cem, 0.0, false, 2, 6);
+        let mut obs = [0.5, PI, 0.0, 0.0];
+        for _ in 0..3 {
+            let planned = planner
+                .plan(&obs, &dynamics, &Regularizer::None)
+                .action
+                .to_vec();
+            cem.optimize(&mut Imagined {
+                imagination: &mut imagination,
+                obs: &obs,
+                dynamics: &dynamics,
+                regularizer: &Regularizer::None,
+            });
+            assert_eq!(planned, cem.first_action());
+            cem.shift();
+            obs[0] += 0.1 * planned[0];
+        }
+    }
+
+    #[test]
+    fn icem_plans_towards_the_reward_with_a_fraction_of_the_samples() {
+        let dynamics = learned_cart();
+        let task = TaskId::Cartpole.spec();
+        let mut cfg = config();
+        cfg.optimizer = Optimizer::Icem;
+        cfg.population = 50;
+        cfg.elites = 10;
+        let mut planner = MpcPlanner::new(task, cfg, 0.0, false, 3).unwrap();
+        let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        assert!(right.action[0] < -1.0, "{right:?}");
+        planner.reset();
+        let left = planner.plan(&[-0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        assert!(left.action[0] > 1.0, "{left:?}");
+    }
+
+    #[test]
     fn refuses_a_bad_energy_weight() {
         let task = TaskId::Cartpole.spec();
         assert!(matches!(

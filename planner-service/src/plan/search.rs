@@ -20,10 +20,7 @@ impl Search {
     ) -> Result<Self, ConfigError> {
         Ok(match config.optimizer {
             Optimizer::Cem => Search::Cem(Cem::new(config, lower, upper, seed)?),
-            Optimizer::Icem => {
-                let icem = config.icem.clone();
-                Search::Icem(Icem::new(config, icem, lower, upper, seed)?)
-            }
+            Optimizer::Icem => Search::Icem(Icem::new(config, lower, upper, seed)?),
         })
     }
 
