@@ -49,9 +49,10 @@ def expand(sizes):
     return out
 
 
-def ebmpc(planner, task, regularizer, precision, calls, threads):
+def ebmpc(planner, task, regularizer, precision, calls, warmup, threads):
     cmd = [planner, "bench", "plan", "--task", task, "--regularizer", regularizer,
-           "--precision", precision, "--iterations-to-time", str(calls), "--threads", str(threads)]
+           "--precision", precision, "--iterations-to-time", str(calls), "--warmup", str(warmup),
+           "--threads", str(threads)]
     text = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     field = lambda pattern: re.search(pattern, text).group(1)
     return dict(
@@ -67,11 +68,11 @@ def ebmpc(planner, task, regularizer, precision, calls, threads):
     )
 
 
-def pytorch(python, task, shape, alpha, elites, iterations, precision, calls, threads):
+def pytorch(python, task, shape, alpha, elites, iterations, precision, calls, warmup, threads):
     cmd = [python, str(HERE / "cem.py"), "--task", task, "--dynamics", ",".join(map(str, shape["dynamics"])),
            "--horizon", str(shape["horizon"]), "--population", str(shape["population"]),
            "--elites", str(elites), "--iterations", str(iterations), "--precision", precision,
-           "--calls", str(calls), "--threads", str(threads), "--alpha", str(alpha)]
+           "--calls", str(calls), "--warmup", str(warmup), "--threads", str(threads), "--alpha", str(alpha)]
     if shape["energy"]:
         cmd += ["--energy", ",".join(map(str, shape["energy"]))]
     return json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
@@ -87,18 +88,21 @@ def main():
     p.add_argument("--planner", default="target/release/planner-service", help="planner-service binary")
     p.add_argument("--python", default=str(HERE / ".venv/bin/python"), help="Python with torch (setup.sh)")
     p.add_argument("--calls", type=int, default=20, help="timed planning calls per cell")
+    p.add_argument("--warmup", type=int, default=3, help="untimed planning calls first, per cell")
     p.add_argument("--threads", type=int, default=2, help="threads for both")
-    p.add_argument("--only", default=None, help="run only the rows whose label contains this")
+    p.add_argument("--only", default=None, help="run only the rows whose label is one of these (comma-separated)")
     args = p.parse_args()
 
     rows = []
     for label, task, regularizer in CONFIGS:
-        if args.only and args.only not in label:
+        if args.only and label not in args.only.split(","):
             continue
         alpha, elites, iterations = TABLE2[task]
-        ours = {pr: ebmpc(args.planner, task, regularizer, pr, args.calls, args.threads) for pr in ("bf16", "f32")}
+        ours = {pr: ebmpc(args.planner, task, regularizer, pr, args.calls, args.warmup, args.threads)
+                for pr in ("bf16", "f32")}
         shape = ours["f32"]
-        theirs = {pr: pytorch(args.python, task, shape, alpha, elites, iterations, pr, args.calls, args.threads)
+        theirs = {pr: pytorch(args.python, task, shape, alpha, elites, iterations, pr, args.calls, args.warmup,
+                              args.threads)
                   for pr in ("f32", "bf16")}
         rows.append((label, ours, theirs))
         print(f"done: {label}", file=sys.stderr)
