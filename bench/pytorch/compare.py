@@ -64,7 +64,7 @@ def ebmpc(planner, task, regularizer, precision, calls, warmup, threads):
         horizon=int(field(r"horizon (\d+)")),
         population=int(field(r"population (\d+)")),
         precision=field(r"chunk\(s\), (\w+) inference"),
-        iterations=float(field(r"([\d.]+) iterations per call")),
+        iterations=float(field(r"([\d.]+) iterations and")),
     )
 
 
