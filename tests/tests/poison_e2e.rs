@@ -66,7 +66,7 @@ fn extreme_values_are_refused_and_large_ones_train_finite_models() {
         }
         // Episode 0 (random exploration) at the bound, with one reward beyond it refused on
         // the way: the episode goes on from where it was.
-        let mut action = client
+        let action = client
             .step(&Observation::new(
                 0,
                 0,
@@ -97,7 +97,8 @@ fn extreme_values_are_refused_and_large_ones_train_finite_models() {
             if end.is_some() {
                 client.send(&msg).await.unwrap();
             } else {
-                action = client.step(&msg).await.unwrap();
+                let action = client.step(&msg).await.unwrap();
+                assert!(action.action.iter().all(|a| a.is_finite()));
             }
         }
         // Episode 1 waits for the models trained on episode 0 (sync mode), then plans.

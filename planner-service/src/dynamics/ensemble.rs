@@ -11,6 +11,9 @@ use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 use std::time::Instant;
 
+/// One member's fit: last-epoch loss, steps, NLL, MSE, and why it stopped early (if it did).
+type MemberFit = (f32, usize, f32, f32, Option<Stop>);
+
 /// `ensemble_size` probabilistic models of one task.
 ///
 /// With several members each trains on its own bootstrap resample of the data (drawn anew at
@@ -128,14 +131,13 @@ impl Ensemble {
             let (nll, mse) = member.evaluate(&set);
             (run.loss, run.steps, nll, mse, run.stopped)
         };
-        let results: Vec<(f32, usize, f32, f32, Option<Stop>)> = if bootstrap {
+        let results: Vec<MemberFit> = if bootstrap {
             self.members.par_iter_mut().zip(plans).map(train).collect()
         } else {
             self.members.iter_mut().zip(plans).map(train).collect()
         };
-        let mean = |f: fn(&(f32, usize, f32, f32, Option<Stop>)) -> f32| {
-            results.iter().map(f).sum::<f32>() / results.len() as f32
-        };
+        let mean =
+            |f: fn(&MemberFit) -> f32| results.iter().map(f).sum::<f32>() / results.len() as f32;
         let report = FitReport {
             samples: n,
             epochs,
