@@ -3,7 +3,9 @@
 
 mod log;
 
-pub use log::{LogError, Record, ReplayLog};
+#[cfg(test)]
+pub(crate) use log::tests as log_tests;
+pub use log::{LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog};
 
 use crate::data::Transitions;
 use proto::{EpisodeEnd, TaskSpec};
@@ -33,20 +35,43 @@ pub enum ReplayError {
     },
     #[error("replay log {path} does not start with a header record")]
     MissingHeader { path: String },
+    #[error("a replay record does not fit the run's dimensions: {record}")]
+    Dimension { record: String },
 }
 
 /// Transitions in memory, mirrored to an optional log file.
 #[derive(Debug)]
 pub struct ReplayBuffer {
+    task: &'static TaskSpec,
     transitions: Transitions,
     episodes: Vec<EpisodeSummary>,
     log: Option<ReplayLog>,
 }
 
+impl From<EpisodeSummary> for Record {
+    fn from(summary: EpisodeSummary) -> Self {
+        let EpisodeSummary {
+            agent,
+            episode,
+            steps,
+            episode_return,
+            end,
+        } = summary;
+        Record::EpisodeEnd {
+            agent,
+            episode,
+            steps,
+            episode_return,
+            end,
+        }
+    }
+}
+
 impl ReplayBuffer {
     /// A buffer that lives in memory only (tests, benchmarks).
-    pub fn in_memory(task: &TaskSpec) -> Self {
+    pub fn in_memory(task: &'static TaskSpec) -> Self {
         Self {
+            task,
             transitions: Transitions::new(task.obs_dim, task.act_dim),
             episodes: Vec::new(),
             log: None,
@@ -58,19 +83,38 @@ impl ReplayBuffer {
     /// Episodes the log holds transitions of but no end (the daemon stopped in their middle)
     /// are recorded as interrupted here: their transitions stay (they were acknowledged), and
     /// their agents continue with the next episode number rather than resuming a stale one.
-    pub fn open(path: &Path, task: &TaskSpec) -> Result<Self, ReplayError> {
-        let (mut log, recovered) = ReplayLog::open(path)?;
+    pub fn open(path: &Path, task: &'static TaskSpec) -> Result<Self, ReplayError> {
+        Self::from_log(ReplayLog::open(path)?, task)
+    }
+
+    /// As [`ReplayBuffer::open`], writing through `wrap(file)` (tests inject a failing disk).
+    pub fn open_with(
+        path: &Path,
+        task: &'static TaskSpec,
+        wrap: impl FnOnce(std::fs::File) -> Box<dyn LogFile>,
+    ) -> Result<Self, ReplayError> {
+        Self::from_log(ReplayLog::open_with(path, wrap)?, task)
+    }
+
+    fn from_log(
+        (mut log, recovered): (ReplayLog, Recovered),
+        task: &'static TaskSpec,
+    ) -> Result<Self, ReplayError> {
+        let path = log.path().to_path_buf();
         if recovered.truncated_bytes > 0 {
             tracing::warn!(path = %path.display(), bytes = recovered.truncated_bytes, "cut a torn tail off the replay log");
+        }
+        if recovered.damaged_regions > 0 {
+            tracing::warn!(path = %path.display(), regions = recovered.damaged_regions, bytes = recovered.damaged_bytes, "skipped damaged records in the replay log; every intact record is kept");
         }
         let mut buffer = Self::in_memory(task);
         let mut records = recovered.records.into_iter();
         match records.next() {
-            None => log.append(&Record::Header {
+            None => log.append(&[Record::Header {
                 task: task.id,
                 obs_dim: task.obs_dim as u32,
                 act_dim: task.act_dim as u32,
-            })?,
+            }])?,
             Some(Record::Header { task: found, .. }) if found == task.id => {}
             Some(Record::Header { task: found, .. }) => {
                 return Err(ReplayError::TaskMismatch {
@@ -87,6 +131,10 @@ impl ReplayBuffer {
         }
         let mut open_episodes: BTreeMap<(String, u32), EpisodeSummary> = BTreeMap::new();
         for record in records {
+            if !buffer.fits(&record) {
+                tracing::warn!(path = %path.display(), "skipped a replay record whose dimensions do not fit the task");
+                continue;
+            }
             match &record {
                 Record::Transition {
                     agent,
@@ -104,7 +152,7 @@ impl ReplayBuffer {
                             episode_return: 0.0,
                             end: EpisodeEnd::Interrupted,
                         });
-                    open.steps = open.steps.max(step + 1);
+                    open.steps = open.steps.max(step.saturating_add(1));
                     open.episode_return += reward;
                 }
                 Record::EpisodeEnd { agent, episode, .. } => {
@@ -114,12 +162,34 @@ impl ReplayBuffer {
             }
             buffer.apply(&record);
         }
+        let left_open: Vec<Record> = open_episodes
+            .into_values()
+            .inspect(|summary| tracing::warn!(path = %path.display(), agent = %summary.agent, episode = summary.episode, steps = summary.steps, "episode left open by a stopped daemon recorded as interrupted"))
+            .map(Record::from)
+            .collect();
         buffer.log = Some(log);
-        for (_, summary) in open_episodes {
-            tracing::warn!(path = %path.display(), agent = %summary.agent, episode = summary.episode, steps = summary.steps, "episode left open by a stopped daemon recorded as interrupted");
-            buffer.end_episode(summary)?;
+        if !left_open.is_empty() {
+            buffer.append(left_open)?;
+            if let Some(syncer) = buffer.syncer() {
+                syncer.sync()?;
+            }
         }
         Ok(buffer)
+    }
+
+    /// Whether a record's vectors have the task's dimensions. The log's checksums catch
+    /// damage; this catches a record that is intact but cannot belong to this run.
+    fn fits(&self, record: &Record) -> bool {
+        match record {
+            Record::Transition {
+                obs, act, next_obs, ..
+            } => {
+                obs.len() == self.task.obs_dim
+                    && next_obs.len() == self.task.obs_dim
+                    && act.len() == self.task.act_dim
+            }
+            Record::Header { .. } | Record::EpisodeEnd { .. } => true,
+        }
     }
 
     fn apply(&mut self, record: &Record) {
@@ -144,57 +214,27 @@ impl ReplayBuffer {
         }
     }
 
-    fn record(&mut self, record: Record) -> Result<(), ReplayError> {
-        if let Some(log) = &mut self.log {
-            log.append(&record)?;
+    /// Stores `records` together: when this returns `Ok` they are all in the log (as far as
+    /// the OS is concerned) and in memory; on error none of them is in either, so the caller
+    /// can refuse what they came from and accept it again later.
+    pub fn append(&mut self, records: Vec<Record>) -> Result<(), ReplayError> {
+        if let Some(record) = records.iter().find(|r| !self.fits(r)) {
+            return Err(ReplayError::Dimension {
+                record: format!("{record:?}"),
+            });
         }
-        self.apply(&record);
+        if let Some(log) = &mut self.log {
+            log.append(&records)?;
+        }
+        for record in &records {
+            self.apply(record);
+        }
         Ok(())
     }
 
-    /// Stores one transition. It is in the log (as far as the OS is concerned) when this returns.
-    #[allow(clippy::too_many_arguments)]
-    pub fn push(
-        &mut self,
-        agent: &str,
-        episode: u32,
-        step: u32,
-        obs: &[f32],
-        act: &[f32],
-        next_obs: &[f32],
-        reward: f32,
-    ) -> Result<(), ReplayError> {
-        self.record(Record::Transition {
-            agent: agent.to_string(),
-            episode,
-            step,
-            obs: obs.to_vec(),
-            act: act.to_vec(),
-            next_obs: next_obs.to_vec(),
-            reward,
-        })
-    }
-
-    /// Marks the end of an episode and syncs the log to disk.
-    pub fn end_episode(&mut self, summary: EpisodeSummary) -> Result<(), ReplayError> {
-        let EpisodeSummary {
-            agent,
-            episode,
-            steps,
-            episode_return,
-            end,
-        } = summary;
-        self.record(Record::EpisodeEnd {
-            agent,
-            episode,
-            steps,
-            episode_return,
-            end,
-        })?;
-        if let Some(log) = &mut self.log {
-            log.sync()?;
-        }
-        Ok(())
+    /// A handle that syncs the log to disk without holding the buffer (`None` in memory).
+    pub fn syncer(&self) -> Option<LogSyncer> {
+        self.log.as_ref().map(ReplayLog::syncer)
     }
 
     pub fn transitions(&self) -> &Transitions {
@@ -219,18 +259,27 @@ mod tests {
     use super::*;
     use proto::TaskId;
 
+    /// A transition of `agent`'s `episode` at `step` with the cartpole's dimensions.
+    fn transition(agent: &str, episode: u32, step: u32, reward: f32) -> Record {
+        Record::Transition {
+            agent: agent.into(),
+            episode,
+            step,
+            obs: vec![step as f32; 4],
+            act: vec![0.1],
+            next_obs: vec![step as f32 + 1.0; 4],
+            reward,
+        }
+    }
+
     #[test]
     fn a_reopened_buffer_holds_everything_stored() {
-        let dir = std::env::temp_dir().join(format!("ebmpc-replay-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let path = dir.join("replay.log");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
         let task = TaskId::Cartpole.spec();
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         for step in 0..10 {
-            let s = [step as f32; 4];
-            buffer
-                .push("a", 0, step, &s, &[0.1], &[step as f32 + 1.0; 4], 0.5)
-                .unwrap();
+            buffer.append(vec![transition("a", 0, step, 0.5)]).unwrap();
         }
         let summary = EpisodeSummary {
             agent: "a".into(),
@@ -239,7 +288,7 @@ mod tests {
             episode_return: 5.0,
             end: EpisodeEnd::TimeLimit,
         };
-        buffer.end_episode(summary.clone()).unwrap();
+        buffer.append(vec![summary.clone().into()]).unwrap();
         let snapshot = buffer.transitions().clone();
         drop(buffer);
 
@@ -248,32 +297,33 @@ mod tests {
         assert_eq!(reopened.episodes(), &[summary]);
         let err = ReplayBuffer::open(&path, TaskId::Ant.spec()).unwrap_err();
         assert!(err.to_string().contains("holds task cartpole"), "{err}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
     fn an_episode_left_open_is_recorded_as_interrupted_on_reopening() {
-        let dir = std::env::temp_dir().join(format!("ebmpc-replay-open-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let path = dir.join("replay.log");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
         let task = TaskId::Cartpole.spec();
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         for step in 0..3 {
             buffer
-                .push("a", 4, step, &[0.0; 4], &[0.1], &[1.0; 4], 0.5)
-                .unwrap();
-            buffer
-                .push("b", 0, step, &[0.0; 4], &[0.1], &[1.0; 4], 1.0)
+                .append(vec![
+                    transition("a", 4, step, 0.5),
+                    transition("b", 0, step, 1.0),
+                ])
                 .unwrap();
         }
         buffer
-            .end_episode(EpisodeSummary {
-                agent: "b".into(),
-                episode: 0,
-                steps: 3,
-                episode_return: 3.0,
-                end: EpisodeEnd::Terminated,
-            })
+            .append(vec![
+                EpisodeSummary {
+                    agent: "b".into(),
+                    episode: 0,
+                    steps: 3,
+                    episode_return: 3.0,
+                    end: EpisodeEnd::Terminated,
+                }
+                .into(),
+            ])
             .unwrap();
         drop(buffer); // as if the daemon was killed: a's episode 4 never ended
 
@@ -292,6 +342,46 @@ mod tests {
         // Recorded once: opening again finds nothing left open.
         let again = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(again.episodes().len(), 2);
-        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_intact_record_of_the_wrong_dimension_is_skipped_on_reopening() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        drop(ReplayBuffer::open(&path, task).unwrap());
+        // Written straight to the log (as a buggy older build or a hand edit could): the
+        // buffer itself refuses such a record.
+        let (mut log, _) = ReplayLog::open(&path).unwrap();
+        let mut wrong = transition("a", 0, 1, 1.0);
+        if let Record::Transition { obs, .. } = &mut wrong {
+            obs.push(9.0);
+        }
+        log.append(&[
+            transition("a", 0, 0, 1.0),
+            wrong.clone(),
+            transition("a", 0, 2, 1.0),
+        ])
+        .unwrap();
+        drop(log);
+        let mut reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.len(), 2);
+        let err = reopened.append(vec![wrong]).unwrap_err();
+        assert!(matches!(err, ReplayError::Dimension { .. }), "{err}");
+        assert_eq!(reopened.len(), 2);
+    }
+
+    #[test]
+    fn an_episode_numbered_u32_max_resumes_without_overflow() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        buffer
+            .append(vec![transition("a", u32::MAX, u32::MAX, 1.0)])
+            .unwrap();
+        drop(buffer);
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.episodes()[0].steps, u32::MAX);
     }
 }
