@@ -81,7 +81,8 @@ impl std::fmt::Debug for Run {
 
 impl Run {
     /// Opens the run stored in `dir`, or starts it there: records its spec, recovers its replay
-    /// buffer (cutting a torn tail) and loads the newest usable checkpoint. If the buffer holds
+    /// buffer (cutting a torn tail, bounded to `replay_capacity` transitions if given) and
+    /// loads the newest usable checkpoint. If the buffer holds
     /// finished episodes the models were not trained on, the trainer is woken at once so the
     /// models catch up with the data.
     pub fn open(
@@ -89,11 +90,13 @@ impl Run {
         spec: RunSpec,
         preset: Preset,
         dir: RunDir,
+        replay_capacity: Option<usize>,
         events: EventSink,
     ) -> Result<Arc<Self>, OpenError> {
         let task = spec.task.spec();
         dir.write_spec(&spec)?;
-        let buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        let mut buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        buffer.set_capacity(replay_capacity)?;
         let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
             None => Models::untrained(task, &preset, spec.seed),

@@ -260,6 +260,42 @@ impl ReplayLog {
         Ok(())
     }
 
+    /// Rewrites the log keeping only the records `keep` accepts: a new file is written and
+    /// fsynced, renamed over the log, and the directory fsynced, so a crash at any moment
+    /// leaves the old log or the new one. Writing continues on the new file (through the
+    /// plain file: a wrapper given to [`ReplayLog::open_with`] is not carried over).
+    pub fn rewrite(&mut self, mut keep: impl FnMut(&Record) -> bool) -> Result<(), LogError> {
+        let io = |source| LogError::Io {
+            path: self.path.clone(),
+            source,
+        };
+        if self.dirty {
+            self.file.truncate_to(self.end).map_err(io)?;
+            self.dirty = false;
+        }
+        let bytes = std::fs::read(&self.path).map_err(io)?;
+        let (recovered, _) = scan(&bytes);
+        let mut out = Vec::new();
+        for record in recovered.records.iter().filter(|r| keep(r)) {
+            let payload = postcard::to_stdvec(record).map_err(|e| LogError::Encode {
+                path: self.path.clone(),
+                reason: e.to_string(),
+            })?;
+            encode_record(&payload, &mut out);
+        }
+        write_file(&self.path, &out).map_err(io)?;
+        let mut file = open_rw(&self.path).map_err(io)?;
+        let end = file.metadata().map_err(io)?.len();
+        file.truncate_to(end).map_err(io)?;
+        self.syncer = LogSyncer {
+            path: self.path.clone(),
+            file: Arc::new(file.try_clone().map_err(io)?),
+        };
+        self.file = Box::new(file);
+        self.end = end;
+        Ok(())
+    }
+
     /// A handle that syncs this log to disk, usable without holding the log.
     pub fn syncer(&self) -> LogSyncer {
         self.syncer.clone()

@@ -9,7 +9,7 @@ pub use log::{LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog};
 
 use crate::data::Transitions;
 use proto::{EpisodeEnd, TaskSpec};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;
 
 /// A finished episode, as stored.
@@ -40,12 +40,28 @@ pub enum ReplayError {
 }
 
 /// Transitions in memory, mirrored to an optional log file.
+///
+/// With a capacity (see [`ReplayBuffer::set_capacity`]), the transitions of the oldest
+/// finished episodes are evicted whole once the buffer holds more than the capacity: at once
+/// from memory, and from the log when the evicted records on disk outnumber the kept ones
+/// (so the log stays under about twice the capacity and each record is rewritten a bounded
+/// number of times). Episode summaries are never evicted: they are small, and episode counts
+/// and numbering depend on them.
 #[derive(Debug)]
 pub struct ReplayBuffer {
     task: &'static TaskSpec,
     transitions: Transitions,
+    /// The episode each transition belongs to: (index into `agents`, episode number).
+    owners: Vec<(u32, u32)>,
+    agents: Vec<String>,
     episodes: Vec<EpisodeSummary>,
     log: Option<ReplayLog>,
+    /// Most transitions kept (`None`: all).
+    capacity: Option<usize>,
+    /// Episodes evicted from memory whose records may still be in the log.
+    evicted: HashSet<(String, u32)>,
+    /// Transitions evicted from memory whose records are still in the log.
+    evicted_on_disk: usize,
 }
 
 impl From<EpisodeSummary> for Record {
@@ -73,8 +89,13 @@ impl ReplayBuffer {
         Self {
             task,
             transitions: Transitions::new(task.obs_dim, task.act_dim),
+            owners: Vec::new(),
+            agents: Vec::new(),
             episodes: Vec::new(),
             log: None,
+            capacity: None,
+            evicted: HashSet::new(),
+            evicted_on_disk: 0,
         }
     }
 
@@ -196,8 +217,23 @@ impl ReplayBuffer {
         match record {
             Record::Header { .. } => {}
             Record::Transition {
-                obs, act, next_obs, ..
-            } => self.transitions.push(obs, act, next_obs),
+                agent,
+                episode,
+                obs,
+                act,
+                next_obs,
+                ..
+            } => {
+                self.transitions.push(obs, act, next_obs);
+                let index = match self.agents.iter().position(|a| a == agent) {
+                    Some(index) => index,
+                    None => {
+                        self.agents.push(agent.clone());
+                        self.agents.len() - 1
+                    }
+                };
+                self.owners.push((index as u32, *episode));
+            }
             Record::EpisodeEnd {
                 agent,
                 episode,
@@ -229,6 +265,91 @@ impl ReplayBuffer {
         for record in &records {
             self.apply(record);
         }
+        if records
+            .iter()
+            .any(|r| matches!(r, Record::EpisodeEnd { .. }))
+        {
+            self.evict()?;
+        }
+        Ok(())
+    }
+
+    /// Bounds the transitions kept to `capacity` (`None`: unbounded), evicting at once if the
+    /// buffer holds more.
+    pub fn set_capacity(&mut self, capacity: Option<usize>) -> Result<(), ReplayError> {
+        self.capacity = capacity;
+        self.evict()
+    }
+
+    /// Evicts the transitions of the oldest finished episodes until at most `capacity` are
+    /// left (episodes in progress are never evicted), and compacts the log when the evicted
+    /// records on disk outnumber the kept ones.
+    fn evict(&mut self) -> Result<(), ReplayError> {
+        let Some(capacity) = self.capacity else {
+            return Ok(());
+        };
+        let mut excess = self.len().saturating_sub(capacity);
+        if excess == 0 {
+            return Ok(());
+        }
+        let mut counts: HashMap<(u32, u32), usize> = HashMap::new();
+        for owner in &self.owners {
+            *counts.entry(*owner).or_default() += 1;
+        }
+        let mut dropped: HashSet<(u32, u32)> = HashSet::new();
+        for episode in &self.episodes {
+            if excess == 0 {
+                break;
+            }
+            let Some(agent) = self.agents.iter().position(|a| *a == episode.agent) else {
+                continue;
+            };
+            let key = (agent as u32, episode.episode);
+            if let Some(&n) = counts.get(&key)
+                && dropped.insert(key)
+            {
+                excess = excess.saturating_sub(n);
+                self.evicted
+                    .insert((episode.agent.clone(), episode.episode));
+            }
+        }
+        if dropped.is_empty() {
+            return Ok(());
+        }
+        let keep: Vec<bool> = self.owners.iter().map(|o| !dropped.contains(o)).collect();
+        let before = self.len();
+        self.transitions.retain(|i| keep[i]);
+        self.owners.retain(|o| !dropped.contains(o));
+        self.evicted_on_disk += before - self.len();
+        tracing::info!(
+            episodes = dropped.len(),
+            transitions = before - self.len(),
+            kept = self.len(),
+            "evicted the oldest episodes from the replay buffer"
+        );
+        if self.evicted_on_disk >= self.len().max(1) {
+            self.compact()?;
+        }
+        Ok(())
+    }
+
+    /// Rewrites the log without the records of evicted episodes' transitions.
+    fn compact(&mut self) -> Result<(), ReplayError> {
+        let Some(log) = &mut self.log else {
+            self.evicted.clear();
+            self.evicted_on_disk = 0;
+            return Ok(());
+        };
+        let evicted = &self.evicted;
+        log.rewrite(|record| match record {
+            Record::Transition { agent, episode, .. } => {
+                !evicted.contains(&(agent.clone(), *episode))
+            }
+            Record::Header { .. } | Record::EpisodeEnd { .. } => true,
+        })?;
+        tracing::info!(path = %log.path().display(), removed = self.evicted_on_disk, kept = self.transitions.len(), "compacted the replay log");
+        self.evicted.clear();
+        self.evicted_on_disk = 0;
         Ok(())
     }
 
@@ -383,5 +504,63 @@ mod tests {
         drop(buffer);
         let reopened = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(reopened.episodes()[0].steps, u32::MAX);
+    }
+
+    fn episode(agent: &str, episode: u32, steps: u32) -> Vec<Record> {
+        let mut records: Vec<Record> = (0..steps)
+            .map(|step| transition(agent, episode, step, episode as f32))
+            .collect();
+        records.push(
+            EpisodeSummary {
+                agent: agent.into(),
+                episode,
+                steps,
+                episode_return: (episode * steps) as f32,
+                end: EpisodeEnd::TimeLimit,
+            }
+            .into(),
+        );
+        records
+    }
+
+    /// The episode of every transition in the buffer, read back from its rewards.
+    fn episodes_held(buffer: &ReplayBuffer) -> Vec<u32> {
+        let mut held: Vec<u32> = buffer.owners.iter().map(|&(_, e)| e).collect();
+        held.dedup();
+        held
+    }
+
+    #[test]
+    fn a_capacity_evicts_the_oldest_whole_episodes_and_keeps_the_log_bounded() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        buffer.set_capacity(Some(10)).unwrap();
+        // An episode of agent b stays open the whole time: it is never evicted.
+        buffer.append(vec![transition("b", 0, 0, 9.0)]).unwrap();
+        for e in 0..20 {
+            buffer.append(episode("a", e, 4)).unwrap();
+            assert!(buffer.len() <= 10 + 1, "episode {e}: {} kept", buffer.len());
+        }
+        // a's newest two episodes (8 transitions) and b's open one are kept.
+        assert_eq!(buffer.len(), 9);
+        assert_eq!(episodes_held(&buffer), vec![0, 18, 19]);
+        assert_eq!(buffer.episodes().len(), 20, "summaries are never evicted");
+        let kept = buffer.transitions().clone();
+        drop(buffer);
+        // The log was compacted: it holds at most twice the capacity, plus what is open.
+        let unbounded = ReplayBuffer::open(&path, task).unwrap();
+        assert!(unbounded.len() <= 2 * 10 + 1, "{} on disk", unbounded.len());
+        assert_eq!(
+            unbounded.episodes().len(),
+            21,
+            "b's episode is now interrupted"
+        );
+        drop(unbounded);
+        // Reopened with the same capacity, the buffer holds exactly what it held.
+        let mut reopened = ReplayBuffer::open(&path, task).unwrap();
+        reopened.set_capacity(Some(10)).unwrap();
+        assert_eq!(reopened.transitions(), &kept);
     }
 }

@@ -387,7 +387,16 @@ impl Service {
     fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, ErrorReport> {
         let preset = self.preset_for(&spec)?;
         let dir = RunDir::new(&self.config.data_dir, name);
-        Run::open(name.to_string(), spec, preset, dir, self.event_sink()).map_err(|e| {
+        let capacity = self.config.storage.replay_capacity;
+        Run::open(
+            name.to_string(),
+            spec,
+            preset,
+            dir,
+            capacity,
+            self.event_sink(),
+        )
+        .map_err(|e| {
             ErrorReport::new(
                 ErrorCode::Internal,
                 format!("cannot open run `{name}`: {e}"),
