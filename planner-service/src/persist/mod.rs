@@ -13,6 +13,7 @@
 //! `*.damaged` with an error in the log, so it is never tried again and never deleted; one that
 //! is intact but does not fit the run (another preset, an older format) is skipped.
 
+pub mod admin;
 pub mod checkpoint;
 
 use crate::config::Preset;

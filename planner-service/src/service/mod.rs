@@ -34,6 +34,8 @@ pub enum ServiceError {
     Zenoh(String),
     #[error(transparent)]
     SessionConfig(#[from] proto::session::SessionConfigError),
+    #[error(transparent)]
+    DataDir(#[from] persist::admin::AdminError),
 }
 
 fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
@@ -130,6 +132,8 @@ impl Service {
         config: ServiceConfig,
         shutdown: impl Future<Output = ()>,
     ) -> Result<(), ServiceError> {
+        // Held until serving ends: `planner-service runs delete|archive` refuse meanwhile.
+        let _data_dir_lock = persist::admin::DataDirLock::acquire(&config.data_dir)?;
         let base = match &config.zenoh_config {
             Some(path) => Some(zenoh::Config::from_file(path).map_err(zenoh_err)?),
             None => None,
