@@ -130,7 +130,10 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
     }
     // The last restart: the daemon recovers the log, then stops cleanly.
     let mut planner = Planner::start_on(dir, &config(), &endpoint)?;
-    runtime.block_on(client.close())?;
+    // The agent leaves (its session has seen ten daemons die; a slow close is not a finding).
+    if let Err(e) = runtime.block_on(client.close()) {
+        eprintln!("closing the agent's session: {e}");
+    }
     planner.stop()?;
     let buffer = planner.replay(RUN, TaskId::Cartpole)?;
     let stored = buffer.transitions();
