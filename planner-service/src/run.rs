@@ -44,8 +44,8 @@ pub struct Stored {
     /// The episode finished: the number of finished episodes a sync-mode agent must see
     /// trained before its next episode.
     pub must_cover: Option<u32>,
-    /// The episode finished: the log to sync to disk, off the event loop and without the
-    /// buffer's lock (see [`sync_log`]).
+    /// An episode ended (finished, or abandoned by a new one): the log to sync to disk, off
+    /// the event loop and without the buffer's lock (see [`sync_log`]).
     pub sync: Option<LogSyncer>,
 }
 
@@ -302,11 +302,17 @@ impl Run {
         }
         let mut buffer = self.lock_buffer();
         buffer.append(records)?;
-        let Some(finished) = &accepted.finished else {
-            return Ok(Stored::default());
-        };
-        let sync = buffer.syncer();
+        // Every episode end, finished or abandoned, is synced to disk.
+        let sync = (accepted.finished.is_some() || accepted.abandoned.is_some())
+            .then(|| buffer.syncer())
+            .flatten();
         drop(buffer);
+        let Some(finished) = &accepted.finished else {
+            return Ok(Stored {
+                must_cover: None,
+                sync,
+            });
+        };
         let stored = self.episodes_stored.fetch_add(1, Ordering::SeqCst) + 1;
         self.emit(RunEventKind::EpisodeFinished {
             agent: agent.to_string(),
@@ -500,5 +506,22 @@ mod tests {
         assert_eq!(reopened.episodes().len(), 1);
         assert_eq!(reopened.episodes()[0].end, EpisodeEnd::TimeLimit);
         assert_eq!(reopened.episodes()[0].steps, 4);
+    }
+
+    #[test]
+    fn every_episode_end_hands_back_a_sync_finished_or_abandoned() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = run_on_a_filling_disk(&dir.path().join("replay.log"), Default::default());
+        let mut session = AgentSession::new("a");
+        let (_, stored) = run.accept(&mut session, &obs(0, 0, None)).unwrap();
+        assert!(stored.sync.is_none(), "nothing ended");
+        session.acted(0, &[0.5]);
+        let (_, stored) = run.accept(&mut session, &obs(0, 1, None)).unwrap();
+        assert!(stored.sync.is_none(), "a step in the middle");
+        // Episode 1 starts before 0 ended: 0 is abandoned, and its end is synced.
+        let (accepted, stored) = run.accept(&mut session, &obs(1, 0, None)).unwrap();
+        assert_eq!(accepted.abandoned.unwrap().end, EpisodeEnd::Interrupted);
+        assert!(stored.sync.is_some());
+        assert_eq!(stored.must_cover, None);
     }
 }

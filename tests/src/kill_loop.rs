@@ -89,7 +89,6 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
     let mut rng = StdRng::seed_from_u64(seed);
     let mut system = ToySystem::new(3);
     let mut ledger = Ledger::default();
-    let client = runtime.block_on(Client::connect(&endpoint, RUN, AGENT))?;
     for round in 0..kills {
         let planner = Planner::start_on(dir, &config(), &endpoint)
             .with_context(|| format!("planner start before kill {round}"))?;
@@ -130,10 +129,6 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
     }
     // The last restart: the daemon recovers the log, then stops cleanly.
     let mut planner = Planner::start_on(dir, &config(), &endpoint)?;
-    // The agent leaves (its session has seen ten daemons die; a slow close is not a finding).
-    if let Err(e) = runtime.block_on(client.close()) {
-        eprintln!("closing the agent's session: {e}");
-    }
     planner.stop()?;
     let buffer = planner.replay(RUN, TaskId::Cartpole)?;
     let stored = buffer.transitions();
@@ -174,6 +169,22 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
         episodes_unaccounted: unaccounted,
         seconds: started.elapsed().as_secs_f64(),
     })
+}
+
+/// Attaches, trying again if the query itself fails (the daemon is still starting).
+async fn attach(client: &Client) -> Result<proto::AttachAccepted> {
+    let mut tries = 0;
+    loop {
+        match client.attach(&spec()).await {
+            Ok(accepted) => return Ok(accepted),
+            Err(e) if tries < 10 => {
+                tries += 1;
+                eprintln!("attach failed, trying again: {e}");
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+            Err(e) => return Err(e),
+        }
+    }
 }
 
 /// Plays episodes from `episode` on until the daemon is gone (the kill fired and an answer
