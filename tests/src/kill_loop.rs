@@ -97,9 +97,10 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
         let killed = Arc::new(AtomicBool::new(false));
         runtime
             .block_on(async {
-                // Answers to messages sent to the previous daemon are stale.
-                client.take_pending()?;
-                let accepted = client.attach(&spec()).await?;
+                // A fresh session per daemon: the agent's process is not what is under test,
+                // and a Zenoh session that saw its peer SIGKILLed takes a while to settle.
+                let client = Client::connect(&endpoint, RUN, AGENT).await?;
+                let accepted = attach(&client).await?;
                 let fired = killed.clone();
                 let killer = std::thread::spawn(move || {
                     std::thread::sleep(delay);
@@ -121,6 +122,7 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
                 if !status.success() {
                     bail!("kill -KILL {pid} failed");
                 }
+                drop(client);
                 Ok(())
             })
             .with_context(|| format!("kill {round}"))?;
