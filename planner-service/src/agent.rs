@@ -26,7 +26,7 @@ impl Accepted {
     }
 }
 
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 struct Episode {
     number: u32,
     /// The step of the last observation accepted.
@@ -37,8 +37,9 @@ struct Episode {
     episode_return: f32,
 }
 
-/// One agent of a run.
-#[derive(Debug)]
+/// One agent of a run. Cloned to try an observation before committing to it (see
+/// [`crate::run::Run::accept`]).
+#[derive(Clone, Debug)]
 pub struct AgentSession {
     name: String,
     /// The task's episode length: no step beyond it is accepted, so an agent that never ends
@@ -86,6 +87,12 @@ impl AgentSession {
         let out_of_order =
             |why: String| ErrorReport::new(ErrorCode::OutOfOrder, why).at(msg.episode, msg.step);
         if msg.step == 0 {
+            if msg.episode == u32::MAX {
+                return Err(out_of_order(format!(
+                    "episode numbers must stay below {}, so that a next episode exists",
+                    u32::MAX
+                )));
+            }
             if msg.end.is_some() {
                 return Err(out_of_order("an episode cannot end at step 0".into()));
             }
@@ -295,5 +302,14 @@ mod tests {
         assert_eq!(s.position(), Some((0, 2)));
         // Ending the episode (or starting the next) is still accepted.
         assert!(s.observe(&obs(1, 0, 0.0, None, None)).is_ok());
+    }
+
+    #[test]
+    fn the_last_episode_number_is_refused_so_that_a_next_one_exists() {
+        let mut s = AgentSession::new("a", 200);
+        let err = s.observe(&obs(u32::MAX, 0, 0.0, None, None)).unwrap_err();
+        assert_eq!(err.code, ErrorCode::OutOfOrder);
+        assert!(err.message.contains("below"), "{}", err.message);
+        s.observe(&obs(u32::MAX - 1, 0, 0.0, None, None)).unwrap();
     }
 }

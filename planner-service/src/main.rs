@@ -1,5 +1,6 @@
 //! `planner-service`: the ebmpc planner daemon and its tools.
 
+mod runs_cli;
 mod status_cli;
 
 use anyhow::{Context, Result};
@@ -28,6 +29,8 @@ enum Command {
     Bench(planner_service::bench::BenchCommand),
     /// Ask running planners for their runs, agents and planning latencies (a table, or --json).
     Status(status_cli::StatusArgs),
+    /// List, delete or archive the runs stored in a data directory.
+    Runs(runs_cli::RunsArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -120,5 +123,6 @@ fn main() -> Result<()> {
             Ok(())
         }
         Command::Status(args) => status_cli::run(args),
+        Command::Runs(args) => runs_cli::run(args),
     }
 }

@@ -1,14 +1,16 @@
 //! A run: one learning process with its task, preset, replay buffer and models, fed by one or
 //! more agents and retrained by its own trainer task.
 
-use crate::agent::Accepted;
+use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
-use crate::replay::{EpisodeSummary, ReplayBuffer, ReplayError};
+use crate::replay::{EpisodeSummary, LogSyncer, Record, ReplayBuffer, ReplayError};
 use crate::service::status::{Latency, LatencyWindow};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
-use proto::{EpisodeEnd, RunEventKind, RunSpec, TaskSpec, TrainMode};
+use proto::{
+    EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, TaskSpec, TrainMode,
+};
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
 use tokio::sync::{Notify, watch};
@@ -22,6 +24,8 @@ pub type EventSink = Arc<dyn Fn(&str, RunEventKind) + Send + Sync>;
 pub struct Hosting {
     pub events: EventSink,
     pub train_limits: TrainLimits,
+    /// Most transitions the run's replay buffer keeps (`[storage] replay_capacity`).
+    pub replay_capacity: Option<usize>,
 }
 
 /// One run.
@@ -71,6 +75,29 @@ impl Tally {
     }
 }
 
+/// What storing an accepted observation leaves for the caller to do.
+#[derive(Debug, Default)]
+pub struct Stored {
+    /// The episode finished: the number of finished episodes a sync-mode agent must see
+    /// trained before its next episode.
+    pub must_cover: Option<u32>,
+    /// An episode ended (finished, or abandoned by a new one): the log to sync to disk, off
+    /// the event loop and without the buffer's lock (see [`sync_log`]).
+    pub sync: Option<LogSyncer>,
+}
+
+/// Forces a run's log to disk on the blocking pool, so a slow disk delays only the agent
+/// that waits for it. A failure is logged: the records were already handed to the OS, and the
+/// next sync tries again.
+pub async fn sync_log(run: &str, syncer: Option<LogSyncer>) {
+    let Some(syncer) = syncer else { return };
+    match tokio::task::spawn_blocking(move || syncer.sync()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => tracing::error!(run = %run, error = %e, "cannot sync the replay log to disk"),
+        Err(e) => tracing::error!(run = %run, error = %e, "the replay log sync task failed"),
+    }
+}
+
 /// Why a stored or new run could not be opened.
 #[derive(Debug, thiserror::Error)]
 pub enum OpenError {
@@ -91,7 +118,8 @@ impl std::fmt::Debug for Run {
 
 impl Run {
     /// Opens the run stored in `dir`, or starts it there: records its spec, recovers its replay
-    /// buffer (cutting a torn tail) and loads the newest usable checkpoint. If the buffer holds
+    /// buffer (cutting a torn tail, bounded to `replay_capacity` transitions if given) and
+    /// loads the newest usable checkpoint. If the buffer holds
     /// finished episodes the models were not trained on, the trainer is woken at once so the
     /// models catch up with the data.
     pub fn open(
@@ -102,7 +130,8 @@ impl Run {
         hosting: Hosting,
     ) -> Result<Arc<Self>, OpenError> {
         let task = spec.task.spec();
-        let buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        let mut buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        buffer.set_capacity(hosting.replay_capacity)?;
         let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
             None => Models::untrained(task, &preset, spec.seed),
@@ -228,7 +257,7 @@ impl Run {
             .episodes()
             .iter()
             .filter(|e| e.agent == agent)
-            .map(|e| e.episode + 1)
+            .map(|e| e.episode.saturating_add(1))
             .max()
             .unwrap_or(0)
     }
@@ -263,30 +292,76 @@ impl Run {
         self.buffer.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Stores what an accepted observation produced: its transition (with `next_obs`), the
-    /// episode it finished, an episode it abandoned. Returns the number of finished episodes a
-    /// sync-mode agent must see trained before its next episode (if this one finished).
-    pub fn store(
+    /// Takes a validated observation from `session`'s agent: checks that it follows on, stores
+    /// what it completes, and only then moves the session on. If the store fails (a full
+    /// disk) the agent gets a [`ErrorCode::Storage`] error and its session stays where it was,
+    /// so it can send the same observation again once the disk has room.
+    pub fn accept(
+        &self,
+        session: &mut AgentSession,
+        msg: &Observation,
+    ) -> Result<(Accepted, Stored), ErrorReport> {
+        let mut next = session.clone();
+        let accepted = next.observe(msg)?;
+        let stored = self
+            .store(session.name(), msg.episode, msg.step, &msg.obs, &accepted)
+            .map_err(|e| {
+                tracing::error!(run = %self.name, agent = %session.name(), error = %e, "cannot store a transition; the step is refused");
+                ErrorReport::new(
+                    ErrorCode::Storage,
+                    format!("the planner could not store this step, send it again later: {e}"),
+                )
+                .at(msg.episode, msg.step)
+            })?;
+        *session = next;
+        Ok((accepted, stored))
+    }
+
+    /// Stores what an accepted observation produced — an episode it abandoned, its
+    /// transition (with `next_obs`), the episode it finished — in one append, so that either
+    /// all of it is stored or none.
+    fn store(
         &self,
         agent: &str,
         episode: u32,
         step: u32,
         next_obs: &[f32],
         accepted: &Accepted,
-    ) -> Result<Option<u32>, ReplayError> {
-        let mut buffer = self.lock_buffer();
+    ) -> Result<Stored, ReplayError> {
+        let mut records = Vec::with_capacity(3);
         if let Some(abandoned) = &accepted.abandoned {
-            buffer.end_episode(abandoned.clone())?;
+            records.push(Record::from(abandoned.clone()));
         }
         if let Some((obs, act, reward)) = &accepted.transition {
-            buffer.push(agent, episode, step - 1, obs, act, next_obs, *reward)?;
-            self.lock_tally().transitions += 1;
+            records.push(Record::Transition {
+                agent: agent.to_string(),
+                episode,
+                step: step - 1,
+                obs: obs.clone(),
+                act: act.clone(),
+                next_obs: next_obs.to_vec(),
+                reward: *reward,
+            });
         }
-        let Some(finished) = &accepted.finished else {
-            return Ok(None);
-        };
-        buffer.end_episode(finished.clone())?;
+        if let Some(finished) = &accepted.finished {
+            records.push(Record::from(finished.clone()));
+        }
+        let mut buffer = self.lock_buffer();
+        buffer.append(records)?;
+        // Every episode end, finished or abandoned, is synced to disk.
+        let sync = (accepted.finished.is_some() || accepted.abandoned.is_some())
+            .then(|| buffer.syncer())
+            .flatten();
+        // Capacity may have evicted old transitions: the tally follows the buffer's length.
+        let transitions = buffer.len();
         drop(buffer);
+        self.lock_tally().transitions = transitions;
+        let Some(finished) = &accepted.finished else {
+            return Ok(Stored {
+                must_cover: None,
+                sync,
+            });
+        };
         self.lock_tally()
             .finished(agent, finished.episode, finished.episode_return);
         let stored = self.episodes_stored.fetch_add(1, Ordering::SeqCst) + 1;
@@ -298,12 +373,21 @@ impl Run {
             end: finished.end,
         });
         self.wake_trainer.notify_one();
-        Ok(Some(stored))
+        Ok(Stored {
+            must_cover: Some(stored),
+            sync,
+        })
     }
 
-    /// Records an episode that an agent left unfinished (it vanished or detached).
-    pub fn store_interrupted(&self, summary: EpisodeSummary) -> Result<(), ReplayError> {
-        self.lock_buffer().end_episode(summary)
+    /// Records an episode that an agent left unfinished (it vanished or detached), and
+    /// returns the handle that syncs it to disk.
+    pub fn store_interrupted(
+        &self,
+        summary: EpisodeSummary,
+    ) -> Result<Option<LogSyncer>, ReplayError> {
+        let mut buffer = self.lock_buffer();
+        buffer.append(vec![Record::from(summary)])?;
+        Ok(buffer.syncer())
     }
 
     /// Waits until the models in use were trained on at least `episodes` finished episodes.
@@ -399,5 +483,112 @@ impl Run {
             energy_loss: report.energy_loss,
             seconds: report.seconds,
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::replay::log_tests::FillingDisk;
+    use proto::{PlannerOverrides, TaskId};
+    use std::sync::atomic::AtomicBool;
+
+    fn small_preset() -> Preset {
+        let mut preset = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
+        preset.dynamics.hidden_size = 8;
+        preset
+    }
+
+    /// A run whose replay log writes through a disk that fills up while `full` is set.
+    fn run_on_a_filling_disk(path: &std::path::Path, full: Arc<AtomicBool>) -> Arc<Run> {
+        let spec = RunSpec {
+            task: TaskId::Cartpole,
+            preset: Some("cem".into()),
+            overrides: PlannerOverrides::default(),
+            mode: TrainMode::Async,
+            seed: 1,
+        };
+        let task = spec.task.spec();
+        let buffer =
+            ReplayBuffer::open_with(path, task, |file| Box::new(FillingDisk { file, full }))
+                .unwrap();
+        let preset = small_preset();
+        let models = Models::untrained(task, &preset, 1);
+        Run::with_state(
+            "r".into(),
+            spec,
+            preset,
+            buffer,
+            models,
+            None,
+            Hosting {
+                events: Arc::new(|_: &str, _: RunEventKind| {}),
+                train_limits: TrainLimits::unbounded(),
+                replay_capacity: None,
+            },
+        )
+    }
+
+    fn obs(episode: u32, step: u32, end: Option<EpisodeEnd>) -> Observation {
+        let reward = (step > 0).then_some(step as f32);
+        Observation::new(episode, step, vec![step as f32; 4], reward, end)
+    }
+
+    #[test]
+    fn a_full_disk_refuses_the_step_loses_nothing_acknowledged_and_the_agent_resends() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let full = Arc::new(AtomicBool::new(false));
+        let run = run_on_a_filling_disk(&path, full.clone());
+        let mut session = AgentSession::new("a", 200);
+        // Steps 0..=3 are stored and acknowledged (the agent "receives" an action each).
+        for step in 0..4 {
+            run.accept(&mut session, &obs(0, step, None)).unwrap();
+            session.acted(step, &[0.5]);
+        }
+        // The disk fills: step 4 (mid-episode) and the episode's last step are refused with a
+        // storage error and the session stays at step 3.
+        full.store(true, Ordering::SeqCst);
+        for attempt in [obs(0, 4, None), obs(0, 4, Some(EpisodeEnd::TimeLimit))] {
+            let err = run.accept(&mut session, &attempt).unwrap_err();
+            assert_eq!(err.code, ErrorCode::Storage, "{err:?}");
+            assert_eq!((err.episode, err.step), (Some(0), Some(4)));
+            assert_eq!(session.position(), Some((0, 3)));
+        }
+        assert_eq!(run.tally().transitions, 3);
+        assert_eq!(run.episodes_stored(), 0);
+        // Space returns: the agent resends the same observation and the episode carries on.
+        full.store(false, Ordering::SeqCst);
+        let (_, stored) = run
+            .accept(&mut session, &obs(0, 4, Some(EpisodeEnd::TimeLimit)))
+            .unwrap();
+        assert_eq!(stored.must_cover, Some(1));
+        stored.sync.expect("a log on disk").sync().unwrap();
+        drop(run);
+        // Every transition is on disk exactly once, and the episode ended once.
+        let reopened = ReplayBuffer::open(&path, TaskId::Cartpole.spec()).unwrap();
+        assert_eq!(reopened.len(), 4);
+        let states: Vec<f32> = (0..4).map(|i| reopened.transitions().row(i).0[0]).collect();
+        assert_eq!(states, vec![0.0, 1.0, 2.0, 3.0]);
+        assert_eq!(reopened.episodes().len(), 1);
+        assert_eq!(reopened.episodes()[0].end, EpisodeEnd::TimeLimit);
+        assert_eq!(reopened.episodes()[0].steps, 4);
+    }
+
+    #[test]
+    fn every_episode_end_hands_back_a_sync_finished_or_abandoned() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = run_on_a_filling_disk(&dir.path().join("replay.log"), Default::default());
+        let mut session = AgentSession::new("a", 200);
+        let (_, stored) = run.accept(&mut session, &obs(0, 0, None)).unwrap();
+        assert!(stored.sync.is_none(), "nothing ended");
+        session.acted(0, &[0.5]);
+        let (_, stored) = run.accept(&mut session, &obs(0, 1, None)).unwrap();
+        assert!(stored.sync.is_none(), "a step in the middle");
+        // Episode 1 starts before 0 ended: 0 is abandoned, and its end is synced.
+        let (accepted, stored) = run.accept(&mut session, &obs(1, 0, None)).unwrap();
+        assert_eq!(accepted.abandoned.unwrap().end, EpisodeEnd::Interrupted);
+        assert!(stored.sync.is_some());
+        assert_eq!(stored.must_cover, None);
     }
 }

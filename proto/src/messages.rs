@@ -343,6 +343,9 @@ pub enum ErrorCode {
     Internal,
     /// A finite number beyond the task's magnitude bound (it would overflow the models).
     OutOfRange,
+    /// The planner could not store the message (e.g. its disk is full). Nothing of it was
+    /// kept and the agent's session did not move on: send the same message again later.
+    Storage,
 }
 
 /// An error reported to the sender of a bad message, on its error key.

@@ -40,6 +40,18 @@ pub struct ServiceConfig {
     pub overrides: proto::PlannerOverrides,
     /// Bounds on everything a client chooses (`[limits]`).
     pub limits: Limits,
+    /// How runs keep their data on disk (`[storage]`).
+    pub storage: StorageConfig,
+}
+
+/// `[storage]`: how much of its experience a run keeps.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StorageConfig {
+    /// Most transitions a run's replay buffer keeps; beyond it the transitions of the oldest
+    /// finished episodes are evicted whole, from memory at once and from the log by
+    /// compaction. Absent: unbounded (the paper's protocol trains on everything).
+    pub replay_capacity: Option<usize>,
 }
 
 impl Default for ServiceConfig {
@@ -56,6 +68,7 @@ impl Default for ServiceConfig {
             allowed_presets: Vec::new(),
             overrides: proto::PlannerOverrides::default(),
             limits: Limits::default(),
+            storage: StorageConfig::default(),
         }
     }
 }
@@ -130,6 +143,14 @@ mod tests {
             config.max_agents_per_run,
             ServiceConfig::default().max_agents_per_run
         );
+    }
+
+    #[test]
+    fn a_storage_table_sets_the_replay_capacity() {
+        let config: ServiceConfig = toml::from_str("[storage]\nreplay_capacity = 50000").unwrap();
+        assert_eq!(config.storage.replay_capacity, Some(50_000));
+        assert_eq!(ServiceConfig::default().storage.replay_capacity, None);
+        assert!(toml::from_str::<ServiceConfig>("[storage]\ncapacity = 5").is_err());
     }
 
     #[test]

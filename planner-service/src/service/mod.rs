@@ -37,6 +37,8 @@ pub enum ServiceError {
     Zenoh(String),
     #[error(transparent)]
     SessionConfig(#[from] proto::session::SessionConfigError),
+    #[error(transparent)]
+    DataDir(#[from] persist::admin::AdminError),
 }
 
 fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
@@ -173,6 +175,8 @@ impl Service {
         config: ServiceConfig,
         shutdown: impl Future<Output = ()>,
     ) -> Result<(), ServiceError> {
+        // Held until serving ends: `planner-service runs delete|archive` refuse meanwhile.
+        let _data_dir_lock = persist::admin::DataDirLock::acquire(&config.data_dir)?;
         let base = match &config.zenoh_config {
             Some(path) => Some(zenoh::Config::from_file(path).map_err(zenoh_err)?),
             None => None,
@@ -562,6 +566,7 @@ impl Service {
                 max_seconds: self.config.limits.max_retrain_seconds,
                 cancel: self.cancel_training.clone(),
             },
+            replay_capacity: self.config.storage.replay_capacity,
         };
         let owned = name.to_string();
         let opened =

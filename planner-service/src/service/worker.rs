@@ -4,7 +4,7 @@
 use super::{Outbox, codec_report};
 use crate::agent::AgentSession;
 use crate::plan::MpcPlanner;
-use crate::run::Run;
+use crate::run::{Run, sync_log};
 use proto::task::Magnitudes;
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
@@ -125,10 +125,13 @@ impl AgentWorker {
                     .await;
             }
         }
-        if let Some(summary) = self.session.interrupt()
-            && let Err(e) = self.run.store_interrupted(summary)
-        {
-            tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode");
+        if let Some(summary) = self.session.interrupt() {
+            match self.run.store_interrupted(summary) {
+                Ok(syncer) => sync_log(self.run.name(), syncer).await,
+                Err(e) => {
+                    tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode")
+                }
+            }
         }
     }
 
@@ -138,16 +141,10 @@ impl AgentWorker {
         let position = |r: ErrorReport| r.at(msg.episode, msg.step);
         proto::validate::validate_observation(&msg, self.run.task(), &self.magnitudes)
             .map_err(|e| e.report(msg.episode, msg.step))?;
-        let accepted = self.session.observe(&msg)?;
-        let must_cover = self
-            .run
-            .store(&self.name, msg.episode, msg.step, &msg.obs, &accepted)
-            .map_err(|e| {
-                position(ErrorReport::new(
-                    ErrorCode::Internal,
-                    format!("could not store the transition: {e}"),
-                ))
-            })?;
+        let (accepted, stored) = self.run.accept(&mut self.session, &msg)?;
+        // The episode's records reach the disk before this agent's next message is taken.
+        sync_log(self.run.name(), stored.sync).await;
+        let must_cover = stored.must_cover;
         if let Some(finished) = &accepted.finished {
             tracing::info!(run = %self.run.name(), agent = %self.name, episode = finished.episode, steps = finished.steps, episode_return = finished.episode_return, "episode finished");
             if self.run.mode() == TrainMode::Sync {
