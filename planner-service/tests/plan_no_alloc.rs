@@ -146,6 +146,7 @@ fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: Inference
         particles: 4,
         optimizer,
         icem: IcemConfig::default(),
+        adam: planner_service::plan::AdamConfig::default(),
     };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(2)
