@@ -106,7 +106,7 @@ struct RunArgs {
 #[derive(Args, Debug)]
 #[command(next_help_heading = "Run spec (used when the run is created)")]
 struct SpecArgs {
-    /// Planner preset: cem, cem+dae, cem+deen (the paper's default), pets, pets+deen.
+    /// Planner preset: cem, cem+dae, cem+deen (the paper's default), pets, pets+deen, adam+dae.
     #[arg(long)]
     preset: Option<String>,
     /// sync: the next episode starts once the models are retrained (the paper's protocol);
