@@ -296,6 +296,7 @@ fn run_one(
         .stdin(Stdio::null())
         .stdout(log.try_clone()?)
         .stderr(log);
+    stop_with_launcher(&mut cmd);
     let mut child = Guard(
         cmd.spawn()
             .with_context(|| format!("starting {}", exp.bin_dir.join("sim-bridge").display()))?,
@@ -364,6 +365,24 @@ fn merge_attempt(attempt: &Path, partial: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Asks the kernel to send the child SIGTERM when the launcher dies, however it dies: a
+/// launcher killed with SIGKILL runs no destructor, and an orphaned daemon would keep the lock
+/// on `<out>/planner/` that the resumed experiment's daemon needs (SIGTERM is its clean
+/// shutdown, which syncs the run's data).
+fn stop_with_launcher(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: the closure runs in the forked child before exec and only makes one
+    // async-signal-safe system call.
+    unsafe {
+        cmd.pre_exec(|| {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) == -1 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+}
+
 /// A child process killed when dropped (a bridge whose launcher is going away).
 struct Guard(Child);
 
@@ -400,15 +419,17 @@ impl Daemon {
         let endpoint = format!("tcp/127.0.0.1:{port}");
         let log = std::fs::File::create(log_path)
             .with_context(|| format!("creating {}", log_path.display()))?;
-        let child = Command::new(bin)
-            .args(["serve", "--listen", &endpoint, "--planner-id"])
+        let mut cmd = Command::new(bin);
+        cmd.args(["serve", "--listen", &endpoint, "--planner-id"])
             .arg(format!("experiment-{port}"))
             .arg("--data-dir")
             .arg(data_dir)
             .env("RUST_LOG", "info,zenoh=warn")
             .stdin(Stdio::null())
             .stdout(log.try_clone()?)
-            .stderr(log)
+            .stderr(log);
+        stop_with_launcher(&mut cmd);
+        let child = cmd
             .spawn()
             .with_context(|| format!("starting {}", bin.display()))?;
         let mut daemon = Self { child, endpoint };

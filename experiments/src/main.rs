@@ -46,7 +46,7 @@ struct ExperimentArgs {
     /// Task to learn.
     #[arg(long)]
     task: TaskId,
-    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen.
+    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen, adam+dae.
     #[arg(long, value_delimiter = ',', default_value = "cem,cem+dae,cem+deen")]
     methods: Vec<String>,
     /// Sizes: `paper` (Table 2) or `small` (fits a 2-core machine; see the README).

@@ -167,9 +167,26 @@ fn an_experiment_killed_mid_run_resumes_where_it_stopped() {
     }
     launcher.kill().unwrap();
     launcher.wait().unwrap();
-    // The orphaned stand-in bridge (the real one would lose its planner and give up).
+    // The bridge (and the daemon) were told to stop with the launcher: the hung stand-in's
+    // `sleep` gets SIGTERM from the kernel.
     let hung = std::fs::read_to_string(&pid_file).unwrap();
-    Command::new("kill").arg(hung.trim()).status().unwrap();
+    let started = std::time::Instant::now();
+    // Alive: its /proc entry exists and is not a zombie waiting to be reaped.
+    let alive = || {
+        std::fs::read_to_string(format!("/proc/{}/stat", hung.trim())).is_ok_and(|stat| {
+            stat.rsplit(')')
+                .next()
+                .map(str::trim_start)
+                .is_some_and(|r| !r.starts_with('Z'))
+        })
+    };
+    while alive() {
+        if started.elapsed().as_secs() > 30 {
+            Command::new("kill").arg(hung.trim()).status().unwrap();
+            panic!("the bridge outlived the launcher");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
     assert!(!out.join("runs/cem-s0.csv").exists());
 
     let second = experiment_once(&bins, &out);
