@@ -30,7 +30,8 @@ impl PopulationObjective for Imagined<'_> {
 pub(super) enum Search {
     Cem(Cem),
     Icem(Icem),
-    Adam(AdamPlanner),
+    /// Boxed: its rollout memory and Adam state make it twice the size of the others.
+    Adam(Box<AdamPlanner>),
 }
 
 impl Search {
@@ -44,7 +45,12 @@ impl Search {
         Ok(match config.optimizer {
             Optimizer::Cem => Search::Cem(Cem::new(config, lower, upper, seed)?),
             Optimizer::Icem => Search::Icem(Icem::new(config, lower, upper, seed)?),
-            Optimizer::Adam => Search::Adam(AdamPlanner::new(task, config, energy_weight, seed)?),
+            Optimizer::Adam => Search::Adam(Box::new(AdamPlanner::new(
+                task,
+                config,
+                energy_weight,
+                seed,
+            )?)),
         })
     }
 

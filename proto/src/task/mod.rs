@@ -137,21 +137,23 @@ impl Magnitudes {
 #[derive(Debug)]
 pub(crate) struct TaskFunctions {
     pub reward: fn(obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32,
-    pub reward_gradient: fn(
-        obs: &[f32],
-        act: &[f32],
-        next_obs: &[f32],
-        d_act: &mut [f32],
-        d_next_obs: &mut [f32],
-    ) -> f32,
+    pub reward_gradient: RewardGradient,
     pub is_terminal: fn(next_obs: &[f32]) -> bool,
     pub state_features: fn(obs: &[f32], out: &mut [f32]),
     pub state_features_backward: fn(obs: &[f32], d_features: &[f32], d_obs: &mut [f32]),
     pub target: fn(obs: &[f32], next_obs: &[f32], out: &mut [f32]),
     pub next_obs_from_target: fn(obs: &[f32], target: &[f32], next_obs: &mut [f32]),
-    pub next_obs_from_target_backward:
-        fn(obs: &[f32], d_next_obs: &[f32], d_obs: &mut [f32], d_target: &mut [f32]),
+    pub next_obs_from_target_backward: TargetBackward,
 }
+
+/// A reward with its gradient: `(obs, act, next_obs, ∂r/∂act, ∂r/∂next_obs) → r`.
+pub(crate) type RewardGradient =
+    fn(obs: &[f32], act: &[f32], next_obs: &[f32], d_act: &mut [f32], d_next: &mut [f32]) -> f32;
+
+/// Back-propagation through `next_obs_from_target`: `(obs, ∂L/∂next_obs, ∂L/∂obs (added to),
+/// ∂L/∂target)`.
+pub(crate) type TargetBackward =
+    fn(obs: &[f32], d_next_obs: &[f32], d_obs: &mut [f32], d_target: &mut [f32]);
 
 impl TaskSpec {
     /// Reward of the transition `obs --act--> next_obs`. The simulator reports exactly this.
