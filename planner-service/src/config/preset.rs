@@ -534,6 +534,90 @@ fn check_schedule(schedule: &EpochSchedule) -> Result<(), PresetError> {
 mod tests {
     use super::*;
 
+    /// Every number of the paper's Table 2, task by task, as every preset carries it (PETS
+    /// adds its ensemble and particles on top; Adam + DAE replaces the CEM search).
+    #[test]
+    fn every_preset_carries_all_of_table_two() {
+        // model (layers, size, epochs, batch), DEEN (layers, size, epochs, batch, σ, α),
+        // CEM iterations — the paper's columns Cartpole, Reacher, Pusher, Half-cheetah, Ant.
+        let table: [(TaskId, [usize; 4], [usize; 4], f32, f32, usize); 5] = [
+            (
+                TaskId::Cartpole,
+                [3, 200, 500, 32],
+                [3, 200, 500, 32],
+                0.1,
+                0.001,
+                5,
+            ),
+            (
+                TaskId::Reacher3d,
+                [3, 200, 500, 32],
+                [3, 200, 500, 32],
+                0.1,
+                0.001,
+                5,
+            ),
+            (
+                TaskId::Pusher,
+                [3, 200, 100, 32],
+                [3, 200, 100, 32],
+                0.1,
+                0.01,
+                5,
+            ),
+            (
+                TaskId::HalfCheetah,
+                [4, 200, 300, 128],
+                [5, 500, 100, 32],
+                0.37,
+                0.05,
+                5,
+            ),
+            (
+                TaskId::Ant,
+                [4, 400, 600, 400],
+                [3, 300, 800, 64],
+                0.9,
+                0.035,
+                7,
+            ),
+        ];
+        for (task, model, deen, sigma, alpha, iterations) in table {
+            for method in METHODS {
+                let p = Preset::new(task, Some(method)).unwrap();
+                let d = &p.dynamics;
+                let e = &p.energy;
+                assert_eq!(
+                    [d.hidden_layers, d.hidden_size, d.epochs, d.batch_size],
+                    model,
+                    "{task} {method} model"
+                );
+                assert_eq!(
+                    [e.hidden_layers, e.hidden_size, e.epochs, e.batch_size],
+                    deen,
+                    "{task} {method} energy network"
+                );
+                assert_eq!(
+                    (e.noise_sigma, p.energy_weight),
+                    (sigma, alpha),
+                    "{task} {method}"
+                );
+                let pets = method.starts_with("pets");
+                assert_eq!(
+                    (d.ensemble_size, p.cem.particles, p.sample_dynamics),
+                    if pets { (5, 20, true) } else { (1, 1, false) },
+                    "{task} {method} dynamics"
+                );
+                if *method != "adam+dae" {
+                    assert_eq!(
+                        p.cem.iterations, iterations,
+                        "{task} {method} CEM iterations"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn table_two_numbers() {
         let hc = Preset::new(TaskId::HalfCheetah, None).unwrap();
