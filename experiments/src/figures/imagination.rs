@@ -469,6 +469,9 @@ pub fn read_state_rows(path: &std::path::Path) -> Result<Vec<StateRow>> {
     Ok(r.deserialize().collect::<Result<_, _>>()?)
 }
 
+/// One statistic of a summary row: `(mean, interval low, interval high)`.
+type Statistic = fn(&SummaryRow) -> (f64, f64, f64);
+
 /// The summary as a figure: per regulariser, the mean gap and the mean real return with their
 /// intervals (points with error bars, one panel each).
 pub struct SummaryFigure<'a>(pub &'a [SummaryRow]);
@@ -481,7 +484,7 @@ impl Figure for SummaryFigure<'_> {
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>, text: bool) -> Result<()> {
         let rows = self.0;
         let areas = root.split_evenly((1, 2));
-        let panels: [(&str, fn(&SummaryRow) -> (f64, f64, f64)); 2] = [
+        let panels: [(&str, Statistic); 2] = [
             ("imagined − real return", |r| {
                 (r.mean_gap, r.gap_ci_low, r.gap_ci_high)
             }),
@@ -522,6 +525,84 @@ impl Figure for SummaryFigure<'_> {
         }
         Ok(())
     }
+}
+
+impl Figure for ImaginationResult {
+    fn size(&self) -> (u32, u32) {
+        (1200, 420)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>, text: bool) -> Result<()> {
+        let all = self
+            .traces
+            .iter()
+            .flat_map(|t| t.imagined.iter().chain(&t.real))
+            .map(|&v| f64::from(v));
+        let yr = padded_range(all);
+        let steps = self
+            .traces
+            .iter()
+            .map(|t| t.imagined.len())
+            .max()
+            .unwrap_or(1);
+        let xr = (0.0, (steps.max(2) - 1) as f64);
+        let areas = root.split_evenly((1, self.traces.len().max(1)));
+        let totals = self.totals();
+        let imagined_style = RGBColor(200, 30, 30).stroke_width(2);
+        let real_style = BLACK.stroke_width(2);
+        for ((area, t), (_, imagined, real)) in areas.iter().zip(&self.traces).zip(totals) {
+            let title = format!(
+                "{}: imagined {imagined:.1}, real {real:.1}",
+                match t.regularizer {
+                    RegularizerKind::None => "no regulariser".to_string(),
+                    k => format!("{} (α = {})", k.name().to_uppercase(), t.alpha),
+                }
+            );
+            let mut c = chart(
+                area,
+                &title,
+                (xr, XAxis::Steps),
+                yr,
+                ("plan step", "reward"),
+                text,
+            )?;
+            let line = |v: &[f32]| -> Vec<(f64, f64)> {
+                v.iter()
+                    .enumerate()
+                    .map(|(i, &r)| (i as f64, f64::from(r)))
+                    .collect()
+            };
+            let s = c
+                .draw_series(LineSeries::new(line(&t.imagined), imagined_style))
+                .map_err(plot_err)?;
+            if text {
+                s.label("imagination")
+                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], imagined_style));
+            }
+            let s = c
+                .draw_series(LineSeries::new(line(&t.real), real_style))
+                .map_err(plot_err)?;
+            if text {
+                s.label("reality")
+                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], real_style));
+                c.configure_series_labels()
+                    .position(SeriesLabelPosition::LowerLeft)
+                    .background_style(WHITE.mix(0.85))
+                    .border_style(BLACK.mix(0.3))
+                    .label_font((FAMILY, 12))
+                    .draw()
+                    .map_err(plot_err)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Checks that a task can be simulated before training for minutes.
+pub fn check_task(task: TaskId) -> Result<()> {
+    Env::new(task)
+        .map(|_| ())
+        .with_context(|| format!("{task} has no simulator"))
 }
 
 #[cfg(test)]
@@ -606,82 +687,4 @@ mod tests {
         let pixels = crate::plot::render_rgb(&SummaryFigure(&s), false).unwrap();
         assert!(pixels.chunks_exact(3).any(|p| p != [255, 255, 255]));
     }
-}
-
-impl Figure for ImaginationResult {
-    fn size(&self) -> (u32, u32) {
-        (1200, 420)
-    }
-
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>, text: bool) -> Result<()> {
-        let all = self
-            .traces
-            .iter()
-            .flat_map(|t| t.imagined.iter().chain(&t.real))
-            .map(|&v| f64::from(v));
-        let yr = padded_range(all);
-        let steps = self
-            .traces
-            .iter()
-            .map(|t| t.imagined.len())
-            .max()
-            .unwrap_or(1);
-        let xr = (0.0, (steps.max(2) - 1) as f64);
-        let areas = root.split_evenly((1, self.traces.len().max(1)));
-        let totals = self.totals();
-        let imagined_style = RGBColor(200, 30, 30).stroke_width(2);
-        let real_style = BLACK.stroke_width(2);
-        for ((area, t), (_, imagined, real)) in areas.iter().zip(&self.traces).zip(totals) {
-            let title = format!(
-                "{}: imagined {imagined:.1}, real {real:.1}",
-                match t.regularizer {
-                    RegularizerKind::None => "no regulariser".to_string(),
-                    k => format!("{} (α = {})", k.name().to_uppercase(), t.alpha),
-                }
-            );
-            let mut c = chart(
-                area,
-                &title,
-                (xr, XAxis::Steps),
-                yr,
-                ("plan step", "reward"),
-                text,
-            )?;
-            let line = |v: &[f32]| -> Vec<(f64, f64)> {
-                v.iter()
-                    .enumerate()
-                    .map(|(i, &r)| (i as f64, f64::from(r)))
-                    .collect()
-            };
-            let s = c
-                .draw_series(LineSeries::new(line(&t.imagined), imagined_style))
-                .map_err(plot_err)?;
-            if text {
-                s.label("imagination")
-                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], imagined_style));
-            }
-            let s = c
-                .draw_series(LineSeries::new(line(&t.real), real_style))
-                .map_err(plot_err)?;
-            if text {
-                s.label("reality")
-                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], real_style));
-                c.configure_series_labels()
-                    .position(SeriesLabelPosition::LowerLeft)
-                    .background_style(WHITE.mix(0.85))
-                    .border_style(BLACK.mix(0.3))
-                    .label_font((FAMILY, 12))
-                    .draw()
-                    .map_err(plot_err)?;
-            }
-        }
-        Ok(())
-    }
-}
-
-/// Checks that a task can be simulated before training for minutes.
-pub fn check_task(task: TaskId) -> Result<()> {
-    Env::new(task)
-        .map(|_| ())
-        .with_context(|| format!("{task} has no simulator"))
 }

@@ -540,7 +540,8 @@ mod tests {
     fn every_preset_carries_all_of_table_two() {
         // model (layers, size, epochs, batch), DEEN (layers, size, epochs, batch, σ, α),
         // CEM iterations — the paper's columns Cartpole, Reacher, Pusher, Half-cheetah, Ant.
-        let table: [(TaskId, [usize; 4], [usize; 4], f32, f32, usize); 5] = [
+        type Row = (TaskId, [usize; 4], [usize; 4], f32, f32, usize);
+        let table: [Row; 5] = [
             (
                 TaskId::Cartpole,
                 [3, 200, 500, 32],
