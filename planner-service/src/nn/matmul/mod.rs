@@ -24,9 +24,7 @@ mod x86;
 #[cfg(target_arch = "x86_64")]
 mod x86_packed;
 
-pub use packed::{
-    Encoding, PACK_ROWS, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed,
-};
+pub use packed::{Encoding, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed};
 
 use super::denormals;
 use super::simd::{SimdLevel, level};
@@ -353,11 +351,13 @@ fn transpose_at(
 mod tests;
 
 /// Product shapes `(m, n, k)` that exercise every edge of the packed kernels: `m` not a
-/// multiple of the 6-row block (every count of leftover rows), `n` not a multiple of the
-/// 16-float panel or the 4-panel tile (every count of leftover panels: 1–3, and 5 split as
-/// 3 + 2), and odd and even `k` (an odd one leaves the last bf16 pair half empty).
+/// multiple of the row block (every count of leftover rows of the f32 kernel's 12-row block
+/// and of the bf16 kernel's 6-row one), `n` not a multiple of the 16-float panel or of the
+/// tile (every count of leftover panels: 1 after the f32 kernel's 2-panel tiles; 1–3, and 5
+/// split as 3 + 2, after the bf16 kernel's 4-panel ones), and odd and even `k` (an odd one
+/// leaves the last bf16 pair half empty).
 #[cfg(test)]
-const RAGGED_SHAPES: [(usize, usize, usize); 12] = [
+const RAGGED_SHAPES: [(usize, usize, usize); 17] = [
     (1, 1, 1),
     (5, 3, 7),
     (12, 16, 12),
@@ -370,4 +370,9 @@ const RAGGED_SHAPES: [(usize, usize, usize); 12] = [
     (7, 80, 5),
     (11, 96, 3),
     (6, 200, 4),
+    (27, 40, 13),
+    (28, 48, 6),
+    (32, 21, 17),
+    (33, 65, 8),
+    (34, 250, 11),
 ];
