@@ -10,15 +10,14 @@
 //! The two encodings use different tiles, each the faster of the two 24-accumulator shapes
 //! for it (`bench kernel`, CPU time, best batches on the 200–500 wide layers):
 //! - **f32: 12 rows × 2 panels** (one FMA per accumulator and depth step). 6 × 4 panels needs
-//!   half the broadcasts but twice the `Y` lines per step, and its `Y` panels (256 bytes a step,
-//!   51 KB over a 200-deep product) overflow L1 where 12 × 32's (25 KB) fit: 6 × 64 ran the
-//!   linear product at 76–87 % of the f32 peak and the fused layers at 69–81 %, 12 × 32 runs
-//!   the fused layers at 81–88 %.
+//!   half the broadcasts but streams twice the `Y` cache lines per step (4 against 2 per 24
+//!   FMAs, from L2 on these layers: a row of blocks passes over all of `Y` before the next
+//!   block comes back to a panel). Measured: 6 × 64 ran the linear products at 76–87 % of the
+//!   f32 peak and the fused layers at 69–81 %; 12 × 32 runs the fused layers at 81–88 %.
 //! - **bf16: 6 rows × 4 panels** (one `VDPBF16PS` per accumulator and *pair* of depth steps,
-//!   the `Y` panel and the broadcast weight each carrying two bf16 values per 32-bit lane). Half
-//!   the depth steps of f32 keep its panels in L1 too; its linear products run at 90–100 % of
-//!   the bf16 peak, and what the fused layers lose (to 76–91 %) is the activation, which costs
-//!   as much as in f32 against half the multiply time.
+//!   the `Y` panel and the broadcast weight each carrying two bf16 values per 32-bit lane). Its
+//!   linear products run at 90–100 % of the bf16 peak; what the fused layers lose (to 76–91 %)
+//!   is the activation, which costs as much as in f32 against half the multiply time.
 //!
 //! Both tiles share the epilogue, which stores f32 rows or, for a next layer in bf16, converts
 //! pairs of rows to bf16 pairs in registers. The two bodies differ only in their load and
