@@ -357,8 +357,8 @@ mod tests;
 /// Product shapes `(m, n, k)` that exercise every edge of the packed kernels: `m` not a
 /// multiple of the row block (every count of leftover rows of the f32 kernel's 12-row block
 /// and of the bf16 kernel's 6-row one), `n` not a multiple of the 16-float panel or of the
-/// tile (every count of leftover panels: 1 after the f32 kernel's 2-panel tiles; 1–3, and 5
-/// split as 3 + 2, after the bf16 kernel's 4-panel ones), and odd and even `k` (an odd one
+/// tile (1 panel after the f32 kernel's 2-panel tiles; every bf16 tiling: 1, 2, 3, 4 and
+/// 3 + 2 panels, 3 + 3, 4 + 3, 4 + 3 + 3 + 3 and 4 × 4), and odd and even `k` (an odd one
 /// leaves the last bf16 pair half empty).
 #[cfg(test)]
 const RAGGED_SHAPES: [(usize, usize, usize); 17] = [

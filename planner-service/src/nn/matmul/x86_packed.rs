@@ -250,7 +250,7 @@ unsafe fn bf16_block<const NP: usize>(mr: usize, raw: &PackedRaw, i0: usize, p: 
 
 /// Block by block (each block's packed weights stay in L1 while every panel of `Y` passes
 /// through): f32 weights in tiles of 12 rows × 2 panels and a lone last panel; bf16 pairs in
-/// tiles of 6 rows × 4 panels and narrower ones for the rest.
+/// tiles of 6 rows × 4 and 3 panels (see [`bf16_tiling`]).
 ///
 /// # Safety
 /// The CPU must support AVX-512F and every extent of `raw` must be valid.
@@ -273,26 +273,20 @@ pub(super) unsafe fn drive(raw: &PackedRaw) {
                 }
             }
             Encoding::Bf16Pairs => {
-                // A lone last panel would make a tile with one multiply-add per broadcast: end
-                // on 3 + 2 panels instead of 4 + 1 where there are five or more.
-                let full_tiles = match panels % BF16_TILE_PANELS {
-                    1 if panels > BF16_TILE_PANELS => panels / BF16_TILE_PANELS - 1,
-                    _ => panels / BF16_TILE_PANELS,
-                };
+                let (fours, threes) = bf16_tiling(panels);
                 let mut p = 0;
-                for _ in 0..full_tiles {
-                    unsafe { bf16_block::<BF16_TILE_PANELS>(mr, raw, i0, p) };
-                    p += BF16_TILE_PANELS;
+                for _ in 0..fours {
+                    unsafe { bf16_block::<4>(mr, raw, i0, p) };
+                    p += 4;
+                }
+                for _ in 0..threes {
+                    unsafe { bf16_block::<3>(mr, raw, i0, p) };
+                    p += 3;
                 }
                 match panels - p {
                     0 => {}
                     1 => unsafe { bf16_block::<1>(mr, raw, i0, p) },
                     2 => unsafe { bf16_block::<2>(mr, raw, i0, p) },
-                    3 => unsafe { bf16_block::<3>(mr, raw, i0, p) },
-                    5 => unsafe {
-                        bf16_block::<3>(mr, raw, i0, p);
-                        bf16_block::<2>(mr, raw, i0, p + 3);
-                    },
                     left => unreachable!("{left} panels left"),
                 }
             }
@@ -300,5 +294,43 @@ pub(super) unsafe fn drive(raw: &PackedRaw) {
     }
 }
 
-/// Panels per full bf16 tile.
-const BF16_TILE_PANELS: usize = 4;
+/// How a row of `panels` panels splits into bf16 tiles: `(fours, threes)` tiles of 4 and 3
+/// panels, then 1 or 2 panels left only where fewer than six are (`5` is `3 + 2`). A 2-panel
+/// tile does 12 multiply-adds per 6 broadcasts and 2 loads where a 4-panel one does 24 per 6
+/// and 4: a 200-column row (13 panels) split 4 + 4 + 3 + 2 ran the 200×200×200 swish layer at
+/// 360–376 GFLOP/s (best batches of three `bench kernel` runs), split 4 + 3 + 3 + 3 at 381–385
+/// (two runs).
+fn bf16_tiling(panels: usize) -> (usize, usize) {
+    let threes = [0, 3, 2, 1][panels % 4];
+    if panels >= 3 * threes {
+        ((panels - 3 * threes) / 4, threes)
+    } else {
+        (0, usize::from(panels >= 3))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::bf16_tiling;
+
+    #[test]
+    fn bf16_rows_split_into_tiles_of_three_and_four_panels() {
+        for panels in 0..40 {
+            let (fours, threes) = bf16_tiling(panels);
+            let left = panels - 4 * fours - 3 * threes;
+            if panels >= 6 {
+                assert_eq!(left, 0, "{panels}: {fours} × 4 + {threes} × 3");
+                assert!(
+                    threes < 4,
+                    "{panels}: three 3-panel tiles make three 4-panel ones"
+                );
+            } else {
+                assert!(left <= 2, "{panels}: {left} left");
+            }
+        }
+        assert_eq!(bf16_tiling(13), (1, 3));
+        assert_eq!(bf16_tiling(16), (4, 0));
+        assert_eq!(bf16_tiling(5), (0, 1));
+        assert_eq!(bf16_tiling(2), (0, 0));
+    }
+}
