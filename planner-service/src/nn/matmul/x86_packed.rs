@@ -12,12 +12,15 @@
 //! - **f32: 12 rows × 2 panels** (one FMA per accumulator and depth step). 6 × 4 panels needs
 //!   half the broadcasts but streams twice the `Y` cache lines per step (4 against 2 per 24
 //!   FMAs, from L2 on these layers: a row of blocks passes over all of `Y` before the next
-//!   block comes back to a panel). Measured: 6 × 64 ran the linear products at 76–87 % of the
-//!   f32 peak and the fused layers at 69–81 %; 12 × 32 runs the fused layers at 81–88 %.
+//!   block comes back to a panel). Measured: 6 × 64 ran the fused layers at 69–81 % of the f32
+//!   peak (76–87 % in a local build with the activation switched off); 12 × 32 runs them at
+//!   79–89 %.
 //! - **bf16: 6 rows × 4 panels** (one `VDPBF16PS` per accumulator and *pair* of depth steps,
-//!   the `Y` panel and the broadcast weight each carrying two bf16 values per 32-bit lane). Its
-//!   linear products run at 90–100 % of the bf16 peak; what the fused layers lose (to 76–91 %)
-//!   is the activation, which costs as much as in f32 against half the multiply time.
+//!   the `Y` panel and the broadcast weight each carrying two bf16 values per 32-bit lane), and
+//!   6 rows × 3 panels where a row of panels does not divide by 4. With the activation switched
+//!   off (a local build) its layers ran at 90–100 % of the bf16 peak; what the fused layers lose
+//!   (to 73–91 %) is the activation, which costs as much as in f32 against half the multiply
+//!   time.
 //!
 //! Both tiles share the epilogue, which stores f32 rows or, for a next layer in bf16, converts
 //! pairs of rows to bf16 pairs in registers. The two bodies differ only in their load and
