@@ -14,7 +14,7 @@
 //!   FMAs, from L2 on these layers: a row of blocks passes over all of `Y` before the next
 //!   block comes back to a panel). Measured: 6 × 64 ran the fused layers at 69–81 % of the f32
 //!   peak (76–87 % in a local build with the activation switched off); 12 × 32 runs them at
-//!   79–89 %.
+//!   77–89 % (best batches of two runs, the second on a more loaded machine).
 //! - **bf16: 6 rows × 4 panels** (one `VDPBF16PS` per accumulator and *pair* of depth steps,
 //!   the `Y` panel and the broadcast weight each carrying two bf16 values per 32-bit lane), and
 //!   6 rows × 3 panels where a row of panels does not divide by 4. With the activation switched
