@@ -34,6 +34,8 @@ pub struct Run {
     latencies: Mutex<LatencyWindow>,
     /// Where checkpoints go (`None`: the run lives in memory only).
     dir: Option<RunDir>,
+    /// The ownership epoch this planner holds the run at (see `crate::fleet`).
+    epoch: u64,
 }
 
 /// Why a stored or new run could not be opened.
@@ -43,6 +45,29 @@ pub enum OpenError {
     Replay(#[from] ReplayError),
     #[error(transparent)]
     Persist(#[from] PersistError),
+}
+
+/// Why an observation's results could not be stored.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("replay buffer: {0}")]
+    Replay(#[from] ReplayError),
+    #[error(transparent)]
+    Fenced(#[from] Fenced),
+}
+
+/// This planner no longer owns the run: another took it over at a newer epoch (or its epoch
+/// cannot be read, which is treated the same: never write without knowing).
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "run `{run}` was taken over by another planner (this planner holds epoch {held}, the run is at {})",
+    .current.map_or_else(|| "an unreadable epoch".to_string(), |e| format!("epoch {e}"))
+)]
+pub struct Fenced {
+    pub run: String,
+    pub held: u64,
+    /// The run's current epoch; `None` if it could not be read.
+    pub current: Option<u64>,
 }
 
 impl std::fmt::Debug for Run {
@@ -55,20 +80,23 @@ impl std::fmt::Debug for Run {
 }
 
 impl Run {
-    /// Opens the run stored in `dir`, or starts it there: records its spec, recovers its replay
-    /// buffer (cutting a torn tail) and loads the newest usable checkpoint. If the buffer holds
-    /// finished episodes the models were not trained on, the trainer is woken at once so the
-    /// models catch up with the data.
+    /// Opens the run stored in `dir`, or starts it there, as its owner at `epoch` (already
+    /// claimed in `dir` by `planner`): records its spec, recovers its replay buffer (cutting a
+    /// torn tail, skipping records of fenced owners), records the claim in it, and loads the
+    /// newest usable checkpoint. If the buffer holds finished episodes the models were not
+    /// trained on, the trainer is woken at once so the models catch up with the data.
     pub fn open(
         name: String,
         spec: RunSpec,
         preset: Preset,
         dir: RunDir,
         events: EventSink,
+        (epoch, planner): (u64, &str),
     ) -> Result<Arc<Self>, OpenError> {
         let task = spec.task.spec();
         dir.write_spec(&spec)?;
-        let buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        let mut buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        buffer.claim(epoch, planner)?;
         let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
             None => Models::untrained(task, &preset, spec.seed),
@@ -80,6 +108,7 @@ impl Run {
             transitions = buffer.len(),
             episodes = buffer.episodes().len(),
             models_version = models.version,
+            epoch,
             path = %dir.root().display(),
             "run opened"
         );
@@ -110,6 +139,7 @@ impl Run {
             .filter(|e| e.end != EpisodeEnd::Interrupted)
             .count() as u32;
         let covered = models.episodes_covered;
+        let epoch = buffer.epoch();
         let run = Arc::new(Self {
             name,
             spec,
@@ -124,6 +154,7 @@ impl Run {
             events,
             latencies: Mutex::new(LatencyWindow::default()),
             dir,
+            epoch,
         });
         if stored > covered {
             run.wake_trainer.notify_one();
@@ -149,6 +180,32 @@ impl Run {
 
     pub fn mode(&self) -> TrainMode {
         self.spec.mode
+    }
+
+    /// The ownership epoch this planner holds the run at.
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Checks on disk that this planner still owns the run: no other planner has claimed a
+    /// newer epoch. Done before anything is written at episode boundaries and before a
+    /// checkpoint, so a planner that lost the run (partitioned, paused) stops writing at the
+    /// next boundary at the latest. A run in memory only is never fenced.
+    pub fn check_owner(&self) -> Result<(), Fenced> {
+        let Some(dir) = &self.dir else { return Ok(()) };
+        let fenced = |current| Fenced {
+            run: self.name.clone(),
+            held: self.epoch,
+            current,
+        };
+        match dir.current_epoch() {
+            Ok(current) if current == self.epoch => Ok(()),
+            Ok(current) => Err(fenced(Some(current))),
+            Err(e) => {
+                tracing::error!(run = %self.name, error = %e, "cannot read the run's ownership epoch");
+                Err(fenced(None))
+            }
+        }
     }
 
     /// The models in use now.
@@ -221,6 +278,8 @@ impl Run {
     /// Stores what an accepted observation produced: its transition (with `next_obs`), the
     /// episode it finished, an episode it abandoned. Returns the number of finished episodes a
     /// sync-mode agent must see trained before its next episode (if this one finished).
+    /// At episode boundaries (a start, an end) it first checks that this planner still owns
+    /// the run, and stores nothing if not.
     pub fn store(
         &self,
         agent: &str,
@@ -228,13 +287,16 @@ impl Run {
         step: u32,
         next_obs: &[f32],
         accepted: &Accepted,
-    ) -> Result<Option<u32>, ReplayError> {
+    ) -> Result<Option<u32>, StoreError> {
+        if accepted.transition.is_none() || accepted.finished.is_some() {
+            self.check_owner()?;
+        }
         let mut buffer = self.lock_buffer();
         if let Some(abandoned) = &accepted.abandoned {
             buffer.end_episode(abandoned.clone())?;
         }
-        if let Some((obs, act, reward)) = &accepted.transition {
-            buffer.push(agent, episode, step - 1, obs, act, next_obs, *reward)?;
+        if let Some((obs, act, origin, reward)) = &accepted.transition {
+            buffer.push(agent, episode, step - 1, obs, act, *origin, next_obs, *reward)?;
         }
         let Some(finished) = &accepted.finished else {
             return Ok(None);
@@ -253,9 +315,11 @@ impl Run {
         Ok(Some(stored))
     }
 
-    /// Records an episode that an agent left unfinished (it vanished or detached).
-    pub fn store_interrupted(&self, summary: EpisodeSummary) -> Result<(), ReplayError> {
-        self.lock_buffer().end_episode(summary)
+    /// Records an episode that an agent left unfinished (it vanished or detached), unless
+    /// this planner no longer owns the run (the new owner records it when it reads the log).
+    pub fn store_interrupted(&self, summary: EpisodeSummary) -> Result<(), StoreError> {
+        self.check_owner()?;
+        Ok(self.lock_buffer().end_episode(summary)?)
     }
 
     /// Waits until the models in use were trained on at least `episodes` finished episodes.
@@ -286,16 +350,20 @@ impl Run {
             let current = self.models();
             let preset = self.preset.clone();
             let seed = self.spec.seed;
-            let dir = self.dir.clone();
+            let run = self.clone();
             let task = self.task;
             let outcome = tokio::task::spawn_blocking(move || {
                 let (models, report) = retrain(&current, &data, &preset, episodes, seed);
                 // Checkpoint before the swap: models in use are always on disk too, so a
-                // restart never plans with models older than the ones agents last saw.
-                if let Some(dir) = dir {
-                    match dir.save_models(&models, task) {
-                        Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
-                        Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
+                // restart never plans with models older than the ones agents last saw. A
+                // planner that lost the run writes no checkpoint over the new owner's.
+                if let Some(dir) = &run.dir {
+                    match run.check_owner() {
+                        Err(e) => tracing::warn!(error = %e, "no checkpoint written"),
+                        Ok(()) => match dir.save_models(&models, task) {
+                            Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
+                            Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
+                        },
                     }
                 }
                 (models, report)

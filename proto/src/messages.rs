@@ -7,8 +7,9 @@
 use crate::task::TaskId;
 use serde::{Deserialize, Serialize};
 
-/// The protocol version this build speaks.
-pub const PROTOCOL_VERSION: u16 = 1;
+/// The protocol version this build speaks. Version 2 added the ownership epoch to
+/// [`AttachAccepted`] and [`Action`], and the applied action to [`Observation`].
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// How the trainer interacts with acting agents (design.md).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -148,6 +149,12 @@ pub struct AttachAccepted {
     pub models_version: u64,
     /// The episode number the agent should use next (resuming runs continue numbering).
     pub next_episode: u32,
+    /// The run's ownership epoch: it grows by one each time a planner takes the run over. Every
+    /// [`Action`] carries the epoch of the planner that sent it; an agent ignores actions of an
+    /// epoch older than the newest it has seen (a planner that lost the run but does not know
+    /// it yet).
+    #[serde(default)]
+    pub epoch: u64,
 }
 
 /// Why an episode ended.
@@ -176,6 +183,12 @@ pub struct Observation {
     /// Set on the last observation of an episode. The planner answers it with no action.
     #[serde(default)]
     pub end: Option<EpisodeEnd>,
+    /// The action the agent actually applied at the previous step, when it differs from the
+    /// one planned (a robot clipped it, a safety layer or a person overrode it). The replay
+    /// stores this one then, so the models learn what really happened. Absent at step 0; it
+    /// must have the task's action dimension, be finite and lie within the action bounds.
+    #[serde(default)]
+    pub applied: Option<Vec<f32>>,
 }
 
 impl Observation {
@@ -194,7 +207,14 @@ impl Observation {
             obs,
             reward,
             end,
+            applied: None,
         }
+    }
+
+    /// The same observation, saying that `action` was applied at the previous step.
+    pub fn with_applied(mut self, action: Vec<f32>) -> Self {
+        self.applied = Some(action);
+        self
     }
 }
 
@@ -233,6 +253,9 @@ pub struct Action {
     pub step: u32,
     pub action: Vec<f32>,
     pub stats: PlanStats,
+    /// The ownership epoch of the planner that sent it (see [`AttachAccepted::epoch`]).
+    #[serde(default)]
+    pub epoch: u64,
 }
 
 /// Machine-readable kind of an [`ErrorReport`].
@@ -247,6 +270,8 @@ pub enum ErrorCode {
     Dimension,
     /// A NaN or infinity where a finite number is required.
     NonFinite,
+    /// A number outside the task's bounds (an applied action beyond the actuator limits).
+    OutOfBounds,
     /// The run does not exist (the agent never attached, or the run was removed).
     UnknownRun,
     /// The task is not in the catalog.

@@ -28,6 +28,15 @@ pub enum ValidationError {
     RewardAtReset,
     #[error("step {0} carries no reward")]
     MissingReward(u32),
+    #[error("step 0 starts an episode: no action was applied before it")]
+    AppliedAtReset,
+    #[error("applied action[{index}] is {value}, outside the task's bounds [{low}, {high}]")]
+    AppliedOutOfBounds {
+        index: usize,
+        value: f32,
+        low: f32,
+        high: f32,
+    },
 }
 
 impl ValidationError {
@@ -38,9 +47,10 @@ impl ValidationError {
             ValidationError::NonFinite { .. } | ValidationError::NonFiniteReward(_) => {
                 ErrorCode::NonFinite
             }
-            ValidationError::RewardAtReset | ValidationError::MissingReward(_) => {
-                ErrorCode::OutOfOrder
-            }
+            ValidationError::RewardAtReset
+            | ValidationError::MissingReward(_)
+            | ValidationError::AppliedAtReset => ErrorCode::OutOfOrder,
+            ValidationError::AppliedOutOfBounds { .. } => ErrorCode::OutOfBounds,
         }
     }
 
@@ -79,12 +89,39 @@ pub fn check_vector(
 /// planner's agent session checks ordering).
 pub fn validate_observation(msg: &Observation, task: &TaskSpec) -> Result<(), ValidationError> {
     check_vector("observation", task, &msg.obs, task.obs_dim)?;
+    if let Some(applied) = &msg.applied {
+        if msg.step == 0 {
+            return Err(ValidationError::AppliedAtReset);
+        }
+        check_applied(applied, task)?;
+    }
     match (msg.step, msg.reward) {
         (0, Some(_)) => Err(ValidationError::RewardAtReset),
         (0, None) => Ok(()),
         (step, None) => Err(ValidationError::MissingReward(step)),
         (_, Some(r)) if !r.is_finite() => Err(ValidationError::NonFiniteReward(r)),
         _ => Ok(()),
+    }
+}
+
+/// Checks the action an agent says it applied: the task's dimension, finite, and within the
+/// action bounds (a real actuator cannot apply more than its limits, so a value outside them is
+/// a broken sender, and storing it would teach the models transitions no agent can make).
+fn check_applied(applied: &[f32], task: &TaskSpec) -> Result<(), ValidationError> {
+    check_vector("applied action", task, applied, task.act_dim)?;
+    let bounds = task.action_low.iter().zip(task.action_high);
+    match applied
+        .iter()
+        .zip(bounds)
+        .position(|(v, (lo, hi))| v < lo || v > hi)
+    {
+        Some(index) => Err(ValidationError::AppliedOutOfBounds {
+            index,
+            value: applied[index],
+            low: task.action_low[index],
+            high: task.action_high[index],
+        }),
+        None => Ok(()),
     }
 }
 
@@ -108,6 +145,10 @@ mod tests {
         let task = TaskId::Cartpole.spec();
         validate_observation(&obs(0, vec![0.0; 4], None), task).unwrap();
         validate_observation(&obs(5, vec![0.0; 4], Some(0.3)), task).unwrap();
+        for bound in [-3.0, 0.5, 3.0] {
+            let applied = obs(5, vec![0.0; 4], Some(0.3)).with_applied(vec![bound]);
+            validate_observation(&applied, task).unwrap();
+        }
     }
 
     #[test]
@@ -126,6 +167,34 @@ mod tests {
             (obs(1, vec![0.0; 4], Some(f32::NAN)), ErrorCode::NonFinite),
             (obs(1, vec![0.0; 4], None), ErrorCode::OutOfOrder),
             (obs(0, vec![0.0; 4], Some(1.0)), ErrorCode::OutOfOrder),
+            (
+                obs(0, vec![0.0; 4], None).with_applied(vec![0.0]),
+                ErrorCode::OutOfOrder,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![0.0, 0.0]),
+                ErrorCode::Dimension,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![]),
+                ErrorCode::Dimension,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![f32::NAN]),
+                ErrorCode::NonFinite,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![f32::NEG_INFINITY]),
+                ErrorCode::NonFinite,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![3.001]),
+                ErrorCode::OutOfBounds,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![-1e30]),
+                ErrorCode::OutOfBounds,
+            ),
         ];
         for (msg, code) in cases {
             let err = validate_observation(&msg, task).unwrap_err();

@@ -19,7 +19,12 @@ use std::path::{Path, PathBuf};
 const MAX_RECORD: u32 = 16 << 20;
 
 /// One entry of the log.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+///
+/// Every entry an owner writes carries its ownership `epoch` (see `crate::fleet`): when a
+/// planner takes a run over it writes a [`Record::Claim`] with a higher epoch, and from then on
+/// entries of older epochs (written by a planner that lost the run and did not know yet) are
+/// stale and skipped when the log is read.
+#[derive(Clone, Debug, PartialEq)]
 pub enum Record {
     /// First record of every file: what the buffer holds.
     Header {
@@ -27,8 +32,63 @@ pub enum Record {
         obs_dim: u32,
         act_dim: u32,
     },
-    /// One transition `(s, a, s')` with its reward, from `agent`'s `episode` at `step`.
+    /// Planner `planner` took the run over at `epoch`.
+    Claim { epoch: u64, planner: String },
+    /// One transition `(s, a, s')` with its reward, from `agent`'s `episode` at `step`; `act`
+    /// is the action the agent applied if it said so, else the one planned (`origin` says which).
     Transition {
+        epoch: u64,
+        agent: String,
+        episode: u32,
+        step: u32,
+        obs: Vec<f32>,
+        act: Vec<f32>,
+        origin: ActionOrigin,
+        next_obs: Vec<f32>,
+        reward: f32,
+    },
+    /// `agent` finished `episode`.
+    EpisodeEnd {
+        epoch: u64,
+        agent: String,
+        episode: u32,
+        steps: u32,
+        episode_return: f32,
+        end: proto::EpisodeEnd,
+    },
+}
+
+impl Record {
+    /// The ownership epoch an entry was written under (`None` for the header and claims, which
+    /// are never stale).
+    pub fn epoch(&self) -> Option<u64> {
+        match self {
+            Record::Header { .. } | Record::Claim { .. } => None,
+            Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => Some(*epoch),
+        }
+    }
+}
+
+/// Which action a stored transition holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ActionOrigin {
+    /// The action the planner sent (the agent did not say it applied another).
+    Planned,
+    /// The action the agent said it applied (clipped, overridden, teleoperated).
+    Applied,
+}
+
+/// The records as postcard writes them: the variant index is the on-disk tag, so variants are
+/// only ever added at the end. Logs written before ownership epochs hold `TransitionV1` and
+/// `EpisodeEndV1`; they are read as epoch 0 with the planned action and never written again.
+#[derive(Serialize, Deserialize)]
+enum OnDisk {
+    Header {
+        task: proto::TaskId,
+        obs_dim: u32,
+        act_dim: u32,
+    },
+    TransitionV1 {
         agent: String,
         episode: u32,
         step: u32,
@@ -37,14 +97,175 @@ pub enum Record {
         next_obs: Vec<f32>,
         reward: f32,
     },
-    /// `agent` finished `episode`.
-    EpisodeEnd {
+    EpisodeEndV1 {
         agent: String,
         episode: u32,
         steps: u32,
         episode_return: f32,
         end: proto::EpisodeEnd,
     },
+    Claim {
+        epoch: u64,
+        planner: String,
+    },
+    Transition {
+        epoch: u64,
+        agent: String,
+        episode: u32,
+        step: u32,
+        obs: Vec<f32>,
+        act: Vec<f32>,
+        origin: ActionOrigin,
+        next_obs: Vec<f32>,
+        reward: f32,
+    },
+    EpisodeEnd {
+        epoch: u64,
+        agent: String,
+        episode: u32,
+        steps: u32,
+        episode_return: f32,
+        end: proto::EpisodeEnd,
+    },
+}
+
+impl From<OnDisk> for Record {
+    fn from(stored: OnDisk) -> Self {
+        match stored {
+            OnDisk::Header {
+                task,
+                obs_dim,
+                act_dim,
+            } => Record::Header {
+                task,
+                obs_dim,
+                act_dim,
+            },
+            OnDisk::TransitionV1 {
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                next_obs,
+                reward,
+            } => Record::Transition {
+                epoch: 0,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin: ActionOrigin::Planned,
+                next_obs,
+                reward,
+            },
+            OnDisk::EpisodeEndV1 {
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            } => Record::EpisodeEnd {
+                epoch: 0,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            },
+            OnDisk::Claim { epoch, planner } => Record::Claim { epoch, planner },
+            OnDisk::Transition {
+                epoch,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin,
+                next_obs,
+                reward,
+            } => Record::Transition {
+                epoch,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin,
+                next_obs,
+                reward,
+            },
+            OnDisk::EpisodeEnd {
+                epoch,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            } => Record::EpisodeEnd {
+                epoch,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            },
+        }
+    }
+}
+
+impl From<Record> for OnDisk {
+    fn from(record: Record) -> Self {
+        match record {
+            Record::Header {
+                task,
+                obs_dim,
+                act_dim,
+            } => OnDisk::Header {
+                task,
+                obs_dim,
+                act_dim,
+            },
+            Record::Claim { epoch, planner } => OnDisk::Claim { epoch, planner },
+            Record::Transition {
+                epoch,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin,
+                next_obs,
+                reward,
+            } => OnDisk::Transition {
+                epoch,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin,
+                next_obs,
+                reward,
+            },
+            Record::EpisodeEnd {
+                epoch,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            } => OnDisk::EpisodeEnd {
+                epoch,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            },
+        }
+    }
 }
 
 /// Failures of the log file.
@@ -85,11 +306,12 @@ impl ReplayLog {
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir).map_err(io)?;
         }
+        // Append mode: every write lands at the end of the file as it is then, so a planner that
+        // lost the run (and does not know it yet) cannot overwrite the new owner's records.
         let mut file = OpenOptions::new()
             .read(true)
-            .write(true)
+            .append(true)
             .create(true)
-            .truncate(false)
             .open(path)
             .map_err(io)?;
         let mut bytes = Vec::new();
@@ -115,7 +337,7 @@ impl ReplayLog {
 
     /// Appends a record and hands it to the OS (survives the process being killed).
     pub fn append(&mut self, record: &Record) -> Result<(), LogError> {
-        let payload = postcard::to_stdvec(record).map_err(|e| LogError::Encode {
+        let payload = postcard::to_stdvec(&OnDisk::from(record.clone())).map_err(|e| LogError::Encode {
             path: self.path.clone(),
             reason: e.to_string(),
         })?;
@@ -162,8 +384,8 @@ fn parse(bytes: &[u8]) -> (Vec<Record>, u64) {
         if crc32fast::hash(payload) != crc {
             break;
         }
-        match postcard::from_bytes::<Record>(payload) {
-            Ok(record) => records.push(record),
+        match postcard::from_bytes::<OnDisk>(payload) {
+            Ok(record) => records.push(record.into()),
             Err(_) => break,
         }
         at += 8 + len as usize;
@@ -177,11 +399,13 @@ mod tests {
 
     fn transition(step: u32) -> Record {
         Record::Transition {
+            epoch: 1,
             agent: "a".into(),
             episode: 0,
             step,
             obs: vec![step as f32; 4],
             act: vec![0.5],
+            origin: ActionOrigin::Planned,
             next_obs: vec![step as f32 + 1.0; 4],
             reward: 0.1,
         }
@@ -249,5 +473,96 @@ mod tests {
         std::fs::write(&path, &bytes).unwrap();
         let (_, rec) = ReplayLog::open(&path).unwrap();
         assert_eq!(rec.records, vec![transition(0)]);
+    }
+
+    /// A log written before ownership epochs (its records encoded as that release did) reads
+    /// as epoch 0 with the planned actions, and new records append after it.
+    #[test]
+    fn a_log_from_before_epochs_is_read_and_extended() {
+        /// The record type of the release before epochs, as it was.
+        #[derive(Serialize)]
+        enum OldRecord {
+            Header {
+                task: proto::TaskId,
+                obs_dim: u32,
+                act_dim: u32,
+            },
+            Transition {
+                agent: String,
+                episode: u32,
+                step: u32,
+                obs: Vec<f32>,
+                act: Vec<f32>,
+                next_obs: Vec<f32>,
+                reward: f32,
+            },
+            EpisodeEnd {
+                agent: String,
+                episode: u32,
+                steps: u32,
+                episode_return: f32,
+                end: proto::EpisodeEnd,
+            },
+        }
+        let old = [
+            OldRecord::Header {
+                task: proto::TaskId::Cartpole,
+                obs_dim: 4,
+                act_dim: 1,
+            },
+            OldRecord::Transition {
+                agent: "a".into(),
+                episode: 0,
+                step: 0,
+                obs: vec![0.0; 4],
+                act: vec![0.5],
+                next_obs: vec![1.0; 4],
+                reward: 0.1,
+            },
+            OldRecord::EpisodeEnd {
+                agent: "a".into(),
+                episode: 0,
+                steps: 1,
+                episode_return: 0.1,
+                end: proto::EpisodeEnd::TimeLimit,
+            },
+        ];
+        let mut bytes = Vec::new();
+        for record in &old {
+            let payload = postcard::to_stdvec(record).unwrap();
+            bytes.extend_from_slice(&(payload.len() as u32).to_le_bytes());
+            bytes.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+            bytes.extend_from_slice(&payload);
+        }
+        let path = temp_path("v1");
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(&path, &bytes).unwrap();
+        let (mut log, rec) = ReplayLog::open(&path).unwrap();
+        assert_eq!(rec.truncated_bytes, 0);
+        assert_eq!(
+            rec.records[1],
+            Record::Transition {
+                epoch: 0,
+                agent: "a".into(),
+                episode: 0,
+                step: 0,
+                obs: vec![0.0; 4],
+                act: vec![0.5],
+                origin: ActionOrigin::Planned,
+                next_obs: vec![1.0; 4],
+                reward: 0.1,
+            }
+        );
+        assert_eq!(rec.records[2].epoch(), Some(0));
+        let claim = Record::Claim {
+            epoch: 1,
+            planner: "p".into(),
+        };
+        log.append(&claim).unwrap();
+        log.append(&transition(1)).unwrap();
+        drop(log);
+        let (_, rec) = ReplayLog::open(&path).unwrap();
+        assert_eq!(rec.records.len(), 5);
+        assert_eq!(rec.records[3..], [claim, transition(1)]);
     }
 }

@@ -3,7 +3,7 @@
 
 mod log;
 
-pub use log::{LogError, Record, ReplayLog};
+pub use log::{ActionOrigin, LogError, Record, ReplayLog};
 
 use crate::data::Transitions;
 use proto::{EpisodeEnd, TaskSpec};
@@ -39,8 +39,16 @@ pub enum ReplayError {
 #[derive(Debug)]
 pub struct ReplayBuffer {
     transitions: Transitions,
+    /// Which action each transition holds, in the order of `transitions`.
+    origins: Vec<ActionOrigin>,
     episodes: Vec<EpisodeSummary>,
     log: Option<ReplayLog>,
+    /// The ownership epoch of the newest claim: what this buffer writes under, and below which
+    /// records are stale.
+    epoch: u64,
+    /// Records of an older epoch found after a newer claim when the log was opened (written by
+    /// a planner that had lost the run); skipped.
+    stale_skipped: usize,
 }
 
 impl ReplayBuffer {
@@ -48,12 +56,17 @@ impl ReplayBuffer {
     pub fn in_memory(task: &TaskSpec) -> Self {
         Self {
             transitions: Transitions::new(task.obs_dim, task.act_dim),
+            origins: Vec::new(),
             episodes: Vec::new(),
             log: None,
+            epoch: 0,
+            stale_skipped: 0,
         }
     }
 
-    /// Opens the buffer stored at `path` (creating it), recovering every intact record.
+    /// Opens the buffer stored at `path` (creating it), recovering every intact record except
+    /// stale ones: an entry whose epoch is below that of a claim before it was written by a
+    /// planner that had lost the run, and is skipped (with a warning).
     ///
     /// Episodes the log holds transitions of but no end (the daemon stopped in their middle)
     /// are recorded as interrupted here: their transitions stay (they were acknowledged), and
@@ -87,6 +100,13 @@ impl ReplayBuffer {
         }
         let mut open_episodes: BTreeMap<(String, u32), EpisodeSummary> = BTreeMap::new();
         for record in records {
+            if let Record::Claim { epoch, .. } = &record {
+                buffer.epoch = buffer.epoch.max(*epoch);
+            }
+            if record.epoch().is_some_and(|e| e < buffer.epoch) {
+                buffer.stale_skipped += 1;
+                continue;
+            }
             match &record {
                 Record::Transition {
                     agent,
@@ -110,9 +130,12 @@ impl ReplayBuffer {
                 Record::EpisodeEnd { agent, episode, .. } => {
                     open_episodes.remove(&(agent.clone(), *episode));
                 }
-                Record::Header { .. } => {}
+                Record::Header { .. } | Record::Claim { .. } => {}
             }
             buffer.apply(&record);
+        }
+        if buffer.stale_skipped > 0 {
+            tracing::warn!(path = %path.display(), records = buffer.stale_skipped, epoch = buffer.epoch, "skipped records a planner wrote after it had lost the run");
         }
         buffer.log = Some(log);
         for (_, summary) in open_episodes {
@@ -124,16 +147,24 @@ impl ReplayBuffer {
 
     fn apply(&mut self, record: &Record) {
         match record {
-            Record::Header { .. } => {}
+            Record::Header { .. } | Record::Claim { .. } => {}
             Record::Transition {
-                obs, act, next_obs, ..
-            } => self.transitions.push(obs, act, next_obs),
+                obs,
+                act,
+                origin,
+                next_obs,
+                ..
+            } => {
+                self.transitions.push(obs, act, next_obs);
+                self.origins.push(*origin);
+            }
             Record::EpisodeEnd {
                 agent,
                 episode,
                 steps,
                 episode_return,
                 end,
+                ..
             } => self.episodes.push(EpisodeSummary {
                 agent: agent.clone(),
                 episode: *episode,
@@ -152,6 +183,30 @@ impl ReplayBuffer {
         Ok(())
     }
 
+    /// Takes the buffer over for `planner` at ownership `epoch` (above every earlier claim):
+    /// records the claim, synced, and writes everything after it under `epoch`.
+    pub fn claim(&mut self, epoch: u64, planner: &str) -> Result<(), ReplayError> {
+        self.record(Record::Claim {
+            epoch,
+            planner: planner.to_string(),
+        })?;
+        if let Some(log) = &mut self.log {
+            log.sync()?;
+        }
+        self.epoch = epoch;
+        Ok(())
+    }
+
+    /// The ownership epoch this buffer writes under.
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Stale records skipped when the log was opened.
+    pub fn stale_skipped(&self) -> usize {
+        self.stale_skipped
+    }
+
     /// Stores one transition. It is in the log (as far as the OS is concerned) when this returns.
     #[allow(clippy::too_many_arguments)]
     pub fn push(
@@ -161,15 +216,18 @@ impl ReplayBuffer {
         step: u32,
         obs: &[f32],
         act: &[f32],
+        origin: ActionOrigin,
         next_obs: &[f32],
         reward: f32,
     ) -> Result<(), ReplayError> {
         self.record(Record::Transition {
+            epoch: self.epoch,
             agent: agent.to_string(),
             episode,
             step,
             obs: obs.to_vec(),
             act: act.to_vec(),
+            origin,
             next_obs: next_obs.to_vec(),
             reward,
         })
@@ -185,6 +243,7 @@ impl ReplayBuffer {
             end,
         } = summary;
         self.record(Record::EpisodeEnd {
+            epoch: self.epoch,
             agent,
             episode,
             steps,
@@ -199,6 +258,11 @@ impl ReplayBuffer {
 
     pub fn transitions(&self) -> &Transitions {
         &self.transitions
+    }
+
+    /// Which action each stored transition holds (in the order of [`Self::transitions`]).
+    pub fn origins(&self) -> &[ActionOrigin] {
+        &self.origins
     }
 
     pub fn episodes(&self) -> &[EpisodeSummary] {
@@ -219,6 +283,8 @@ mod tests {
     use super::*;
     use proto::TaskId;
 
+    const PLANNED: ActionOrigin = ActionOrigin::Planned;
+
     #[test]
     fn a_reopened_buffer_holds_everything_stored() {
         let dir = std::env::temp_dir().join(format!("ebmpc-replay-{}", std::process::id()));
@@ -229,7 +295,16 @@ mod tests {
         for step in 0..10 {
             let s = [step as f32; 4];
             buffer
-                .push("a", 0, step, &s, &[0.1], &[step as f32 + 1.0; 4], 0.5)
+                .push(
+                    "a",
+                    0,
+                    step,
+                    &s,
+                    &[0.1],
+                    ActionOrigin::Planned,
+                    &[step as f32 + 1.0; 4],
+                    0.5,
+                )
                 .unwrap();
         }
         let summary = EpisodeSummary {
@@ -260,10 +335,10 @@ mod tests {
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         for step in 0..3 {
             buffer
-                .push("a", 4, step, &[0.0; 4], &[0.1], &[1.0; 4], 0.5)
+                .push("a", 4, step, &[0.0; 4], &[0.1], PLANNED, &[1.0; 4], 0.5)
                 .unwrap();
             buffer
-                .push("b", 0, step, &[0.0; 4], &[0.1], &[1.0; 4], 1.0)
+                .push("b", 0, step, &[0.0; 4], &[0.1], PLANNED, &[1.0; 4], 1.0)
                 .unwrap();
         }
         buffer
@@ -292,6 +367,52 @@ mod tests {
         // Recorded once: opening again finds nothing left open.
         let again = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(again.episodes().len(), 2);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A planner that lost the run (a newer claim is in the log) and wrote on: its records are
+    /// skipped on reading, the new owner's are kept, and the applied actions are kept as such.
+    #[test]
+    fn records_of_a_fenced_owner_are_skipped_and_origins_kept() {
+        let dir = std::env::temp_dir().join(format!("ebmpc-replay-fence-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let path = dir.join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
+        old_owner.claim(1, "pa").unwrap();
+        old_owner
+            .push("a", 0, 0, &[0.0; 4], &[0.5], PLANNED, &[1.0; 4], 1.0)
+            .unwrap();
+        let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!((new_owner.epoch(), new_owner.len()), (1, 1));
+        new_owner.claim(2, "pb").unwrap();
+        new_owner
+            .push(
+                "a",
+                0,
+                1,
+                &[1.0; 4],
+                &[-3.0],
+                ActionOrigin::Applied,
+                &[2.0; 4],
+                1.0,
+            )
+            .unwrap();
+        // The old owner, partitioned, still writes under epoch 1.
+        old_owner
+            .push("a", 0, 1, &[1.0; 4], &[0.7], PLANNED, &[9.0; 4], 1.0)
+            .unwrap();
+        drop((old_owner, new_owner));
+
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.epoch(), 2);
+        assert_eq!(reopened.stale_skipped(), 1);
+        assert_eq!(reopened.len(), 2);
+        assert_eq!(
+            reopened.origins(),
+            &[ActionOrigin::Planned, ActionOrigin::Applied]
+        );
+        assert_eq!(reopened.transitions().row(1).1, &[-3.0]);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -4,7 +4,11 @@
 //! ```text
 //! attach query ──▶ Service::attach ──▶ Run (created or joined) + agent worker task
 //! obs sample ────▶ Service::route ───▶ agent worker (in order) ──▶ validate → store → act
+//! fleet change ──▶ Service::rebalance ──▶ step down from lost runs, take over free ones
 //! ```
+//! In a fleet of planners ([`crate::fleet`]) the service serves only the runs it owns: it
+//! stays silent on other runs' attach queries and observations, so the owner's answer is the
+//! only one. A planner with no peers owns every run.
 //! Each agent has one worker task, so its observations are handled strictly in order while
 //! agents (and runs) proceed concurrently; planning itself runs on the blocking pool, and
 //! training on the run's trainer task, so neither stalls the transport.
@@ -13,6 +17,7 @@ pub mod status;
 mod worker;
 
 use crate::config::{Preset, ServiceConfig};
+use crate::fleet::{Fleet, Owner};
 use crate::persist::{self, RunDir};
 use crate::run::{EventSink, Run};
 use proto::{
@@ -34,6 +39,8 @@ pub enum ServiceError {
     Zenoh(String),
     #[error(transparent)]
     SessionConfig(#[from] proto::session::SessionConfigError),
+    #[error("joining the fleet: {0}")]
+    Fleet(#[from] crate::fleet::FleetError),
 }
 
 fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
@@ -119,6 +126,7 @@ impl Outbox {
 pub struct Service {
     config: ServiceConfig,
     outbox: Outbox,
+    fleet: Arc<Fleet>,
     runs: Mutex<HashMap<String, RunHandle>>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
@@ -141,18 +149,27 @@ impl Service {
         let zconfig = proto::session::zenoh_config(&endpoints, base)?;
         let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
         let keys = Keys::new(&config.prefix);
+        let planner_id = config.planner_id.clone();
+        let (fleet, mut fleet_changes) = Fleet::join(
+            session.clone(),
+            keys.clone(),
+            planner_id.clone(),
+            config.fleet.clone(),
+        )
+        .await?;
         let service = Arc::new(Service {
             outbox: Outbox {
                 session: session.clone(),
                 keys: keys.clone(),
             },
+            fleet,
             config,
             runs: Mutex::new(HashMap::new()),
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
-        service.resume_stored_runs();
-        let planner_id = service.config.planner_id.clone();
+        // Resume the stored runs that are ours (all of them for a planner without peers).
+        service.rebalance().await;
         let _alive = session
             .liveliness()
             .declare_token(keys.planner_alive(&planner_id))
@@ -200,6 +217,11 @@ impl Service {
                     Ok(token) => service.liveliness(token),
                     Err(e) => { tracing::error!(error = %e, "liveliness subscriber closed"); break; }
                 },
+                Some(()) = fleet_changes.recv() => {
+                    // One rebalance covers every change queued so far.
+                    while fleet_changes.try_recv().is_ok() {}
+                    service.rebalance().await;
+                }
                 () = &mut shutdown => break,
             }
         }
@@ -255,6 +277,14 @@ impl Service {
 
     async fn attach(&self, query: zenoh::query::Query) {
         let key = query.key_expr().as_str().to_string();
+        // Another planner owns this run: stay silent (dropping the query ends this planner's
+        // part in it), so the agent's query gets the owner's answer and no other.
+        if let Some(run) = self.outbox.keys().parse_attach(&key)
+            && !self.fleet.is_mine(run)
+        {
+            tracing::debug!(%key, owner = ?self.fleet.owner(run), "attach for a run owned elsewhere");
+            return;
+        }
         let encoding = query
             .encoding()
             .map(|e| Encoding::from_mime(&e.to_string()))
@@ -338,7 +368,12 @@ impl Service {
                 self.config.max_agents_per_run
             )));
         }
-        let worker = AgentWorker::new(run.clone(), request.agent.clone(), self.outbox.clone())?;
+        let worker = AgentWorker::new(
+            run.clone(),
+            request.agent.clone(),
+            self.outbox.clone(),
+            self.fleet.clone(),
+        )?;
         let (tx, rx) = mpsc::channel(AGENT_QUEUE);
         let task = self.runtime.spawn(worker.run(rx));
         handle
@@ -353,6 +388,7 @@ impl Service {
             episodes_done: run.episodes_stored(),
             models_version: models.version,
             next_episode: run.next_episode(&request.agent),
+            epoch: run.epoch(),
         })
     }
 
@@ -383,15 +419,29 @@ impl Service {
         Ok(preset)
     }
 
-    /// Opens run `name` in the data directory (new, or stored by an earlier daemon).
+    /// Takes run `name` over (a new ownership epoch) and opens it in the data directory (new,
+    /// or stored by this or another planner).
     fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, ErrorReport> {
         let preset = self.preset_for(&spec)?;
         let dir = RunDir::new(&self.config.data_dir, name);
-        Run::open(name.to_string(), spec, preset, dir, self.event_sink()).map_err(|e| {
-            ErrorReport::new(
-                ErrorCode::Internal,
-                format!("cannot open run `{name}`: {e}"),
-            )
+        let internal = |what: String| ErrorReport::new(ErrorCode::Internal, what);
+        let epoch = self
+            .fleet
+            .take(name, &dir)
+            .map_err(|e| internal(format!("cannot take run `{name}` over: {e}")))?;
+        let ownership = (epoch, self.config.planner_id.as_str());
+        Run::open(
+            name.to_string(),
+            spec,
+            preset,
+            dir,
+            self.event_sink(),
+            ownership,
+        )
+        .map_err(|e| {
+            self.fleet
+                .step_down(name, format!("the run could not be opened: {e}"));
+            internal(format!("cannot open run `{name}`: {e}"))
         })
     }
 
@@ -407,21 +457,48 @@ impl Service {
         );
     }
 
-    /// Re-opens every run stored in the data directory, so a restarted daemon carries on where
-    /// it stopped: status lists them at once, their trainers catch up with episodes stored
-    /// after the last checkpoint, and agents re-attach to them. Stored runs are resumed even
-    /// beyond `max_runs` (the limit is on creating runs, never on keeping data). A run that
-    /// cannot be opened is logged and left on disk untouched.
-    fn resume_stored_runs(&self) {
+    /// Brings the runs this planner hosts in line with the fleet's view: steps down from the
+    /// runs another planner now owns (a newer lease, a newer epoch on disk, or reported fenced
+    /// by a worker), then takes over every stored run that is free and placed here. At start
+    /// this resumes a restarted daemon's runs (all stored runs, for a planner without peers):
+    /// status lists them at once, their trainers catch up with episodes stored after the last
+    /// checkpoint, and agents re-attach to them. Stored runs are taken even beyond `max_runs`
+    /// (the limit is on creating runs, never on keeping data). A run that cannot be opened is
+    /// logged and left on disk untouched.
+    async fn rebalance(&self) {
+        let mut lost: Vec<(String, String)> = self
+            .fleet
+            .take_fenced()
+            .into_iter()
+            .map(|run| (run, "its epoch on disk is newer than this planner's".to_string()))
+            .collect();
+        {
+            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            for (name, handle) in runs.iter() {
+                if let Owner::Holder { planner, epoch } = self.fleet.owner(name)
+                    && planner != self.config.planner_id
+                {
+                    lost.push((name.clone(), format!("{planner} holds it at epoch {epoch}")));
+                } else if let Err(e) = handle.run.check_owner() {
+                    lost.push((name.clone(), e.to_string()));
+                }
+            }
+        }
+        for (name, reason) in lost {
+            self.step_down(&name, reason).await;
+        }
         let stored = match persist::stored_runs(&self.config.data_dir) {
             Ok(stored) => stored,
             Err(e) => {
-                tracing::error!(error = %e, "cannot list stored runs; none resumed");
+                tracing::error!(error = %e, "cannot list stored runs; none taken over");
                 return;
             }
         };
         let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         for (name, dir) in stored {
+            if runs.contains_key(&name) || !self.fleet.is_mine(&name) {
+                continue;
+            }
             let spec = match dir.read_spec() {
                 Ok(Some(spec)) => spec,
                 Ok(None) => {
@@ -439,6 +516,31 @@ impl Service {
                     tracing::error!(run = %name, "stored run not resumed: {}", report.message);
                 }
             }
+        }
+    }
+
+    /// Gives up run `name`: its trainer and workers stop, its lease goes, and each attached
+    /// agent is told to attach again (its query then reaches the new owner).
+    async fn step_down(&self, name: &str, reason: String) {
+        let Some(handle) = self
+            .runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(name)
+        else {
+            return;
+        };
+        handle.trainer.abort();
+        self.fleet.step_down(name, reason.clone());
+        for (agent, worker) in handle.agents {
+            worker.task.abort();
+            let report = ErrorReport::new(
+                ErrorCode::NotAttached,
+                format!("run `{name}` moved to another planner ({reason}): attach again"),
+            );
+            // JSON: every agent decodes by the sample's declared encoding, and JSON is the one
+            // all of them (Python included) speak.
+            self.outbox.report(name, &agent, report, Encoding::Json).await;
         }
     }
 
@@ -461,6 +563,7 @@ impl Service {
                     episodes: returns.len() as u32,
                     transitions: run.transitions_stored(),
                     models_version: run.models().version,
+                    epoch: run.epoch(),
                     training: run.is_training(),
                     exploring: run.exploring(),
                     last_returns: returns[returns.len().saturating_sub(10)..].to_vec(),
@@ -475,6 +578,7 @@ impl Service {
             protocol_version: PROTOCOL_VERSION,
             uptime_seconds: self.started.elapsed().as_secs_f64(),
             runs: reports,
+            fleet: self.fleet.status(),
         }
     }
 
@@ -549,6 +653,9 @@ impl Service {
             tracing::warn!(%key, "ignoring sample on a key that is not an observation key");
             return;
         };
+        if !self.fleet.is_mine(run) {
+            return; // its owner answers
+        }
         let tx = {
             let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
             match runs.get(run) {

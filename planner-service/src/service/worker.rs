@@ -3,8 +3,9 @@
 
 use super::{Outbox, codec_report};
 use crate::agent::AgentSession;
+use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
-use crate::run::Run;
+use crate::run::{Run, StoreError};
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
     PlanStats, TrainMode,
@@ -25,6 +26,7 @@ pub(crate) struct AgentWorker {
     run: Arc<Run>,
     name: String,
     outbox: Outbox,
+    fleet: Arc<Fleet>,
     session: AgentSession,
     /// Taken while a plan runs on the blocking pool, then put back.
     planner: Option<MpcPlanner>,
@@ -66,7 +68,12 @@ fn finite_or_min(x: f32) -> f32 {
 }
 
 impl AgentWorker {
-    pub(crate) fn new(run: Arc<Run>, name: String, outbox: Outbox) -> Result<Self, ErrorReport> {
+    pub(crate) fn new(
+        run: Arc<Run>,
+        name: String,
+        outbox: Outbox,
+        fleet: Arc<Fleet>,
+    ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
         Ok(Self {
             session: AgentSession::new(name.clone()),
@@ -76,6 +83,7 @@ impl AgentWorker {
             run,
             name,
             outbox,
+            fleet,
         })
     }
 
@@ -93,6 +101,9 @@ impl AgentWorker {
         if let Some(summary) = self.session.interrupt()
             && let Err(e) = self.run.store_interrupted(summary)
         {
+            if let StoreError::Fenced(_) = e {
+                self.fleet.report_fenced(self.run.name());
+            }
             tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode");
         }
     }
@@ -107,11 +118,19 @@ impl AgentWorker {
         let must_cover = self
             .run
             .store(&self.name, msg.episode, msg.step, &msg.obs, &accepted)
-            .map_err(|e| {
-                position(ErrorReport::new(
+            .map_err(|e| match e {
+                StoreError::Fenced(fenced) => {
+                    // Another planner owns the run now: step down, and send the agent there.
+                    self.fleet.report_fenced(self.run.name());
+                    position(ErrorReport::new(
+                        ErrorCode::NotAttached,
+                        format!("{fenced}: attach again"),
+                    ))
+                }
+                StoreError::Replay(e) => position(ErrorReport::new(
                     ErrorCode::Internal,
                     format!("could not store the transition: {e}"),
-                ))
+                )),
             })?;
         if let Some(finished) = &accepted.finished {
             tracing::info!(run = %self.run.name(), agent = %self.name, episode = finished.episode, steps = finished.steps, episode_return = finished.episode_return, "episode finished");
@@ -213,6 +232,7 @@ impl AgentWorker {
                 iterations,
                 models_version: models.version,
             },
+            epoch: self.run.epoch(),
         })
     }
 }
