@@ -8,8 +8,10 @@ use proto::{
     Action, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorReport, Keys,
     Observation, PROTOCOL_VERSION, RunEvent, RunSpec,
 };
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 use zenoh::handlers::FifoChannelHandler;
+use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::pubsub::Subscriber;
 use zenoh::sample::Sample;
 
@@ -34,6 +36,8 @@ pub struct Client {
     pub actions: Inbox,
     pub errors: Inbox,
     pub events: Inbox,
+    /// The run's ownership epoch at the last attach; actions of older epochs are ignored.
+    epoch: AtomicU64,
     _token: zenoh::liveliness::LivelinessToken,
 }
 
@@ -67,6 +71,7 @@ impl Client {
             actions,
             errors,
             events,
+            epoch: AtomicU64::new(0),
             _token: token,
         })
     }
@@ -80,10 +85,13 @@ impl Client {
         };
         let payload = proto::encode(&request, Encoding::Postcard)?;
         for _ in 0..300 {
+            // Every planner gets the query, only the run's owner answers.
             let replies = self
                 .session
                 .get(self.keys.attach(&self.run))
                 .payload(payload.clone())
+                .target(QueryTarget::All)
+                .consolidation(ConsolidationMode::None)
                 .timeout(Duration::from_secs(5))
                 .await
                 .map_err(|e| anyhow!("attach query: {e}"))?;
@@ -95,6 +103,7 @@ impl Client {
                     proto::decode(&sample.payload().to_bytes(), Encoding::Postcard)?;
                 return match reply.outcome {
                     AttachOutcome::Accepted(accepted) => {
+                        self.epoch.store(accepted.epoch, Ordering::SeqCst);
                         // Give the planner's subscriber a moment to match our publications.
                         tokio::time::sleep(Duration::from_millis(300)).await;
                         Ok(accepted)
@@ -123,18 +132,30 @@ impl Client {
             .await
     }
 
-    /// The next action or error for this agent.
+    /// The ownership epoch of the run at the last attach.
+    pub fn epoch(&self) -> u64 {
+        self.epoch.load(Ordering::SeqCst)
+    }
+
+    /// The next action or error for this agent (actions of an epoch older than the one
+    /// attached to come from a planner that lost the run, and are skipped).
     pub async fn answer(&self, timeout: Duration) -> Result<Answer> {
-        tokio::select! {
-            sample = self.actions.recv_async() => {
-                let sample = sample.map_err(|e| anyhow!("actions: {e}"))?;
-                Ok(Answer::Action(decode(&sample)?))
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            tokio::select! {
+                sample = self.actions.recv_async() => {
+                    let sample = sample.map_err(|e| anyhow!("actions: {e}"))?;
+                    let action: Action = decode(&sample)?;
+                    if action.epoch >= self.epoch() {
+                        return Ok(Answer::Action(action));
+                    }
+                }
+                sample = self.errors.recv_async() => {
+                    let sample = sample.map_err(|e| anyhow!("errors: {e}"))?;
+                    return Ok(Answer::Error(decode(&sample)?));
+                }
+                () = tokio::time::sleep_until(deadline) => bail!("no answer for `{}` within {timeout:?}", self.agent),
             }
-            sample = self.errors.recv_async() => {
-                let sample = sample.map_err(|e| anyhow!("errors: {e}"))?;
-                Ok(Answer::Error(decode(&sample)?))
-            }
-            () = tokio::time::sleep(timeout) => bail!("no answer for `{}` within {timeout:?}", self.agent),
         }
     }
 
