@@ -145,7 +145,7 @@ mod tests {
         for bad in [
             &bytes[..bytes.len() - 3],
             &[][..],
-            &[1, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
+            &[2, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
         ] {
             assert!(
                 matches!(

@@ -243,21 +243,28 @@ fn decode<T: serde::de::DeserializeOwned>(sample: &Sample) -> Result<T> {
     Ok(proto::decode(&sample.payload().to_bytes(), encoding)?)
 }
 
-/// Queries a planner's status over `session`.
+/// Queries a planner's status over `session`, asking again for up to 10 s while no answer
+/// comes (a peer session that just connected to a router does not know the planners'
+/// queryables yet, and its query then ends at once with no answer).
 pub async fn status(session: &zenoh::Session, planner_id: &str) -> Result<PlannerStatus> {
-    let replies = session
-        .get(Keys::default().planner_status(planner_id))
-        .timeout(Duration::from_secs(10))
-        .await
-        .map_err(|e| anyhow!("status query: {e}"))?;
-    let reply = replies
-        .recv_async()
-        .await
-        .map_err(|_| anyhow!("planner `{planner_id}` did not answer the status query"))?;
-    let sample = reply
-        .result()
-        .map_err(|e| anyhow!("status error reply: {e:?}"))?;
-    Ok(serde_json::from_slice(&sample.payload().to_bytes())?)
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let replies = session
+            .get(Keys::default().planner_status(planner_id))
+            .timeout(Duration::from_secs(10))
+            .await
+            .map_err(|e| anyhow!("status query: {e}"))?;
+        if let Ok(reply) = replies.recv_async().await {
+            let sample = reply
+                .result()
+                .map_err(|e| anyhow!("status error reply: {e:?}"))?;
+            return Ok(serde_json::from_slice(&sample.payload().to_bytes())?);
+        }
+        if tokio::time::Instant::now() >= deadline {
+            bail!("planner `{planner_id}` did not answer the status query");
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 /// A toy cart-pole-shaped system for scripted agents: deterministic, bounded, and cheap, so a

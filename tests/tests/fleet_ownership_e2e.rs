@@ -216,8 +216,9 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         for planner in owner_of.values() {
             *counts.entry(planner.as_str()).or_default() += 1;
         }
-        let (&victim, &owned) = counts.iter().max_by_key(|(_, n)| **n).unwrap();
+        let (&most, &owned) = counts.iter().max_by_key(|(_, n)| **n).unwrap();
         assert!(owned >= 2, "{counts:?}");
+        let victim = PLANNERS.into_iter().find(|p| *p == most).unwrap();
         planners.get_mut(victim).unwrap().signal("KILL").unwrap();
         let moved: HashSet<String> = owner_of
             .iter()

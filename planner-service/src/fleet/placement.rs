@@ -83,9 +83,10 @@ mod tests {
 
     #[test]
     fn weights_are_fixed_across_builds() {
-        // Recorded once: a change here would move every run of a mixed-version fleet.
-        assert_eq!(weight("pa", "run-0"), weight("pa", "run-0"));
-        assert_ne!(weight("pa", "run-0"), weight("pb", "run-0"));
+        // Recorded once (and computed independently): a change here would move every run of a
+        // fleet whose planners run different builds.
+        assert_eq!(weight("pa", "run-0"), 0x6fd3_b276_837c_a73c);
+        assert_eq!(weight("pb", "run-0"), 0x3a16_753a_a2fc_042d);
         assert_ne!(weight("pa", "b"), weight("p", "ab"), "the separator keeps pairs apart");
     }
 }

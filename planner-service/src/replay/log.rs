@@ -70,7 +70,7 @@ impl Record {
 }
 
 /// Which action a stored transition holds.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
 pub enum ActionOrigin {
     /// The action the planner sent (the agent did not say it applied another).
     Planned,

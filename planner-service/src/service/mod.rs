@@ -146,7 +146,17 @@ impl Service {
             listen: config.listen.clone(),
             connect: config.connect.clone(),
         };
-        let zconfig = proto::session::zenoh_config(&endpoints, base)?;
+        let mut zconfig = proto::session::zenoh_config(&endpoints, base)?;
+        if config.listen.is_empty() && config.zenoh_config.is_none() {
+            // Nothing connects to this planner (it only connects, to a router): join as a
+            // Zenoh client. A peer routes queries by the queryables and tokens it has heard
+            // of, and right after connecting to a router it has heard of none, so the fleet's
+            // first look at the live planners and leases would come back empty and a restarted
+            // planner would take runs that others hold. A client asks the router, which knows.
+            zconfig
+                .insert_json5("mode", "\"client\"")
+                .map_err(zenoh_err)?;
+        }
         let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
         let keys = Keys::new(&config.prefix);
         let planner_id = config.planner_id.clone();
