@@ -214,7 +214,9 @@ mod tests {
         s.acted(1, &[2.0]);
         // The agent clipped the planned 2.0 to 1.5: the transition holds what it applied.
         let last = s
-            .observe(&obs(0, 2, 2.0, Some(0.25), Some(EpisodeEnd::TimeLimit)).with_applied(vec![1.5]))
+            .observe(
+                &obs(0, 2, 2.0, Some(0.25), Some(EpisodeEnd::TimeLimit)).with_applied(vec![1.5]),
+            )
             .unwrap();
         assert_eq!(
             last.transition,

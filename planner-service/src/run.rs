@@ -296,7 +296,16 @@ impl Run {
             buffer.end_episode(abandoned.clone())?;
         }
         if let Some((obs, act, origin, reward)) = &accepted.transition {
-            buffer.push(agent, episode, step - 1, obs, act, *origin, next_obs, *reward)?;
+            buffer.push(
+                agent,
+                episode,
+                step - 1,
+                obs,
+                act,
+                *origin,
+                next_obs,
+                *reward,
+            )?;
         }
         let Some(finished) = &accepted.finished else {
             return Ok(None);

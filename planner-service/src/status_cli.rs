@@ -339,13 +339,23 @@ const EVENTS_SHOWN: usize = 8;
 fn render_fleet(out: &mut String, fleet: &FleetReport) {
     let pinned = !fleet.pins.serve.is_empty() || !fleet.pins.refuse.is_empty();
     if fleet.planners.len() > 1 || pinned {
-        let list = |l: &[String]| if l.is_empty() { "-".to_string() } else { l.join(" ") };
+        let list = |l: &[String]| {
+            if l.is_empty() {
+                "-".to_string()
+            } else {
+                l.join(" ")
+            }
+        };
         let _ = writeln!(
             out,
             "fleet: {} planners ({}); serves {}; refuses {}",
             fleet.planners.len(),
             fleet.planners.join(", "),
-            if fleet.pins.serve.is_empty() { "*".to_string() } else { list(&fleet.pins.serve) },
+            if fleet.pins.serve.is_empty() {
+                "*".to_string()
+            } else {
+                list(&fleet.pins.serve)
+            },
             list(&fleet.pins.refuse),
         );
     }

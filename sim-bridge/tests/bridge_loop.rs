@@ -241,7 +241,11 @@ async fn episodes_run_step_by_step_and_report_the_simulators_rewards() {
                 record.episode
             );
             assert_eq!(msg.reward, Some(outcome.reward));
-            assert_eq!(msg.applied.as_ref(), Some(&outcome.applied), "the applied action is sent");
+            assert_eq!(
+                msg.applied.as_ref(),
+                Some(&outcome.applied),
+                "the applied action is sent"
+            );
             assert_eq!(msg.end, (step == 200).then_some(EpisodeEnd::TimeLimit));
             total += outcome.reward;
         }

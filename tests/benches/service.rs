@@ -174,7 +174,11 @@ fn report(label: &str, round_trips: Vec<Duration>, wall: Duration) -> f64 {
 }
 
 /// Starts a router and `n` planners sharing one data directory, waits until each sees all.
-fn fleet(dir: &Path, n: usize, runtime: &tokio::runtime::Runtime) -> Result<(zenoh::Session, String, Vec<Guarded>)> {
+fn fleet(
+    dir: &Path,
+    n: usize,
+    runtime: &tokio::runtime::Runtime,
+) -> Result<(zenoh::Session, String, Vec<Guarded>)> {
     let endpoint = free_endpoint();
     let router = runtime.block_on(router(&endpoint))?;
     let data = dir.join("data");
@@ -188,12 +192,24 @@ fn fleet(dir: &Path, n: usize, runtime: &tokio::runtime::Runtime) -> Result<(zen
         let session = open_session(&endpoint).await?;
         for i in 0..n {
             let started = Instant::now();
-            while status(&session, &format!("p{i}")).await?.fleet.planners.len() < n {
-                anyhow::ensure!(started.elapsed() < Duration::from_secs(60), "planners never saw each other");
+            while status(&session, &format!("p{i}"))
+                .await?
+                .fleet
+                .planners
+                .len()
+                < n
+            {
+                anyhow::ensure!(
+                    started.elapsed() < Duration::from_secs(60),
+                    "planners never saw each other"
+                );
                 tokio::time::sleep(Duration::from_millis(100)).await;
             }
         }
-        session.close().await.map_err(|e| anyhow::anyhow!("close: {e}"))
+        session
+            .close()
+            .await
+            .map_err(|e| anyhow::anyhow!("close: {e}"))
     })?;
     Ok((router, endpoint, planners))
 }
@@ -211,8 +227,12 @@ fn main() -> Result<()> {
         let planner = Planner::start(&dir.path().join("direct"), &config("bench", ""))?;
         println!("direct to one planner\nagents  p50 ms  p99 ms  steps/s  (total)");
         for (i, &agents) in args.agents.iter().enumerate() {
-            let (round_trips, wall) =
-                runtime.block_on(round(&planner.endpoint, &format!("d{i}"), agents, args.steps))?;
+            let (round_trips, wall) = runtime.block_on(round(
+                &planner.endpoint,
+                &format!("d{i}"),
+                agents,
+                args.steps,
+            ))?;
             let p50 = report(&format!("{agents:>6}"), round_trips, wall);
             direct_p50.insert(agents, p50);
         }
@@ -225,8 +245,12 @@ fn main() -> Result<()> {
         for &n in &args.planners {
             let fleet_dir = dir.path().join(format!("fleet-{n}"));
             let (router, endpoint, mut planners) = fleet(&fleet_dir, n, &runtime)?;
-            let (round_trips, wall) =
-                runtime.block_on(round(&endpoint, &format!("f{n}"), args.fleet_agents, args.steps))?;
+            let (round_trips, wall) = runtime.block_on(round(
+                &endpoint,
+                &format!("f{n}"),
+                args.fleet_agents,
+                args.steps,
+            ))?;
             let p50 = report(&format!("{n:>8}"), round_trips, wall);
             if n == 1
                 && let Some(direct) = direct_p50.get(&args.fleet_agents)
@@ -240,7 +264,9 @@ fn main() -> Result<()> {
             for planner in &mut planners {
                 planner.terminate(Duration::from_secs(30))?;
             }
-            runtime.block_on(router.close()).map_err(|e| anyhow::anyhow!("router: {e}"))?;
+            runtime
+                .block_on(router.close())
+                .map_err(|e| anyhow::anyhow!("router: {e}"))?;
         }
     }
     Ok(())

@@ -11,8 +11,8 @@ use proto::{
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 use zenoh::handlers::FifoChannelHandler;
-use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::pubsub::Subscriber;
+use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::Sample;
 
 type Inbox = Subscriber<FifoChannelHandler<Sample>>;

@@ -119,7 +119,10 @@ async fn owners(session: &zenoh::Session, planners: &[&str]) -> BTreeMap<String,
     for planner in planners {
         let report = status(session, planner).await.unwrap();
         for run in report.runs {
-            owners.entry(run.name).or_default().push(planner.to_string());
+            owners
+                .entry(run.name)
+                .or_default()
+                .push(planner.to_string());
         }
     }
     owners
@@ -152,7 +155,10 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
             if complete {
                 break;
             }
-            assert!(started.elapsed() < Duration::from_secs(60), "planners never saw each other");
+            assert!(
+                started.elapsed() < Duration::from_secs(60),
+                "planners never saw each other"
+            );
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
 
@@ -161,7 +167,10 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
             let (ok, table, err) = status_cli(&endpoint, &[]).unwrap();
             assert!(ok.success(), "attempt {attempt}: {err}");
             for id in PLANNERS {
-                assert!(table.contains(&format!("planner {id} ")), "attempt {attempt}: {table}");
+                assert!(
+                    table.contains(&format!("planner {id} ")),
+                    "attempt {attempt}: {table}"
+                );
             }
         }
 
@@ -174,7 +183,9 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
                 let client = Client::connect(&endpoint, &run, name).await.unwrap();
                 let accepted = client.attach(&spec()).await.unwrap();
                 assert_eq!(accepted.epoch, 1, "{run}: a new run starts at epoch 1");
-                let owner = owner_of.entry(run.clone()).or_insert(accepted.planner_id.clone());
+                let owner = owner_of
+                    .entry(run.clone())
+                    .or_insert(accepted.planner_id.clone());
                 assert_eq!(owner, &accepted.planner_id, "{run}: two owners");
                 agents.push(Agent {
                     client,
@@ -207,8 +218,16 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         }
         for agent in &agents {
             let pending = agent.client.take_pending().unwrap();
-            assert!(pending.is_empty(), "{}/{}: extra answers {pending:?}", agent.client.run, agent.client.agent);
-            assert!(agent.models_version >= 1, "episode 1 was planned with trained models");
+            assert!(
+                pending.is_empty(),
+                "{}/{}: extra answers {pending:?}",
+                agent.client.run,
+                agent.client.agent
+            );
+            assert!(
+                agent.models_version >= 1,
+                "episode 1 was planned with trained models"
+            );
         }
 
         // Kill the planner that owns the most runs (at least two of six among three).
@@ -241,9 +260,18 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
                     let before = agent.models_version;
                     let accepted = agent.client.attach(&spec()).await.unwrap();
                     assert_ne!(accepted.planner_id, victim);
-                    assert!(accepted.epoch >= 2, "a takeover bumps the epoch: {accepted:?}");
-                    assert!(accepted.models_version >= before, "models went back: {accepted:?} < v{before}");
-                    assert_eq!(accepted.next_episode, 2, "episode 1 was interrupted, not reused");
+                    assert!(
+                        accepted.epoch >= 2,
+                        "a takeover bumps the epoch: {accepted:?}"
+                    );
+                    assert!(
+                        accepted.models_version >= before,
+                        "models went back: {accepted:?} < v{before}"
+                    );
+                    assert_eq!(
+                        accepted.next_episode, 2,
+                        "episode 1 was interrupted, not reused"
+                    );
                     agent.client.take_pending().unwrap();
                     agent.last = None;
                     agent.system = ToySystem::new(99);
@@ -257,8 +285,14 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         for task in tasks {
             let (agent, planner) = task.await.expect("an agent was not served after the kill");
             if let Some(planner) = planner {
-                let owner = new_owner.entry(agent.client.run.clone()).or_insert(planner.clone());
-                assert_eq!(owner, &planner, "{}: two owners after the handover", agent.client.run);
+                let owner = new_owner
+                    .entry(agent.client.run.clone())
+                    .or_insert(planner.clone());
+                assert_eq!(
+                    owner, &planner,
+                    "{}: two owners after the handover",
+                    agent.client.run
+                );
             }
             agents.push(agent);
         }
@@ -270,10 +304,18 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         let listed = owners(&session, &PLANNERS).await;
         for (run, planner) in &owner_of {
             let expected = new_owner.get(run).unwrap_or(planner);
-            assert_eq!(listed.get(run), Some(&vec![expected.clone()]), "{run} after the restart");
+            assert_eq!(
+                listed.get(run),
+                Some(&vec![expected.clone()]),
+                "{run} after the restart"
+            );
         }
         let restarted = status(&session, victim).await.unwrap();
-        assert!(restarted.runs.is_empty(), "{victim} took runs back: {:?}", restarted.runs.iter().map(|r| &r.name).collect::<Vec<_>>());
+        assert!(
+            restarted.runs.is_empty(),
+            "{victim} took runs back: {:?}",
+            restarted.runs.iter().map(|r| &r.name).collect::<Vec<_>>()
+        );
         assert!(restarted.fleet.planners.len() == PLANNERS.len());
         session.close().await.unwrap();
         for agent in &agents {
@@ -304,7 +346,11 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
             for agent in agents.iter().filter(|a| a.client.run == run) {
                 for (_, o, a, n) in &agent.acked {
                     let key: Vec<u32> = o.iter().chain(a).chain(n).map(|x| x.to_bits()).collect();
-                    assert!(stored.contains(&key), "{run}/{}: an acknowledged transition is missing", agent.client.agent);
+                    assert!(
+                        stored.contains(&key),
+                        "{run}/{}: an acknowledged transition is missing",
+                        agent.client.agent
+                    );
                     acked += 1;
                 }
             }
@@ -313,17 +359,24 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
             let (_, recovered) = ReplayLog::open(&path).unwrap();
             let mut origins = BTreeMap::new();
             for record in &recovered.records {
-                if let Record::Transition { agent, act, origin, .. } = record {
+                if let Record::Transition {
+                    agent, act, origin, ..
+                } = record
+                {
                     *origins.entry((agent.clone(), *origin)).or_insert(0) += 1;
                     if agent == "b" {
                         assert!(act.iter().all(|a| a.abs() <= SAFE), "{run}: {act:?}");
                     }
                 }
             }
-            assert_eq!(origins.keys().cloned().collect::<Vec<_>>(), [
-                ("a".to_string(), ActionOrigin::Planned),
-                ("b".to_string(), ActionOrigin::Applied),
-            ], "{run}");
+            assert_eq!(
+                origins.keys().cloned().collect::<Vec<_>>(),
+                [
+                    ("a".to_string(), ActionOrigin::Planned),
+                    ("b".to_string(), ActionOrigin::Applied),
+                ],
+                "{run}"
+            );
         }
     });
 }

@@ -145,6 +145,10 @@ mod tests {
     fn rejects_bad_pins() {
         let config: ServiceConfig = toml::from_str("[fleet]\nrefuse = [\"a/b\"]").unwrap();
         let err = config.validate().unwrap_err();
-        assert!(err.to_string().starts_with("[fleet]: invalid run-name pattern"), "{err}");
+        assert!(
+            err.to_string()
+                .starts_with("[fleet]: invalid run-name pattern"),
+            "{err}"
+        );
     }
 }

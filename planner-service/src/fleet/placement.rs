@@ -76,7 +76,10 @@ mod tests {
             }
             // A joining planner only takes runs to itself.
             let joined = place(&run, ["pa", "pb", "pc", "pd"]).unwrap();
-            assert!(joined == before || joined == "pd", "{run}: {before} -> {joined}");
+            assert!(
+                joined == before || joined == "pd",
+                "{run}: {before} -> {joined}"
+            );
         }
         assert!(moved > 0);
     }
@@ -87,6 +90,10 @@ mod tests {
         // fleet whose planners run different builds.
         assert_eq!(weight("pa", "run-0"), 0x6fd3_b276_837c_a73c);
         assert_eq!(weight("pb", "run-0"), 0x3a16_753a_a2fc_042d);
-        assert_ne!(weight("pa", "b"), weight("p", "ab"), "the separator keeps pairs apart");
+        assert_ne!(
+            weight("pa", "b"),
+            weight("p", "ab"),
+            "the separator keeps pairs apart"
+        );
     }
 }

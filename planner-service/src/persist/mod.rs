@@ -386,7 +386,10 @@ mod tests {
         // Two planners that both found epoch 2 the newest race for 3: exactly one gets it.
         assert_eq!(dir.claim_epoch_after(2, "pc").unwrap(), 3);
         let err = dir.claim_epoch_after(2, "pd").unwrap_err();
-        assert!(matches!(err, PersistError::EpochTaken { epoch: 3, .. }), "{err}");
+        assert!(
+            matches!(err, PersistError::EpochTaken { epoch: 3, .. }),
+            "{err}"
+        );
         assert_eq!(
             fs::read_to_string(dir.epochs_dir().join(format!("{:020}", 3))).unwrap(),
             "pc"
@@ -395,7 +398,11 @@ mod tests {
             dir.claim_epoch_after(seen, planner).unwrap();
         }
         assert_eq!(dir.current_epoch().unwrap(), 7);
-        assert_eq!(dir.epochs().unwrap(), vec![7, 6, 5, 4], "only the newest are kept");
+        assert_eq!(
+            dir.epochs().unwrap(),
+            vec![7, 6, 5, 4],
+            "only the newest are kept"
+        );
         fs::remove_dir_all(&data).unwrap();
     }
 }

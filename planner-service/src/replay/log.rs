@@ -337,10 +337,11 @@ impl ReplayLog {
 
     /// Appends a record and hands it to the OS (survives the process being killed).
     pub fn append(&mut self, record: &Record) -> Result<(), LogError> {
-        let payload = postcard::to_stdvec(&OnDisk::from(record.clone())).map_err(|e| LogError::Encode {
-            path: self.path.clone(),
-            reason: e.to_string(),
-        })?;
+        let payload =
+            postcard::to_stdvec(&OnDisk::from(record.clone())).map_err(|e| LogError::Encode {
+                path: self.path.clone(),
+                reason: e.to_string(),
+            })?;
         let io = |source| LogError::Io {
             path: self.path.clone(),
             source,

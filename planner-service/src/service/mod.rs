@@ -480,7 +480,12 @@ impl Service {
             .fleet
             .take_fenced()
             .into_iter()
-            .map(|run| (run, "its epoch on disk is newer than this planner's".to_string()))
+            .map(|run| {
+                (
+                    run,
+                    "its epoch on disk is newer than this planner's".to_string(),
+                )
+            })
             .collect();
         {
             let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
@@ -550,7 +555,9 @@ impl Service {
             );
             // JSON: every agent decodes by the sample's declared encoding, and JSON is the one
             // all of them (Python included) speak.
-            self.outbox.report(name, &agent, report, Encoding::Json).await;
+            self.outbox
+                .report(name, &agent, report, Encoding::Json)
+                .await;
         }
     }
 
