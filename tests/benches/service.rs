@@ -265,7 +265,7 @@ fn main() -> Result<()> {
                 planner.terminate(Duration::from_secs(30))?;
             }
             runtime
-                .block_on(router.close())
+                .block_on(async { router.close().await })
                 .map_err(|e| anyhow::anyhow!("router: {e}"))?;
         }
     }

@@ -17,8 +17,8 @@ pub mod status;
 mod worker;
 
 use crate::config::{Preset, ServiceConfig};
-use crate::fleet::{Fleet, Owner};
-use crate::persist::{self, RunDir};
+use crate::fleet::{Fleet, FleetError, Owner};
+use crate::persist::{self, PersistError, RunDir};
 use crate::run::{EventSink, Run};
 use proto::{
     AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorCode, ErrorReport,
@@ -119,6 +119,20 @@ impl Outbox {
         tracing::warn!(%run, %agent, code = ?report.code, episode = ?report.episode, step = ?report.step, "rejected: {}", report.message);
         self.publish(&self.keys.error(run, agent), &report, encoding)
             .await;
+    }
+}
+
+/// Why this planner does not attach an agent.
+enum Refusal {
+    /// Said to the agent.
+    Report(ErrorReport),
+    /// Not said: another planner claimed the run's next ownership epoch first (so it answers).
+    Contended,
+}
+
+impl From<ErrorReport> for Refusal {
+    fn from(report: ErrorReport) -> Self {
+        Refusal::Report(report)
     }
 }
 
@@ -313,7 +327,10 @@ impl Service {
                     Err(e) => AttachOutcome::Rejected(codec_report(&e)),
                     Ok(request) => match self.attach_agent(run, request) {
                         Ok(accepted) => AttachOutcome::Accepted(accepted),
-                        Err(report) => AttachOutcome::Rejected(report),
+                        Err(Refusal::Report(report)) => AttachOutcome::Rejected(report),
+                        // Another planner is taking the run over at this moment: its answer
+                        // is the one the agent must get.
+                        Err(Refusal::Contended) => return,
                     },
                 }
             }
@@ -344,8 +361,8 @@ impl Service {
         &self,
         run_name: &str,
         request: AttachRequest,
-    ) -> Result<AttachAccepted, ErrorReport> {
-        let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
+    ) -> Result<AttachAccepted, Refusal> {
+        let refuse = |msg: String| Refusal::Report(ErrorReport::new(ErrorCode::Refused, msg));
         proto::validate_name(run_name).map_err(|e| refuse(e.to_string()))?;
         proto::validate_name(&request.agent).map_err(|e| refuse(e.to_string()))?;
         let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
@@ -431,14 +448,14 @@ impl Service {
 
     /// Takes run `name` over (a new ownership epoch) and opens it in the data directory (new,
     /// or stored by this or another planner).
-    fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, ErrorReport> {
+    fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, Refusal> {
         let preset = self.preset_for(&spec)?;
         let dir = RunDir::new(&self.config.data_dir, name);
         let internal = |what: String| ErrorReport::new(ErrorCode::Internal, what);
-        let epoch = self
-            .fleet
-            .take(name, &dir)
-            .map_err(|e| internal(format!("cannot take run `{name}` over: {e}")))?;
+        let epoch = self.fleet.take(name, &dir).map_err(|e| match e {
+            FleetError::Persist(PersistError::EpochTaken { .. }) => Refusal::Contended,
+            e => internal(format!("cannot take run `{name}` over: {e}")).into(),
+        })?;
         let ownership = (epoch, self.config.planner_id.as_str());
         Run::open(
             name.to_string(),
@@ -451,7 +468,7 @@ impl Service {
         .map_err(|e| {
             self.fleet
                 .step_down(name, format!("the run could not be opened: {e}"));
-            internal(format!("cannot open run `{name}`: {e}"))
+            internal(format!("cannot open run `{name}`: {e}")).into()
         })
     }
 
@@ -527,8 +544,11 @@ impl Service {
             };
             match self.open_run(&name, spec) {
                 Ok(run) => self.host(&mut runs, run),
-                Err(report) => {
+                Err(Refusal::Report(report)) => {
                     tracing::error!(run = %name, "stored run not resumed: {}", report.message);
+                }
+                Err(Refusal::Contended) => {
+                    tracing::info!(run = %name, "another planner took the run over first");
                 }
             }
         }
