@@ -591,10 +591,16 @@ mod tests {
     #[test]
     fn renders_the_table() {
         let expected = "\
-planner lab-1 (protocol 1, up 1h02m): 2 runs
-RUN            TASK      PRESET    MODE   EPISODES  TRANSITIONS  STATE      MODELS  AGENTS  LAST RETURNS                   PLAN MS p50/p90/p99
-cartpole-deen  cartpole  cem+deen  sync          7         1400  training       v6       2  3.00 10.12 48.00 97.50 120.00  12.2/20.0/31.5 (n=1000)
-ant-1          ant       pets      async         0           40  exploring      v0       0  -                              -
+planner lab-1 (protocol 2, up 1h02m): 2 runs
+fleet: 2 planners (lab-1, lab-2); serves *; refuses gpu-*
+ownership events:
+  01:01:01 planner lab-2 joined
+  01:01:40 took cartpole-deen at epoch 3 (from lab-2)
+  01:01:50 stepped down from ant-2 (epoch 4): lab-2 holds it at epoch 5
+  01:02:00 some_future_event
+RUN            TASK      PRESET    MODE   EPISODES  TRANSITIONS  STATE      MODELS  EPOCH  AGENTS  LAST RETURNS                   PLAN MS p50/p90/p99
+cartpole-deen  cartpole  cem+deen  sync          7         1400  training       v6      3       2  3.00 10.12 48.00 97.50 120.00  12.2/20.0/31.5 (n=1000)
+ant-1          ant       pets      async         0           40  exploring      v0      1       0  -                              -
 agents:
   cartpole-deen: bridge-0, bridge-1
   ant-1: (none attached)
