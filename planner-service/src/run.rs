@@ -418,3 +418,80 @@ impl Run {
         });
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::TaskId;
+
+    fn temp_dir(name: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("ebmpc-run-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
+    fn open(dir: &RunDir, planner: &str) -> Arc<Run> {
+        let spec = RunSpec {
+            task: TaskId::Cartpole,
+            preset: Some("cem".into()),
+            overrides: Default::default(),
+            mode: TrainMode::Async,
+            seed: 1,
+        };
+        let mut preset = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
+        preset.dynamics.hidden_size = 8;
+        let epoch = dir
+            .claim_epoch_after(dir.current_epoch().unwrap(), planner)
+            .unwrap();
+        let events: EventSink = Arc::new(|_: &str, _: RunEventKind| {});
+        Run::open(
+            "r".into(),
+            spec,
+            preset,
+            dir.clone(),
+            events,
+            (epoch, planner),
+        )
+        .unwrap()
+    }
+
+    /// What the start of an episode asks to store: nothing but the boundary check.
+    fn episode_start() -> Accepted {
+        Accepted {
+            transition: None,
+            finished: None,
+            abandoned: None,
+        }
+    }
+
+    /// A planner whose run was taken over at a newer epoch stores nothing at the next episode
+    /// boundary, and says so; the new owner stores on.
+    #[test]
+    fn an_owner_that_lost_the_run_is_fenced_at_the_next_boundary() {
+        let data = temp_dir("fence");
+        let dir = RunDir::new(&data, "r");
+        let old = open(&dir, "pa");
+        assert_eq!(old.epoch(), 1);
+        old.store("a", 0, 0, &[0.0; 4], &episode_start()).unwrap();
+        let new = open(&dir, "pb");
+        assert_eq!(new.epoch(), 2);
+        let err = old
+            .store("a", 1, 0, &[0.0; 4], &episode_start())
+            .unwrap_err();
+        assert!(
+            matches!(
+                err,
+                StoreError::Fenced(Fenced {
+                    held: 1,
+                    current: Some(2),
+                    ..
+                })
+            ),
+            "{err}"
+        );
+        assert!(old.check_owner().is_err());
+        new.store("a", 1, 0, &[0.0; 4], &episode_start()).unwrap();
+        new.check_owner().unwrap();
+        std::fs::remove_dir_all(&data).unwrap();
+    }
+}
