@@ -16,7 +16,7 @@
 use planner_service::data::Transitions;
 use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
-use planner_service::plan::{CemConfig, MpcPlanner};
+use planner_service::plan::{CemConfig, IcemConfig, MpcPlanner, Optimizer};
 use proto::{InferencePrecision, TaskId};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -100,12 +100,14 @@ fn pack(dynamics: &Ensemble, regularizer: &Regularizer) {
 /// the allocation counter is global, so no other test may run beside this one.
 #[test]
 fn planning_allocates_nothing_after_warm_up() {
-    for precision in [InferencePrecision::F32, InferencePrecision::Bf16] {
-        allocates_nothing_after_warm_up_in(precision);
+    for optimizer in [Optimizer::Cem, Optimizer::Icem] {
+        for precision in [InferencePrecision::F32, InferencePrecision::Bf16] {
+            allocates_nothing_after_warm_up_in(optimizer, precision);
+        }
     }
 }
 
-fn allocates_nothing_after_warm_up_in(precision: InferencePrecision) {
+fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: InferencePrecision) {
     let task = TaskId::Ant; // the task with termination, so that path is exercised too
     let spec = task.spec();
     let mut rng = StdRng::seed_from_u64(0);
@@ -142,6 +144,8 @@ fn allocates_nothing_after_warm_up_in(precision: InferencePrecision) {
         smoothing: 0.1,
         min_variance: 1e-3,
         particles: 4,
+        optimizer,
+        icem: IcemConfig::default(),
     };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(2)

@@ -71,6 +71,41 @@ impl std::str::FromStr for InferencePrecision {
     }
 }
 
+/// The optimiser that searches action sequences in planning.
+///
+/// `cem` is the paper's (PETS-style CEM with Table 2's settings); `icem` is the improved CEM of
+/// Pinneri et al. (CoRL 2020): colored noise, kept elites, population decay, best sequence
+/// executed, several times fewer imagined trajectories for the same plan quality.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Optimizer {
+    #[default]
+    Cem,
+    Icem,
+}
+
+impl std::fmt::Display for Optimizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Optimizer::Cem => "cem",
+            Optimizer::Icem => "icem",
+        })
+    }
+}
+
+impl std::str::FromStr for Optimizer {
+    type Err = String;
+
+    /// `cem` or `icem`, as in the TOML configuration and the JSON attach message.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "cem" => Ok(Optimizer::Cem),
+            "icem" => Ok(Optimizer::Icem),
+            other => Err(format!("unknown optimizer `{other}` (known: cem, icem)")),
+        }
+    }
+}
+
 /// Overrides of a run's preset. Every field is optional: `None` keeps the preset's value.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -96,6 +131,14 @@ pub struct PlannerOverrides {
     pub energy_hidden_size: Option<u32>,
     /// Number format of planning-time inference.
     pub inference_precision: Option<InferencePrecision>,
+    /// The planning optimiser (the preset's: `cem`).
+    pub optimizer: Option<Optimizer>,
+    /// iCEM: exponent β of the colored noise's `1/f^β` spectrum (0 = white noise).
+    pub icem_noise_beta: Option<f32>,
+    /// iCEM: fraction of the elites kept for the next iteration and step.
+    pub icem_keep_elites: Option<f32>,
+    /// iCEM: population decay factor per iteration (≥ 1).
+    pub icem_population_decay: Option<f32>,
 }
 
 /// What an agent asks for when it attaches: which task it is and how its run should plan.

@@ -165,6 +165,19 @@ struct SpecArgs {
     /// multiply-add rate on CPUs with AVX-512 BF16) or f32.
     #[arg(long)]
     inference_precision: Option<InferencePrecision>,
+    /// Planning optimiser: cem (the paper's, the default) or icem (Pinneri et al. 2020:
+    /// colored noise, kept elites, decaying population; real-time planning).
+    #[arg(long)]
+    optimizer: Option<proto::Optimizer>,
+    /// iCEM: exponent β of the colored noise (0 = white; planner default 2).
+    #[arg(long)]
+    icem_noise_beta: Option<f32>,
+    /// iCEM: fraction of the elites kept for the next iteration and step (default 0.3).
+    #[arg(long)]
+    icem_keep_elites: Option<f32>,
+    /// iCEM: population decay factor per iteration (default 1.25).
+    #[arg(long)]
+    icem_population_decay: Option<f32>,
 }
 
 /// Command-line spelling of [`TrainMode`].
@@ -208,6 +221,10 @@ impl SpecArgs {
                 energy_hidden_layers: self.energy_hidden_layers,
                 energy_hidden_size: self.energy_hidden_size,
                 inference_precision: self.inference_precision,
+                optimizer: self.optimizer,
+                icem_noise_beta: self.icem_noise_beta,
+                icem_keep_elites: self.icem_keep_elites,
+                icem_population_decay: self.icem_population_decay,
             },
             mode: match self.mode {
                 Mode::Sync => TrainMode::Sync,

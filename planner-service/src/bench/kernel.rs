@@ -19,6 +19,7 @@
 //! meets a denormal.
 
 use super::BenchError;
+use super::peak::{Peak, percent};
 use super::timing::{BATCHES, Timing, measure_for};
 use crate::nn::Activation;
 use crate::nn::matmul::{
@@ -163,12 +164,16 @@ pub struct KernelReport {
     pub layers: Vec<LayerTiming>,
     pub products: Vec<ProductTiming>,
     pub transposes: Vec<TransposeTiming>,
+    /// This core's peak, measured before and after the kernels (the higher): every f32 row is a fraction of the f32
+    /// FMA peak, every bf16 row of the bf16 dot peak (`matmul_par` rows of twice the peak).
+    pub peak: Peak,
 }
 
 pub(super) fn run(s: &Settings) -> Result<KernelReport, BenchError> {
     if s.layers.is_empty() && s.products.is_empty() && s.transposes.is_empty() {
         return Err(BenchError::Zero("shapes"));
     }
+    let peak = Peak::measure();
     let mut rng = StdRng::seed_from_u64(s.seed);
     let bf16_available = bf16_dot_available();
     let layers = s
@@ -193,6 +198,7 @@ pub(super) fn run(s: &Settings) -> Result<KernelReport, BenchError> {
         layers,
         products,
         transposes,
+        peak: peak.max(Peak::measure()),
     })
 }
 
@@ -360,20 +366,31 @@ fn time_transpose(rows: usize, cols: usize, batch: Duration) -> TransposeTiming 
     }
 }
 
-/// One table row: a kernel's name and its figures.
-fn write_row(f: &mut fmt::Formatter<'_>, label: &str, kernel: &str, t: &Throughput) -> fmt::Result {
+/// One table row: a kernel's name, its figures and their fractions of `peak`.
+fn write_row(
+    f: &mut fmt::Formatter<'_>,
+    label: &str,
+    kernel: &str,
+    t: &Throughput,
+    peak: Option<f64>,
+) -> fmt::Result {
     write!(
         f,
-        "\n  {label:<20} {kernel:<22} {:>9.3} {:>9.1} {:>10.3} {:>9.1}",
-        t.best_ms, t.best_gflops, t.median_ms, t.median_gflops
+        "\n  {label:<20} {kernel:<22} {:>9.3} {:>9.1} {:>6} {:>10.3} {:>9.1} {:>6}",
+        t.best_ms,
+        t.best_gflops,
+        percent(t.best_gflops, peak),
+        t.median_ms,
+        t.median_gflops,
+        percent(t.median_gflops, peak)
     )
 }
 
 fn write_header(f: &mut fmt::Formatter<'_>, first: &str) -> fmt::Result {
     write!(
         f,
-        "\n  {first:<20} {:<22} {:>9} {:>9} {:>10} {:>9}",
-        "kernel", "best ms", "GFLOP/s", "median ms", "GFLOP/s"
+        "\n  {first:<20} {:<22} {:>9} {:>9} {:>6} {:>10} {:>9} {:>6}",
+        "kernel", "best ms", "GFLOP/s", "peak", "median ms", "GFLOP/s", "peak"
     )
 }
 
@@ -382,9 +399,11 @@ impl fmt::Display for KernelReport {
         write!(
             f,
             "bench kernel: {:?} kernels, per product the best and the median of {BATCHES} \
-             batches; GFLOP/s count 2·m·n·k",
-            self.simd
+             batches; GFLOP/s count 2·m·n·k\n  {}",
+            self.simd, self.peak
         )?;
+        let (f32_peak, bf16_peak) = (self.peak.f32_gflops, self.peak.bf16_gflops);
+        let par_peak = f32_peak.map(|p| p * self.parallel_threads as f64);
         if !self.layers.is_empty() {
             write!(
                 f,
@@ -397,10 +416,10 @@ impl fmt::Display for KernelReport {
                     l.shape,
                     format!("{:?}", l.activation).to_lowercase()
                 );
-                write_row(f, &label, "general + act. pass", &l.general)?;
-                write_row(f, "", "packed f32, fused", &l.packed_f32)?;
+                write_row(f, &label, "general + act. pass", &l.general, f32_peak)?;
+                write_row(f, "", "packed f32, fused", &l.packed_f32, f32_peak)?;
                 if let Some(t) = &l.packed_bf16 {
-                    write_row(f, "", "packed bf16, fused", t)?;
+                    write_row(f, "", "packed bf16, fused", t, bf16_peak)?;
                 }
             }
             if !self.bf16_available {
@@ -418,9 +437,15 @@ impl fmt::Display for KernelReport {
             write_header(f, "product")?;
             let parallel = format!("ours, matmul_par ({}t)", self.parallel_threads);
             for p in &self.products {
-                write_row(f, &p.shape.to_string(), "ours, one thread", &p.ours)?;
-                write_row(f, "", &parallel, &p.ours_parallel)?;
-                write_row(f, "", "gemm, one thread", &p.gemm)?;
+                write_row(
+                    f,
+                    &p.shape.to_string(),
+                    "ours, one thread",
+                    &p.ours,
+                    f32_peak,
+                )?;
+                write_row(f, "", &parallel, &p.ours_parallel, par_peak)?;
+                write_row(f, "", "gemm, one thread", &p.gemm, f32_peak)?;
             }
         }
         if !self.transposes.is_empty() {
@@ -493,6 +518,7 @@ mod tests {
             "7×24×5",
             "gemm, one thread",
             "transpose 19×6",
+            "measured peak per core",
         ] {
             assert!(text.contains(needle), "{needle} missing from\n{text}");
         }

@@ -10,11 +10,13 @@
 
 mod cputime;
 mod kernel;
+mod peak;
 mod plan;
 mod timing;
 mod train;
 
 pub use kernel::{KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming};
+pub use peak::Peak;
 pub use plan::PlanReport;
 pub use train::TrainReport;
 
@@ -61,6 +63,19 @@ pub enum BenchCommand {
         /// Seed of the random transitions the models are fitted on and of the planner.
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// Planning optimiser: cem (the preset's, Table 2) or icem (default iCEM parameters,
+        /// the preset's population, elites and iterations).
+        #[arg(long, default_value = "cem")]
+        optimizer: proto::Optimizer,
+        /// Candidates per iteration instead of the preset's (e.g. a smaller iCEM population).
+        #[arg(long)]
+        population: Option<usize>,
+        /// Elites instead of the preset's.
+        #[arg(long)]
+        elites: Option<usize>,
+        /// Maximum iterations per plan instead of the preset's.
+        #[arg(long)]
+        iterations: Option<usize>,
     },
     /// Time single training steps (one minibatch of the preset's batch size) of the dynamics
     /// model and of DEEN.
@@ -137,8 +152,16 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
             chunks,
             precision,
             seed,
+            optimizer,
+            population,
+            elites,
+            iterations,
         } => {
             let settings = plan::Settings {
+                optimizer,
+                population,
+                elites,
+                iterations,
                 task,
                 regularizer,
                 timed: iterations_to_time,
@@ -287,6 +310,10 @@ mod tests {
                 chunks: None,
                 precision: InferencePrecision::F32,
                 seed: 0,
+                optimizer: proto::Optimizer::Cem,
+                population: None,
+                elites: None,
+                iterations: None,
             }
         );
         assert!(Cli::try_parse_from(["bench", "plan", "--task", "walker"]).is_err());

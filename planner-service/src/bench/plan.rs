@@ -1,6 +1,7 @@
 //! `bench plan`: milliseconds per full MPC planning call and the matrix throughput achieved.
 
 use super::cputime::process_cpu_time;
+use super::peak::{Peak, percent};
 use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
 use crate::dynamics::Ensemble;
 use crate::energy::{Regularizer, RegularizerKind};
@@ -22,6 +23,10 @@ pub(super) struct Settings {
     pub chunks: Option<usize>,
     pub precision: InferencePrecision,
     pub seed: u64,
+    pub optimizer: proto::Optimizer,
+    pub population: Option<usize>,
+    pub elites: Option<usize>,
+    pub iterations: Option<usize>,
 }
 
 /// Timing of full planning calls.
@@ -34,6 +39,7 @@ pub struct PlanReport {
     pub members: usize,
     /// Energy network layer sizes (empty without a regulariser).
     pub energy_sizes: Vec<usize>,
+    pub optimizer: proto::Optimizer,
     pub horizon: usize,
     pub population: usize,
     pub particles: usize,
@@ -44,8 +50,10 @@ pub struct PlanReport {
     pub precision: InferencePrecision,
     /// Planning calls timed.
     pub calls: usize,
-    /// Mean CEM iterations per call (early stopping may cut some).
+    /// Mean iterations per call (early stopping may cut some).
     pub mean_iterations: f64,
+    /// Mean candidate sequences scored per call (iCEM's population decays).
+    pub mean_candidates: f64,
     pub median_ms: f64,
     pub min_ms: f64,
     /// Matrix-product GFLOP/s at the median call time.
@@ -56,27 +64,24 @@ pub struct PlanReport {
     /// timed calls (below ~0.95: other work took cores away and the times are pessimistic).
     /// `None` where the platform does not report it.
     pub cpu_share: Option<f64>,
-    /// PyTorch's time for the same planning call on the project's 2-core machine, where known.
-    pub pytorch_ms: Option<f64>,
-}
-
-/// Milliseconds PyTorch takes for one planning call of the paper's single-model setting on the
-/// project's 2-core AVX-512 machine (measured for the project; the target to beat).
-fn pytorch_reference_ms(task: TaskId, regularizer: RegularizerKind, pets: bool) -> Option<f64> {
-    match (task, regularizer, pets) {
-        (TaskId::Cartpole, RegularizerKind::None, false) => Some(52.0),
-        (TaskId::HalfCheetah, RegularizerKind::None, false) => Some(132.0),
-        (TaskId::HalfCheetah, RegularizerKind::Deen, false) => Some(929.0),
-        (TaskId::Ant, RegularizerKind::Deen, false) => Some(786.0),
-        _ => None,
-    }
+    /// Matrix-product GFLOP/s per second of CPU time the threads received over all timed
+    /// calls: the rate while running, which other processes on the cores do not lower (time
+    /// the pool's threads spend spinning for work counts against it).
+    pub cpu_gflops: Option<f64>,
+    /// This core's peak, measured before and after the calls (the higher of the two).
+    pub peak: Peak,
 }
 
 pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     if s.timed == 0 {
         return Err(BenchError::Zero("iterations-to-time"));
     }
-    let preset = preset(s.task, s.regularizer, s.pets)?;
+    let mut preset = preset(s.task, s.regularizer, s.pets)?;
+    preset.cem.optimizer = s.optimizer;
+    let cem = &mut preset.cem;
+    cem.population = s.population.unwrap_or(cem.population);
+    cem.elites = s.elites.unwrap_or(cem.elites);
+    cem.iterations = s.iterations.unwrap_or(cem.iterations);
     let spec = s.task.spec();
     let mut rng = StdRng::seed_from_u64(s.seed);
     let data = random_transitions(s.task, 512, &mut rng);
@@ -93,6 +98,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     dynamics.set_inference_precision(s.precision);
     regularizer.set_inference_precision(s.precision);
     let precision = dynamics.member(0).mlp().inference_precision();
+    let peak = Peak::measure();
     let obs = data.row(0).0.to_vec();
 
     // Planning runs inside its own pool: one population chunk per thread, and no trips
@@ -111,32 +117,42 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    let (times, iterations, cpu_share) = pool.install(|| -> Result<_, BenchError> {
-        let mut planner = MpcPlanner::new(
-            spec,
-            preset.cem.clone(),
-            preset.energy_weight,
-            preset.sample_dynamics,
-            s.seed,
-        )?;
-        for _ in 0..s.warmup {
-            planner.plan(&obs, &dynamics, &regularizer);
-        }
-        let mut times = Vec::with_capacity(s.timed);
-        let mut iterations = 0u64;
-        let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
-        for _ in 0..s.timed {
-            let start = Instant::now();
-            let outcome = planner.plan(&obs, &dynamics, &regularizer);
-            times.push(start.elapsed());
-            iterations += u64::from(outcome.iterations);
-        }
-        let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
-        let cpu_share = cpu_before
-            .zip(process_cpu_time())
-            .map(|(before, after)| (after.saturating_sub(before)).as_secs_f64() / wall);
-        Ok((times, iterations, cpu_share))
-    })?;
+    let (times, iterations, candidates, cpu_share, cpu_seconds) =
+        pool.install(|| -> Result<_, BenchError> {
+            let mut planner = MpcPlanner::new(
+                spec,
+                preset.cem.clone(),
+                preset.energy_weight,
+                preset.sample_dynamics,
+                s.seed,
+            )?;
+            for _ in 0..s.warmup {
+                planner.plan(&obs, &dynamics, &regularizer);
+            }
+            let mut times = Vec::with_capacity(s.timed);
+            let mut iterations = 0u64;
+            let mut candidates = 0usize;
+            let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
+            for _ in 0..s.timed {
+                let start = Instant::now();
+                let outcome = planner.plan(&obs, &dynamics, &regularizer);
+                times.push(start.elapsed());
+                iterations += u64::from(outcome.iterations);
+                candidates += candidates_scored(&preset.cem, outcome.iterations as usize);
+            }
+            let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
+            let cpu_seconds = cpu_before
+                .zip(process_cpu_time())
+                .map(|(before, after)| after.saturating_sub(before).as_secs_f64());
+            Ok((
+                times,
+                iterations,
+                candidates,
+                cpu_seconds.map(|c| c / wall),
+                cpu_seconds,
+            ))
+        })?;
+    let peak = peak.max(Peak::measure());
     let mut times = times;
     let min_ms = times.iter().min().map_or(0.0, |t| t.as_secs_f64() * 1e3);
     let median = median_ms(&mut times);
@@ -149,7 +165,8 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     };
     let cem = &preset.cem;
     let mean_iterations = iterations as f64 / s.timed as f64;
-    let rows_per_call = mean_iterations * (cem.population * cem.particles * cem.horizon) as f64;
+    let mean_candidates = candidates as f64 / s.timed as f64;
+    let rows_per_call = mean_candidates * (cem.particles * cem.horizon) as f64;
     let flops = rows_per_call * (flops_per_row(&dynamics_sizes) + flops_per_row(&energy_sizes));
     Ok(PlanReport {
         task: s.task,
@@ -157,6 +174,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         members: dynamics.members(),
         dynamics_sizes,
         energy_sizes,
+        optimizer: cem.optimizer,
         horizon: cem.horizon,
         population: cem.population,
         particles: cem.particles,
@@ -165,13 +183,27 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         precision,
         calls: s.timed,
         mean_iterations,
+        mean_candidates,
         median_ms: median,
         min_ms,
         gflops: flops / (median * 1e-3) / 1e9,
         best_gflops: flops / (min_ms * 1e-3) / 1e9,
         cpu_share,
-        pytorch_ms: pytorch_reference_ms(s.task, s.regularizer, s.pets),
+        cpu_gflops: cpu_seconds
+            .filter(|&c| c > 0.0)
+            .map(|c| flops * s.timed as f64 / c / 1e9),
+        peak,
     })
+}
+
+/// Candidate sequences a solve of `iterations` iterations scores.
+fn candidates_scored(cem: &crate::plan::CemConfig, iterations: usize) -> usize {
+    match cem.optimizer {
+        proto::Optimizer::Cem => iterations * cem.population,
+        proto::Optimizer::Icem => (0..iterations)
+            .map(|i| crate::plan::icem::population_at(cem, i))
+            .sum(),
+    }
 }
 
 impl fmt::Display for PlanReport {
@@ -192,8 +224,14 @@ impl fmt::Display for PlanReport {
         }
         writeln!(
             f,
-            "  CEM        horizon {}, population {}, {} particle(s), {:.1} iterations per call",
-            self.horizon, self.population, self.particles, self.mean_iterations
+            "  {:<10} horizon {}, population {}, {} particle(s), {:.1} iterations and {:.0} \
+             candidates per call",
+            self.optimizer.to_string().to_uppercase(),
+            self.horizon,
+            self.population,
+            self.particles,
+            self.mean_iterations,
+            self.mean_candidates
         )?;
         writeln!(
             f,
@@ -222,12 +260,22 @@ impl fmt::Display for PlanReport {
                 }
             )?;
         }
-        if let Some(reference) = self.pytorch_ms {
+        let peak = self.peak.for_precision(self.precision);
+        let all_cores = peak.map(|p| p * self.threads as f64);
+        write!(
+            f,
+            "\n  peak       {}\n  of peak    {} best, {} median ({} thread(s) × the {} peak)",
+            self.peak,
+            percent(self.best_gflops, all_cores),
+            percent(self.gflops, all_cores),
+            self.threads,
+            self.precision
+        )?;
+        if let Some(g) = self.cpu_gflops {
             write!(
                 f,
-                "\n  PyTorch    {reference:.0} ms on the same machine: speed-up {:.2}× median, {:.2}× best",
-                reference / self.median_ms,
-                reference / self.min_ms
+                "; per CPU second {g:.1} GFLOP/s per core = {} of peak",
+                percent(g, peak)
             )?;
         }
         Ok(())
@@ -250,6 +298,10 @@ mod tests {
             chunks: None,
             precision: InferencePrecision::Bf16,
             seed: 1,
+            optimizer: proto::Optimizer::Cem,
+            population: None,
+            elites: None,
+            iterations: None,
         };
         let report = run(&settings).unwrap();
         assert_eq!(report.dynamics_sizes, vec![6, 200, 200, 200, 8]);
@@ -264,14 +316,37 @@ mod tests {
             (400, 25, 1, 2)
         );
         assert!(report.mean_iterations >= 1.0 && report.mean_iterations <= 5.0);
+        assert_eq!(report.mean_candidates, 400.0 * report.mean_iterations);
+        let icem = run(&Settings {
+            optimizer: proto::Optimizer::Icem,
+            population: Some(100),
+            elites: Some(10),
+            iterations: Some(3),
+            timed: 1,
+            ..settings
+        })
+        .unwrap();
+        assert_eq!(
+            (icem.population, icem.optimizer),
+            (100, proto::Optimizer::Icem)
+        );
+        assert!(icem.mean_candidates <= (100 + 80 + 64) as f64, "{icem:?}");
+        assert!(icem.to_string().contains("ICEM"), "{icem}");
         assert!(report.median_ms > 0.0 && report.min_ms <= report.median_ms);
         assert!(report.gflops.is_finite() && report.gflops > 0.0);
         assert!(report.best_gflops >= report.gflops);
         assert!(report.cpu_share.is_none_or(|c| c > 0.0));
-        assert_eq!(report.pytorch_ms, None);
+        assert!(report.cpu_gflops.is_none_or(|g| g.is_finite() && g > 0.0));
+        assert_eq!(
+            report.peak.bf16_gflops.is_some(),
+            report.precision == InferencePrecision::Bf16
+        );
         let text = report.to_string();
         assert!(
-            text.contains("6→3×200→8") && text.contains("9→3×200→1"),
+            text.contains("6→3×200→8")
+                && text.contains("9→3×200→1")
+                && text.contains("of peak")
+                && !text.contains("PyTorch"),
             "{text}"
         );
     }

@@ -14,7 +14,7 @@
 
 use crate::dynamics::DynamicsConfig;
 use crate::energy::{EnergyConfig, RegularizerKind};
-use crate::plan::CemConfig;
+use crate::plan::{CemConfig, IcemConfig, Optimizer};
 use proto::{InferencePrecision, PlannerOverrides, RegularizerChoice, TaskId};
 use serde::{Deserialize, Serialize};
 
@@ -274,12 +274,45 @@ impl Preset {
                 smoothing: 0.1,
                 min_variance: 1e-3,
                 particles: if pets { 20 } else { 1 },
+                optimizer: Optimizer::Cem,
+                icem: IcemConfig::default(),
             },
             sample_dynamics: pets,
             exploration_episodes: t.exploration_episodes,
             schedule: t.schedule,
             inference_precision: default_precision(),
         })
+    }
+
+    /// The optimiser overrides: the choice and iCEM's parameters, each checked against its
+    /// range ([`IcemConfig::validate`]); iCEM parameters without iCEM are refused rather than
+    /// silently ignored.
+    fn apply_optimizer(&mut self, o: &PlannerOverrides) -> Result<(), PresetError> {
+        if let Some(optimizer) = o.optimizer {
+            self.cem.optimizer = optimizer;
+        }
+        let icem = [
+            o.icem_noise_beta
+                .map(|v| (&mut self.cem.icem.noise_beta, v)),
+            o.icem_keep_elites
+                .map(|v| (&mut self.cem.icem.keep_elites, v)),
+            o.icem_population_decay
+                .map(|v| (&mut self.cem.icem.population_decay, v)),
+        ];
+        let mut any = false;
+        for (field, value) in icem.into_iter().flatten() {
+            *field = value;
+            any = true;
+        }
+        if any && self.cem.optimizer != Optimizer::Icem {
+            return Err(PresetError::InvalidOverride(
+                "icem_* overrides need optimizer = \"icem\"".to_string(),
+            ));
+        }
+        self.cem
+            .icem
+            .validate()
+            .map_err(|e| PresetError::InvalidOverride(e.to_string()))
     }
 
     /// Applies `overrides` (fields that are `Some`), checking that the result still makes sense.
@@ -353,6 +386,7 @@ impl Preset {
         if let Some(p) = o.inference_precision {
             self.inference_precision = p;
         }
+        self.apply_optimizer(o)?;
         if self.cem.elites > self.cem.population {
             return Err(PresetError::InvalidOverride(format!(
                 "elites ({}) cannot exceed population ({})",
@@ -440,5 +474,80 @@ mod tests {
             ..Default::default()
         };
         assert!(p.apply(&nan).is_err());
+    }
+
+    #[test]
+    fn every_preset_plans_with_cem_unless_icem_is_asked_for() {
+        for task in TaskId::ALL {
+            for method in METHODS {
+                let p = Preset::new(*task, Some(method)).unwrap();
+                assert_eq!(p.cem.optimizer, Optimizer::Cem, "{task} {method}");
+            }
+        }
+        let mut p = Preset::new(TaskId::HalfCheetah, None).unwrap();
+        let icem = PlannerOverrides {
+            optimizer: Some(Optimizer::Icem),
+            icem_noise_beta: Some(2.5),
+            icem_keep_elites: Some(0.2),
+            icem_population_decay: Some(1.5),
+            ..Default::default()
+        };
+        p.apply(&icem).unwrap();
+        assert_eq!(p.cem.optimizer, Optimizer::Icem);
+        assert_eq!(
+            p.cem.icem,
+            IcemConfig {
+                noise_beta: 2.5,
+                keep_elites: 0.2,
+                population_decay: 1.5
+            }
+        );
+    }
+
+    #[test]
+    fn hostile_optimizer_overrides_are_refused() {
+        let icem = |o: PlannerOverrides| PlannerOverrides {
+            optimizer: Some(Optimizer::Icem),
+            ..o
+        };
+        for bad in [
+            icem(PlannerOverrides {
+                icem_noise_beta: Some(f32::NAN),
+                ..Default::default()
+            }),
+            icem(PlannerOverrides {
+                icem_noise_beta: Some(1e9),
+                ..Default::default()
+            }),
+            icem(PlannerOverrides {
+                icem_keep_elites: Some(-0.5),
+                ..Default::default()
+            }),
+            icem(PlannerOverrides {
+                icem_population_decay: Some(0.0),
+                ..Default::default()
+            }),
+            icem(PlannerOverrides {
+                icem_population_decay: Some(f32::INFINITY),
+                ..Default::default()
+            }),
+            // iCEM parameters for CEM would be silently ignored: refused instead.
+            PlannerOverrides {
+                icem_noise_beta: Some(1.0),
+                ..Default::default()
+            },
+        ] {
+            let mut p = Preset::new(TaskId::Cartpole, None).unwrap();
+            let err = p.apply(&bad).unwrap_err();
+            assert!(matches!(err, PresetError::InvalidOverride(_)), "{bad:?}");
+        }
+        // The TOML/JSON spelling.
+        let o: PlannerOverrides =
+            serde_json::from_str(r#"{"optimizer": "icem", "icem_noise_beta": 1.5}"#).unwrap();
+        assert_eq!(
+            (o.optimizer, o.icem_noise_beta),
+            (Some(Optimizer::Icem), Some(1.5))
+        );
+        assert!(serde_json::from_str::<PlannerOverrides>(r#"{"optimizer": "mppi"}"#).is_err());
     }
 }

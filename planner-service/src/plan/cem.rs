@@ -17,6 +17,8 @@
 //!
 //! All buffers are allocated in [`Cem::new`]; [`Cem::optimize`] allocates nothing.
 
+use super::icem::IcemConfig;
+pub use proto::Optimizer;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -51,6 +53,13 @@ pub struct CemConfig {
     /// Imagined rollouts per candidate, averaged (`npart`); particle `p` uses ensemble member
     /// `p mod B`.
     pub particles: usize,
+    /// The optimiser over these settings: this module's CEM (the paper's) or
+    /// [`iCEM`](super::icem), which adds `icem`'s parameters.
+    #[serde(default)]
+    pub optimizer: Optimizer,
+    /// iCEM's own parameters (unused by CEM).
+    #[serde(default)]
+    pub icem: IcemConfig,
 }
 
 impl CemConfig {
@@ -98,6 +107,8 @@ pub enum ConfigError {
     Bounds,
     #[error("energy weight must be finite and non-negative, got {0}")]
     EnergyWeight(f32),
+    #[error("iCEM `{0}` is out of its range, got {1}")]
+    Icem(&'static str, f32),
 }
 
 /// What one solve did.
@@ -349,6 +360,8 @@ mod tests {
             smoothing: 0.1,
             min_variance: 1e-6,
             particles: 1,
+            optimizer: Optimizer::Cem,
+            icem: IcemConfig::default(),
         }
     }
 

@@ -35,8 +35,14 @@ use rayon::prelude::*;
 /// Scores populations of action sequences with a learned model; owns all working memory.
 pub struct Imagination {
     ctx: Context,
-    /// Candidates per chunk (the last chunk may hold fewer).
+    /// Candidates scored per call at most.
+    population: usize,
+    /// Candidates per chunk for the full population (the last chunk may use fewer); every
+    /// chunk has room for this many.
     chunk_len: usize,
+    /// Candidates per chunk in the last [`Imagination::evaluate`]: a smaller population (iCEM's
+    /// decay) is spread evenly over the chunks, so that every thread keeps working.
+    split: usize,
     chunks: Vec<Chunk>,
 }
 
@@ -94,10 +100,7 @@ impl Imagination {
         let chunks = chunks.clamp(1, population);
         let chunk_len = population.div_ceil(chunks);
         let chunks = (0..population.div_ceil(chunk_len))
-            .map(|c| {
-                let capacity = chunk_len.min(population - c * chunk_len);
-                Chunk::new(task, config.particles, capacity, seed_for_chunk(seed, c))
-            })
+            .map(|c| Chunk::new(task, config.particles, chunk_len, seed_for_chunk(seed, c)))
             .collect();
         let ctx = Context {
             task,
@@ -108,18 +111,22 @@ impl Imagination {
         };
         Self {
             ctx,
+            population,
             chunk_len,
+            split: chunk_len,
             chunks,
         }
     }
 
     /// Candidates this imagination scores per call.
     pub fn population(&self) -> usize {
-        self.chunks.iter().map(|c| c.capacity).sum()
+        self.population
     }
 
-    /// Scores every candidate of `actions` (`population × horizon × act_dim`) from `obs` into
-    /// `returns` (`population`).
+    /// Scores every candidate of `actions` (`n × horizon × act_dim`) from `obs` into `returns`
+    /// (`n`), for any `n` up to [`Imagination::population`] (iCEM's population shrinks from one
+    /// iteration to the next; the chunks are filled in order, so a smaller population leaves
+    /// the last chunks short or idle).
     pub fn evaluate(
         &mut self,
         obs: &[f32],
@@ -131,10 +138,18 @@ impl Imagination {
         let ctx = self.ctx;
         let seq = ctx.horizon * ctx.task.act_dim;
         assert_eq!(obs.len(), ctx.task.obs_dim, "observation dimension");
-        assert_eq!(returns.len(), self.population(), "population");
+        assert!(returns.len() <= self.population(), "population");
         assert_eq!(actions.len(), returns.len() * seq, "action sequences");
         self.prepare(dynamics, regularizer);
-        let chunk_len = self.chunk_len;
+        // The full population keeps its fixed split; a smaller one is spread evenly, which fits
+        // every chunk (⌈n/c⌉ ≤ chunk_len, the room of each).
+        let n = returns.len();
+        let chunk_len = if n == self.population() {
+            self.chunk_len
+        } else {
+            n.div_ceil(self.chunks.len()).max(1)
+        };
+        self.split = chunk_len;
         self.chunks
             .par_iter_mut()
             .zip(returns.par_chunks_mut(chunk_len))
@@ -156,7 +171,7 @@ impl Imagination {
     /// Mean energy per imagined step of candidate `i` in the last [`Imagination::evaluate`]
     /// (averaged over particles; 0 without a regulariser).
     pub fn candidate_energy(&self, i: usize) -> f32 {
-        self.chunks[i / self.chunk_len].candidate_energy[i % self.chunk_len]
+        self.chunks[i / self.split].candidate_energy[i % self.split]
     }
 
     /// Imagines one action sequence (`horizon × act_dim`) from `obs` and writes, per step, the
@@ -389,6 +404,8 @@ mod tests {
             smoothing: 0.1,
             min_variance: 1e-3,
             particles,
+            optimizer: crate::plan::Optimizer::Cem,
+            icem: crate::plan::IcemConfig::default(),
         }
     }
 
@@ -602,6 +619,42 @@ mod tests {
             returns.iter().all(|&r| r == f32::NEG_INFINITY),
             "{returns:?}"
         );
+    }
+
+    #[test]
+    fn a_smaller_population_is_spread_over_every_chunk_and_scored_the_same() {
+        // iCEM's population decays: 10 candidates in 3 chunks (4, 4, 2), then the first 9
+        // (3, 3, 3: more than the last chunk held at full size), then 4 (2, 2).
+        let task = TaskId::Cartpole.spec();
+        let obs = [0.1, 2.0, 0.0, 0.3];
+        let (horizon, population) = (5, 10);
+        let actions = random_sequences(task, population, horizon, 7);
+        let dynamics = ensemble(TaskId::Cartpole, 1, 3);
+        let energy = deen(TaskId::Cartpole, 4);
+        let mut imagination =
+            Imagination::new(task, &cem(horizon, population, 1), 0.01, false, 3, 0);
+        let mut full = vec![0.0; population];
+        imagination.evaluate(&obs, &actions, &dynamics, &energy, &mut full);
+        let full_energy: Vec<f32> = (0..population)
+            .map(|i| imagination.candidate_energy(i))
+            .collect();
+        let seq = horizon * task.act_dim;
+        for n in [9, 4, 1] {
+            let mut part = vec![0.0; n];
+            imagination.evaluate(&obs, &actions[..n * seq], &dynamics, &energy, &mut part);
+            for i in 0..n {
+                assert_close(
+                    part[i],
+                    full[i],
+                    "return of a candidate in a smaller population",
+                );
+                assert_close(
+                    imagination.candidate_energy(i),
+                    full_energy[i],
+                    "its energy",
+                );
+            }
+        }
     }
 
     #[test]

@@ -3,15 +3,17 @@
 
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use crate::plan::cem::{Cem, CemConfig, ConfigError, PopulationObjective};
+use crate::plan::cem::{CemConfig, ConfigError, PopulationObjective};
 use crate::plan::imagine::Imagination;
+use crate::plan::search::Search;
 use proto::TaskSpec;
 
 /// One agent's planner. Owns the optimiser's distribution (the warm start), the imagination's
 /// buffers and the random state, so planning allocates nothing.
 pub struct MpcPlanner {
     task: &'static TaskSpec,
-    cem: Cem,
+    /// CEM or iCEM, as the configuration says.
+    search: Search,
     imagination: Imagination,
     /// The action chosen by the last [`MpcPlanner::plan`] (the warm start has moved on since).
     action: Vec<f32>,
@@ -22,7 +24,7 @@ pub struct MpcPlanner {
 pub struct PlanOutcome<'a> {
     /// The action to apply (`act_dim`, within the task's bounds).
     pub action: &'a [f32],
-    /// Mean imagined regularised return of the last CEM iteration's elites (`-inf` only if the
+    /// Mean imagined regularised return of the last iteration's elites (`-inf` only if the
     /// model diverged on every elite).
     pub predicted_return: f32,
     /// Mean energy per imagined transition of those elites (0 without a regulariser).
@@ -96,10 +98,10 @@ impl MpcPlanner {
         if !(energy_weight.is_finite() && energy_weight >= 0.0) {
             return Err(ConfigError::EnergyWeight(energy_weight));
         }
-        let cem = Cem::new(config, task.action_low, task.action_high, seed)?;
+        let search = Search::new(config, task.action_low, task.action_high, seed)?;
         let imagination = Imagination::new(
             task,
-            cem.config(),
+            search.config(),
             energy_weight,
             sample,
             chunks,
@@ -107,7 +109,7 @@ impl MpcPlanner {
         );
         Ok(Self {
             task,
-            cem,
+            search,
             imagination,
             action: vec![0.0; task.act_dim],
         })
@@ -118,12 +120,12 @@ impl MpcPlanner {
     }
 
     pub fn config(&self) -> &CemConfig {
-        self.cem.config()
+        self.search.config()
     }
 
     /// Forgets the warm start; call at the start of an episode.
     pub fn reset(&mut self) {
-        self.cem.reset();
+        self.search.reset();
     }
 
     /// Plans from `obs` and returns the first action of the best plan found. The rest of the
@@ -140,15 +142,15 @@ impl MpcPlanner {
             dynamics,
             regularizer,
         };
-        let outcome = self.cem.optimize(&mut objective);
-        let elites = self.cem.elites();
+        let outcome = self.search.optimize(&mut objective);
+        let elites = self.search.elites();
         let mean_energy = elites
             .iter()
             .map(|&e| self.imagination.candidate_energy(e))
             .sum::<f32>()
             / elites.len() as f32;
-        self.action.copy_from_slice(self.cem.first_action());
-        self.cem.shift();
+        self.action.copy_from_slice(self.search.first_action());
+        self.search.shift();
         PlanOutcome {
             action: &self.action,
             predicted_return: outcome.elite_return,
@@ -166,18 +168,18 @@ impl MpcPlanner {
         dynamics: &Ensemble,
         regularizer: &Regularizer,
     ) -> ImaginedPlan {
-        let warm_start = self.cem.mean().to_vec();
-        self.cem.reset();
+        let warm_start = self.search.mean().to_vec();
+        self.search.reset();
         let mut objective = Imagined {
             imagination: &mut self.imagination,
             obs,
             dynamics,
             regularizer,
         };
-        let outcome = self.cem.optimize(&mut objective);
-        let actions = self.cem.mean().to_vec();
-        self.cem.set_mean(&warm_start);
-        let horizon = self.cem.config().horizon;
+        let outcome = self.search.optimize(&mut objective);
+        let actions = self.search.plan().to_vec();
+        self.search.set_mean(&warm_start);
+        let horizon = self.search.config().horizon;
         let (mut rewards, mut energies) = (vec![0.0; horizon], vec![0.0; horizon]);
         let predicted_return = self.imagination.rollout(
             obs,
@@ -203,6 +205,7 @@ mod tests {
     use crate::data::Transitions;
     use crate::dynamics::DynamicsConfig;
     use crate::energy::{EnergyConfig, RegularizerKind};
+    use crate::plan::{IcemConfig, Optimizer};
     use proto::TaskId;
     use rand::rngs::StdRng;
     use rand::{RngExt, SeedableRng};
@@ -249,6 +252,8 @@ mod tests {
             smoothing: 0.1,
             min_variance: 1e-3,
             particles: 1,
+            optimizer: Optimizer::Cem,
+            icem: IcemConfig::default(),
         }
     }
 
@@ -317,7 +322,7 @@ mod tests {
         let first = a.plan(&obs, &dynamics, &Regularizer::None).action[0];
         assert_eq!(first, b.plan(&obs, &dynamics, &Regularizer::None).action[0]);
         // The warm start is the plan shifted by one step, with the neutral action appended.
-        let plan = a.cem.mean().to_vec();
+        let plan = a.search.mean().to_vec();
         assert_eq!(plan[plan.len() - 1], 0.0);
         let second = a.plan(&obs, &dynamics, &Regularizer::None).action[0];
         b.reset();
@@ -334,9 +339,9 @@ mod tests {
         let task = TaskId::Cartpole.spec();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 2).unwrap();
         planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
-        let warm = planner.cem.mean().to_vec();
+        let warm = planner.search.mean().to_vec();
         let imagined = planner.imagine_plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
-        assert_eq!(planner.cem.mean(), &warm[..]);
+        assert_eq!(planner.search.mean(), &warm[..]);
         assert_eq!((imagined.actions.len(), imagined.rewards.len()), (8, 8));
         let total: f32 = imagined.rewards.iter().sum();
         assert!(
@@ -348,6 +353,55 @@ mod tests {
             imagined.rewards[7] > 0.9 && imagined.rewards[0] < imagined.rewards[7],
             "{imagined:?}"
         );
+    }
+
+    #[test]
+    fn the_default_preset_plans_exactly_as_plain_cem() {
+        // The optimiser dispatch changes nothing for the paper's method: the default preset's
+        // planner takes, step after step, the actions that `Cem` itself picks with the same
+        // seed over the same imagination.
+        let dynamics = learned_cart();
+        let task = TaskId::Cartpole.spec();
+        let preset = crate::config::Preset::new(TaskId::Cartpole, None).unwrap();
+        assert_eq!(preset.cem.optimizer, Optimizer::Cem);
+        let mut planner =
+            MpcPlanner::with_chunks(task, preset.cem.clone(), 0.0, false, 5, 2).unwrap();
+        let mut cem =
+            crate::plan::Cem::new(preset.cem.clone(), task.action_low, task.action_high, 5)
+                .unwrap();
+        let mut imagination = Imagination::new(task, &preset.cem, 0.0, false, 2, 6);
+        let mut obs = [0.5, PI, 0.0, 0.0];
+        for _ in 0..3 {
+            let planned = planner
+                .plan(&obs, &dynamics, &Regularizer::None)
+                .action
+                .to_vec();
+            cem.optimize(&mut Imagined {
+                imagination: &mut imagination,
+                obs: &obs,
+                dynamics: &dynamics,
+                regularizer: &Regularizer::None,
+            });
+            assert_eq!(planned, cem.first_action());
+            cem.shift();
+            obs[0] += 0.1 * planned[0];
+        }
+    }
+
+    #[test]
+    fn icem_plans_towards_the_reward_with_a_fraction_of_the_samples() {
+        let dynamics = learned_cart();
+        let task = TaskId::Cartpole.spec();
+        let mut cfg = config();
+        cfg.optimizer = Optimizer::Icem;
+        cfg.population = 50;
+        cfg.elites = 10;
+        let mut planner = MpcPlanner::new(task, cfg, 0.0, false, 3).unwrap();
+        let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        assert!(right.action[0] < -1.0, "{right:?}");
+        planner.reset();
+        let left = planner.plan(&[-0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        assert!(left.action[0] > 1.0, "{left:?}");
     }
 
     #[test]
