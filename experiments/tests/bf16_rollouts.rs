@@ -11,7 +11,7 @@ use planner_service::data::Transitions;
 use planner_service::models::Models;
 use planner_service::nn::simd::bf16_dot_available;
 use planner_service::plan::{CemConfig, Imagination};
-use planner_service::trainer::retrain;
+use planner_service::trainer::{TrainLimits, retrain};
 use proto::{InferencePrecision, TaskId};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -50,7 +50,9 @@ fn bf16_moves_imagined_returns_far_less_than_the_model_errs() {
             }
         }
     }
-    let models = retrain(&Models::untrained(spec, &preset, 0), &data, &preset, 2, 0).0;
+    let untrained = Models::untrained(spec, &preset, 0);
+    let (models, _) = retrain(&untrained, &data, &preset, 2, 0, &TrainLimits::unbounded())
+        .expect("training on simulator data stays finite");
     let with = |precision| {
         let mut m = models.clone();
         m.set_inference_precision(precision);

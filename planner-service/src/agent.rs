@@ -27,7 +27,7 @@ impl Accepted {
     }
 }
 
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 struct Episode {
     number: u32,
     /// The step of the last observation accepted.
@@ -38,10 +38,14 @@ struct Episode {
     episode_return: f32,
 }
 
-/// One agent of a run.
-#[derive(Debug)]
+/// One agent of a run. Cloned to try an observation before committing to it (see
+/// [`crate::run::Run::accept`]).
+#[derive(Clone, Debug)]
 pub struct AgentSession {
     name: String,
+    /// The task's episode length: no step beyond it is accepted, so an agent that never ends
+    /// its episode cannot grow one without bound.
+    episode_len: u32,
     current: Option<Episode>,
     /// The last episode number seen; new episodes must be numbered above it.
     last_episode: Option<u32>,
@@ -50,9 +54,10 @@ pub struct AgentSession {
 }
 
 impl AgentSession {
-    pub fn new(name: impl Into<String>) -> Self {
+    pub fn new(name: impl Into<String>, episode_len: u32) -> Self {
         Self {
             name: name.into(),
+            episode_len,
             current: None,
             last_episode: None,
             episodes_finished: 0,
@@ -83,6 +88,12 @@ impl AgentSession {
         let out_of_order =
             |why: String| ErrorReport::new(ErrorCode::OutOfOrder, why).at(msg.episode, msg.step);
         if msg.step == 0 {
+            if msg.episode == u32::MAX {
+                return Err(out_of_order(format!(
+                    "episode numbers must stay below {}, so that a next episode exists",
+                    u32::MAX
+                )));
+            }
             if msg.end.is_some() {
                 return Err(out_of_order("an episode cannot end at step 0".into()));
             }
@@ -111,6 +122,12 @@ impl AgentSession {
                 finished: None,
                 abandoned,
             });
+        }
+        if msg.step > self.episode_len {
+            return Err(out_of_order(format!(
+                "step {} is beyond this task's episode length of {} steps: end the episode (`end`) at step {} at the latest",
+                msg.step, self.episode_len, self.episode_len
+            )));
         }
         let Some(current) = self.current.as_mut() else {
             return Err(out_of_order(format!(
@@ -201,7 +218,7 @@ mod tests {
 
     #[test]
     fn an_episode_yields_its_transitions_and_return() {
-        let mut s = AgentSession::new("a");
+        let mut s = AgentSession::new("a", 200);
         let first = s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
         assert_eq!(first.transition, None);
         assert!(first.needs_action());
@@ -234,7 +251,7 @@ mod tests {
 
     #[test]
     fn out_of_order_messages_are_refused_without_changing_state() {
-        let mut s = AgentSession::new("a");
+        let mut s = AgentSession::new("a", 200);
         let err = s.observe(&obs(0, 3, 0.0, Some(0.0), None)).unwrap_err();
         assert_eq!(err.code, ErrorCode::OutOfOrder);
         s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
@@ -264,7 +281,7 @@ mod tests {
 
     #[test]
     fn a_restarted_episode_abandons_the_old_one() {
-        let mut s = AgentSession::new("a");
+        let mut s = AgentSession::new("a", 200);
         s.observe(&obs(4, 0, 0.0, None, None)).unwrap();
         s.acted(0, &[0.0]);
         s.observe(&obs(4, 1, 0.0, Some(1.0), None)).unwrap();
@@ -279,5 +296,34 @@ mod tests {
             s.observe(&obs(3, 0, 0.0, None, None)).unwrap_err().code,
             ErrorCode::OutOfOrder
         );
+    }
+
+    /// No step beyond the task's episode length is accepted; the episode stays where it was.
+    #[test]
+    fn steps_beyond_the_episode_length_are_refused() {
+        let mut s = AgentSession::new("a", 2);
+        s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
+        s.acted(0, &[0.0]);
+        s.observe(&obs(0, 1, 0.0, Some(1.0), None)).unwrap();
+        s.acted(1, &[0.0]);
+        s.observe(&obs(0, 2, 0.0, Some(1.0), None)).unwrap();
+        s.acted(2, &[0.0]);
+        for step in [3, u32::MAX] {
+            let err = s.observe(&obs(0, step, 0.0, Some(1.0), None)).unwrap_err();
+            assert_eq!(err.code, ErrorCode::OutOfOrder);
+            assert!(err.message.contains("episode length of 2"), "{err}");
+        }
+        assert_eq!(s.position(), Some((0, 2)));
+        // Ending the episode (or starting the next) is still accepted.
+        assert!(s.observe(&obs(1, 0, 0.0, None, None)).is_ok());
+    }
+
+    #[test]
+    fn the_last_episode_number_is_refused_so_that_a_next_one_exists() {
+        let mut s = AgentSession::new("a", 200);
+        let err = s.observe(&obs(u32::MAX, 0, 0.0, None, None)).unwrap_err();
+        assert_eq!(err.code, ErrorCode::OutOfOrder);
+        assert!(err.message.contains("below"), "{}", err.message);
+        s.observe(&obs(u32::MAX - 1, 0, 0.0, None, None)).unwrap();
     }
 }

@@ -43,6 +43,26 @@ impl Transitions {
         self.next_obs.extend_from_slice(&other.next_obs);
     }
 
+    /// Keeps the transitions whose row index `keep` accepts, in order.
+    pub fn retain(&mut self, mut keep: impl FnMut(usize) -> bool) {
+        let (od, ad) = (self.obs_dim, self.act_dim);
+        let mut kept = 0;
+        for i in 0..self.len() {
+            if !keep(i) {
+                continue;
+            }
+            if kept != i {
+                self.obs.copy_within(i * od..(i + 1) * od, kept * od);
+                self.next_obs.copy_within(i * od..(i + 1) * od, kept * od);
+                self.act.copy_within(i * ad..(i + 1) * ad, kept * ad);
+            }
+            kept += 1;
+        }
+        self.obs.truncate(kept * od);
+        self.next_obs.truncate(kept * od);
+        self.act.truncate(kept * ad);
+    }
+
     pub fn len(&self) -> usize {
         self.obs.len().checked_div(self.obs_dim).unwrap_or(0)
     }

@@ -1,5 +1,6 @@
 //! `planner-service`: the ebmpc planner daemon and its tools.
 
+mod runs_cli;
 mod status_cli;
 
 use anyhow::{Context, Result};
@@ -28,6 +29,8 @@ enum Command {
     Bench(planner_service::bench::BenchCommand),
     /// Ask running planners for their runs, agents and planning latencies (a table, or --json).
     Status(status_cli::StatusArgs),
+    /// List, delete or archive the runs stored in a data directory.
+    Runs(runs_cli::RunsArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -78,6 +81,9 @@ impl ServeArgs {
     }
 }
 
+/// How long blocking work (a plan in progress) may delay the exit after the service stopped.
+const SHUTDOWN_BLOCKING_GRACE: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// Resolves when the process is asked to stop (SIGINT or SIGTERM).
 async fn shutdown_signal() {
     match proto::shutdown::shutdown_signal().await {
@@ -104,9 +110,11 @@ fn main() -> Result<()> {
                 .enable_all()
                 .build()
                 .context("tokio runtime")?;
-            runtime
-                .block_on(Service::serve(config, shutdown_signal()))
-                .context("planner service")?;
+            let served = runtime.block_on(Service::serve(config, shutdown_signal()));
+            // A plan still running on the blocking pool (its worker was abandoned) must not
+            // hold the exit: the replay logs are already synced.
+            runtime.shutdown_timeout(SHUTDOWN_BLOCKING_GRACE);
+            served.context("planner service")?;
             Ok(())
         }
         Command::Bench(cmd) => {
@@ -115,5 +123,6 @@ fn main() -> Result<()> {
             Ok(())
         }
         Command::Status(args) => status_cli::run(args),
+        Command::Runs(args) => runs_cli::run(args),
     }
 }

@@ -64,6 +64,37 @@ impl Models {
         }
     }
 
+    /// The first part of these models that holds a NaN or an infinity (`None`: all finite).
+    /// Models that fail this are never served or checkpointed.
+    pub fn first_non_finite(&self) -> Option<String> {
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        for (i, m) in self.dynamics.parts().iter().enumerate() {
+            let pieces: [(&str, &[f32]); 7] = [
+                ("parameters", &m.params),
+                ("input means", m.input_norm.mean()),
+                ("input scales", m.input_norm.std()),
+                ("target means", m.target_norm.mean()),
+                ("target scales", m.target_norm.std()),
+                ("maximum log-variances", &m.max_logvar),
+                ("minimum log-variances", &m.min_logvar),
+            ];
+            if let Some((what, _)) = pieces.iter().find(|(_, v)| !finite(v)) {
+                return Some(format!("dynamics member {i}: {what}"));
+            }
+        }
+        if let Some(e) = self.regularizer.parts() {
+            let pieces: [(&str, &[f32]); 3] = [
+                ("parameters", &e.params),
+                ("means", e.normalizer.mean()),
+                ("scales", e.normalizer.std()),
+            ];
+            if let Some((what, _)) = pieces.iter().find(|(_, v)| !finite(v)) {
+                return Some(format!("{} regulariser: {what}", self.regularizer.kind()));
+            }
+        }
+        None
+    }
+
     /// Whether these models have been trained at all.
     pub fn is_trained(&self) -> bool {
         self.version > 0

@@ -1,20 +1,32 @@
 //! A run: one learning process with its task, preset, replay buffer and models, fed by one or
 //! more agents and retrained by its own trainer task.
 
-use crate::agent::Accepted;
+use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
-use crate::replay::{EpisodeSummary, ReplayBuffer, ReplayError};
+use crate::replay::{EpisodeSummary, LogSyncer, Record, ReplayBuffer, ReplayError};
 use crate::service::status::{Latency, LatencyWindow};
-use crate::trainer::{TrainReport, retrain};
-use proto::{EpisodeEnd, RunEventKind, RunSpec, TaskSpec, TrainMode};
+use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
+use proto::{
+    EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, TaskSpec, TrainMode,
+};
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
 use tokio::sync::{Notify, watch};
 
 /// Where a run reports what happens to it (the service publishes these on the run's events key).
 pub type EventSink = Arc<dyn Fn(&str, RunEventKind) + Send + Sync>;
+
+/// What the daemon hosting a run gives it: where its events go and how its training is
+/// bounded (time per retraining, the cancel flag raised at shutdown).
+#[derive(Clone)]
+pub struct Hosting {
+    pub events: EventSink,
+    pub train_limits: TrainLimits,
+    /// Most transitions the run's replay buffer keeps (`[storage] replay_capacity`).
+    pub replay_capacity: Option<usize>,
+}
 
 /// One run.
 pub struct Run {
@@ -30,12 +42,62 @@ pub struct Run {
     trained_through: watch::Sender<u32>,
     training: AtomicBool,
     wake_trainer: Notify,
-    events: EventSink,
+    hosting: Hosting,
     latencies: Mutex<LatencyWindow>,
+    /// What `status` reports of the buffer, kept apart from it so a report never waits for a
+    /// buffer busy writing to disk.
+    tally: Mutex<Tally>,
     /// Where checkpoints go (`None`: the run lives in memory only).
     dir: Option<RunDir>,
     /// The ownership epoch this planner holds the run at (see `crate::fleet`).
     epoch: u64,
+}
+
+/// The counters of a run's buffer that `status` reports.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Tally {
+    /// Finished (not interrupted) episodes.
+    pub episodes: u32,
+    pub transitions: usize,
+    /// The last [`Tally::RETURNS`] finished episodes: agent, episode, return; oldest first.
+    pub last_returns: Vec<(String, u32, f32)>,
+}
+
+impl Tally {
+    /// Finished episodes whose returns are kept.
+    pub const RETURNS: usize = 10;
+
+    fn finished(&mut self, agent: &str, episode: u32, episode_return: f32) {
+        self.episodes += 1;
+        if self.last_returns.len() == Self::RETURNS {
+            self.last_returns.remove(0);
+        }
+        self.last_returns
+            .push((agent.to_string(), episode, episode_return));
+    }
+}
+
+/// What storing an accepted observation leaves for the caller to do.
+#[derive(Debug, Default)]
+pub struct Stored {
+    /// The episode finished: the number of finished episodes a sync-mode agent must see
+    /// trained before its next episode.
+    pub must_cover: Option<u32>,
+    /// An episode ended (finished, or abandoned by a new one): the log to sync to disk, off
+    /// the event loop and without the buffer's lock (see [`sync_log`]).
+    pub sync: Option<LogSyncer>,
+}
+
+/// Forces a run's log to disk on the blocking pool, so a slow disk delays only the agent
+/// that waits for it. A failure is logged: the records were already handed to the OS, and the
+/// next sync tries again.
+pub async fn sync_log(run: &str, syncer: Option<LogSyncer>) {
+    let Some(syncer) = syncer else { return };
+    match tokio::task::spawn_blocking(move || syncer.sync()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => tracing::error!(run = %run, error = %e, "cannot sync the replay log to disk"),
+        Err(e) => tracing::error!(run = %run, error = %e, "the replay log sync task failed"),
+    }
 }
 
 /// Why a stored or new run could not be opened.
@@ -54,6 +116,16 @@ pub enum StoreError {
     Replay(#[from] ReplayError),
     #[error(transparent)]
     Fenced(#[from] Fenced),
+}
+
+/// Why an agent's observation was refused.
+#[derive(Debug)]
+pub enum Refused {
+    /// Out of order, or not stored (a full disk): the agent is told why and may send again.
+    Step(ErrorReport),
+    /// This planner lost the run to another: nothing was stored, the planner steps down and
+    /// the agent must attach again (to the new owner).
+    Fenced(Fenced),
 }
 
 /// This planner no longer owns the run: another took it over at a newer epoch (or its epoch
@@ -81,28 +153,32 @@ impl std::fmt::Debug for Run {
 
 impl Run {
     /// Opens the run stored in `dir`, or starts it there, as its owner at `epoch` (already
-    /// claimed in `dir` by `planner`): records its spec, recovers its replay buffer (cutting a
-    /// torn tail, skipping records of fenced owners), records the claim in it, and loads the
-    /// newest usable checkpoint. If the buffer holds finished episodes the models were not
-    /// trained on, the trainer is woken at once so the models catch up with the data.
+    /// claimed in `dir` by `planner`): recovers its replay buffer (cutting a torn tail,
+    /// skipping records of fenced owners), records the claim in it, bounds it to
+    /// `replay_capacity` transitions if given, loads the newest usable checkpoint and records
+    /// its spec. If the buffer holds finished episodes the models were not trained on, the
+    /// trainer is woken at once so the models catch up with the data.
     pub fn open(
         name: String,
         spec: RunSpec,
         preset: Preset,
         dir: RunDir,
-        events: EventSink,
+        hosting: Hosting,
         (epoch, planner): (u64, &str),
     ) -> Result<Arc<Self>, OpenError> {
         let task = spec.task.spec();
-        dir.write_spec(&spec)?;
         let mut buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
         buffer.claim(epoch, planner)?;
+        buffer.set_capacity(hosting.replay_capacity)?;
         let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
             None => Models::untrained(task, &preset, spec.seed),
         };
         models.set_inference_precision(preset.inference_precision);
         models.pack_for_inference();
+        // Only a run whose models could be built is recorded: a stored spec is re-opened at
+        // every start, so one that cannot be built must never reach the disk.
+        dir.write_spec(&spec)?;
         tracing::info!(
             run = %name,
             transitions = buffer.len(),
@@ -119,7 +195,7 @@ impl Run {
             buffer,
             models,
             Some(dir),
-            events,
+            hosting,
         ))
     }
 
@@ -130,7 +206,7 @@ impl Run {
         buffer: ReplayBuffer,
         models: Models,
         dir: Option<RunDir>,
-        events: EventSink,
+        hosting: Hosting,
     ) -> Arc<Self> {
         let task = spec.task.spec();
         let stored = buffer
@@ -140,6 +216,15 @@ impl Run {
             .count() as u32;
         let covered = models.episodes_covered;
         let epoch = buffer.epoch();
+        let mut tally = Tally {
+            transitions: buffer.len(),
+            ..Tally::default()
+        };
+        for e in buffer.episodes() {
+            if e.end != EpisodeEnd::Interrupted {
+                tally.finished(&e.agent, e.episode, e.episode_return);
+            }
+        }
         let run = Arc::new(Self {
             name,
             spec,
@@ -151,8 +236,9 @@ impl Run {
             trained_through: watch::Sender::new(covered),
             training: AtomicBool::new(false),
             wake_trainer: Notify::new(),
-            events,
+            hosting,
             latencies: Mutex::new(LatencyWindow::default()),
+            tally: Mutex::new(tally),
             dir,
             epoch,
         });
@@ -220,8 +306,12 @@ impl Run {
         self.episodes_stored.load(Ordering::SeqCst)
     }
 
-    pub fn transitions_stored(&self) -> usize {
-        self.lock_buffer().len()
+    /// What `status` reports of the buffer, without touching the buffer.
+    pub fn tally(&self) -> Tally {
+        self.tally
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 
     pub fn is_training(&self) -> bool {
@@ -234,19 +324,9 @@ impl Run {
             .episodes()
             .iter()
             .filter(|e| e.agent == agent)
-            .map(|e| e.episode + 1)
+            .map(|e| e.episode.saturating_add(1))
             .max()
             .unwrap_or(0)
-    }
-
-    /// Returns of the finished episodes, oldest first.
-    pub fn returns(&self) -> Vec<(String, u32, f32)> {
-        self.lock_buffer()
-            .episodes()
-            .iter()
-            .filter(|e| e.end != EpisodeEnd::Interrupted)
-            .map(|e| (e.agent.clone(), e.episode, e.episode_return))
-            .collect()
     }
 
     /// Records how long a planned action took.
@@ -271,47 +351,100 @@ impl Run {
         self.episodes_stored() < self.preset.exploration_episodes || !self.models().is_trained()
     }
 
+    fn lock_tally(&self) -> std::sync::MutexGuard<'_, Tally> {
+        self.tally.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
     fn lock_buffer(&self) -> std::sync::MutexGuard<'_, ReplayBuffer> {
         self.buffer.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Stores what an accepted observation produced: its transition (with `next_obs`), the
-    /// episode it finished, an episode it abandoned. Returns the number of finished episodes a
-    /// sync-mode agent must see trained before its next episode (if this one finished).
-    /// At episode boundaries (a start, an end) it first checks that this planner still owns
-    /// the run, and stores nothing if not.
-    pub fn store(
+    /// Takes a validated observation from `session`'s agent: checks that it follows on, stores
+    /// what it completes, and only then moves the session on. If the store fails (a full
+    /// disk) the agent gets a [`ErrorCode::Storage`] error and its session stays where it was,
+    /// so it can send the same observation again once the disk has room. If this planner lost
+    /// the run, nothing is stored and [`Refused::Fenced`] says so.
+    pub fn accept(
+        &self,
+        session: &mut AgentSession,
+        msg: &Observation,
+    ) -> Result<(Accepted, Stored), Refused> {
+        let mut next = session.clone();
+        let accepted = next.observe(msg).map_err(Refused::Step)?;
+        let stored = self
+            .store(session.name(), msg.episode, msg.step, &msg.obs, &accepted)
+            .map_err(|e| match e {
+                StoreError::Fenced(fenced) => Refused::Fenced(fenced),
+                StoreError::Replay(e) => {
+                    tracing::error!(run = %self.name, agent = %session.name(), error = %e, "cannot store a transition; the step is refused");
+                    Refused::Step(
+                        ErrorReport::new(
+                            ErrorCode::Storage,
+                            format!(
+                                "the planner could not store this step, send it again later: {e}"
+                            ),
+                        )
+                        .at(msg.episode, msg.step),
+                    )
+                }
+            })?;
+        *session = next;
+        Ok((accepted, stored))
+    }
+
+    /// Stores what an accepted observation produced — an episode it abandoned, its
+    /// transition (with `next_obs`), the episode it finished — in one append, so that either
+    /// all of it is stored or none. At episode boundaries (a start, an end) it first checks
+    /// that this planner still owns the run, and stores nothing if not.
+    fn store(
         &self,
         agent: &str,
         episode: u32,
         step: u32,
         next_obs: &[f32],
         accepted: &Accepted,
-    ) -> Result<Option<u32>, StoreError> {
+    ) -> Result<Stored, StoreError> {
         if accepted.transition.is_none() || accepted.finished.is_some() {
             self.check_owner()?;
         }
-        let mut buffer = self.lock_buffer();
+        let mut records = Vec::with_capacity(3);
         if let Some(abandoned) = &accepted.abandoned {
-            buffer.end_episode(abandoned.clone())?;
+            records.push(Record::from(abandoned.clone()));
         }
         if let Some((obs, act, origin, reward)) = &accepted.transition {
-            buffer.push(
-                agent,
+            records.push(Record::Transition {
+                epoch: self.epoch,
+                agent: agent.to_string(),
                 episode,
-                step - 1,
-                obs,
-                act,
-                *origin,
-                next_obs,
-                *reward,
-            )?;
+                step: step - 1,
+                obs: obs.clone(),
+                act: act.clone(),
+                origin: *origin,
+                next_obs: next_obs.to_vec(),
+                reward: *reward,
+            });
         }
-        let Some(finished) = &accepted.finished else {
-            return Ok(None);
-        };
-        buffer.end_episode(finished.clone())?;
+        if let Some(finished) = &accepted.finished {
+            records.push(Record::from(finished.clone()));
+        }
+        let mut buffer = self.lock_buffer();
+        buffer.append(records)?;
+        // Every episode end, finished or abandoned, is synced to disk.
+        let sync = (accepted.finished.is_some() || accepted.abandoned.is_some())
+            .then(|| buffer.syncer())
+            .flatten();
+        // Capacity may have evicted old transitions: the tally follows the buffer's length.
+        let transitions = buffer.len();
         drop(buffer);
+        self.lock_tally().transitions = transitions;
+        let Some(finished) = &accepted.finished else {
+            return Ok(Stored {
+                must_cover: None,
+                sync,
+            });
+        };
+        self.lock_tally()
+            .finished(agent, finished.episode, finished.episode_return);
         let stored = self.episodes_stored.fetch_add(1, Ordering::SeqCst) + 1;
         self.emit(RunEventKind::EpisodeFinished {
             agent: agent.to_string(),
@@ -321,14 +454,23 @@ impl Run {
             end: finished.end,
         });
         self.wake_trainer.notify_one();
-        Ok(Some(stored))
+        Ok(Stored {
+            must_cover: Some(stored),
+            sync,
+        })
     }
 
-    /// Records an episode that an agent left unfinished (it vanished or detached), unless
-    /// this planner no longer owns the run (the new owner records it when it reads the log).
-    pub fn store_interrupted(&self, summary: EpisodeSummary) -> Result<(), StoreError> {
+    /// Records an episode that an agent left unfinished (it vanished or detached), and
+    /// returns the handle that syncs it to disk, unless this planner no longer owns the run
+    /// (the new owner records it when it reads the log).
+    pub fn store_interrupted(
+        &self,
+        summary: EpisodeSummary,
+    ) -> Result<Option<LogSyncer>, StoreError> {
         self.check_owner()?;
-        Ok(self.lock_buffer().end_episode(summary)?)
+        let mut buffer = self.lock_buffer();
+        buffer.append(vec![Record::from(summary)])?;
+        Ok(buffer.syncer())
     }
 
     /// Waits until the models in use were trained on at least `episodes` finished episodes.
@@ -339,7 +481,7 @@ impl Run {
     }
 
     fn emit(&self, kind: RunEventKind) {
-        (self.events)(&self.name, kind);
+        (self.hosting.events)(&self.name, kind);
     }
 
     /// The trainer: retrains whenever episodes were stored since the last training, until the
@@ -361,34 +503,43 @@ impl Run {
             let seed = self.spec.seed;
             let run = self.clone();
             let task = self.task;
+            let limits = self.hosting.train_limits.clone();
             let outcome = tokio::task::spawn_blocking(move || {
-                let (models, report) = retrain(&current, &data, &preset, episodes, seed);
+                let trained = retrain(&current, &data, &preset, episodes, seed, &limits)?;
                 // Checkpoint before the swap: models in use are always on disk too, so a
-                // restart never plans with models older than the ones agents last saw. A
-                // planner that lost the run writes no checkpoint over the new owner's.
+                // restart never plans with models older than the ones agents last saw. Only
+                // finite models get here: `retrain` refuses the others. A planner that lost the
+                // run writes no checkpoint over the new owner's.
                 if let Some(dir) = &run.dir {
                     match run.check_owner() {
                         Err(e) => tracing::warn!(error = %e, "no checkpoint written"),
-                        Ok(()) => match dir.save_models(&models, task) {
+                        Ok(()) => match dir.save_models(&trained.0, task) {
                             Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
                             Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
                         },
                     }
                 }
-                (models, report)
+                Ok(trained)
             })
             .await;
             self.training.store(false, Ordering::SeqCst);
-            match outcome {
-                Ok((models, report)) => self.install(models, report, episodes),
-                Err(e) => {
-                    tracing::error!(run = %self.name, error = %e, "training failed; keeping the previous models");
-                    self.emit(RunEventKind::TrainingFailed {
-                        message: e.to_string(),
-                    });
-                    // Do not leave sync-mode agents waiting forever on models that will not come.
-                    self.trained_through.send_replace(episodes);
+            let failure = match outcome {
+                Ok(Ok((models, report))) => {
+                    self.install(models, report, episodes);
+                    None
                 }
+                Ok(Err(TrainError::Cancelled)) => {
+                    tracing::info!(run = %self.name, "training cancelled");
+                    return;
+                }
+                Ok(Err(e)) => Some(e.to_string()),
+                Err(e) => Some(format!("training panicked: {e}")),
+            };
+            if let Some(message) = failure {
+                tracing::error!(run = %self.name, "training failed; keeping the previous models: {message}");
+                self.emit(RunEventKind::TrainingFailed { message });
+                // Do not leave sync-mode agents waiting forever on models that will not come.
+                self.trained_through.send_replace(episodes);
             }
             if self.episodes_stored() > episodes {
                 self.wake_trainer.notify_one();
@@ -403,6 +554,9 @@ impl Run {
             transitions = report.transitions,
             dynamics_epochs = report.dynamics_epochs,
             energy_epochs = report.energy_epochs,
+            dynamics_steps = report.dynamics_steps,
+            energy_steps = report.energy_steps,
+            cut_short = ?report.cut_short,
             dynamics_loss = report.dynamics_loss,
             energy_loss = report.energy_loss,
             seconds = report.seconds,
@@ -422,12 +576,114 @@ impl Run {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::TaskId;
+    use crate::replay::log_tests::FillingDisk;
+    use proto::{PlannerOverrides, TaskId};
+    use std::sync::atomic::AtomicBool;
 
-    fn temp_dir(name: &str) -> std::path::PathBuf {
-        let dir = std::env::temp_dir().join(format!("ebmpc-run-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        dir
+    fn small_preset() -> Preset {
+        let mut preset = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
+        preset.dynamics.hidden_size = 8;
+        preset
+    }
+
+    /// A run whose replay log writes through a disk that fills up while `full` is set.
+    fn run_on_a_filling_disk(path: &std::path::Path, full: Arc<AtomicBool>) -> Arc<Run> {
+        let spec = RunSpec {
+            task: TaskId::Cartpole,
+            preset: Some("cem".into()),
+            overrides: PlannerOverrides::default(),
+            mode: TrainMode::Async,
+            seed: 1,
+        };
+        let task = spec.task.spec();
+        let buffer =
+            ReplayBuffer::open_with(path, task, |file| Box::new(FillingDisk { file, full }))
+                .unwrap();
+        let preset = small_preset();
+        let models = Models::untrained(task, &preset, 1);
+        Run::with_state(
+            "r".into(),
+            spec,
+            preset,
+            buffer,
+            models,
+            None,
+            quiet_hosting(),
+        )
+    }
+
+    /// Hosting that drops events and bounds nothing.
+    fn quiet_hosting() -> Hosting {
+        Hosting {
+            events: Arc::new(|_: &str, _: RunEventKind| {}),
+            train_limits: TrainLimits::unbounded(),
+            replay_capacity: None,
+        }
+    }
+
+    fn obs(episode: u32, step: u32, end: Option<EpisodeEnd>) -> Observation {
+        let reward = (step > 0).then_some(step as f32);
+        Observation::new(episode, step, vec![step as f32; 4], reward, end)
+    }
+
+    #[test]
+    fn a_full_disk_refuses_the_step_loses_nothing_acknowledged_and_the_agent_resends() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let full = Arc::new(AtomicBool::new(false));
+        let run = run_on_a_filling_disk(&path, full.clone());
+        let mut session = AgentSession::new("a", 200);
+        // Steps 0..=3 are stored and acknowledged (the agent "receives" an action each).
+        for step in 0..4 {
+            run.accept(&mut session, &obs(0, step, None)).unwrap();
+            session.acted(step, &[0.5]);
+        }
+        // The disk fills: step 4 (mid-episode) and the episode's last step are refused with a
+        // storage error and the session stays at step 3.
+        full.store(true, Ordering::SeqCst);
+        for attempt in [obs(0, 4, None), obs(0, 4, Some(EpisodeEnd::TimeLimit))] {
+            let Refused::Step(err) = run.accept(&mut session, &attempt).unwrap_err() else {
+                panic!("a run in memory is never fenced");
+            };
+            assert_eq!(err.code, ErrorCode::Storage, "{err:?}");
+            assert_eq!((err.episode, err.step), (Some(0), Some(4)));
+            assert_eq!(session.position(), Some((0, 3)));
+        }
+        assert_eq!(run.tally().transitions, 3);
+        assert_eq!(run.episodes_stored(), 0);
+        // Space returns: the agent resends the same observation and the episode carries on.
+        full.store(false, Ordering::SeqCst);
+        let (_, stored) = run
+            .accept(&mut session, &obs(0, 4, Some(EpisodeEnd::TimeLimit)))
+            .unwrap();
+        assert_eq!(stored.must_cover, Some(1));
+        stored.sync.expect("a log on disk").sync().unwrap();
+        drop(run);
+        // Every transition is on disk exactly once, and the episode ended once.
+        let reopened = ReplayBuffer::open(&path, TaskId::Cartpole.spec()).unwrap();
+        assert_eq!(reopened.len(), 4);
+        let states: Vec<f32> = (0..4).map(|i| reopened.transitions().row(i).0[0]).collect();
+        assert_eq!(states, vec![0.0, 1.0, 2.0, 3.0]);
+        assert_eq!(reopened.episodes().len(), 1);
+        assert_eq!(reopened.episodes()[0].end, EpisodeEnd::TimeLimit);
+        assert_eq!(reopened.episodes()[0].steps, 4);
+    }
+
+    #[test]
+    fn every_episode_end_hands_back_a_sync_finished_or_abandoned() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = run_on_a_filling_disk(&dir.path().join("replay.log"), Default::default());
+        let mut session = AgentSession::new("a", 200);
+        let (_, stored) = run.accept(&mut session, &obs(0, 0, None)).unwrap();
+        assert!(stored.sync.is_none(), "nothing ended");
+        session.acted(0, &[0.5]);
+        let (_, stored) = run.accept(&mut session, &obs(0, 1, None)).unwrap();
+        assert!(stored.sync.is_none(), "a step in the middle");
+        // Episode 1 starts before 0 ended: 0 is abandoned, and its end is synced.
+        let (accepted, stored) = run.accept(&mut session, &obs(1, 0, None)).unwrap();
+        assert_eq!(accepted.abandoned.unwrap().end, EpisodeEnd::Interrupted);
+        assert!(stored.sync.is_some());
+        assert_eq!(stored.must_cover, None);
     }
 
     fn open(dir: &RunDir, planner: &str) -> Arc<Run> {
@@ -438,18 +694,16 @@ mod tests {
             mode: TrainMode::Async,
             seed: 1,
         };
-        let mut preset = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
-        preset.dynamics.hidden_size = 8;
+        let preset = small_preset();
         let epoch = dir
             .claim_epoch_after(dir.current_epoch().unwrap(), planner)
             .unwrap();
-        let events: EventSink = Arc::new(|_: &str, _: RunEventKind| {});
         Run::open(
             "r".into(),
             spec,
             preset,
             dir.clone(),
-            events,
+            quiet_hosting(),
             (epoch, planner),
         )
         .unwrap()
@@ -468,8 +722,8 @@ mod tests {
     /// boundary, and says so; the new owner stores on.
     #[test]
     fn an_owner_that_lost_the_run_is_fenced_at_the_next_boundary() {
-        let data = temp_dir("fence");
-        let dir = RunDir::new(&data, "r");
+        let data = tempfile::tempdir().unwrap();
+        let dir = RunDir::new(data.path(), "r");
         let old = open(&dir, "pa");
         assert_eq!(old.epoch(), 1);
         old.store("a", 0, 0, &[0.0; 4], &episode_start()).unwrap();
@@ -492,6 +746,5 @@ mod tests {
         assert!(old.check_owner().is_err());
         new.store("a", 1, 0, &[0.0; 4], &episode_start()).unwrap();
         new.check_owner().unwrap();
-        std::fs::remove_dir_all(&data).unwrap();
     }
 }

@@ -1,14 +1,20 @@
 //! Retraining a run's models on its whole replay buffer (paper §2, Figure 1).
 //!
 //! Training starts from the current weights (the buffer only grows between two retrainings)
-//! with the epochs the preset's schedule gives for the number of stored episodes.
+//! with the epochs the preset's schedule gives for the number of stored episodes, within the
+//! run's budget: the preset's cap on gradient steps, the daemon's seconds per retraining, and
+//! a cancel flag the daemon raises when it stops. A retraining whose losses or parameters are
+//! not all finite is discarded: the caller keeps serving the previous models.
 
 use crate::config::Preset;
 use crate::data::Transitions;
 use crate::models::Models;
+use crate::nn::train::{FitBudget, Stop};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
-use std::time::Instant;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::time::{Duration, Instant};
 
 /// What one retraining did.
 #[derive(Clone, Debug, PartialEq)]
@@ -17,9 +23,51 @@ pub struct TrainReport {
     pub transitions: usize,
     pub dynamics_epochs: usize,
     pub energy_epochs: usize,
+    /// Optimiser steps taken by the dynamics (summed over members) and the regulariser.
+    pub dynamics_steps: usize,
+    pub energy_steps: usize,
     pub dynamics_loss: f32,
     pub energy_loss: f32,
+    /// Why a model's training ended before its epochs (the step cap or the time budget).
+    pub cut_short: Option<Stop>,
     pub seconds: f32,
+}
+
+/// The daemon's side of a retraining's budget.
+#[derive(Clone, Debug)]
+pub struct TrainLimits {
+    /// Wall-clock budget of one retraining, shared by the two models half and half (the
+    /// regulariser also gets whatever the dynamics left).
+    pub max_seconds: f64,
+    /// Raised when the daemon stops: training ends before its next minibatch.
+    pub cancel: Arc<AtomicBool>,
+}
+
+impl TrainLimits {
+    /// No time budget and a cancel flag nobody raises: for experiments and tests, which train
+    /// the preset's full epochs.
+    pub fn unbounded() -> Self {
+        Self {
+            max_seconds: f64::INFINITY,
+            cancel: Arc::new(AtomicBool::new(false)),
+        }
+    }
+
+    /// The instant `fraction` of the time budget after `started` (`None`: no deadline).
+    fn deadline(&self, started: Instant, fraction: f64) -> Option<Instant> {
+        Duration::try_from_secs_f64(self.max_seconds * fraction)
+            .ok()
+            .and_then(|d| started.checked_add(d))
+    }
+}
+
+/// Why a retraining produced no models.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TrainError {
+    #[error("training was cancelled")]
+    Cancelled,
+    #[error("training diverged: the {what} is not finite; the previous models stay in use")]
+    NonFinite { what: String },
 }
 
 /// Trains a copy of `current` on `data`, which holds the transitions of `episodes` finished
@@ -30,14 +78,42 @@ pub fn retrain(
     preset: &Preset,
     episodes: u32,
     seed: u64,
-) -> (Models, TrainReport) {
+    limits: &TrainLimits,
+) -> Result<(Models, TrainReport), TrainError> {
     let started = Instant::now();
     let mut rng =
         StdRng::seed_from_u64(seed ^ (current.version + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let (dynamics_epochs, energy_epochs) = preset.schedule.epochs(preset, episodes);
+    let (dynamics_epochs, energy_epochs) = preset.epochs(episodes);
+    let plan = |epochs: usize, deadline: Option<Instant>| FitBudget {
+        epochs,
+        max_steps: preset
+            .max_gradient_steps
+            .map(|s| usize::try_from(s).unwrap_or(usize::MAX)),
+        deadline,
+        cancel: Some(limits.cancel.clone()),
+    };
     let mut next = current.clone();
-    let dynamics = next.dynamics.fit(data, dynamics_epochs, &mut rng);
-    let energy = next.regularizer.fit(data, energy_epochs, &mut rng);
+    let dynamics = next.dynamics.fit(
+        data,
+        plan(dynamics_epochs, limits.deadline(started, 0.5)),
+        &mut rng,
+    );
+    let energy = next.regularizer.fit(
+        data,
+        plan(energy_epochs, limits.deadline(started, 1.0)),
+        &mut rng,
+    );
+    if [dynamics.stopped, energy.stopped].contains(&Some(Stop::Cancelled)) {
+        return Err(TrainError::Cancelled);
+    }
+    for (what, report) in [("dynamics loss", &dynamics), ("regulariser loss", &energy)] {
+        if report.steps > 0 && !report.loss.is_finite() {
+            return Err(TrainError::NonFinite { what: what.into() });
+        }
+    }
+    if let Some(what) = next.first_non_finite() {
+        return Err(TrainError::NonFinite { what });
+    }
     next.version = current.version + 1;
     next.episodes_covered = episodes;
     next.pack_for_inference();
@@ -46,9 +122,146 @@ pub fn retrain(
         transitions: data.len(),
         dynamics_epochs,
         energy_epochs,
+        dynamics_steps: dynamics.steps,
+        energy_steps: energy.steps,
         dynamics_loss: dynamics.loss,
         energy_loss: energy.loss,
+        cut_short: dynamics.stopped.or(energy.stopped),
         seconds: started.elapsed().as_secs_f32(),
     };
-    (next, report)
+    Ok((next, report))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::{PlannerOverrides, TaskId};
+    use std::sync::atomic::Ordering;
+
+    fn small_preset() -> Preset {
+        let mut preset = Preset::new(TaskId::Cartpole, Some("cem+deen")).unwrap();
+        preset
+            .apply(&PlannerOverrides {
+                dynamics_hidden_layers: Some(1),
+                dynamics_hidden_size: Some(8),
+                energy_hidden_layers: Some(1),
+                energy_hidden_size: Some(8),
+                dynamics_epochs: Some(3),
+                energy_epochs: Some(3),
+                ..Default::default()
+            })
+            .unwrap();
+        preset
+    }
+
+    /// Cartpole-shaped transitions whose observations are `scale` × a smooth pattern.
+    fn data(n: usize, scale: f32) -> Transitions {
+        let mut data = Transitions::new(4, 1);
+        for i in 0..n {
+            let x = i as f32 / n as f32;
+            let obs = [x * scale, -x * scale, 0.5 * scale, (1.0 - x) * scale];
+            let next = [-x * scale, x * scale, -0.5 * scale, x * scale];
+            data.push(&obs, &[x], &next);
+        }
+        data
+    }
+
+    fn untrained(preset: &Preset) -> Models {
+        Models::untrained(TaskId::Cartpole.spec(), preset, 7)
+    }
+
+    #[test]
+    fn ordinary_data_trains_finite_models() {
+        let preset = small_preset();
+        let (models, report) = retrain(
+            &untrained(&preset),
+            &data(64, 1.0),
+            &preset,
+            1,
+            0,
+            &TrainLimits::unbounded(),
+        )
+        .unwrap();
+        assert_eq!(models.version, 1);
+        assert!(models.first_non_finite().is_none());
+        assert!(report.dynamics_loss.is_finite() && report.energy_loss.is_finite());
+        assert_eq!(report.cut_short, None);
+    }
+
+    /// Data at f32's limits (what a planner refuses at validation, here put straight into a
+    /// buffer) makes the targets overflow: the retraining is refused, naming what diverged,
+    /// and no model comes out to be served or checkpointed.
+    #[test]
+    fn extreme_data_yields_no_models() {
+        let preset = small_preset();
+        for scale in [3.4e38, f32::MAX] {
+            let err = retrain(
+                &untrained(&preset),
+                &data(64, scale),
+                &preset,
+                1,
+                0,
+                &TrainLimits::unbounded(),
+            )
+            .unwrap_err();
+            assert!(matches!(err, TrainError::NonFinite { .. }), "{err}");
+            assert!(err.to_string().contains("not finite"), "{err}");
+        }
+    }
+
+    /// The largest values a planner accepts by default (10⁴) train finite models.
+    #[test]
+    fn large_but_allowed_data_trains_finite_models() {
+        let preset = small_preset();
+        let bound = TaskId::Cartpole.spec().magnitudes.observation;
+        let (models, _) = retrain(
+            &untrained(&preset),
+            &data(64, bound),
+            &preset,
+            1,
+            0,
+            &TrainLimits::unbounded(),
+        )
+        .unwrap();
+        assert!(models.first_non_finite().is_none());
+    }
+
+    #[test]
+    fn the_step_cap_bounds_each_model_and_cancel_stops_training() {
+        let mut preset = small_preset();
+        preset.max_gradient_steps = Some(5);
+        preset.dynamics.epochs = 1000;
+        preset.energy.epochs = 1000;
+        let (_, report) = retrain(
+            &untrained(&preset),
+            &data(256, 1.0),
+            &preset,
+            1,
+            0,
+            &TrainLimits::unbounded(),
+        )
+        .unwrap();
+        assert_eq!((report.dynamics_steps, report.energy_steps), (5, 5));
+        assert_eq!(report.cut_short, Some(Stop::StepCap));
+
+        let limits = TrainLimits::unbounded();
+        limits.cancel.store(true, Ordering::SeqCst);
+        let err = retrain(&untrained(&preset), &data(256, 1.0), &preset, 1, 0, &limits);
+        assert_eq!(err.unwrap_err(), TrainError::Cancelled);
+    }
+
+    #[test]
+    fn the_time_budget_cuts_training_short_and_keeps_what_was_trained() {
+        let mut preset = small_preset();
+        preset.dynamics.epochs = 1_000_000;
+        preset.energy.epochs = 1_000_000;
+        let limits = TrainLimits {
+            max_seconds: 1.0,
+            ..TrainLimits::unbounded()
+        };
+        let (models, report) =
+            retrain(&untrained(&preset), &data(64, 1.0), &preset, 1, 0, &limits).unwrap();
+        assert_eq!(report.cut_short, Some(Stop::Deadline));
+        assert!(report.dynamics_steps > 0 && models.is_trained());
+    }
 }

@@ -16,12 +16,29 @@
 /// The default key prefix.
 pub const DEFAULT_PREFIX: &str = "ebmpc";
 
-/// A name that cannot be a run, agent or planner id.
+/// A name that cannot be a run, agent or planner id. It holds the name as it may be shown:
+/// at most [`SHOWN_NAME_CHARS`] characters, escaped, with the full length when cut, so that a
+/// hostile name is never echoed whole into replies and logs.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error(
-    "invalid name `{0}`: use 1-64 characters from letters, digits, '-', '_' and '.' (no '/', '*', '$', '?', '#')"
+    "invalid name {0}: use 1-64 characters from letters, digits, '-', '_' and '.' (no '/', '*', '$', '?', '#')"
 )]
 pub struct InvalidName(pub String);
+
+/// Characters of a refused name that an error shows.
+pub const SHOWN_NAME_CHARS: usize = 32;
+
+impl InvalidName {
+    fn of(name: &str) -> Self {
+        let shown: String = name.chars().take(SHOWN_NAME_CHARS).collect();
+        let shown = shown.escape_debug();
+        if name.chars().count() > SHOWN_NAME_CHARS {
+            Self(format!("`{shown}…` ({} bytes)", name.len()))
+        } else {
+            Self(format!("`{shown}`"))
+        }
+    }
+}
 
 /// Checks a run, agent or planner name: it becomes one chunk of a key expression.
 pub fn validate_name(name: &str) -> Result<(), InvalidName> {
@@ -35,7 +52,7 @@ pub fn validate_name(name: &str) -> Result<(), InvalidName> {
     if ok {
         Ok(())
     } else {
-        Err(InvalidName(name.to_string()))
+        Err(InvalidName::of(name))
     }
 }
 
@@ -269,5 +286,27 @@ mod tests {
         for bad in ["", "a/b", "*", "$x", "a b", "..", &"x".repeat(65)] {
             assert!(validate_name(bad).is_err(), "{bad}");
         }
+    }
+
+    /// A refused name is shown cut to a few characters, escaped, with its length.
+    #[test]
+    fn refused_names_are_shown_cut_and_escaped() {
+        let long = "x".repeat(100_000);
+        let err = validate_name(&long).unwrap_err().to_string();
+        assert!(err.len() < 200, "{err}");
+        assert!(
+            err.contains(&format!("`{}…` (100000 bytes)", "x".repeat(32))),
+            "{err}"
+        );
+        let err = validate_name("bad\nname\u{1b}[31m")
+            .unwrap_err()
+            .to_string();
+        assert!(!err.contains('\n') && !err.contains('\u{1b}'), "{err}");
+        assert!(
+            validate_name("ok/")
+                .unwrap_err()
+                .to_string()
+                .contains("`ok/`")
+        );
     }
 }

@@ -106,9 +106,30 @@ impl std::str::FromStr for Optimizer {
     }
 }
 
-/// Overrides of a run's preset. Every field is optional: `None` keeps the preset's value.
+/// How training epochs decay with the number of finished episodes (the paper trains less as
+/// the buffer grows, to avoid overfitting it). Part of a run's preset, and overridable.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EpochSchedule {
+    /// The configured epochs after every episode.
+    Constant,
+    /// Half-cheetah: `epochs` for both models once `after_episodes` episodes are stored.
+    DropAfter { after_episodes: u32, epochs: u32 },
+    /// Ant: epochs multiplied by `dynamics_factor` / `energy_factor` after every episode
+    /// beyond the exploration ones, never below `min_epochs`.
+    Geometric {
+        dynamics_factor: f32,
+        energy_factor: f32,
+        min_epochs: u32,
+    },
+}
+
+/// Overrides of a run's preset: one field per preset field. Every field is optional: `None`
+/// keeps the preset's value. A field this build does not know is refused (JSON names its
+/// fields; postcard has no names, and a message longer than the fields it knows is refused
+/// as trailing bytes), so a mistyped override is never silently ignored.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct PlannerOverrides {
     pub regularizer: Option<RegularizerChoice>,
     /// Weight `alpha` of the energy in the planning objective.
@@ -121,14 +142,32 @@ pub struct PlannerOverrides {
     pub population: Option<u32>,
     pub elites: Option<u32>,
     pub cem_iterations: Option<u32>,
+    /// Weight of the previous CEM distribution in each refit, in [0, 1).
+    pub cem_smoothing: Option<f32>,
+    /// CEM stops once every coordinate's variance is below this.
+    pub cem_min_variance: Option<f32>,
+    /// Sample the dynamics' predicted Gaussian in imagination (PETS TS∞) instead of its mean.
+    pub sample_dynamics: Option<bool>,
     /// Episodes of uniformly random actions before planning starts.
     pub exploration_episodes: Option<u32>,
     pub dynamics_epochs: Option<u32>,
     pub dynamics_hidden_layers: Option<u32>,
     pub dynamics_hidden_size: Option<u32>,
+    pub dynamics_batch_size: Option<u32>,
+    pub dynamics_learning_rate: Option<f32>,
+    pub dynamics_weight_decay: Option<f32>,
     pub energy_epochs: Option<u32>,
     pub energy_hidden_layers: Option<u32>,
     pub energy_hidden_size: Option<u32>,
+    pub energy_batch_size: Option<u32>,
+    pub energy_learning_rate: Option<f32>,
+    /// Standard deviation `σ` of the energy model's corrupting noise (standardised units).
+    pub energy_noise_sigma: Option<f32>,
+    /// How training epochs change as episodes accumulate.
+    pub epoch_schedule: Option<EpochSchedule>,
+    /// Most gradient steps per model in one retraining (the epochs are cut short beyond it);
+    /// absent in the paper's presets, which train their full epochs however large the buffer.
+    pub max_gradient_steps: Option<u64>,
     /// Number format of planning-time inference.
     pub inference_precision: Option<InferencePrecision>,
     /// The planning optimiser (the preset's: `cem`).
@@ -313,8 +352,6 @@ pub enum ErrorCode {
     Dimension,
     /// A NaN or infinity where a finite number is required.
     NonFinite,
-    /// A number outside the task's bounds (an applied action beyond the actuator limits).
-    OutOfBounds,
     /// The run does not exist (the agent never attached, or the run was removed).
     UnknownRun,
     /// The task is not in the catalog.
@@ -327,6 +364,12 @@ pub enum ErrorCode {
     Refused,
     /// Something failed inside the planner.
     Internal,
+    /// A finite number outside its allowed range: beyond the task's magnitude bound (it would
+    /// overflow the models), or an applied action beyond the task's action bounds.
+    OutOfRange,
+    /// The planner could not store the message (e.g. its disk is full). Nothing of it was
+    /// kept and the agent's session did not move on: send the same message again later.
+    Storage,
 }
 
 /// An error reported to the sender of a bad message, on its error key.

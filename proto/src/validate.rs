@@ -4,7 +4,7 @@
 //! dimension or a non-finite number is rejected with an error the sender can act on.
 
 use crate::messages::{Action, ErrorCode, ErrorReport, Observation};
-use crate::task::TaskSpec;
+use crate::task::{Magnitudes, TaskSpec};
 
 /// Why a message was rejected.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -24,6 +24,13 @@ pub enum ValidationError {
     },
     #[error("reward is {0}, only finite numbers are accepted")]
     NonFiniteReward(f32),
+    #[error("{what}[{index}] is {value:e}, beyond this task's bound of ±{bound:e}")]
+    OutOfRange {
+        what: &'static str,
+        index: usize,
+        value: f32,
+        bound: f32,
+    },
     #[error("step 0 starts an episode and carries no reward")]
     RewardAtReset,
     #[error("step {0} carries no reward")]
@@ -31,7 +38,7 @@ pub enum ValidationError {
     #[error("step 0 starts an episode: no action was applied before it")]
     AppliedAtReset,
     #[error("applied action[{index}] is {value}, outside the task's bounds [{low}, {high}]")]
-    AppliedOutOfBounds {
+    AppliedOutOfRange {
         index: usize,
         value: f32,
         low: f32,
@@ -47,10 +54,12 @@ impl ValidationError {
             ValidationError::NonFinite { .. } | ValidationError::NonFiniteReward(_) => {
                 ErrorCode::NonFinite
             }
+            ValidationError::OutOfRange { .. } | ValidationError::AppliedOutOfRange { .. } => {
+                ErrorCode::OutOfRange
+            }
             ValidationError::RewardAtReset
             | ValidationError::MissingReward(_)
             | ValidationError::AppliedAtReset => ErrorCode::OutOfOrder,
-            ValidationError::AppliedOutOfBounds { .. } => ErrorCode::OutOfBounds,
         }
     }
 
@@ -85,10 +94,29 @@ pub fn check_vector(
     }
 }
 
-/// Checks an observation's content against its task (not its place in the episode: the
-/// planner's agent session checks ordering).
-pub fn validate_observation(msg: &Observation, task: &TaskSpec) -> Result<(), ValidationError> {
+/// Checks that every value of `values` is within `±bound`.
+fn check_magnitude(what: &'static str, values: &[f32], bound: f32) -> Result<(), ValidationError> {
+    match values.iter().position(|v| v.abs() > bound) {
+        Some(index) => Err(ValidationError::OutOfRange {
+            what,
+            index,
+            value: values[index],
+            bound,
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Checks an observation's content against its task and the magnitudes the receiver accepts
+/// for it (usually `task.magnitudes`; a planner's operator may configure others). Not its
+/// place in the episode: the planner's agent session checks ordering.
+pub fn validate_observation(
+    msg: &Observation,
+    task: &TaskSpec,
+    magnitudes: &Magnitudes,
+) -> Result<(), ValidationError> {
     check_vector("observation", task, &msg.obs, task.obs_dim)?;
+    check_magnitude("observation", &msg.obs, magnitudes.observation)?;
     if let Some(applied) = &msg.applied {
         if msg.step == 0 {
             return Err(ValidationError::AppliedAtReset);
@@ -100,7 +128,7 @@ pub fn validate_observation(msg: &Observation, task: &TaskSpec) -> Result<(), Va
         (0, None) => Ok(()),
         (step, None) => Err(ValidationError::MissingReward(step)),
         (_, Some(r)) if !r.is_finite() => Err(ValidationError::NonFiniteReward(r)),
-        _ => Ok(()),
+        (_, Some(r)) => check_magnitude("reward", &[r], magnitudes.reward),
     }
 }
 
@@ -115,7 +143,7 @@ fn check_applied(applied: &[f32], task: &TaskSpec) -> Result<(), ValidationError
         .zip(bounds)
         .position(|(v, (lo, hi))| v < lo || v > hi)
     {
-        Some(index) => Err(ValidationError::AppliedOutOfBounds {
+        Some(index) => Err(ValidationError::AppliedOutOfRange {
             index,
             value: applied[index],
             low: task.action_low[index],
@@ -143,11 +171,14 @@ mod tests {
     #[test]
     fn accepts_well_formed_observations() {
         let task = TaskId::Cartpole.spec();
-        validate_observation(&obs(0, vec![0.0; 4], None), task).unwrap();
-        validate_observation(&obs(5, vec![0.0; 4], Some(0.3)), task).unwrap();
+        let m = &task.magnitudes;
+        validate_observation(&obs(0, vec![0.0; 4], None), task, m).unwrap();
+        validate_observation(&obs(5, vec![0.0; 4], Some(0.3)), task, m).unwrap();
+        // The bound itself is allowed.
+        validate_observation(&obs(5, vec![m.observation; 4], Some(-m.reward)), task, m).unwrap();
         for bound in [-3.0, 0.5, 3.0] {
             let applied = obs(5, vec![0.0; 4], Some(0.3)).with_applied(vec![bound]);
-            validate_observation(&applied, task).unwrap();
+            validate_observation(&applied, task, m).unwrap();
         }
     }
 
@@ -189,22 +220,53 @@ mod tests {
             ),
             (
                 obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![3.001]),
-                ErrorCode::OutOfBounds,
+                ErrorCode::OutOfRange,
             ),
             (
                 obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![-1e30]),
-                ErrorCode::OutOfBounds,
+                ErrorCode::OutOfRange,
             ),
+            (
+                obs(0, vec![0.0, f32::MAX, 0.0, 0.0], None),
+                ErrorCode::OutOfRange,
+            ),
+            (
+                obs(0, vec![0.0, 0.0, 0.0, -3.4e38], None),
+                ErrorCode::OutOfRange,
+            ),
+            (
+                obs(0, vec![1.0001e4, 0.0, 0.0, 0.0], None),
+                ErrorCode::OutOfRange,
+            ),
+            (obs(1, vec![0.0; 4], Some(f32::MIN)), ErrorCode::OutOfRange),
+            (obs(1, vec![0.0; 4], Some(2e4)), ErrorCode::OutOfRange),
         ];
         for (msg, code) in cases {
-            let err = validate_observation(&msg, task).unwrap_err();
+            let err = validate_observation(&msg, task, &task.magnitudes).unwrap_err();
             assert_eq!(err.code(), code, "{err}");
             assert!(!err.to_string().is_empty());
         }
-        let err = validate_observation(&obs(0, vec![0.0; 5], None), task).unwrap_err();
+        let err =
+            validate_observation(&obs(0, vec![0.0; 5], None), task, &task.magnitudes).unwrap_err();
         assert_eq!(
             err.to_string(),
             "observation has 5 numbers, task cartpole needs 4"
         );
+        let err = validate_observation(
+            &obs(0, vec![0.0, 0.0, 5e5, 0.0], None),
+            task,
+            &task.magnitudes,
+        )
+        .unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "observation[2] is 5e5, beyond this task's bound of ±1e4"
+        );
+        // A custom bound (a robot with larger readings) admits what the catalog's refuses.
+        let wide = Magnitudes {
+            observation: 1e6,
+            reward: 1e4,
+        };
+        validate_observation(&obs(0, vec![0.0, 0.0, 5e5, 0.0], None), task, &wide).unwrap();
     }
 }

@@ -327,8 +327,9 @@ async fn run_episode(
     let obs = env
         .reset(config.seed.wrapping_add(u64::from(episode)))
         .to_vec();
-    link.send(&Observation::new(episode, 0, obs, None, None))
-        .await?;
+    // Kept to send again if the planner could not store it (its disk was full).
+    let mut sent = Observation::new(episode, 0, obs, None, None);
+    link.send(&sent).await?;
     let mut episode_return = 0.0;
     let mut actions = ActionTally::default();
     let mut train_seconds = 0.0;
@@ -349,6 +350,14 @@ async fn run_episode(
         let action = match wait_for_action(link, wait, &mut train_seconds).await? {
             Waited::Action(action) => action,
             Waited::PlannerLost(reason) => return Ok(EpisodeOutcome::PlannerLost(reason)),
+            Waited::NotStored(report) => {
+                tracing::warn!(
+                    "the planner could not store step {step}; sending it again in {STORAGE_RETRY:?}: {report}"
+                );
+                tokio::time::sleep(STORAGE_RETRY).await;
+                link.send(&sent).await?;
+                continue;
+            }
         };
         actions.add(&action.stats);
         let outcome = env.step(&action.action)?;
@@ -363,11 +372,9 @@ async fn run_episode(
         };
         // Say what was applied (the planned action clamped into the task's bounds), so the
         // planner stores what really happened.
-        link.send(
-            &Observation::new(episode, step, outcome.obs, Some(outcome.reward), end)
-                .with_applied(outcome.applied),
-        )
-        .await?;
+        sent = Observation::new(episode, step, outcome.obs, Some(outcome.reward), end)
+            .with_applied(outcome.applied);
+        link.send(&sent).await?;
         if let Some(end) = end {
             let wall_seconds = started.elapsed().as_secs_f64();
             return Ok(EpisodeOutcome::Finished(EpisodeRecord {
@@ -388,7 +395,13 @@ enum Waited {
     Action(Action),
     /// The planner lost this agent; the reason, for the log.
     PlannerLost(String),
+    /// The planner could not store the observation (a full disk); the session did not move
+    /// on, so the same observation is sent again.
+    NotStored(ErrorReport),
 }
+
+/// How long to wait before sending an observation the planner could not store again.
+const STORAGE_RETRY: Duration = Duration::from_secs(1);
 
 /// What [`wait_for_action`] waits for, and for how long.
 struct Wait {
@@ -464,6 +477,12 @@ async fn wait_for_action(
                 return Ok(Waited::PlannerLost(format!(
                     "the planner no longer knows this agent ({report})"
                 )));
+            }
+            Inbound::Error(report)
+                if report.code == ErrorCode::Storage
+                    && (report.episode, report.step) == (Some(episode), Some(step)) =>
+            {
+                return Ok(Waited::NotStored(report));
             }
             Inbound::Error(report) if is_fatal(&report, episode, step) => {
                 return Err(BridgeError::Planner {

@@ -225,6 +225,10 @@ impl SpecArgs {
                 icem_noise_beta: self.icem_noise_beta,
                 icem_keep_elites: self.icem_keep_elites,
                 icem_population_decay: self.icem_population_decay,
+                // The other overrides (batch sizes, learning rates, σ, CEM smoothing, the
+                // epoch schedule, the gradient-step cap) have no flag here: the planner's
+                // `[overrides]` or a controller's attach message sets them.
+                ..PlannerOverrides::default()
             },
             mode: match self.mode {
                 Mode::Sync => TrainMode::Sync,

@@ -25,6 +25,8 @@ struct Script {
     silent_at: Option<u32>,
     /// Answer this step with an error report instead of an action.
     error_at: Option<u32>,
+    /// Refuse this step (step, times) with a storage error the first `times` times it comes.
+    storage_full_at: Option<(u32, usize)>,
 }
 
 /// What the scripted planner saw.
@@ -120,6 +122,14 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                     }
                     if script.silent_at == Some(obs.step) {
                         continue;
+                    }
+                    if let Some((step, times)) = script.storage_full_at {
+                        let refused = seen2.lock().unwrap().observations.iter().filter(|o| o.step == step).count() <= times;
+                        if obs.step == step && refused {
+                            let report = ErrorReport::new(ErrorCode::Storage, "disk full: scripted").at(obs.episode, obs.step);
+                            s.put(k.error(&run, &agent), publish_bytes(&report)).await.unwrap();
+                            continue;
+                        }
                     }
                     if script.error_at == Some(obs.step) {
                         let report = ErrorReport::new(ErrorCode::Internal, "planning failed: scripted").at(obs.episode, obs.step);
@@ -321,6 +331,27 @@ async fn an_error_for_the_pending_step_stops_the_bridge() {
         other => panic!("{other}"),
     }
     assert!(err.to_string().contains("scripted"), "{err}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_step_the_planner_could_not_store_is_sent_again_until_it_is() {
+    let endpoint = free_endpoint();
+    let script = Script {
+        storage_full_at: Some((3, 2)),
+        ..Script::default()
+    };
+    let (_planner, seen) = start_planner(&endpoint, script).await;
+    let records = sim_bridge::bridge::run(&config(&endpoint, 1), |_| {})
+        .await
+        .expect("the episode finishes once the step is stored");
+    assert_eq!(records.len(), 1);
+    let seen = seen.lock().unwrap();
+    let step3: Vec<&Observation> = seen.observations.iter().filter(|o| o.step == 3).collect();
+    assert_eq!(step3.len(), 3, "refused twice, then stored");
+    assert!(
+        step3.iter().all(|o| o == &step3[0]),
+        "the same observation each time"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -84,14 +84,33 @@ impl Client {
             spec: spec.clone(),
         };
         let payload = proto::encode(&request, Encoding::Postcard)?;
+        match self
+            .attach_raw(&self.run.clone(), payload, Encoding::Postcard.mime())
+            .await?
+            .outcome
+        {
+            AttachOutcome::Accepted(accepted) => {
+                self.epoch.store(accepted.epoch, Ordering::SeqCst);
+                // Give the planner's subscriber a moment to match our publications.
+                tokio::time::sleep(Duration::from_millis(300)).await;
+                Ok(accepted)
+            }
+            AttachOutcome::Rejected(report) => bail!("attach refused: {report}"),
+        }
+    }
+
+    /// Sends `payload` (any bytes, in `mime`) as an attach query for `run` and decodes the
+    /// reply, retrying while no planner answers (it may be starting).
+    pub async fn attach_raw(&self, run: &str, payload: Vec<u8>, mime: &str) -> Result<AttachReply> {
         for _ in 0..300 {
             // Every planner gets the query, only the run's owner answers.
             let replies = self
                 .session
-                .get(self.keys.attach(&self.run))
+                .get(self.keys.attach(run))
                 .payload(payload.clone())
                 .target(QueryTarget::All)
                 .consolidation(ConsolidationMode::None)
+                .encoding(zenoh::bytes::Encoding::from(mime))
                 .timeout(Duration::from_secs(5))
                 .await
                 .map_err(|e| anyhow!("attach query: {e}"))?;
@@ -99,21 +118,11 @@ impl Client {
                 let sample = reply
                     .result()
                     .map_err(|e| anyhow!("attach error reply: {e:?}"))?;
-                let reply: AttachReply =
-                    proto::decode(&sample.payload().to_bytes(), Encoding::Postcard)?;
-                return match reply.outcome {
-                    AttachOutcome::Accepted(accepted) => {
-                        self.epoch.store(accepted.epoch, Ordering::SeqCst);
-                        // Give the planner's subscriber a moment to match our publications.
-                        tokio::time::sleep(Duration::from_millis(300)).await;
-                        Ok(accepted)
-                    }
-                    AttachOutcome::Rejected(report) => bail!("attach refused: {report}"),
-                };
+                return decode(sample);
             }
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
-        bail!("attach to `{}` got no reply", self.run)
+        bail!("attach to `{run}` got no reply")
     }
 
     /// Publishes raw bytes on this agent's observation key (or another run's) with a MIME type.

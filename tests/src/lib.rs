@@ -8,6 +8,7 @@
 pub mod bridge;
 pub mod client;
 pub mod config;
+pub mod kill_loop;
 pub mod python;
 
 use anyhow::{Context, Result, bail};

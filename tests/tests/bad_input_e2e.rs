@@ -170,8 +170,8 @@ fn bad_input_is_refused(endpoint: &str) {
         assert_eq!(report.code, ErrorCode::Dimension);
         // A hostile applied action (cartpole's bounds are ±3): refused, the episode stays put.
         for (applied, code) in [
-            (vec![3.5], ErrorCode::OutOfBounds),
-            (vec![-1e38], ErrorCode::OutOfBounds),
+            (vec![3.5], ErrorCode::OutOfRange),
+            (vec![-1e38], ErrorCode::OutOfRange),
             (vec![f32::NAN], ErrorCode::NonFinite),
             (vec![0.0, 0.0], ErrorCode::Dimension),
             (vec![], ErrorCode::Dimension),

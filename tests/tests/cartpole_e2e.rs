@@ -102,7 +102,18 @@ fn two_cartpole_episodes_random_then_planned() {
 fn the_bridge_rides_out_a_planner_killed_and_restarted() {
     let dir = TempDir::new("cartpole-restart");
     let endpoint = free_endpoint();
-    let mut planner = Planner::start_on(dir.path(), &config(), &endpoint).expect("planner starts");
+    // Retraining must outlast the harness's log polling (50 ms), or the bridge can finish all
+    // its episodes between "episode 1/3 done" and the kill: small networks train for long.
+    let config = PlannerConfig::new(
+        "e2e",
+        Sizes {
+            hidden_size: 128,
+            epochs: 3000,
+            ..Sizes::SMALL
+        },
+    )
+    .toml();
+    let mut planner = Planner::start_on(dir.path(), &config, &endpoint).expect("planner starts");
     let csv = dir.path().join("episodes.csv");
     let args = [
         "--task",
@@ -128,8 +139,7 @@ fn the_bridge_rides_out_a_planner_killed_and_restarted() {
     let _ = planner.process.wait(Duration::from_secs(30));
     drop(planner);
     std::thread::sleep(Duration::from_millis(500));
-    let mut planner =
-        Planner::start_on(dir.path(), &config(), &endpoint).expect("planner restarts");
+    let mut planner = Planner::start_on(dir.path(), &config, &endpoint).expect("planner restarts");
     assert!(
         planner.process.log().contains("run opened"),
         "the run was resumed from disk:\n{}",

@@ -18,7 +18,7 @@ use planner_service::data::Transitions;
 use planner_service::energy::{Regularizer, RegularizerKind};
 use planner_service::models::Models;
 use planner_service::plan::MpcPlanner;
-use planner_service::trainer::retrain;
+use planner_service::trainer::{TrainLimits, retrain};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use proto::{InferencePrecision, TaskId};
@@ -141,7 +141,15 @@ pub fn run(
         let ret = episode(&mut env, seed, mpc, &mut data, &mut rng)?;
         training_returns.push(ret);
         on_episode(e, ret);
-        models = retrain(&models, &data, &preset, e + 1, config.seed).0;
+        models = retrain(
+            &models,
+            &data,
+            &preset,
+            e + 1,
+            config.seed,
+            &TrainLimits::unbounded(),
+        )?
+        .0;
     }
 
     // The state: `mpc_steps` steps of MPC into the next episode.
@@ -166,7 +174,7 @@ pub fn run(
         }
     }
 
-    let (_, energy_epochs) = preset.schedule.epochs(&preset, config.train_episodes);
+    let (_, energy_epochs) = preset.epochs(config.train_episodes);
     let mut plan_preset = Preset::new(task, Some(&config.method))?;
     plan_preset.apply(&config.plan_scale.overrides(task))?;
     let mut traces = Vec::new();

@@ -1,9 +1,12 @@
 //! Configuration of the planner daemon: the service settings (TOML file, overridable from the
 //! command line) and the per-task presets of the paper's Table 2.
 
+mod limits;
 mod preset;
 
-pub use preset::{DEFAULT_METHOD, EpochSchedule, METHODS, Preset, PresetError};
+pub use limits::{Cost, InvalidLimits, LimitExceeded, Limits};
+pub use preset::{DEFAULT_METHOD, METHODS, Preset, PresetError};
+pub use proto::EpochSchedule;
 
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -38,6 +41,20 @@ pub struct ServiceConfig {
     /// Pinning in a fleet of planners: the run-name patterns this planner serves (`serve`,
     /// empty: all) or refuses (`refuse`). See `crate::fleet`.
     pub fleet: crate::fleet::Pins,
+    /// Bounds on everything a client chooses (`[limits]`).
+    pub limits: Limits,
+    /// How runs keep their data on disk (`[storage]`).
+    pub storage: StorageConfig,
+}
+
+/// `[storage]`: how much of its experience a run keeps.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StorageConfig {
+    /// Most transitions a run's replay buffer keeps; beyond it the transitions of the oldest
+    /// finished episodes are evicted whole, from memory at once and from the log by
+    /// compaction. Absent: unbounded (the paper's protocol trains on everything).
+    pub replay_capacity: Option<usize>,
 }
 
 impl Default for ServiceConfig {
@@ -54,6 +71,8 @@ impl Default for ServiceConfig {
             allowed_presets: Vec::new(),
             overrides: proto::PlannerOverrides::default(),
             fleet: crate::fleet::Pins::default(),
+            limits: Limits::default(),
+            storage: StorageConfig::default(),
         }
     }
 }
@@ -75,6 +94,8 @@ pub enum ConfigError {
     PlannerId(#[from] proto::keys::InvalidName),
     #[error("[fleet]: {0}")]
     Pins(#[from] crate::fleet::PinsError),
+    #[error(transparent)]
+    Limits(#[from] InvalidLimits),
 }
 
 impl ServiceConfig {
@@ -96,6 +117,7 @@ impl ServiceConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         proto::validate_name(&self.planner_id)?;
         self.fleet.validate()?;
+        self.limits.validate()?;
         Ok(())
     }
 }
@@ -136,6 +158,14 @@ mod tests {
     }
 
     #[test]
+    fn a_storage_table_sets_the_replay_capacity() {
+        let config: ServiceConfig = toml::from_str("[storage]\nreplay_capacity = 50000").unwrap();
+        assert_eq!(config.storage.replay_capacity, Some(50_000));
+        assert_eq!(ServiceConfig::default().storage.replay_capacity, None);
+        assert!(toml::from_str::<ServiceConfig>("[storage]\ncapacity = 5").is_err());
+    }
+
+    #[test]
     fn rejects_unknown_keys() {
         assert!(toml::from_str::<ServiceConfig>("max_run = 3").is_err());
         assert!(toml::from_str::<ServiceConfig>("[fleet]\nserves = []").is_err());
@@ -150,5 +180,22 @@ mod tests {
                 .starts_with("[fleet]: invalid run-name pattern"),
             "{err}"
         );
+    }
+
+    /// The shipped example listens on loopback only, and its `[limits]` block states the
+    /// defaults (so the file documents what an operator gets without it).
+    #[test]
+    fn the_shipped_config_listens_on_loopback_with_the_default_limits() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/planner.toml");
+        let config = ServiceConfig::load(&path).unwrap();
+        assert_eq!(config.listen, ["tcp/127.0.0.1:7447"]);
+        assert_eq!(config.limits, Limits::default());
+    }
+
+    #[test]
+    fn invalid_limits_are_refused_at_load() {
+        let config: ServiceConfig = toml::from_str("[limits]\nmax_horizon = 0\n").unwrap();
+        assert!(matches!(config.validate(), Err(ConfigError::Limits(_))));
+        assert!(toml::from_str::<ServiceConfig>("[limits]\nmax_horizn = 3\n").is_err());
     }
 }

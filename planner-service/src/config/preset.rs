@@ -15,7 +15,7 @@
 use crate::dynamics::DynamicsConfig;
 use crate::energy::{EnergyConfig, RegularizerKind};
 use crate::plan::{CemConfig, IcemConfig, Optimizer};
-use proto::{InferencePrecision, PlannerOverrides, RegularizerChoice, TaskId};
+use proto::{EpochSchedule, InferencePrecision, PlannerOverrides, RegularizerChoice, TaskId};
 use serde::{Deserialize, Serialize};
 
 /// The methods a preset can be built for (see the module docs).
@@ -42,6 +42,10 @@ pub struct Preset {
     pub exploration_episodes: u32,
     /// How the number of training epochs changes as episodes accumulate.
     pub schedule: EpochSchedule,
+    /// Most gradient steps per model in one retraining; `None` (the paper's presets) trains
+    /// the schedule's full epochs however large the buffer has grown.
+    #[serde(default)]
+    pub max_gradient_steps: Option<u64>,
     /// Number format of planning-time inference: bf16 by default, which doubles the
     /// multiply-add rate on CPUs with AVX-512 BF16 (f32 is used where the CPU lacks it).
     #[serde(default = "default_precision")]
@@ -52,29 +56,12 @@ fn default_precision() -> InferencePrecision {
     InferencePrecision::Bf16
 }
 
-/// How training epochs decay with the number of finished episodes (the paper trains less as
-/// the buffer grows, to avoid overfitting it).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case", tag = "kind")]
-pub enum EpochSchedule {
-    /// The configured epochs after every episode.
-    Constant,
-    /// Half-cheetah: `epochs` for both models once `after_episodes` episodes are stored.
-    DropAfter { after_episodes: u32, epochs: u32 },
-    /// Ant: epochs multiplied by `dynamics_factor` / `energy_factor` after every episode
-    /// beyond the exploration ones, never below `min_epochs`.
-    Geometric {
-        dynamics_factor: f32,
-        energy_factor: f32,
-        min_epochs: u32,
-    },
-}
-
-impl EpochSchedule {
-    /// `(dynamics epochs, energy epochs)` for a retraining after `episodes` stored episodes.
-    pub fn epochs(&self, preset: &Preset, episodes: u32) -> (usize, usize) {
-        let (dynamics, energy) = (preset.dynamics.epochs, preset.energy.epochs);
-        match *self {
+impl Preset {
+    /// `(dynamics epochs, energy epochs)` for a retraining after `episodes` stored episodes,
+    /// by the preset's [`EpochSchedule`].
+    pub fn epochs(&self, episodes: u32) -> (usize, usize) {
+        let (dynamics, energy) = (self.dynamics.epochs, self.energy.epochs);
+        match self.schedule {
             EpochSchedule::Constant => (dynamics, energy),
             EpochSchedule::DropAfter {
                 after_episodes,
@@ -86,7 +73,7 @@ impl EpochSchedule {
                 energy_factor,
                 min_epochs,
             } => {
-                let decays = episodes.saturating_sub(preset.exploration_episodes) as i32;
+                let decays = episodes.saturating_sub(self.exploration_episodes) as i32;
                 let decay = |epochs: usize, factor: f32| {
                     ((epochs as f32 * factor.powi(decays)).round() as usize)
                         .max(min_epochs as usize)
@@ -280,6 +267,7 @@ impl Preset {
             sample_dynamics: pets,
             exploration_episodes: t.exploration_episodes,
             schedule: t.schedule,
+            max_gradient_steps: None,
             inference_precision: default_precision(),
         })
     }
@@ -315,17 +303,33 @@ impl Preset {
             .map_err(|e| PresetError::InvalidOverride(e.to_string()))
     }
 
-    /// Applies `overrides` (fields that are `Some`), checking that the result still makes sense.
+    /// Applies `overrides` (fields that are `Some`), checking that each value and the result
+    /// make sense. Sizes are only checked to be at least 1 here: their upper bounds are the
+    /// daemon's [`super::Limits`], checked on the finished preset.
     pub fn apply(&mut self, o: &PlannerOverrides) -> Result<(), PresetError> {
-        fn set(target: &mut usize, value: Option<u32>, name: &str) -> Result<(), PresetError> {
+        fn count(target: &mut usize, value: Option<u32>, name: &str) -> Result<(), PresetError> {
             match value {
-                Some(0) => Err(PresetError::InvalidOverride(format!(
-                    "{name} must be at least 1"
-                ))),
+                Some(0) => Err(invalid(format!("{name} must be at least 1"))),
                 Some(v) => {
                     *target = v as usize;
                     Ok(())
                 }
+                None => Ok(()),
+            }
+        }
+        /// A real number within `range` (its ends as the range says).
+        fn real(
+            target: &mut f32,
+            value: Option<f32>,
+            name: &str,
+            range: impl std::ops::RangeBounds<f32> + std::fmt::Debug,
+        ) -> Result<(), PresetError> {
+            match value {
+                Some(v) if v.is_finite() && range.contains(&v) => {
+                    *target = v;
+                    Ok(())
+                }
+                Some(v) => Err(invalid(format!("{name} must be in {range:?}, not {v}"))),
                 None => Ok(()),
             }
         }
@@ -336,64 +340,152 @@ impl Preset {
                 RegularizerChoice::Deen => RegularizerKind::Deen,
             };
         }
-        if let Some(w) = o.energy_weight {
-            if !(w.is_finite() && w >= 0.0) {
-                return Err(PresetError::InvalidOverride(format!(
-                    "energy_weight must be finite and ≥ 0, not {w}"
-                )));
-            }
-            self.energy_weight = w;
-        }
-        set(
-            &mut self.dynamics.ensemble_size,
-            o.ensemble_size,
-            "ensemble_size",
+        real(
+            &mut self.energy_weight,
+            o.energy_weight,
+            "energy_weight",
+            0.0..=MAX_ENERGY_WEIGHT,
         )?;
-        set(&mut self.cem.particles, o.particles, "particles")?;
-        set(&mut self.cem.horizon, o.horizon, "horizon")?;
-        set(&mut self.cem.population, o.population, "population")?;
-        set(&mut self.cem.elites, o.elites, "elites")?;
-        set(&mut self.cem.iterations, o.cem_iterations, "cem_iterations")?;
-        set(
-            &mut self.dynamics.epochs,
-            o.dynamics_epochs,
-            "dynamics_epochs",
+        let (d, e, c) = (&mut self.dynamics, &mut self.energy, &mut self.cem);
+        count(&mut d.ensemble_size, o.ensemble_size, "ensemble_size")?;
+        count(&mut c.particles, o.particles, "particles")?;
+        count(&mut c.horizon, o.horizon, "horizon")?;
+        count(&mut c.population, o.population, "population")?;
+        count(&mut c.elites, o.elites, "elites")?;
+        count(&mut c.iterations, o.cem_iterations, "cem_iterations")?;
+        real(&mut c.smoothing, o.cem_smoothing, "cem_smoothing", 0.0..1.0)?;
+        real(
+            &mut c.min_variance,
+            o.cem_min_variance,
+            "cem_min_variance",
+            0.0..=MAX_CEM_MIN_VARIANCE,
         )?;
-        set(
-            &mut self.dynamics.hidden_layers,
+        count(&mut d.epochs, o.dynamics_epochs, "dynamics_epochs")?;
+        count(
+            &mut d.hidden_layers,
             o.dynamics_hidden_layers,
             "dynamics_hidden_layers",
         )?;
-        set(
-            &mut self.dynamics.hidden_size,
+        count(
+            &mut d.hidden_size,
             o.dynamics_hidden_size,
             "dynamics_hidden_size",
         )?;
-        set(&mut self.energy.epochs, o.energy_epochs, "energy_epochs")?;
-        set(
-            &mut self.energy.hidden_layers,
+        count(
+            &mut d.batch_size,
+            o.dynamics_batch_size,
+            "dynamics_batch_size",
+        )?;
+        real(
+            &mut d.learning_rate,
+            o.dynamics_learning_rate,
+            "dynamics_learning_rate",
+            LEARNING_RATES,
+        )?;
+        real(
+            &mut d.weight_decay,
+            o.dynamics_weight_decay,
+            "dynamics_weight_decay",
+            0.0..=1.0,
+        )?;
+        count(&mut e.epochs, o.energy_epochs, "energy_epochs")?;
+        count(
+            &mut e.hidden_layers,
             o.energy_hidden_layers,
             "energy_hidden_layers",
         )?;
-        set(
-            &mut self.energy.hidden_size,
+        count(
+            &mut e.hidden_size,
             o.energy_hidden_size,
             "energy_hidden_size",
         )?;
+        count(&mut e.batch_size, o.energy_batch_size, "energy_batch_size")?;
+        real(
+            &mut e.learning_rate,
+            o.energy_learning_rate,
+            "energy_learning_rate",
+            LEARNING_RATES,
+        )?;
+        real(
+            &mut e.noise_sigma,
+            o.energy_noise_sigma,
+            "energy_noise_sigma",
+            MIN_NOISE_SIGMA..=MAX_NOISE_SIGMA,
+        )?;
+        if let Some(sample) = o.sample_dynamics {
+            self.sample_dynamics = sample;
+        }
         if let Some(e) = o.exploration_episodes {
             self.exploration_episodes = e;
+        }
+        if let Some(schedule) = &o.epoch_schedule {
+            check_schedule(schedule)?;
+            self.schedule = schedule.clone();
+        }
+        match o.max_gradient_steps {
+            Some(0) => return Err(invalid("max_gradient_steps must be at least 1".into())),
+            Some(steps) => self.max_gradient_steps = Some(steps),
+            None => {}
         }
         if let Some(p) = o.inference_precision {
             self.inference_precision = p;
         }
         self.apply_optimizer(o)?;
         if self.cem.elites > self.cem.population {
-            return Err(PresetError::InvalidOverride(format!(
+            return Err(invalid(format!(
                 "elites ({}) cannot exceed population ({})",
                 self.cem.elites, self.cem.population
             )));
         }
         Ok(())
+    }
+}
+
+/// Adam step sizes a run may ask for: above 1 every step overshoots.
+const LEARNING_RATES: std::ops::RangeInclusive<f32> = 1e-7..=1.0;
+/// The energy weight's upper end: far above Table 2's 0.001–0.05, where the energy drowns
+/// out the reward entirely.
+const MAX_ENERGY_WEIGHT: f32 = 1e3;
+/// CEM's variance floor, in squared action units (actions are bounded, so more is no search).
+const MAX_CEM_MIN_VARIANCE: f32 = 1e3;
+/// The denoisers' noise scale, in standardised units (Table 2 uses 0.1–0.9).
+const MIN_NOISE_SIGMA: f32 = 1e-4;
+const MAX_NOISE_SIGMA: f32 = 10.0;
+
+fn invalid(message: String) -> PresetError {
+    PresetError::InvalidOverride(message)
+}
+
+/// An epoch schedule's own numbers make sense (its epochs' upper bound is a limit).
+fn check_schedule(schedule: &EpochSchedule) -> Result<(), PresetError> {
+    match *schedule {
+        EpochSchedule::Constant => Ok(()),
+        EpochSchedule::DropAfter { epochs: 0, .. } => Err(invalid(
+            "epoch_schedule.drop_after.epochs must be at least 1".into(),
+        )),
+        EpochSchedule::DropAfter { .. } => Ok(()),
+        EpochSchedule::Geometric {
+            dynamics_factor,
+            energy_factor,
+            min_epochs,
+        } => {
+            for (name, f) in [
+                ("dynamics_factor", dynamics_factor),
+                ("energy_factor", energy_factor),
+            ] {
+                if !(f.is_finite() && f > 0.0 && f <= 1.0) {
+                    return Err(invalid(format!(
+                        "epoch_schedule.geometric.{name} must be in (0, 1], not {f}"
+                    )));
+                }
+            }
+            if min_epochs == 0 {
+                return Err(invalid(
+                    "epoch_schedule.geometric.min_epochs must be at least 1".into(),
+                ));
+            }
+            Ok(())
+        }
     }
 }
 
@@ -408,8 +500,8 @@ mod tests {
         assert_eq!((hc.energy.hidden_layers, hc.energy.hidden_size), (5, 500));
         assert_eq!(hc.energy_weight, 0.05);
         assert_eq!(hc.exploration_episodes, 3);
-        assert_eq!(hc.schedule.epochs(&hc, 5), (300, 100));
-        assert_eq!(hc.schedule.epochs(&hc, 10), (8, 8));
+        assert_eq!(hc.epochs(5), (300, 100));
+        assert_eq!(hc.epochs(10), (8, 8));
         let ant = Preset::new(TaskId::Ant, Some("pets")).unwrap();
         assert_eq!(
             (
@@ -420,8 +512,8 @@ mod tests {
             (5, 20, 7)
         );
         assert_eq!(ant.regularizer, RegularizerKind::None);
-        assert_eq!(ant.schedule.epochs(&ant, 1), (600, 800));
-        assert_eq!(ant.schedule.epochs(&ant, 2), (360, 560));
+        assert_eq!(ant.epochs(1), (600, 800));
+        assert_eq!(ant.epochs(2), (360, 560));
         let pusher = Preset::new(TaskId::Pusher, None).unwrap();
         assert_eq!(
             (
@@ -474,6 +566,295 @@ mod tests {
             ..Default::default()
         };
         assert!(p.apply(&nan).is_err());
+    }
+
+    /// Every preset field can be overridden, each to a value that then lands in the preset.
+    #[test]
+    fn every_preset_field_can_be_overridden() {
+        let mut p = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
+        let schedule = EpochSchedule::Geometric {
+            dynamics_factor: 0.5,
+            energy_factor: 0.25,
+            min_epochs: 3,
+        };
+        let o = PlannerOverrides {
+            regularizer: Some(RegularizerChoice::Deen),
+            energy_weight: Some(0.5),
+            ensemble_size: Some(3),
+            particles: Some(4),
+            horizon: Some(6),
+            population: Some(70),
+            elites: Some(7),
+            cem_iterations: Some(2),
+            cem_smoothing: Some(0.3),
+            cem_min_variance: Some(0.01),
+            sample_dynamics: Some(true),
+            exploration_episodes: Some(2),
+            dynamics_epochs: Some(11),
+            dynamics_hidden_layers: Some(2),
+            dynamics_hidden_size: Some(12),
+            dynamics_batch_size: Some(13),
+            dynamics_learning_rate: Some(2e-3),
+            dynamics_weight_decay: Some(1e-4),
+            energy_epochs: Some(14),
+            energy_hidden_layers: Some(1),
+            energy_hidden_size: Some(15),
+            energy_batch_size: Some(16),
+            energy_learning_rate: Some(3e-3),
+            energy_noise_sigma: Some(0.2),
+            epoch_schedule: Some(schedule.clone()),
+            max_gradient_steps: Some(1000),
+            inference_precision: Some(InferencePrecision::F32),
+            optimizer: Some(Optimizer::Icem),
+            icem_noise_beta: Some(1.5),
+            icem_keep_elites: Some(0.2),
+            icem_population_decay: Some(1.5),
+        };
+        p.apply(&o).unwrap();
+        assert_eq!(p.cem.optimizer, Optimizer::Icem);
+        assert_eq!(
+            (
+                p.cem.icem.noise_beta,
+                p.cem.icem.keep_elites,
+                p.cem.icem.population_decay
+            ),
+            (1.5, 0.2, 1.5)
+        );
+        let d = &p.dynamics;
+        let e = &p.energy;
+        let c = &p.cem;
+        assert_eq!(p.regularizer, RegularizerKind::Deen);
+        assert_eq!(p.energy_weight, 0.5);
+        assert_eq!(
+            (
+                d.ensemble_size,
+                d.epochs,
+                d.hidden_layers,
+                d.hidden_size,
+                d.batch_size
+            ),
+            (3, 11, 2, 12, 13)
+        );
+        assert_eq!((d.learning_rate, d.weight_decay), (2e-3, 1e-4));
+        assert_eq!(
+            (e.epochs, e.hidden_layers, e.hidden_size, e.batch_size),
+            (14, 1, 15, 16)
+        );
+        assert_eq!((e.learning_rate, e.noise_sigma), (3e-3, 0.2));
+        assert_eq!(
+            (c.particles, c.horizon, c.population, c.elites, c.iterations),
+            (4, 6, 70, 7, 2)
+        );
+        assert_eq!((c.smoothing, c.min_variance), (0.3, 0.01));
+        assert!(p.sample_dynamics);
+        assert_eq!(p.exploration_episodes, 2);
+        assert_eq!(p.schedule, schedule);
+        assert_eq!(p.max_gradient_steps, Some(1000));
+        assert_eq!(p.inference_precision, InferencePrecision::F32);
+        // Every field of the preset is reached: a preset field added without an override
+        // makes this list (and so this test) fail to compile.
+        let Preset {
+            method: _,
+            task: _,
+            dynamics: _,
+            regularizer: _,
+            energy: _,
+            energy_weight: _,
+            cem: _,
+            sample_dynamics: _,
+            exploration_episodes: _,
+            schedule: _,
+            max_gradient_steps: _,
+            inference_precision: _,
+        } = p;
+    }
+
+    /// Hostile values of every real-valued and scheduled override are refused, naming the field.
+    #[test]
+    fn hostile_overrides_are_refused_by_name() {
+        let base = Preset::new(TaskId::Cartpole, None).unwrap();
+        let o = PlannerOverrides::default;
+        let cases: Vec<(PlannerOverrides, &str)> = vec![
+            (
+                PlannerOverrides {
+                    energy_weight: Some(-1.0),
+                    ..o()
+                },
+                "energy_weight",
+            ),
+            (
+                PlannerOverrides {
+                    energy_weight: Some(f32::INFINITY),
+                    ..o()
+                },
+                "energy_weight",
+            ),
+            (
+                PlannerOverrides {
+                    energy_weight: Some(1e30),
+                    ..o()
+                },
+                "energy_weight",
+            ),
+            (
+                PlannerOverrides {
+                    cem_smoothing: Some(1.0),
+                    ..o()
+                },
+                "cem_smoothing",
+            ),
+            (
+                PlannerOverrides {
+                    cem_smoothing: Some(f32::NAN),
+                    ..o()
+                },
+                "cem_smoothing",
+            ),
+            (
+                PlannerOverrides {
+                    cem_min_variance: Some(-0.1),
+                    ..o()
+                },
+                "cem_min_variance",
+            ),
+            (
+                PlannerOverrides {
+                    cem_min_variance: Some(f32::MAX),
+                    ..o()
+                },
+                "cem_min_variance",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_learning_rate: Some(0.0),
+                    ..o()
+                },
+                "dynamics_learning_rate",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_learning_rate: Some(1e9),
+                    ..o()
+                },
+                "dynamics_learning_rate",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_weight_decay: Some(-1e-3),
+                    ..o()
+                },
+                "dynamics_weight_decay",
+            ),
+            (
+                PlannerOverrides {
+                    energy_learning_rate: Some(f32::NAN),
+                    ..o()
+                },
+                "energy_learning_rate",
+            ),
+            (
+                PlannerOverrides {
+                    energy_noise_sigma: Some(0.0),
+                    ..o()
+                },
+                "energy_noise_sigma",
+            ),
+            (
+                PlannerOverrides {
+                    energy_noise_sigma: Some(1e20),
+                    ..o()
+                },
+                "energy_noise_sigma",
+            ),
+            (
+                PlannerOverrides {
+                    dynamics_batch_size: Some(0),
+                    ..o()
+                },
+                "dynamics_batch_size",
+            ),
+            (
+                PlannerOverrides {
+                    energy_batch_size: Some(0),
+                    ..o()
+                },
+                "energy_batch_size",
+            ),
+            (
+                PlannerOverrides {
+                    max_gradient_steps: Some(0),
+                    ..o()
+                },
+                "max_gradient_steps",
+            ),
+            (
+                PlannerOverrides {
+                    epoch_schedule: Some(EpochSchedule::DropAfter {
+                        after_episodes: 0,
+                        epochs: 0,
+                    }),
+                    ..o()
+                },
+                "epoch_schedule.drop_after.epochs",
+            ),
+            (
+                PlannerOverrides {
+                    epoch_schedule: Some(EpochSchedule::Geometric {
+                        dynamics_factor: 2.0,
+                        energy_factor: 0.5,
+                        min_epochs: 1,
+                    }),
+                    ..o()
+                },
+                "epoch_schedule.geometric.dynamics_factor",
+            ),
+            (
+                PlannerOverrides {
+                    epoch_schedule: Some(EpochSchedule::Geometric {
+                        dynamics_factor: 0.5,
+                        energy_factor: f32::NAN,
+                        min_epochs: 1,
+                    }),
+                    ..o()
+                },
+                "epoch_schedule.geometric.energy_factor",
+            ),
+        ];
+        for (overrides, field) in cases {
+            let err = base.clone().apply(&overrides).unwrap_err().to_string();
+            assert!(err.contains(field), "{overrides:?}: {err}");
+        }
+    }
+
+    /// A mistyped override is refused in JSON and TOML; postcard names no fields, and bytes
+    /// beyond the fields it knows are refused as trailing bytes.
+    #[test]
+    fn unknown_override_fields_are_refused() {
+        let err = serde_json::from_str::<PlannerOverrides>(r#"{"populaton": 50}"#).unwrap_err();
+        assert!(err.to_string().contains("populaton"), "{err}");
+        assert!(toml::from_str::<PlannerOverrides>("horizn = 3").is_err());
+        let spec = proto::RunSpec {
+            task: TaskId::Cartpole,
+            preset: None,
+            overrides: PlannerOverrides::default(),
+            mode: Default::default(),
+            seed: 0,
+        };
+        let request = proto::AttachRequest {
+            version: proto::PROTOCOL_VERSION,
+            agent: "a".into(),
+            spec,
+        };
+        let mut bytes = proto::encode(&request, proto::Encoding::Postcard).unwrap();
+        bytes.push(1);
+        assert!(proto::decode::<proto::AttachRequest>(&bytes, proto::Encoding::Postcard).is_err());
+        let json = format!(
+            r#"{{"version":{},"agent":"a","spec":{{"task":"cartpole","overrides":{{"dynamics_hidden_size":64,"hidden_size":64}}}}}}"#,
+            proto::PROTOCOL_VERSION
+        );
+        let err = proto::decode::<proto::AttachRequest>(json.as_bytes(), proto::Encoding::Json)
+            .unwrap_err();
+        assert!(err.to_string().contains("hidden_size"), "{err}");
     }
 
     #[test]

@@ -3,12 +3,16 @@
 use super::config::DynamicsConfig;
 use super::model::{DynamicsScratch, ModelParts, ProbabilisticModel, TrainingSet};
 use crate::data::Transitions;
+use crate::nn::train::{FitBudget, Stop};
 use crate::nn::{FitReport, FlushDenormals, Normalizer, ShapeError};
 use proto::TaskSpec;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
 use std::time::Instant;
+
+/// One member's fit: last-epoch loss, steps, NLL, MSE, and why it stopped early (if it did).
+type MemberFit = (f32, usize, f32, f32, Option<Stop>);
 
 /// `ensemble_size` probabilistic models of one task.
 ///
@@ -84,10 +88,18 @@ impl Ensemble {
         }
     }
 
-    /// Trains every member for `epochs` on `data`, continuing from the current weights after
-    /// refitting the input and target statistics on `data`. Members train in parallel.
-    /// Without data or epochs the ensemble is left exactly as it is.
-    pub fn fit(&mut self, data: &Transitions, epochs: usize, rng: &mut StdRng) -> FitReport {
+    /// Trains every member for the budget's epochs on `data` (or until it says stop),
+    /// continuing from the current weights after refitting the input and target statistics
+    /// on `data`. Members train in parallel. Without data or epochs the ensemble is left
+    /// exactly as it is.
+    pub fn fit(
+        &mut self,
+        data: &Transitions,
+        budget: impl Into<FitBudget>,
+        rng: &mut StdRng,
+    ) -> FitReport {
+        let budget = budget.into();
+        let epochs = budget.epochs;
         let started = Instant::now();
         let task = self.task();
         let n = data.len();
@@ -115,18 +127,17 @@ impl Ensemble {
         let train = |(member, (mut order, seed)): (&mut ProbabilisticModel, (Vec<usize>, u64))| {
             let _flush = FlushDenormals::new();
             let mut rng = StdRng::seed_from_u64(seed);
-            let (loss, steps) = member.fit(&set, &mut order, epochs, &mut rng);
+            let run = member.fit(&set, &mut order, &budget, &mut rng);
             let (nll, mse) = member.evaluate(&set);
-            (loss, steps, nll, mse)
+            (run.loss, run.steps, nll, mse, run.stopped)
         };
-        let results: Vec<(f32, usize, f32, f32)> = if bootstrap {
+        let results: Vec<MemberFit> = if bootstrap {
             self.members.par_iter_mut().zip(plans).map(train).collect()
         } else {
             self.members.iter_mut().zip(plans).map(train).collect()
         };
-        let mean = |f: fn(&(f32, usize, f32, f32)) -> f32| {
-            results.iter().map(f).sum::<f32>() / results.len() as f32
-        };
+        let mean =
+            |f: fn(&MemberFit) -> f32| results.iter().map(f).sum::<f32>() / results.len() as f32;
         let report = FitReport {
             samples: n,
             epochs,
@@ -135,6 +146,7 @@ impl Ensemble {
             nll: (n > 0).then(|| mean(|r| r.2)),
             mse: (n > 0).then(|| mean(|r| r.3)),
             seconds: started.elapsed().as_secs_f32(),
+            stopped: results.iter().find_map(|r| r.4),
         };
         tracing::debug!(?report, members = self.members.len(), "dynamics trained");
         report

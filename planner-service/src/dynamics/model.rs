@@ -15,7 +15,7 @@ use super::gaussian::{
 use crate::data::Transitions;
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::matmul::transpose;
-use crate::nn::train::run_epochs;
+use crate::nn::train::{EpochsRun, FitBudget, run_epochs};
 use crate::nn::vecops::scale_shift;
 use crate::nn::{
     Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape, add_weight_decay,
@@ -177,13 +177,8 @@ pub struct ProbabilisticModel {
 impl ProbabilisticModel {
     /// An untrained model of the configured size for `task` (identity normalisers).
     pub fn new(task: &'static TaskSpec, config: &DynamicsConfig, rng: &mut StdRng) -> Self {
-        let in_dim = task.state_feature_dim + task.act_dim;
-        let mut sizes = vec![in_dim];
-        sizes.extend(std::iter::repeat_n(
-            config.hidden_size,
-            config.hidden_layers,
-        ));
-        sizes.push(2 * task.obs_dim);
+        let sizes = super::config::layer_sizes(task, config);
+        let in_dim = sizes[0];
         let mlp = Mlp::new(&sizes, Activation::Swish, rng);
         let mut logvar_bounds = vec![INITIAL_MAX_LOGVAR; task.obs_dim];
         logvar_bounds.extend(std::iter::repeat_n(INITIAL_MIN_LOGVAR, task.obs_dim));
@@ -350,21 +345,18 @@ impl ProbabilisticModel {
         loss
     }
 
-    /// `epochs` passes over `order` (indices into `set`, e.g. a bootstrap resample), each in
-    /// freshly shuffled minibatches, continuing from the current weights.
-    /// Returns the mean loss of the last epoch and the number of steps.
+    /// `budget.epochs` passes over `order` (indices into `set`, e.g. a bootstrap resample),
+    /// each in freshly shuffled minibatches, continuing from the current weights, until the
+    /// budget says stop.
     pub fn fit(
         &mut self,
         set: &TrainingSet,
         order: &mut [usize],
-        epochs: usize,
+        budget: &FitBudget,
         rng: &mut StdRng,
-    ) -> (f32, usize) {
-        if order.is_empty() || epochs == 0 {
-            return (f32::NAN, 0);
-        }
-        let mut ws = TrainWorkspace::new(self, self.batch_size.min(order.len()));
-        run_epochs(order, self.batch_size, epochs, rng, |batch, _| {
+    ) -> EpochsRun {
+        let mut ws = TrainWorkspace::new(self, self.batch_size.min(order.len().max(1)));
+        run_epochs(order, self.batch_size, budget, rng, |batch, _| {
             self.train_step(set, batch, &mut ws)
         })
     }

@@ -44,7 +44,7 @@ pub struct EnergyParts {
 }
 
 /// Layer sizes `[dim, hidden…, out]` of an energy network.
-pub(crate) fn layer_sizes(dim: usize, config: &EnergyConfig, out: usize) -> Vec<usize> {
+pub fn layer_sizes(dim: usize, config: &EnergyConfig, out: usize) -> Vec<usize> {
     let mut sizes = vec![dim];
     sizes.extend(std::iter::repeat_n(
         config.hidden_size,

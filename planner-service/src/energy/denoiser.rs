@@ -9,7 +9,7 @@
 
 use super::config::{EnergyConfig, EnergyParts, layer_sizes};
 use crate::nn::aligned::AlignedBuf;
-use crate::nn::train::run_epochs;
+use crate::nn::train::{FitBudget, run_epochs};
 use crate::nn::{Activation, Adam, FitReport, FlushDenormals, Mlp, Normalizer, ShapeError};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -155,10 +155,17 @@ impl<L: DenoisingLoss> Denoiser<L> {
         &self.normalizer
     }
 
-    /// Refits the normaliser on `rows` (raw, sample-major, `dim` columns) and trains `epochs`
-    /// passes over them, continuing from the current weights. Without data or epochs the model
-    /// is left exactly as it is.
-    pub fn fit(&mut self, rows: &[f32], epochs: usize, rng: &mut StdRng) -> FitReport {
+    /// Refits the normaliser on `rows` (raw, sample-major, `dim` columns) and trains the
+    /// budget's epochs over them (or until it says stop), continuing from the current weights.
+    /// Without data or epochs the model is left exactly as it is.
+    pub fn fit(
+        &mut self,
+        rows: &[f32],
+        budget: impl Into<FitBudget>,
+        rng: &mut StdRng,
+    ) -> FitReport {
+        let budget = budget.into();
+        let epochs = budget.epochs;
         let started = Instant::now();
         let n = rows.len() / self.dim();
         if n == 0 || epochs == 0 {
@@ -171,14 +178,15 @@ impl<L: DenoisingLoss> Denoiser<L> {
         let mut order: Vec<usize> = (0..n).collect();
         let mut ws = Workspace::new(self, self.batch_size.min(n.max(1)));
         let batch_size = self.batch_size;
-        let (loss, steps) = run_epochs(&mut order, batch_size, epochs, rng, |batch, rng| {
+        let run = run_epochs(&mut order, batch_size, &budget, rng, |batch, rng| {
             self.train_step(&set, batch, &mut ws, rng)
         });
         FitReport {
             samples: n,
             epochs,
-            steps,
-            loss,
+            steps: run.steps,
+            loss: run.loss,
+            stopped: run.stopped,
             seconds: started.elapsed().as_secs_f32(),
             ..FitReport::default()
         }

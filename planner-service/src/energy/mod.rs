@@ -57,6 +57,30 @@ impl RegularizerKind {
         RegularizerKind::Deen,
     ];
 
+    /// Layer sizes of this regulariser's network for transitions `[s, a, s']` of
+    /// `2 · obs_dim + act_dim` numbers (`None`: this kind has no network).
+    pub fn layer_sizes(
+        self,
+        config: &EnergyConfig,
+        obs_dim: usize,
+        act_dim: usize,
+    ) -> Option<Vec<usize>> {
+        let dim = 2 * obs_dim + act_dim;
+        match self {
+            RegularizerKind::None => None,
+            RegularizerKind::Dae => Some(config::layer_sizes(
+                dim,
+                config,
+                <dae::DaeLoss as DenoisingLoss>::outputs(dim),
+            )),
+            RegularizerKind::Deen => Some(config::layer_sizes(
+                dim,
+                config,
+                <deen::DeenLoss as DenoisingLoss>::outputs(dim),
+            )),
+        }
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             RegularizerKind::None => "none",
@@ -201,9 +225,16 @@ impl Regularizer {
         }
     }
 
-    /// Trains on every transition of `data` for `epochs`, continuing from the current weights
-    /// (the normaliser is refitted on `data`).
-    pub fn fit(&mut self, data: &Transitions, epochs: usize, rng: &mut StdRng) -> FitReport {
+    /// Trains on every transition of `data` for the budget's epochs (or until it says stop),
+    /// continuing from the current weights (the normaliser is refitted on `data`).
+    pub fn fit(
+        &mut self,
+        data: &Transitions,
+        budget: impl Into<crate::nn::train::FitBudget>,
+        rng: &mut StdRng,
+    ) -> FitReport {
+        let budget = budget.into();
+        let epochs = budget.epochs;
         let report = match self {
             Regularizer::None => FitReport {
                 samples: data.len(),
@@ -211,8 +242,8 @@ impl Regularizer {
                 loss: 0.0,
                 ..FitReport::default()
             },
-            Regularizer::Dae(m) => m.fit(&transition_rows(data), epochs, rng),
-            Regularizer::Deen(m) => m.fit(&transition_rows(data), epochs, rng),
+            Regularizer::Dae(m) => m.fit(&transition_rows(data), budget, rng),
+            Regularizer::Deen(m) => m.fit(&transition_rows(data), budget, rng),
         };
         tracing::debug!(?report, kind = %self.kind(), "regularizer trained");
         report

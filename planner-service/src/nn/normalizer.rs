@@ -5,6 +5,11 @@ use serde::{Deserialize, Serialize};
 /// A dimension whose standard deviation in the data is below this is treated as constant.
 pub const MIN_STD: f32 = 1e-6;
 
+/// The largest scale a normaliser uses. Data spread wider than this (possible only with
+/// values near f32's limits) is scaled by it instead, so the statistics stay finite: the
+/// spread of two values near ±3.4e38 does not fit in an f32.
+pub const MAX_STD: f32 = 1e30;
+
 /// `x ↦ (x − mean) / std` per dimension, fitted from data.
 ///
 /// A dimension that does not vary in the data (`std < MIN_STD`) gets `std = 1`: it is only
@@ -25,7 +30,8 @@ impl Normalizer {
     }
 
     /// Mean and standard deviation of each column of `rows` (sample-major, `dim` columns),
-    /// accumulated in `f64`. Empty data gives the identity.
+    /// accumulated in `f64`, the scale clamped to [`MAX_STD`]. Empty data gives the identity.
+    /// Every statistic is finite for any finite data.
     pub fn fit(rows: &[f32], dim: usize) -> Self {
         assert!(
             dim > 0 && rows.len().is_multiple_of(dim),
@@ -52,7 +58,7 @@ impl Normalizer {
         let std = var
             .iter()
             .map(|v| {
-                let s = (v / n as f64).sqrt() as f32;
+                let s = (v / n as f64).sqrt().min(MAX_STD as f64) as f32;
                 if s < MIN_STD { 1.0 } else { s }
             })
             .collect();
@@ -116,5 +122,32 @@ mod tests {
         assert!(z.iter().skip(1).step_by(2).all(|v| *v == 0.0));
         assert_eq!(norm.denormalize(0, norm.normalize(0, 4.25)), 4.25);
         assert_eq!(Normalizer::fit(&[], 3), Normalizer::identity(3));
+    }
+
+    /// Extreme but finite data (values at f32's limits, whose spread overflows an f32) gives
+    /// finite statistics; data within the largest magnitude a planner accepts (1e18)
+    /// standardises to finite values.
+    #[test]
+    fn extreme_finite_data_gives_finite_statistics() {
+        let rows = [
+            f32::MAX,
+            -3.4e38,
+            f32::MIN,
+            1.0,
+            3.4e38,
+            f32::MAX,
+            -f32::MAX,
+            0.0,
+        ];
+        let norm = Normalizer::fit(&rows, 2);
+        assert!(norm.mean().iter().all(|m| m.is_finite()), "{norm:?}");
+        assert!(
+            norm.std().iter().all(|s| s.is_finite() && *s <= MAX_STD),
+            "{norm:?}"
+        );
+        let mut rows = [1e18, -1e18, -1e18, 3.0, 1e18, 1e18, -1e18, 0.0];
+        let norm = Normalizer::fit(&rows, 2);
+        norm.normalize_rows(&mut rows);
+        assert!(rows.iter().all(|v| v.is_finite()), "{rows:?}");
     }
 }

@@ -1,8 +1,75 @@
-//! What training loops share: minibatch schedules and the report of a fit.
+//! What training loops share: minibatch schedules, what may cut a fit short, and the report
+//! of a fit.
 
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+/// How long a fit may run: its epochs, and what may end it sooner. Checked before every
+/// minibatch, so a fit stops within one optimiser step of being asked to. A bare number of
+/// epochs converts into a budget with nothing else.
+#[derive(Clone, Debug, Default)]
+pub struct FitBudget {
+    pub epochs: usize,
+    /// Most optimiser steps (per ensemble member).
+    pub max_steps: Option<usize>,
+    /// No minibatch starts after this instant.
+    pub deadline: Option<Instant>,
+    /// Set from outside (the daemon shutting down): no further minibatch starts.
+    pub cancel: Option<Arc<AtomicBool>>,
+}
+
+impl From<usize> for FitBudget {
+    fn from(epochs: usize) -> Self {
+        Self {
+            epochs,
+            ..Self::default()
+        }
+    }
+}
+
+/// Why a fit ended before its epochs were done.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Stop {
+    /// It took its [`FitBudget::max_steps`].
+    StepCap,
+    /// Its [`FitBudget::deadline`] passed.
+    Deadline,
+    /// It was cancelled.
+    Cancelled,
+}
+
+impl FitBudget {
+    /// Why no further step may start after `steps` steps (`None`: it may).
+    fn stop(&self, steps: usize) -> Option<Stop> {
+        if self
+            .cancel
+            .as_ref()
+            .is_some_and(|c| c.load(Ordering::Relaxed))
+        {
+            Some(Stop::Cancelled)
+        } else if self.max_steps.is_some_and(|max| steps >= max) {
+            Some(Stop::StepCap)
+        } else if self.deadline.is_some_and(|d| Instant::now() >= d) {
+            Some(Stop::Deadline)
+        } else {
+            None
+        }
+    }
+}
+
+/// What [`run_epochs`] did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EpochsRun {
+    /// Mean loss of the last (possibly partial) epoch's minibatches; NaN if none ran.
+    pub loss: f32,
+    pub steps: usize,
+    pub stopped: Option<Stop>,
+}
 
 /// What one call to a model's `fit` did.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -23,6 +90,9 @@ pub struct FitReport {
     pub mse: Option<f32>,
     /// Wall-clock seconds.
     pub seconds: f32,
+    /// Why the fit ended before its epochs were done, if it did.
+    #[serde(default)]
+    pub stopped: Option<Stop>,
 }
 
 impl FitReport {
@@ -38,32 +108,42 @@ impl FitReport {
     }
 }
 
-/// `epochs` passes over `order` (indices of training samples, e.g. a bootstrap resample), each
-/// in freshly shuffled minibatches of `batch_size`; `step` takes one optimiser step on a
-/// minibatch and returns its mean loss. Returns the mean loss of the last epoch (NaN if
-/// nothing ran) and the number of steps.
+/// `budget.epochs` passes over `order` (indices of training samples, e.g. a bootstrap
+/// resample), each in freshly shuffled minibatches of `batch_size`, until the budget says
+/// stop; `step` takes one optimiser step on a minibatch and returns its mean loss.
 pub fn run_epochs(
     order: &mut [usize],
     batch_size: usize,
-    epochs: usize,
+    budget: &FitBudget,
     rng: &mut StdRng,
     mut step: impl FnMut(&[usize], &mut StdRng) -> f32,
-) -> (f32, usize) {
-    let (mut last, mut steps) = (f32::NAN, 0);
+) -> EpochsRun {
+    let mut run = EpochsRun {
+        loss: f32::NAN,
+        steps: 0,
+        stopped: None,
+    };
     if order.is_empty() {
-        return (last, steps);
+        return run;
     }
-    for _ in 0..epochs {
+    'epochs: for _ in 0..budget.epochs {
         let (mut total, mut count) = (0.0f64, 0usize);
         order.shuffle(rng);
         for batch in order.chunks(batch_size.max(1)) {
+            if let Some(stop) = budget.stop(run.steps) {
+                run.stopped = Some(stop);
+                if count > 0 {
+                    run.loss = (total / count as f64) as f32;
+                }
+                break 'epochs;
+            }
             total += step(batch, rng) as f64 * batch.len() as f64;
             count += batch.len();
-            steps += 1;
+            run.steps += 1;
         }
-        last = (total / count as f64) as f32;
+        run.loss = (total / count as f64) as f32;
     }
-    (last, steps)
+    run
 }
 
 #[cfg(test)]
@@ -76,10 +156,12 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(0);
         let mut order: Vec<usize> = (0..10).collect();
         let mut batches: Vec<Vec<usize>> = vec![];
-        let (loss, steps) = run_epochs(&mut order, 4, 2, &mut rng, |batch, _| {
+        let run = run_epochs(&mut order, 4, &2.into(), &mut rng, |batch, _| {
             batches.push(batch.to_vec());
             batch.iter().map(|&i| i as f32).sum::<f32>() / batch.len() as f32
         });
+        let (loss, steps) = (run.loss, run.steps);
+        assert_eq!(run.stopped, None);
         assert_eq!(
             batches.iter().map(Vec::len).collect::<Vec<_>>(),
             vec![4, 4, 2, 4, 4, 2]
@@ -92,6 +174,49 @@ mod tests {
         }
         // The last epoch's per-batch means weighted by batch size: the mean index, 4.5.
         assert!((loss - 4.5).abs() < 1e-6 && steps == 6, "{loss} {steps}");
-        assert!(run_epochs(&mut [], 2, 3, &mut rng, |_, _| 1.0).0.is_nan());
+        assert!(
+            run_epochs(&mut [], 2, &3.into(), &mut rng, |_, _| 1.0)
+                .loss
+                .is_nan()
+        );
+    }
+
+    /// A step cap, a passed deadline and a cancel flag each stop the loop before the next
+    /// minibatch, and say which did.
+    #[test]
+    fn a_budget_stops_the_epochs_between_minibatches() {
+        let mut rng = StdRng::seed_from_u64(1);
+        let mut order: Vec<usize> = (0..10).collect();
+        let capped = FitBudget {
+            epochs: 100,
+            max_steps: Some(7),
+            ..FitBudget::default()
+        };
+        let run = run_epochs(&mut order, 4, &capped, &mut rng, |_, _| 2.0);
+        assert_eq!(
+            (run.steps, run.stopped, run.loss),
+            (7, Some(Stop::StepCap), 2.0)
+        );
+
+        let past = FitBudget {
+            epochs: 100,
+            deadline: Some(Instant::now()),
+            ..FitBudget::default()
+        };
+        let run = run_epochs(&mut order, 4, &past, &mut rng, |_, _| 1.0);
+        assert_eq!((run.steps, run.stopped), (0, Some(Stop::Deadline)));
+        assert!(run.loss.is_nan());
+
+        let cancel = Arc::new(AtomicBool::new(false));
+        let cancellable = FitBudget {
+            epochs: 100,
+            cancel: Some(cancel.clone()),
+            ..FitBudget::default()
+        };
+        let run = run_epochs(&mut order, 4, &cancellable, &mut rng, |_, _| {
+            cancel.store(true, Ordering::Relaxed);
+            1.0
+        });
+        assert_eq!((run.steps, run.stopped), (1, Some(Stop::Cancelled)));
     }
 }

@@ -6,6 +6,10 @@
 //! models were trained on, the regulariser — is a JSON header stored in the safetensors
 //! metadata under [`HEADER_KEY`]. One self-describing file per version means a checkpoint is
 //! written with a single atomic rename and can be inspected with any safetensors reader.
+//!
+//! A CRC-32 of the JSON header and every tensor's bytes is stored in the metadata under
+//! [`CHECKSUM_KEY`] and verified before anything is decoded, so a damaged file is an error
+//! (and moved aside by [`crate::persist`]), never a model with a few wrong weights.
 
 use crate::config::Preset;
 use crate::dynamics::{Ensemble, ModelParts};
@@ -21,8 +25,13 @@ use std::collections::HashMap;
 /// The safetensors metadata key that holds the JSON header.
 pub const HEADER_KEY: &str = "ebmpc";
 
+/// The safetensors metadata key that holds the checksum (decimal CRC-32).
+pub const CHECKSUM_KEY: &str = "ebmpc.crc32";
+
 /// Version of the checkpoint layout (not of the models); bumped when the header changes.
-pub const FORMAT_VERSION: u32 = 1;
+/// Version 2 added the checksum; version 1 files are refused as unsupported (not damaged), and
+/// the run retrains from its replay log.
+pub const FORMAT_VERSION: u32 = 2;
 
 /// Why a checkpoint could not be written or read.
 #[derive(Debug, thiserror::Error)]
@@ -41,6 +50,25 @@ pub enum CheckpointError {
     Tensor { name: String, problem: String },
     #[error("checkpoint does not fit the run's preset: {0}")]
     Shape(#[from] crate::nn::ShapeError),
+    #[error("checkpoint has no `{CHECKSUM_KEY}` checksum")]
+    MissingChecksum,
+    #[error("checkpoint checksum {stored} does not match its content ({computed})")]
+    Checksum { stored: String, computed: u32 },
+}
+
+impl CheckpointError {
+    /// Whether the file is damaged (as opposed to intact but not for this run or this build):
+    /// damaged files are moved aside so that they are never tried again.
+    pub fn is_damage(&self) -> bool {
+        matches!(
+            self,
+            Self::SafeTensors(_)
+                | Self::Header(_)
+                | Self::MissingHeader
+                | Self::MissingChecksum
+                | Self::Checksum { .. }
+        )
+    }
 }
 
 /// The JSON header: everything but the weights.
@@ -112,8 +140,61 @@ pub fn encode(models: &Models, task: TaskId) -> Result<Vec<u8>, CheckpointError>
             ))
         })
         .collect::<Result<Vec<_>, safetensors::SafeTensorError>>()?;
-    let metadata = HashMap::from([(HEADER_KEY.to_string(), serde_json::to_string(&header)?)]);
+    let header_json = serde_json::to_string(&header)?;
+    let checksum = checksum(
+        &header_json,
+        weights
+            .iter()
+            .map(|(name, bytes, _)| (name.as_str(), bytes.as_slice())),
+    );
+    let metadata = HashMap::from([
+        (HEADER_KEY.to_string(), header_json),
+        (CHECKSUM_KEY.to_string(), checksum.to_string()),
+    ]);
     Ok(serialize(views, Some(metadata))?)
+}
+
+/// CRC-32 of the JSON header and every tensor's bytes, tensors in name order.
+fn checksum<'a>(header_json: &str, tensors: impl Iterator<Item = (&'a str, &'a [u8])>) -> u32 {
+    let mut tensors: Vec<_> = tensors.collect();
+    tensors.sort_by_key(|(name, _)| *name);
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(header_json.as_bytes());
+    for (name, bytes) in tensors {
+        crc.update(name.as_bytes());
+        crc.update(bytes);
+    }
+    crc.finalize()
+}
+
+/// Checks the stored checksum against the file's content.
+fn verify(
+    metadata: &HashMap<String, String>,
+    header_json: &str,
+    tensors: &SafeTensors<'_>,
+) -> Result<(), CheckpointError> {
+    let Some(stored) = metadata.get(CHECKSUM_KEY) else {
+        // A file from before checksums is refused by its format version, not as damage.
+        let header: Header = serde_json::from_str(header_json)?;
+        return Err(if header.format < FORMAT_VERSION {
+            CheckpointError::Format {
+                found: header.format,
+            }
+        } else {
+            CheckpointError::MissingChecksum
+        });
+    };
+    let computed = checksum(
+        header_json,
+        tensors.iter().map(|(name, view)| (name, view.data())),
+    );
+    if stored.parse::<u32>().ok() != Some(computed) {
+        return Err(CheckpointError::Checksum {
+            stored: stored.clone(),
+            computed,
+        });
+    }
+    Ok(())
 }
 
 /// Decodes a checkpoint into models of the run's `preset` for `task`, checking every shape.
@@ -123,11 +204,15 @@ pub fn decode(
     preset: &Preset,
 ) -> Result<Models, CheckpointError> {
     let (_, metadata) = SafeTensors::read_metadata(bytes)?;
-    let header_json = metadata
+    let metadata = metadata
         .metadata()
         .as_ref()
-        .and_then(|m| m.get(HEADER_KEY))
         .ok_or(CheckpointError::MissingHeader)?;
+    let header_json = metadata
+        .get(HEADER_KEY)
+        .ok_or(CheckpointError::MissingHeader)?;
+    let tensors = SafeTensors::deserialize(bytes)?;
+    verify(metadata, header_json, &tensors)?;
     let header: Header = serde_json::from_str(header_json)?;
     if header.format != FORMAT_VERSION {
         return Err(CheckpointError::Format {
@@ -140,7 +225,6 @@ pub fn decode(
             expected: task.id,
         });
     }
-    let tensors = SafeTensors::deserialize(bytes)?;
     let parts = header
         .dynamics
         .into_iter()
@@ -286,8 +370,40 @@ mod tests {
                 "cut at {cut}"
             );
         }
-        let mut flipped = bytes.clone();
-        flipped[9] ^= 0xff;
-        assert!(decode(&flipped, task, &preset).is_err());
+        // Every byte flipped in turn: each is refused as damage, none decodes.
+        for at in 0..bytes.len() {
+            let mut flipped = bytes.clone();
+            flipped[at] ^= 0x01;
+            match decode(&flipped, task, &preset) {
+                Ok(_) => panic!("a flipped bit at byte {at} was loaded"),
+                Err(e) => assert!(
+                    e.is_damage() || matches!(e, CheckpointError::Format { .. }),
+                    "byte {at}: {e}"
+                ),
+            }
+        }
+    }
+
+    #[test]
+    fn a_checkpoint_from_before_checksums_is_unsupported_not_damaged() {
+        let (preset, models) = trained("cem");
+        let bytes = encode(&models, TaskId::Cartpole).unwrap();
+        let (_, metadata) = SafeTensors::read_metadata(&bytes).unwrap();
+        let mut header: serde_json::Value =
+            serde_json::from_str(&metadata.metadata().as_ref().unwrap()[HEADER_KEY]).unwrap();
+        header["format"] = 1.into();
+        let tensors = SafeTensors::deserialize(&bytes).unwrap();
+        let views: Vec<(String, TensorView<'_>)> = tensors.tensors();
+        let old = serialize(
+            views,
+            Some(HashMap::from([(
+                HEADER_KEY.to_string(),
+                header.to_string(),
+            )])),
+        )
+        .unwrap();
+        let err = decode(&old, TaskId::Cartpole.spec(), &preset).unwrap_err();
+        assert!(matches!(err, CheckpointError::Format { found: 1 }), "{err}");
+        assert!(!err.is_damage());
     }
 }

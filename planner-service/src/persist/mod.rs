@@ -15,8 +15,11 @@
 //! Every file but the append-only replay log is written whole to a temporary file, synced, and
 //! renamed over its final name (then the directory is synced), so a crash at any moment leaves
 //! either the old file or the new one, never a mixture. Loading takes the newest checkpoint
-//! that decodes and fits the run; a damaged one is skipped with a warning, never deleted.
+//! that decodes and fits the run. A damaged one (its checksum or structure is wrong) is renamed
+//! `*.damaged` with an error in the log, so it is never tried again and never deleted; one that
+//! is intact but does not fit the run (another preset, an older format) is skipped.
 
+pub mod admin;
 pub mod checkpoint;
 
 use crate::config::Preset;
@@ -251,11 +254,29 @@ impl RunDir {
             });
             match loaded {
                 Ok(models) => return Ok(Some(models)),
+                Err(PersistError::Checkpoint { source, .. }) if source.is_damage() => {
+                    let aside = damaged_path(&path);
+                    match fs::rename(&path, &aside) {
+                        Ok(()) => {
+                            tracing::error!(path = %path.display(), moved_to = %aside.display(), error = %source, "damaged checkpoint moved aside")
+                        }
+                        Err(e) => {
+                            tracing::error!(path = %path.display(), error = %source, rename_error = %e, "damaged checkpoint skipped; it could not be moved aside")
+                        }
+                    }
+                }
                 Err(e) => tracing::warn!(error = %e, "skipping a checkpoint that cannot be used"),
             }
         }
         Ok(None)
     }
+}
+
+/// Where a damaged file is moved: its name with `.damaged` appended.
+fn damaged_path(path: &Path) -> PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".damaged");
+    path.with_file_name(name)
 }
 
 /// The runs stored under `data_dir`, by name (sorted).
@@ -357,15 +378,21 @@ mod tests {
         let loaded = dir.load_models(task, &preset).unwrap().unwrap();
         assert_eq!((loaded.version, loaded.episodes_covered), (4, 8));
 
-        // A damaged newest checkpoint (a disk error: renames never leave half files) is
-        // skipped, and the one before it is used.
-        fs::write(dir.checkpoint_path(4), b"garbage").unwrap();
+        // A damaged newest checkpoint (a disk error: renames never leave half files), here
+        // one flipped byte in its weights, is moved aside, and the one before it is used.
+        let mut bytes = fs::read(dir.checkpoint_path(4)).unwrap();
+        let last = bytes.len() - 1;
+        bytes[last] ^= 0x01;
+        fs::write(dir.checkpoint_path(4), &bytes).unwrap();
         let loaded = dir.load_models(task, &preset).unwrap().unwrap();
         assert_eq!(loaded.version, 3);
-        assert!(
-            dir.checkpoint_path(4).exists(),
-            "a bad checkpoint is kept for inspection"
+        assert!(!dir.checkpoint_path(4).exists());
+        assert_eq!(
+            fs::read(damaged_path(&dir.checkpoint_path(4))).unwrap(),
+            bytes,
+            "a damaged checkpoint is kept for inspection, under another name"
         );
+        assert_eq!(dir.checkpoint_versions().unwrap(), vec![3]);
         // No leftovers of the temporary files.
         let names: Vec<String> = fs::read_dir(dir.root())
             .unwrap()

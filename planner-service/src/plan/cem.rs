@@ -120,6 +120,42 @@ pub struct CemOutcome {
     pub elite_return: f32,
 }
 
+/// The box an action sequence lives in: the per-step bounds, checked once and tiled over the
+/// horizon. CEM and iCEM both start from it.
+pub(super) struct SequenceBox {
+    pub act_dim: usize,
+    /// Bounds per coordinate (`horizon × act_dim`).
+    pub lower: Vec<f32>,
+    pub upper: Vec<f32>,
+}
+
+impl SequenceBox {
+    /// Tiles `lower`/`upper` (one entry per action dimension) over `horizon` steps, or refuses
+    /// bounds that are empty, of different lengths, not finite or not increasing.
+    pub fn new(lower: &[f32], upper: &[f32], horizon: usize) -> Result<Self, ConfigError> {
+        let bounds_ok = lower.len() == upper.len()
+            && !lower.is_empty()
+            && lower
+                .iter()
+                .zip(upper)
+                .all(|(l, u)| l.is_finite() && u.is_finite() && l < u);
+        if !bounds_ok {
+            return Err(ConfigError::Bounds);
+        }
+        let dim = horizon * lower.len();
+        Ok(Self {
+            act_dim: lower.len(),
+            lower: lower.iter().copied().cycle().take(dim).collect(),
+            upper: upper.iter().copied().cycle().take(dim).collect(),
+        })
+    }
+
+    /// `f(lower, upper)` for every coordinate: an optimiser's initial mean or spread.
+    pub fn per_coordinate(lower: &[f32], upper: &[f32], f: impl Fn(f32, f32) -> f32) -> Vec<f32> {
+        lower.iter().zip(upper).map(|(&l, &u)| f(l, u)).collect()
+    }
+}
+
 /// A CEM optimiser for sequences of `horizon` actions within fixed bounds.
 #[derive(Debug)]
 pub struct Cem {
@@ -151,29 +187,14 @@ impl Cem {
         seed: u64,
     ) -> Result<Self, ConfigError> {
         config.validate()?;
-        let bounds_ok = lower.len() == upper.len()
-            && !lower.is_empty()
-            && lower
-                .iter()
-                .zip(upper)
-                .all(|(l, u)| l.is_finite() && u.is_finite() && l < u);
-        if !bounds_ok {
-            return Err(ConfigError::Bounds);
-        }
-        let act_dim = lower.len();
-        let dim = config.horizon * act_dim;
-        let lower: Vec<f32> = lower.iter().copied().cycle().take(dim).collect();
-        let upper: Vec<f32> = upper.iter().copied().cycle().take(dim).collect();
-        let init_mean: Vec<f32> = lower
-            .iter()
-            .zip(&upper)
-            .map(|(l, u)| 0.5 * (l + u))
-            .collect();
-        let init_var: Vec<f32> = lower
-            .iter()
-            .zip(&upper)
-            .map(|(l, u)| (u - l) * (u - l) / 16.0)
-            .collect();
+        let SequenceBox {
+            act_dim,
+            lower,
+            upper,
+        } = SequenceBox::new(lower, upper, config.horizon)?;
+        let dim = lower.len();
+        let init_mean = SequenceBox::per_coordinate(&lower, &upper, |l, u| 0.5 * (l + u));
+        let init_var = SequenceBox::per_coordinate(&lower, &upper, |l, u| (u - l) * (u - l) / 16.0);
         let population = config.population;
         Ok(Self {
             act_dim,

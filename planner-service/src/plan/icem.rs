@@ -24,7 +24,7 @@
 //!
 //! All buffers are allocated in [`Icem::new`]; [`Icem::optimize`] allocates nothing.
 
-use super::cem::{CemConfig, CemOutcome, ConfigError, PopulationObjective};
+use super::cem::{CemConfig, CemOutcome, ConfigError, PopulationObjective, SequenceBox};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
@@ -173,29 +173,14 @@ impl Icem {
     ) -> Result<Self, ConfigError> {
         config.validate()?;
         config.icem.validate()?;
-        let bounds_ok = lower.len() == upper.len()
-            && !lower.is_empty()
-            && lower
-                .iter()
-                .zip(upper)
-                .all(|(l, u)| l.is_finite() && u.is_finite() && l < u);
-        if !bounds_ok {
-            return Err(ConfigError::Bounds);
-        }
-        let act_dim = lower.len();
-        let dim = config.horizon * act_dim;
-        let lower: Vec<f32> = lower.iter().copied().cycle().take(dim).collect();
-        let upper: Vec<f32> = upper.iter().copied().cycle().take(dim).collect();
-        let init_mean: Vec<f32> = lower
-            .iter()
-            .zip(&upper)
-            .map(|(l, u)| 0.5 * (l + u))
-            .collect();
-        let init_std: Vec<f32> = lower
-            .iter()
-            .zip(&upper)
-            .map(|(l, u)| (u - l) / 4.0)
-            .collect();
+        let SequenceBox {
+            act_dim,
+            lower,
+            upper,
+        } = SequenceBox::new(lower, upper, config.horizon)?;
+        let dim = lower.len();
+        let init_mean = SequenceBox::per_coordinate(&lower, &upper, |l, u| 0.5 * (l + u));
+        let init_std = SequenceBox::per_coordinate(&lower, &upper, |l, u| (u - l) / 4.0);
         let population = config.population;
         let keep = keep_count(&config.icem, config.elites);
         Ok(Self {

@@ -1,22 +1,57 @@
-//! The replay buffer's file: an append-only sequence of length-prefixed, checksummed records.
+//! The replay buffer's file: an append-only sequence of self-delimiting, checksummed records
+//! that can be found again after damage.
 //!
 //! ```text
-//! record := len: u32 LE | crc32(payload): u32 LE | payload: postcard(Record)
+//! file   := MAGIC (8 bytes) | FORMAT_VERSION: u32 LE | record*
+//! record := SYNC (4 bytes) | len: u32 LE | crc32(len LE ‖ payload): u32 LE | payload: postcard(Record)
 //! ```
 //!
-//! Every record is written (to the OS, not yet to disk) before the planner acknowledges the
-//! transition it holds by answering with an action, so a killed daemon loses nothing it
-//! acknowledged; the file is fsynced at every episode end for power loss. A record cut short by
-//! a crash (a *torn tail*) fails its length or checksum test when the file is opened and is cut
-//! off, with a warning, so the log is always a clean prefix of what was written.
+//! Every record is written whole, in one `write`, straight to the OS (no user-space buffer
+//! that could flush half a record later) before the planner acknowledges the transition it
+//! holds by answering with an action, so a killed daemon loses nothing it acknowledged. A
+//! failed write (a full disk) is undone by truncating the file back to the end of the last
+//! good record, so the file never holds a record the caller was told failed; if even that
+//! truncation fails, the next append retries it first.
+//!
+//! On opening, a record that fails its length or checksum test is skipped and the scan
+//! resynchronises on the next [`SYNC`] marker that starts an intact record: damage in the
+//! middle of the file costs the damaged records only. Damage with no intact record after it is
+//! a *torn tail* (a crash during a write) and is cut off, with a warning, so appends continue
+//! from a clean end.
+//!
+//! Logs written before the format carried a header (`len | crc32(payload) | payload`, no
+//! marker) are read and rewritten in this format once, on opening (new file, fsync, rename).
+//!
+//! Format 3 added ownership epochs and the applied action to the records (claims, and the
+//! `epoch`/`origin` fields; see [`Record`]). The payloads of format 2 are valid format-3
+//! payloads (the old record variants keep their tags), so a format-2 log is upgraded on opening
+//! by rewriting it whole under the new version (new file, fsync, rename): from then on a build
+//! that reads only format 2 refuses the file rather than taking the new records for damage and
+//! cutting them off.
 
 use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
-use std::io::{BufWriter, Read, Seek, SeekFrom, Write};
+use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Largest record accepted when reading; anything larger is corruption.
 const MAX_RECORD: u32 = 16 << 20;
+
+/// The first bytes of a log file in this format.
+const MAGIC: &[u8; 8] = b"EBMPCRL\0";
+
+/// The format version written after [`MAGIC`] (3: ownership epochs and applied actions).
+const FORMAT_VERSION: u32 = 3;
+
+/// Bytes of the file header: magic and version.
+const FILE_HEADER_LEN: usize = MAGIC.len() + 4;
+
+/// Marks the start of every record, so a scan can find the next record after damage.
+const SYNC: [u8; 4] = [0xEB, 0x5C, 0xA1, 0x7E];
+
+/// Bytes of a record before its payload: marker, length, checksum.
+const RECORD_HEADER_LEN: usize = SYNC.len() + 8;
 
 /// One entry of the log.
 ///
@@ -65,6 +100,14 @@ impl Record {
         match self {
             Record::Header { .. } | Record::Claim { .. } => None,
             Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => Some(*epoch),
+        }
+    }
+
+    /// Puts the entry under ownership epoch `to` (the header and claims carry none).
+    pub fn set_epoch(&mut self, to: u64) {
+        match self {
+            Record::Header { .. } | Record::Claim { .. } => {}
+            Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => *epoch = to,
         }
     }
 }
@@ -278,27 +321,96 @@ pub enum LogError {
     },
     #[error("replay log {path}: cannot encode record: {reason}")]
     Encode { path: PathBuf, reason: String },
+    #[error(
+        "replay log {path}: format version {found} is newer than this build reads ({FORMAT_VERSION})"
+    )]
+    Format { path: PathBuf, found: u32 },
+    #[error(
+        "replay log {path}: claimed by another planner at epoch {found} (this one holds {held}); not rewritten"
+    )]
+    Fenced {
+        path: PathBuf,
+        held: u64,
+        found: u64,
+    },
 }
 
 /// What opening a log found.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 pub struct Recovered {
     pub records: Vec<Record>,
-    /// Bytes cut off a torn or corrupt tail (0 for a clean file).
+    /// Bytes cut off a torn tail (0 for a clean file).
     pub truncated_bytes: u64,
+    /// Damaged stretches in the middle of the file that were skipped.
+    pub damaged_regions: u32,
+    /// Bytes in those stretches (they stay in the file; every open skips them again).
+    pub damaged_bytes: u64,
+    /// Records read from a log in the old format, which was rewritten in this one.
+    pub migrated: bool,
+}
+
+/// Where the log's bytes go: the file itself, or (in tests) a wrapper that fails like a full
+/// disk. Writes go straight to the OS: there is no user-space buffer to hold half a record.
+pub trait LogFile: Send + std::fmt::Debug {
+    /// Writes all of `bytes` at the current end, or fails (possibly after writing a prefix).
+    fn append_bytes(&mut self, bytes: &[u8]) -> std::io::Result<()>;
+    /// Cuts the file to `len` bytes and positions the next write there.
+    fn truncate_to(&mut self, len: u64) -> std::io::Result<()>;
+}
+
+impl LogFile for File {
+    fn append_bytes(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+        self.write_all(bytes)
+    }
+
+    fn truncate_to(&mut self, len: u64) -> std::io::Result<()> {
+        self.set_len(len)?;
+        self.seek(SeekFrom::Start(len)).map(|_| ())
+    }
+}
+
+/// A handle that forces the log's written bytes to disk. It is separate from the writer so
+/// that fsync runs on the blocking pool without holding the replay buffer's lock.
+#[derive(Clone, Debug)]
+pub struct LogSyncer {
+    path: PathBuf,
+    file: Arc<File>,
+}
+
+impl LogSyncer {
+    /// Forces everything written so far to disk (survives power loss).
+    pub fn sync(&self) -> Result<(), LogError> {
+        self.file.sync_data().map_err(|source| LogError::Io {
+            path: self.path.clone(),
+            source,
+        })
+    }
 }
 
 /// An open log, positioned at its end.
 #[derive(Debug)]
 pub struct ReplayLog {
     path: PathBuf,
-    writer: BufWriter<File>,
+    file: Box<dyn LogFile>,
+    syncer: LogSyncer,
+    /// End of the last record known to be whole in the file.
+    end: u64,
+    /// A failed write may have left bytes after `end` that could not be cut yet.
+    dirty: bool,
 }
 
 impl ReplayLog {
-    /// Opens (creating if needed) the log at `path`, reads every intact record and cuts off a
-    /// torn tail.
+    /// Opens (creating if needed) the log at `path`, reads every intact record, skips damaged
+    /// ones, cuts off a torn tail and migrates a log in the old format.
     pub fn open(path: &Path) -> Result<(Self, Recovered), LogError> {
+        Self::open_with(path, |file| Box::new(file))
+    }
+
+    /// As [`ReplayLog::open`], writing through `wrap(file)` (tests inject a failing disk).
+    pub fn open_with(
+        path: &Path,
+        wrap: impl FnOnce(File) -> Box<dyn LogFile>,
+    ) -> Result<(Self, Recovered), LogError> {
         let io = |source| LogError::Io {
             path: path.to_path_buf(),
             source,
@@ -306,64 +418,151 @@ impl ReplayLog {
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir).map_err(io)?;
         }
-        // Append mode: every write lands at the end of the file as it is then, so a planner that
-        // lost the run (and does not know it yet) cannot overwrite the new owner's records.
-        let mut file = OpenOptions::new()
-            .read(true)
-            .append(true)
-            .create(true)
-            .open(path)
-            .map_err(io)?;
         let mut bytes = Vec::new();
-        file.read_to_end(&mut bytes).map_err(io)?;
-        let (records, good_len) = parse(&bytes);
-        let truncated_bytes = bytes.len() as u64 - good_len;
-        if truncated_bytes > 0 {
-            file.set_len(good_len).map_err(io)?;
-            file.sync_all().map_err(io)?;
-        }
-        file.seek(SeekFrom::Start(good_len)).map_err(io)?;
+        open_rw(path)
+            .and_then(|mut f| f.read_to_end(&mut bytes))
+            .map_err(io)?;
+        let recovered = if is_current_format(&bytes) {
+            let version = u32::from_le_bytes(
+                bytes[MAGIC.len()..FILE_HEADER_LEN]
+                    .try_into()
+                    .expect("4 bytes"),
+            );
+            if version > FORMAT_VERSION {
+                return Err(LogError::Format {
+                    path: path.to_path_buf(),
+                    found: version,
+                });
+            }
+            let (mut recovered, good_len) = scan(&bytes);
+            if version < FORMAT_VERSION {
+                // Same records, new version: written whole, so a crash leaves either file.
+                write_file(path, &bytes[FILE_HEADER_LEN..good_len as usize]).map_err(io)?;
+                tracing::info!(path = %path.display(), from = version, "replay log upgraded to format {FORMAT_VERSION}");
+                recovered.migrated = true;
+            } else if recovered.truncated_bytes > 0 {
+                let file = open_rw(path).map_err(io)?;
+                file.set_len(good_len).map_err(io)?;
+                file.sync_all().map_err(io)?;
+            }
+            recovered
+        } else if bytes.len() < FILE_HEADER_LEN
+            && MAGIC.starts_with(&bytes[..bytes.len().min(MAGIC.len())])
+        {
+            // New, or a crash while its header was written: start it afresh.
+            write_file(path, &[]).map_err(io)?;
+            Recovered::default()
+        } else {
+            migrate_legacy(path, &bytes)?
+        };
+        let file = open_append(path).map_err(io)?;
+        let end = file.metadata().map_err(io)?.len();
+        let syncer = LogSyncer {
+            path: path.to_path_buf(),
+            file: Arc::new(file.try_clone().map_err(io)?),
+        };
+        let mut file = wrap(file);
+        file.truncate_to(end).map_err(io)?;
         Ok((
             Self {
                 path: path.to_path_buf(),
-                writer: BufWriter::new(file),
+                file,
+                syncer,
+                end,
+                dirty: false,
             },
-            Recovered {
-                records,
-                truncated_bytes,
-            },
+            recovered,
         ))
     }
 
-    /// Appends a record and hands it to the OS (survives the process being killed).
-    pub fn append(&mut self, record: &Record) -> Result<(), LogError> {
-        let payload =
-            postcard::to_stdvec(&OnDisk::from(record.clone())).map_err(|e| LogError::Encode {
-                path: self.path.clone(),
-                reason: e.to_string(),
-            })?;
+    /// Appends `records` in one write and hands them to the OS (they survive the process
+    /// being killed). On failure none of them is in the log: the file is cut back to where it
+    /// ended before, and the caller can try again later.
+    pub fn append(&mut self, records: &[Record]) -> Result<(), LogError> {
+        let mut bytes = Vec::new();
+        for record in records {
+            encode_record(&self.path, record, &mut bytes)?;
+        }
         let io = |source| LogError::Io {
             path: self.path.clone(),
             source,
         };
-        self.writer
-            .write_all(&(payload.len() as u32).to_le_bytes())
-            .map_err(io)?;
-        self.writer
-            .write_all(&crc32fast::hash(&payload).to_le_bytes())
-            .map_err(io)?;
-        self.writer.write_all(&payload).map_err(io)?;
-        self.writer.flush().map_err(io)
+        if self.dirty {
+            self.file.truncate_to(self.end).map_err(io)?;
+            self.dirty = false;
+        }
+        if let Err(e) = self.file.append_bytes(&bytes) {
+            self.dirty = true;
+            match self.file.truncate_to(self.end) {
+                Ok(()) => self.dirty = false,
+                Err(cut) => {
+                    tracing::error!(path = %self.path.display(), error = %cut, "cannot cut a failed write off the replay log; retrying before the next write")
+                }
+            }
+            return Err(io(e));
+        }
+        self.end += bytes.len() as u64;
+        Ok(())
     }
 
-    /// Forces everything written so far to disk (survives power loss).
-    pub fn sync(&mut self) -> Result<(), LogError> {
+    /// Rewrites the log keeping only the records `keep` accepts: a new file is written and
+    /// fsynced, renamed over the log, and the directory fsynced, so a crash at any moment
+    /// leaves the old log or the new one. Writing continues on the new file (through the
+    /// plain file: a wrapper given to [`ReplayLog::open_with`] is not carried over).
+    ///
+    /// Refused with [`LogError::Fenced`] if the file holds a claim newer than `held_epoch`,
+    /// the epoch the caller owns the run at: the new owner writes to this file, and replacing
+    /// it would lose what it wrote.
+    pub fn rewrite(
+        &mut self,
+        held_epoch: u64,
+        mut keep: impl FnMut(&Record) -> bool,
+    ) -> Result<(), LogError> {
         let io = |source| LogError::Io {
             path: self.path.clone(),
             source,
         };
-        self.writer.flush().map_err(io)?;
-        self.writer.get_ref().sync_data().map_err(io)
+        if self.dirty {
+            self.file.truncate_to(self.end).map_err(io)?;
+            self.dirty = false;
+        }
+        let bytes = std::fs::read(&self.path).map_err(io)?;
+        let (recovered, _) = scan(&bytes);
+        let newest_claim = recovered
+            .records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Claim { epoch, .. } => Some(*epoch),
+                _ => None,
+            })
+            .max();
+        if let Some(found) = newest_claim.filter(|&e| e > held_epoch) {
+            return Err(LogError::Fenced {
+                path: self.path.clone(),
+                held: held_epoch,
+                found,
+            });
+        }
+        let mut out = Vec::new();
+        for record in recovered.records.iter().filter(|r| keep(r)) {
+            encode_record(&self.path, record, &mut out)?;
+        }
+        write_file(&self.path, &out).map_err(io)?;
+        let mut file = open_append(&self.path).map_err(io)?;
+        let end = file.metadata().map_err(io)?.len();
+        file.truncate_to(end).map_err(io)?;
+        self.syncer = LogSyncer {
+            path: self.path.clone(),
+            file: Arc::new(file.try_clone().map_err(io)?),
+        };
+        self.file = Box::new(file);
+        self.end = end;
+        Ok(())
+    }
+
+    /// A handle that syncs this log to disk, usable without holding the log.
+    pub fn syncer(&self) -> LogSyncer {
+        self.syncer.clone()
     }
 
     pub fn path(&self) -> &Path {
@@ -371,8 +570,110 @@ impl ReplayLog {
     }
 }
 
-/// The intact records at the start of `bytes`, and how many bytes they span.
-fn parse(bytes: &[u8]) -> (Vec<Record>, u64) {
+fn open_rw(path: &Path) -> std::io::Result<File> {
+    OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(path)
+}
+
+/// The writer's handle: in append mode, every write lands at the end of the file as it is
+/// then, so a planner that lost the run (and does not know it yet) cannot overwrite the new
+/// owner's records (see `crate::fleet`).
+fn open_append(path: &Path) -> std::io::Result<File> {
+    OpenOptions::new()
+        .read(true)
+        .append(true)
+        .create(true)
+        .open(path)
+}
+
+fn is_current_format(bytes: &[u8]) -> bool {
+    bytes.len() >= FILE_HEADER_LEN && bytes.starts_with(MAGIC)
+}
+
+/// Appends `record`, encoded as it is stored ([`OnDisk`]) and framed, to `out`.
+fn encode_record(path: &Path, record: &Record, out: &mut Vec<u8>) -> Result<(), LogError> {
+    let payload =
+        postcard::to_stdvec(&OnDisk::from(record.clone())).map_err(|e| LogError::Encode {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+    frame(&payload, out);
+    Ok(())
+}
+
+/// Appends one framed record holding `payload` to `out`.
+fn frame(payload: &[u8], out: &mut Vec<u8>) {
+    let len = (payload.len() as u32).to_le_bytes();
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(&len);
+    crc.update(payload);
+    out.extend_from_slice(&SYNC);
+    out.extend_from_slice(&len);
+    out.extend_from_slice(&crc.finalize().to_le_bytes());
+    out.extend_from_slice(payload);
+}
+
+/// The record that starts at `at`, and where the next one starts, if the bytes there are an
+/// intact record.
+fn read_record(bytes: &[u8], at: usize) -> Option<(Record, usize)> {
+    let head = bytes.get(at..at + RECORD_HEADER_LEN)?;
+    if head[..4] != SYNC {
+        return None;
+    }
+    let len_bytes: [u8; 4] = head[4..8].try_into().expect("4 bytes");
+    let len = u32::from_le_bytes(len_bytes);
+    let crc = u32::from_le_bytes(head[8..12].try_into().expect("4 bytes"));
+    if len > MAX_RECORD {
+        return None;
+    }
+    let start = at + RECORD_HEADER_LEN;
+    let payload = bytes.get(start..start + len as usize)?;
+    let mut hasher = crc32fast::Hasher::new();
+    hasher.update(&len_bytes);
+    hasher.update(payload);
+    if hasher.finalize() != crc {
+        return None;
+    }
+    let record = postcard::from_bytes::<OnDisk>(payload).ok()?;
+    Some((record.into(), start + len as usize))
+}
+
+/// Every intact record of a current-format file, and the length of the file up to the end of
+/// the last one (what follows is a torn tail).
+fn scan(bytes: &[u8]) -> (Recovered, u64) {
+    let mut recovered = Recovered::default();
+    let mut at = FILE_HEADER_LEN;
+    let mut good_end = at;
+    loop {
+        if let Some((record, next)) = read_record(bytes, at) {
+            recovered.records.push(record);
+            at = next;
+            good_end = next;
+            continue;
+        }
+        let resync = (at + 1..bytes.len().saturating_sub(RECORD_HEADER_LEN - 1))
+            .filter(|&q| bytes[q..q + SYNC.len()] == SYNC)
+            .find(|&q| read_record(bytes, q).is_some());
+        match resync {
+            Some(q) => {
+                recovered.damaged_regions += 1;
+                recovered.damaged_bytes += (q - at) as u64;
+                at = q;
+            }
+            None => break,
+        }
+    }
+    recovered.truncated_bytes = (bytes.len() - good_end) as u64;
+    (recovered, good_end as u64)
+}
+
+/// The intact records at the start of a log in the old format (`len | crc32(payload) |
+/// payload`, no marker: nothing after the first damaged record can be found again).
+fn parse_legacy(bytes: &[u8]) -> (Vec<Record>, usize) {
     let mut records = Vec::new();
     let mut at = 0usize;
     while bytes.len() - at >= 8 {
@@ -391,12 +692,59 @@ fn parse(bytes: &[u8]) -> (Vec<Record>, u64) {
         }
         at += 8 + len as usize;
     }
-    (records, at as u64)
+    (records, at)
+}
+
+/// Rewrites a log in the old format in the current one. If the old file had bytes after its
+/// last readable record, the old file is kept beside the new one as `*.v1-damaged`, so that
+/// nothing is deleted that someone might recover by hand.
+fn migrate_legacy(path: &Path, bytes: &[u8]) -> Result<Recovered, LogError> {
+    let io = |source| LogError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let (records, parsed) = parse_legacy(bytes);
+    let mut out = Vec::with_capacity(bytes.len() + records.len() * SYNC.len() + FILE_HEADER_LEN);
+    for record in &records {
+        encode_record(path, record, &mut out)?;
+    }
+    let unread = bytes.len() - parsed;
+    if unread > 0 {
+        let kept = path.with_extension("log.v1-damaged");
+        std::fs::copy(path, &kept).map_err(io)?;
+        tracing::warn!(path = %path.display(), kept = %kept.display(), bytes = unread, "the old-format replay log has unreadable bytes after its last record; the original is kept");
+    }
+    write_file(path, &out).map_err(io)?;
+    tracing::info!(path = %path.display(), records = records.len(), "replay log migrated to format {FORMAT_VERSION}");
+    Ok(Recovered {
+        records,
+        truncated_bytes: unread as u64,
+        migrated: true,
+        ..Recovered::default()
+    })
+}
+
+/// Writes a current-format file holding the already framed `records` atomically: a temporary
+/// file, fsynced, renamed over `path`, and the directory fsynced.
+fn write_file(path: &Path, records: &[u8]) -> std::io::Result<()> {
+    let tmp = path.with_extension("log.tmp");
+    let mut file = File::create(&tmp)?;
+    file.write_all(MAGIC)?;
+    file.write_all(&FORMAT_VERSION.to_le_bytes())?;
+    file.write_all(records)?;
+    file.sync_all()?;
+    drop(file);
+    std::fs::rename(&tmp, path)?;
+    if let Some(dir) = path.parent() {
+        File::open(dir)?.sync_all()?;
+    }
+    Ok(())
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
+    use std::sync::atomic::{AtomicBool, Ordering};
 
     fn transition(step: u32) -> Record {
         Record::Transition {
@@ -412,47 +760,90 @@ mod tests {
         }
     }
 
-    fn temp_path(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("ebmpc-log-{}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        dir.join("replay.log")
+    fn temp_path(dir: &tempfile::TempDir) -> PathBuf {
+        dir.path().join("replay.log")
+    }
+
+    /// Transition `step` as the releases before ownership epochs encoded it (formats 1 and 2),
+    /// and what reading it gives: epoch 0, the planned action.
+    fn old_transition(step: u32) -> (Vec<u8>, Record) {
+        let payload = postcard::to_stdvec(&OnDisk::TransitionV1 {
+            agent: "a".into(),
+            episode: 0,
+            step,
+            obs: vec![step as f32; 4],
+            act: vec![0.5],
+            next_obs: vec![step as f32 + 1.0; 4],
+            reward: 0.1,
+        })
+        .unwrap();
+        let mut read = transition(step);
+        read.set_epoch(0);
+        (payload, read)
+    }
+
+    /// A disk that fills up on demand: while `full` is set, every write puts a prefix of its
+    /// bytes in the file (as a real `ENOSPC` after a partial write does) and fails.
+    #[derive(Debug)]
+    pub(crate) struct FillingDisk {
+        pub(crate) file: File,
+        pub(crate) full: Arc<AtomicBool>,
+    }
+
+    impl LogFile for FillingDisk {
+        fn append_bytes(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+            if self.full.load(Ordering::SeqCst) {
+                Write::write_all(&mut self.file, &bytes[..bytes.len() / 2])?;
+                return Err(std::io::Error::from_raw_os_error(28)); // ENOSPC
+            }
+            Write::write_all(&mut self.file, bytes)
+        }
+
+        fn truncate_to(&mut self, len: u64) -> std::io::Result<()> {
+            self.file.truncate_to(len)
+        }
     }
 
     #[test]
     fn records_survive_reopening() {
-        let path = temp_path("reopen");
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
         let (mut log, rec) = ReplayLog::open(&path).unwrap();
         assert!(rec.records.is_empty());
         for step in 0..5 {
-            log.append(&transition(step)).unwrap();
+            log.append(&[transition(step)]).unwrap();
         }
-        log.sync().unwrap();
+        log.syncer().sync().unwrap();
         drop(log);
         let (_, rec) = ReplayLog::open(&path).unwrap();
         assert_eq!(rec.records, (0..5).map(transition).collect::<Vec<_>>());
-        assert_eq!(rec.truncated_bytes, 0);
+        assert_eq!(
+            (rec.truncated_bytes, rec.damaged_regions, rec.migrated),
+            (0, 0, false)
+        );
     }
 
     #[test]
     fn a_torn_tail_is_cut_off_at_every_cut_point() {
-        let path = temp_path("torn");
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
         let (mut log, _) = ReplayLog::open(&path).unwrap();
         for step in 0..3 {
-            log.append(&transition(step)).unwrap();
+            log.append(&[transition(step)]).unwrap();
         }
         drop(log);
         let full = std::fs::read(&path).unwrap();
-        let (_, two_len) = parse(&full);
-        let record_len = full.len() / 3;
-        assert_eq!(two_len as usize, full.len());
+        let record_len = (full.len() - FILE_HEADER_LEN) / 3;
+        let two_end = FILE_HEADER_LEN + 2 * record_len;
         // Cut the file at every byte inside the last record: the first two always survive.
-        for cut in (2 * record_len)..full.len() {
+        for cut in two_end..full.len() {
             std::fs::write(&path, &full[..cut]).unwrap();
             let (mut log, rec) = ReplayLog::open(&path).unwrap();
             assert_eq!(rec.records.len(), 2, "cut at {cut}");
-            assert_eq!(rec.truncated_bytes as usize, cut - 2 * record_len);
+            assert_eq!(rec.truncated_bytes as usize, cut - two_end);
+            assert_eq!(rec.damaged_regions, 0);
             // Appending after recovery yields a clean log again.
-            log.append(&transition(9)).unwrap();
+            log.append(&[transition(9)]).unwrap();
             drop(log);
             let (_, rec) = ReplayLog::open(&path).unwrap();
             assert_eq!(rec.records.last(), Some(&transition(9)));
@@ -461,25 +852,128 @@ mod tests {
     }
 
     #[test]
-    fn a_corrupt_byte_stops_the_log_there() {
-        let path = temp_path("corrupt");
+    fn a_damaged_record_in_the_middle_costs_that_record_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
         let (mut log, _) = ReplayLog::open(&path).unwrap();
-        for step in 0..3 {
-            log.append(&transition(step)).unwrap();
+        for step in 0..5 {
+            log.append(&[transition(step)]).unwrap();
         }
         drop(log);
-        let mut bytes = std::fs::read(&path).unwrap();
-        let record_len = bytes.len() / 3;
-        bytes[record_len + 12] ^= 0xff;
-        std::fs::write(&path, &bytes).unwrap();
-        let (_, rec) = ReplayLog::open(&path).unwrap();
-        assert_eq!(rec.records, vec![transition(0)]);
+        let clean = std::fs::read(&path).unwrap();
+        let record_len = (clean.len() - FILE_HEADER_LEN) / 5;
+        // Damage every byte of record 1 in turn (marker, length, checksum, payload): records
+        // 0, 2, 3 and 4 are always found, and nothing is cut off the end.
+        for offset in 0..record_len {
+            let mut bytes = clean.clone();
+            bytes[FILE_HEADER_LEN + record_len + offset] ^= 0xff;
+            std::fs::write(&path, &bytes).unwrap();
+            let (mut log, rec) = ReplayLog::open(&path).unwrap();
+            let expected: Vec<_> = [0, 2, 3, 4].into_iter().map(transition).collect();
+            assert_eq!(rec.records, expected, "byte {offset} of record 1 damaged");
+            assert_eq!(rec.damaged_regions, 1);
+            assert_eq!(rec.damaged_bytes as usize, record_len);
+            assert_eq!(rec.truncated_bytes, 0);
+            // New records go after the intact ones and are found again.
+            log.append(&[transition(5)]).unwrap();
+            drop(log);
+            let (_, rec) = ReplayLog::open(&path).unwrap();
+            assert_eq!(rec.records.len(), 5);
+            assert_eq!(rec.records.last(), Some(&transition(5)));
+        }
     }
 
-    /// A log written before ownership epochs (its records encoded as that release did) reads
-    /// as epoch 0 with the planned actions, and new records append after it.
     #[test]
-    fn a_log_from_before_epochs_is_read_and_extended() {
+    fn a_log_in_the_old_format_is_migrated_without_losing_a_record() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        // The format written before this one: len | crc32(payload) | payload.
+        let mut old = Vec::new();
+        let mut expected = Vec::new();
+        for step in 0..4 {
+            let (payload, read) = old_transition(step);
+            old.extend_from_slice(&(payload.len() as u32).to_le_bytes());
+            old.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+            old.extend_from_slice(&payload);
+            expected.push(read);
+        }
+        std::fs::write(&path, &old).unwrap();
+        let (mut log, rec) = ReplayLog::open(&path).unwrap();
+        assert!(rec.migrated);
+        assert_eq!(rec.records, expected);
+        log.append(&[transition(4)]).unwrap();
+        drop(log);
+        assert!(std::fs::read(&path).unwrap().starts_with(MAGIC));
+        let (_, rec) = ReplayLog::open(&path).unwrap();
+        assert!(!rec.migrated);
+        expected.push(transition(4));
+        assert_eq!(rec.records, expected);
+        assert!(!path.with_extension("log.v1-damaged").exists());
+    }
+
+    #[test]
+    fn an_old_format_log_with_a_torn_tail_keeps_its_original_beside_the_new_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        let (payload, read) = old_transition(0);
+        let mut old = (payload.len() as u32).to_le_bytes().to_vec();
+        old.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
+        old.extend_from_slice(&payload);
+        old.extend_from_slice(&[7, 0, 0]);
+        std::fs::write(&path, &old).unwrap();
+        let (_, rec) = ReplayLog::open(&path).unwrap();
+        assert_eq!(rec.records, vec![read]);
+        assert_eq!(rec.truncated_bytes, 3);
+        assert_eq!(
+            std::fs::read(path.with_extension("log.v1-damaged")).unwrap(),
+            old
+        );
+    }
+
+    #[test]
+    fn a_failed_write_leaves_nothing_behind_and_writing_resumes_when_space_returns() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        let full = Arc::new(AtomicBool::new(false));
+        let disk = full.clone();
+        let (mut log, _) =
+            ReplayLog::open_with(&path, |file| Box::new(FillingDisk { file, full: disk })).unwrap();
+        log.append(&[transition(0)]).unwrap();
+        let before = std::fs::read(&path).unwrap();
+        full.store(true, Ordering::SeqCst);
+        let err = log.append(&[transition(1), transition(2)]).unwrap_err();
+        assert!(err.to_string().contains("os error 28"), "{err}");
+        assert_eq!(
+            std::fs::read(&path).unwrap(),
+            before,
+            "the half write is cut"
+        );
+        full.store(false, Ordering::SeqCst);
+        log.append(&[transition(1)]).unwrap();
+        drop(log);
+        let (_, rec) = ReplayLog::open(&path).unwrap();
+        assert_eq!(rec.records, vec![transition(0), transition(1)]);
+        assert_eq!((rec.truncated_bytes, rec.damaged_regions), (0, 0));
+    }
+
+    #[test]
+    fn a_log_from_a_newer_format_is_refused_not_rewritten() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
+        std::fs::write(&path, &bytes).unwrap();
+        let err = ReplayLog::open(&path).unwrap_err();
+        assert!(err.to_string().contains("newer"), "{err}");
+        assert_eq!(std::fs::read(&path).unwrap(), bytes);
+    }
+
+    /// A format-2 log (written before ownership epochs, its records encoded as that release
+    /// did) is upgraded to the current format on opening: every record reads as epoch 0 with
+    /// the planned action, a damaged record in it is still skipped, and new records append
+    /// after it.
+    #[test]
+    fn a_format_2_log_is_upgraded_and_extended() {
         /// The record type of the release before epochs, as it was.
         #[derive(Serialize)]
         enum OldRecord {
@@ -528,18 +1022,30 @@ mod tests {
                 end: proto::EpisodeEnd::TimeLimit,
             },
         ];
-        let mut bytes = Vec::new();
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&2u32.to_le_bytes());
         for record in &old {
-            let payload = postcard::to_stdvec(record).unwrap();
-            bytes.extend_from_slice(&(payload.len() as u32).to_le_bytes());
-            bytes.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
-            bytes.extend_from_slice(&payload);
+            frame(&postcard::to_stdvec(record).unwrap(), &mut bytes);
         }
-        let path = temp_path("v1");
-        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        // A damaged record between the last two: format 2 resynchronised on it, so does 3.
+        frame(&[0xff; 9], &mut bytes);
+        let at = bytes.len() - 9;
+        bytes[at] ^= 0x01;
+        let mut tail = Vec::new();
+        frame(&postcard::to_stdvec(&old[2]).unwrap(), &mut tail);
+        bytes.extend_from_slice(&tail);
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
         std::fs::write(&path, &bytes).unwrap();
         let (mut log, rec) = ReplayLog::open(&path).unwrap();
-        assert_eq!(rec.truncated_bytes, 0);
+        assert!(rec.migrated);
+        assert_eq!((rec.truncated_bytes, rec.damaged_regions), (0, 1));
+        assert_eq!(rec.records.len(), 4);
+        let upgraded = std::fs::read(&path).unwrap();
+        assert_eq!(
+            upgraded[MAGIC.len()..FILE_HEADER_LEN],
+            FORMAT_VERSION.to_le_bytes()
+        );
         assert_eq!(
             rec.records[1],
             Record::Transition {
@@ -559,11 +1065,15 @@ mod tests {
             epoch: 1,
             planner: "p".into(),
         };
-        log.append(&claim).unwrap();
-        log.append(&transition(1)).unwrap();
+        log.append(&[claim.clone(), transition(1)]).unwrap();
         drop(log);
         let (_, rec) = ReplayLog::open(&path).unwrap();
-        assert_eq!(rec.records.len(), 5);
-        assert_eq!(rec.records[3..], [claim, transition(1)]);
+        assert!(!rec.migrated);
+        assert_eq!(rec.records.len(), 6);
+        assert_eq!(
+            rec.records[3], rec.records[2],
+            "both episode ends read alike"
+        );
+        assert_eq!(rec.records[4..], [claim, transition(1)]);
     }
 }

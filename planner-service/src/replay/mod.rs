@@ -3,11 +3,13 @@
 
 mod log;
 
-pub use log::{ActionOrigin, LogError, Record, ReplayLog};
+#[cfg(test)]
+pub(crate) use log::tests as log_tests;
+pub use log::{ActionOrigin, LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog};
 
 use crate::data::Transitions;
 use proto::{EpisodeEnd, TaskSpec};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;
 
 /// A finished episode, as stored.
@@ -33,14 +35,27 @@ pub enum ReplayError {
     },
     #[error("replay log {path} does not start with a header record")]
     MissingHeader { path: String },
+    #[error("a replay record does not fit the run's dimensions: {record}")]
+    Dimension { record: String },
 }
 
 /// Transitions in memory, mirrored to an optional log file.
+///
+/// With a capacity (see [`ReplayBuffer::set_capacity`]), the transitions of the oldest
+/// finished episodes are evicted whole once the buffer holds more than the capacity: at once
+/// from memory, and from the log when the evicted records on disk outnumber the kept ones
+/// (so the log stays under about twice the capacity and each record is rewritten a bounded
+/// number of times). Episode summaries are never evicted: they are small, and episode counts
+/// and numbering depend on them.
 #[derive(Debug)]
 pub struct ReplayBuffer {
+    task: &'static TaskSpec,
     transitions: Transitions,
     /// Which action each transition holds, in the order of `transitions`.
     origins: Vec<ActionOrigin>,
+    /// The episode each transition belongs to: (index into `agents`, episode number).
+    owners: Vec<(u32, u32)>,
+    agents: Vec<String>,
     episodes: Vec<EpisodeSummary>,
     log: Option<ReplayLog>,
     /// The ownership epoch of the newest claim: what this buffer writes under, and below which
@@ -49,18 +64,52 @@ pub struct ReplayBuffer {
     /// Records of an older epoch found after a newer claim when the log was opened (written by
     /// a planner that had lost the run); skipped.
     stale_skipped: usize,
+    /// Most transitions kept (`None`: all).
+    capacity: Option<usize>,
+    /// Episodes evicted from memory whose records may still be in the log.
+    evicted: HashSet<(String, u32)>,
+    /// Transitions evicted from memory whose records are still in the log.
+    evicted_on_disk: usize,
+}
+
+impl From<EpisodeSummary> for Record {
+    /// The episode's end record, at epoch 0 until a buffer stores it under its own (see
+    /// [`ReplayBuffer::append`]).
+    fn from(summary: EpisodeSummary) -> Self {
+        let EpisodeSummary {
+            agent,
+            episode,
+            steps,
+            episode_return,
+            end,
+        } = summary;
+        Record::EpisodeEnd {
+            epoch: 0,
+            agent,
+            episode,
+            steps,
+            episode_return,
+            end,
+        }
+    }
 }
 
 impl ReplayBuffer {
     /// A buffer that lives in memory only (tests, benchmarks).
-    pub fn in_memory(task: &TaskSpec) -> Self {
+    pub fn in_memory(task: &'static TaskSpec) -> Self {
         Self {
+            task,
             transitions: Transitions::new(task.obs_dim, task.act_dim),
             origins: Vec::new(),
+            owners: Vec::new(),
+            agents: Vec::new(),
             episodes: Vec::new(),
             log: None,
             epoch: 0,
             stale_skipped: 0,
+            capacity: None,
+            evicted: HashSet::new(),
+            evicted_on_disk: 0,
         }
     }
 
@@ -71,19 +120,38 @@ impl ReplayBuffer {
     /// Episodes the log holds transitions of but no end (the daemon stopped in their middle)
     /// are recorded as interrupted here: their transitions stay (they were acknowledged), and
     /// their agents continue with the next episode number rather than resuming a stale one.
-    pub fn open(path: &Path, task: &TaskSpec) -> Result<Self, ReplayError> {
-        let (mut log, recovered) = ReplayLog::open(path)?;
+    pub fn open(path: &Path, task: &'static TaskSpec) -> Result<Self, ReplayError> {
+        Self::from_log(ReplayLog::open(path)?, task)
+    }
+
+    /// As [`ReplayBuffer::open`], writing through `wrap(file)` (tests inject a failing disk).
+    pub fn open_with(
+        path: &Path,
+        task: &'static TaskSpec,
+        wrap: impl FnOnce(std::fs::File) -> Box<dyn LogFile>,
+    ) -> Result<Self, ReplayError> {
+        Self::from_log(ReplayLog::open_with(path, wrap)?, task)
+    }
+
+    fn from_log(
+        (mut log, recovered): (ReplayLog, Recovered),
+        task: &'static TaskSpec,
+    ) -> Result<Self, ReplayError> {
+        let path = log.path().to_path_buf();
         if recovered.truncated_bytes > 0 {
             tracing::warn!(path = %path.display(), bytes = recovered.truncated_bytes, "cut a torn tail off the replay log");
+        }
+        if recovered.damaged_regions > 0 {
+            tracing::warn!(path = %path.display(), regions = recovered.damaged_regions, bytes = recovered.damaged_bytes, "skipped damaged records in the replay log; every intact record is kept");
         }
         let mut buffer = Self::in_memory(task);
         let mut records = recovered.records.into_iter();
         match records.next() {
-            None => log.append(&Record::Header {
+            None => log.append(&[Record::Header {
                 task: task.id,
                 obs_dim: task.obs_dim as u32,
                 act_dim: task.act_dim as u32,
-            })?,
+            }])?,
             Some(Record::Header { task: found, .. }) if found == task.id => {}
             Some(Record::Header { task: found, .. }) => {
                 return Err(ReplayError::TaskMismatch {
@@ -100,11 +168,12 @@ impl ReplayBuffer {
         }
         let mut open_episodes: BTreeMap<(String, u32), EpisodeSummary> = BTreeMap::new();
         for record in records {
-            if let Record::Claim { epoch, .. } = &record {
-                buffer.epoch = buffer.epoch.max(*epoch);
-            }
             if record.epoch().is_some_and(|e| e < buffer.epoch) {
                 buffer.stale_skipped += 1;
+                continue;
+            }
+            if !buffer.fits(&record) {
+                tracing::warn!(path = %path.display(), "skipped a replay record whose dimensions do not fit the task");
                 continue;
             }
             match &record {
@@ -124,7 +193,7 @@ impl ReplayBuffer {
                             episode_return: 0.0,
                             end: EpisodeEnd::Interrupted,
                         });
-                    open.steps = open.steps.max(step + 1);
+                    open.steps = open.steps.max(step.saturating_add(1));
                     open.episode_return += reward;
                 }
                 Record::EpisodeEnd { agent, episode, .. } => {
@@ -137,18 +206,43 @@ impl ReplayBuffer {
         if buffer.stale_skipped > 0 {
             tracing::warn!(path = %path.display(), records = buffer.stale_skipped, epoch = buffer.epoch, "skipped records a planner wrote after it had lost the run");
         }
+        let left_open: Vec<Record> = open_episodes
+            .into_values()
+            .inspect(|summary| tracing::warn!(path = %path.display(), agent = %summary.agent, episode = summary.episode, steps = summary.steps, "episode left open by a stopped daemon recorded as interrupted"))
+            .map(Record::from)
+            .collect();
         buffer.log = Some(log);
-        for (_, summary) in open_episodes {
-            tracing::warn!(path = %path.display(), agent = %summary.agent, episode = summary.episode, steps = summary.steps, "episode left open by a stopped daemon recorded as interrupted");
-            buffer.end_episode(summary)?;
+        if !left_open.is_empty() {
+            buffer.append(left_open)?;
+            if let Some(syncer) = buffer.syncer() {
+                syncer.sync()?;
+            }
         }
         Ok(buffer)
     }
 
+    /// Whether a record's vectors have the task's dimensions. The log's checksums catch
+    /// damage; this catches a record that is intact but cannot belong to this run.
+    fn fits(&self, record: &Record) -> bool {
+        match record {
+            Record::Transition {
+                obs, act, next_obs, ..
+            } => {
+                obs.len() == self.task.obs_dim
+                    && next_obs.len() == self.task.obs_dim
+                    && act.len() == self.task.act_dim
+            }
+            Record::Header { .. } | Record::Claim { .. } | Record::EpisodeEnd { .. } => true,
+        }
+    }
+
     fn apply(&mut self, record: &Record) {
         match record {
-            Record::Header { .. } | Record::Claim { .. } => {}
+            Record::Header { .. } => {}
+            Record::Claim { epoch, .. } => self.epoch = self.epoch.max(*epoch),
             Record::Transition {
+                agent,
+                episode,
                 obs,
                 act,
                 origin,
@@ -157,6 +251,14 @@ impl ReplayBuffer {
             } => {
                 self.transitions.push(obs, act, next_obs);
                 self.origins.push(*origin);
+                let index = match self.agents.iter().position(|a| a == agent) {
+                    Some(index) => index,
+                    None => {
+                        self.agents.push(agent.clone());
+                        self.agents.len() - 1
+                    }
+                };
+                self.owners.push((index as u32, *episode));
             }
             Record::EpisodeEnd {
                 agent,
@@ -175,25 +277,44 @@ impl ReplayBuffer {
         }
     }
 
-    fn record(&mut self, record: Record) -> Result<(), ReplayError> {
-        if let Some(log) = &mut self.log {
-            log.append(&record)?;
+    /// Stores `records` together: when this returns `Ok` they are all in the log (as far as
+    /// the OS is concerned) and in memory; on error none of them is in either, so the caller
+    /// can refuse what they came from and accept it again later. Every transition and episode
+    /// end is stored under the buffer's ownership epoch, whatever epoch it was built with.
+    pub fn append(&mut self, mut records: Vec<Record>) -> Result<(), ReplayError> {
+        for record in &mut records {
+            record.set_epoch(self.epoch);
         }
-        self.apply(&record);
+        if let Some(record) = records.iter().find(|r| !self.fits(r)) {
+            return Err(ReplayError::Dimension {
+                record: format!("{record:?}"),
+            });
+        }
+        if let Some(log) = &mut self.log {
+            log.append(&records)?;
+        }
+        for record in &records {
+            self.apply(record);
+        }
+        if records
+            .iter()
+            .any(|r| matches!(r, Record::EpisodeEnd { .. }))
+        {
+            self.evict()?;
+        }
         Ok(())
     }
 
     /// Takes the buffer over for `planner` at ownership `epoch` (above every earlier claim):
     /// records the claim, synced, and writes everything after it under `epoch`.
     pub fn claim(&mut self, epoch: u64, planner: &str) -> Result<(), ReplayError> {
-        self.record(Record::Claim {
+        self.append(vec![Record::Claim {
             epoch,
             planner: planner.to_string(),
-        })?;
-        if let Some(log) = &mut self.log {
-            log.sync()?;
+        }])?;
+        if let Some(syncer) = self.syncer() {
+            syncer.sync()?;
         }
-        self.epoch = epoch;
         Ok(())
     }
 
@@ -207,53 +328,101 @@ impl ReplayBuffer {
         self.stale_skipped
     }
 
-    /// Stores one transition. It is in the log (as far as the OS is concerned) when this returns.
-    #[allow(clippy::too_many_arguments)]
-    pub fn push(
-        &mut self,
-        agent: &str,
-        episode: u32,
-        step: u32,
-        obs: &[f32],
-        act: &[f32],
-        origin: ActionOrigin,
-        next_obs: &[f32],
-        reward: f32,
-    ) -> Result<(), ReplayError> {
-        self.record(Record::Transition {
-            epoch: self.epoch,
-            agent: agent.to_string(),
-            episode,
-            step,
-            obs: obs.to_vec(),
-            act: act.to_vec(),
-            origin,
-            next_obs: next_obs.to_vec(),
-            reward,
-        })
+    /// Bounds the transitions kept to `capacity` (`None`: unbounded), evicting at once if the
+    /// buffer holds more.
+    pub fn set_capacity(&mut self, capacity: Option<usize>) -> Result<(), ReplayError> {
+        self.capacity = capacity;
+        self.evict()
     }
 
-    /// Marks the end of an episode and syncs the log to disk.
-    pub fn end_episode(&mut self, summary: EpisodeSummary) -> Result<(), ReplayError> {
-        let EpisodeSummary {
-            agent,
-            episode,
-            steps,
-            episode_return,
-            end,
-        } = summary;
-        self.record(Record::EpisodeEnd {
-            epoch: self.epoch,
-            agent,
-            episode,
-            steps,
-            episode_return,
-            end,
-        })?;
-        if let Some(log) = &mut self.log {
-            log.sync()?;
+    /// Evicts the transitions of the oldest finished episodes until at most `capacity` are
+    /// left (episodes in progress are never evicted), and compacts the log when the evicted
+    /// records on disk outnumber the kept ones.
+    fn evict(&mut self) -> Result<(), ReplayError> {
+        let Some(capacity) = self.capacity else {
+            return Ok(());
+        };
+        let mut excess = self.len().saturating_sub(capacity);
+        if excess == 0 {
+            return Ok(());
+        }
+        let mut counts: HashMap<(u32, u32), usize> = HashMap::new();
+        for owner in &self.owners {
+            *counts.entry(*owner).or_default() += 1;
+        }
+        let mut dropped: HashSet<(u32, u32)> = HashSet::new();
+        for episode in &self.episodes {
+            if excess == 0 {
+                break;
+            }
+            let Some(agent) = self.agents.iter().position(|a| *a == episode.agent) else {
+                continue;
+            };
+            let key = (agent as u32, episode.episode);
+            if let Some(&n) = counts.get(&key)
+                && dropped.insert(key)
+            {
+                excess = excess.saturating_sub(n);
+                self.evicted
+                    .insert((episode.agent.clone(), episode.episode));
+            }
+        }
+        if dropped.is_empty() {
+            return Ok(());
+        }
+        let keep: Vec<bool> = self.owners.iter().map(|o| !dropped.contains(o)).collect();
+        let before = self.len();
+        self.transitions.retain(|i| keep[i]);
+        let mut row = 0;
+        self.origins.retain(|_| {
+            row += 1;
+            keep[row - 1]
+        });
+        self.owners.retain(|o| !dropped.contains(o));
+        self.evicted_on_disk += before - self.len();
+        tracing::info!(
+            episodes = dropped.len(),
+            transitions = before - self.len(),
+            kept = self.len(),
+            "evicted the oldest episodes from the replay buffer"
+        );
+        if self.evicted_on_disk >= self.len().max(1) {
+            self.compact()?;
         }
         Ok(())
+    }
+
+    /// Rewrites the log without the records of evicted episodes' transitions, unless another
+    /// planner has claimed the run since (its records must not be rewritten by a planner that
+    /// lost the run: the compaction is skipped, and this planner steps down at its next
+    /// ownership check).
+    fn compact(&mut self) -> Result<(), ReplayError> {
+        let Some(log) = &mut self.log else {
+            self.evicted.clear();
+            self.evicted_on_disk = 0;
+            return Ok(());
+        };
+        let evicted = &self.evicted;
+        let rewritten = log.rewrite(self.epoch, |record| match record {
+            Record::Transition { agent, episode, .. } => {
+                !evicted.contains(&(agent.clone(), *episode))
+            }
+            Record::Header { .. } | Record::Claim { .. } | Record::EpisodeEnd { .. } => true,
+        });
+        if let Err(LogError::Fenced { found, .. }) = &rewritten {
+            tracing::warn!(path = %log.path().display(), held = self.epoch, found, "the run was claimed by another planner; the log is not compacted");
+            return Ok(());
+        }
+        rewritten?;
+        tracing::info!(path = %log.path().display(), removed = self.evicted_on_disk, kept = self.transitions.len(), "compacted the replay log");
+        self.evicted.clear();
+        self.evicted_on_disk = 0;
+        Ok(())
+    }
+
+    /// A handle that syncs the log to disk without holding the buffer (`None` in memory).
+    pub fn syncer(&self) -> Option<LogSyncer> {
+        self.log.as_ref().map(ReplayLog::syncer)
     }
 
     pub fn transitions(&self) -> &Transitions {
@@ -285,27 +454,29 @@ mod tests {
 
     const PLANNED: ActionOrigin = ActionOrigin::Planned;
 
+    /// A transition of `agent`'s `episode` at `step` with the cartpole's dimensions.
+    fn transition(agent: &str, episode: u32, step: u32, reward: f32) -> Record {
+        Record::Transition {
+            epoch: 0,
+            agent: agent.into(),
+            episode,
+            step,
+            obs: vec![step as f32; 4],
+            act: vec![0.1],
+            origin: PLANNED,
+            next_obs: vec![step as f32 + 1.0; 4],
+            reward,
+        }
+    }
+
     #[test]
     fn a_reopened_buffer_holds_everything_stored() {
-        let dir = std::env::temp_dir().join(format!("ebmpc-replay-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let path = dir.join("replay.log");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
         let task = TaskId::Cartpole.spec();
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         for step in 0..10 {
-            let s = [step as f32; 4];
-            buffer
-                .push(
-                    "a",
-                    0,
-                    step,
-                    &s,
-                    &[0.1],
-                    ActionOrigin::Planned,
-                    &[step as f32 + 1.0; 4],
-                    0.5,
-                )
-                .unwrap();
+            buffer.append(vec![transition("a", 0, step, 0.5)]).unwrap();
         }
         let summary = EpisodeSummary {
             agent: "a".into(),
@@ -314,7 +485,7 @@ mod tests {
             episode_return: 5.0,
             end: EpisodeEnd::TimeLimit,
         };
-        buffer.end_episode(summary.clone()).unwrap();
+        buffer.append(vec![summary.clone().into()]).unwrap();
         let snapshot = buffer.transitions().clone();
         drop(buffer);
 
@@ -323,32 +494,33 @@ mod tests {
         assert_eq!(reopened.episodes(), &[summary]);
         let err = ReplayBuffer::open(&path, TaskId::Ant.spec()).unwrap_err();
         assert!(err.to_string().contains("holds task cartpole"), "{err}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
     fn an_episode_left_open_is_recorded_as_interrupted_on_reopening() {
-        let dir = std::env::temp_dir().join(format!("ebmpc-replay-open-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let path = dir.join("replay.log");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
         let task = TaskId::Cartpole.spec();
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         for step in 0..3 {
             buffer
-                .push("a", 4, step, &[0.0; 4], &[0.1], PLANNED, &[1.0; 4], 0.5)
-                .unwrap();
-            buffer
-                .push("b", 0, step, &[0.0; 4], &[0.1], PLANNED, &[1.0; 4], 1.0)
+                .append(vec![
+                    transition("a", 4, step, 0.5),
+                    transition("b", 0, step, 1.0),
+                ])
                 .unwrap();
         }
         buffer
-            .end_episode(EpisodeSummary {
-                agent: "b".into(),
-                episode: 0,
-                steps: 3,
-                episode_return: 3.0,
-                end: EpisodeEnd::Terminated,
-            })
+            .append(vec![
+                EpisodeSummary {
+                    agent: "b".into(),
+                    episode: 0,
+                    steps: 3,
+                    episode_return: 3.0,
+                    end: EpisodeEnd::Terminated,
+                }
+                .into(),
+            ])
             .unwrap();
         drop(buffer); // as if the daemon was killed: a's episode 4 never ended
 
@@ -367,52 +539,182 @@ mod tests {
         // Recorded once: opening again finds nothing left open.
         let again = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(again.episodes().len(), 2);
-        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn an_intact_record_of_the_wrong_dimension_is_skipped_on_reopening() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        drop(ReplayBuffer::open(&path, task).unwrap());
+        // Written straight to the log (as a buggy older build or a hand edit could): the
+        // buffer itself refuses such a record.
+        let (mut log, _) = ReplayLog::open(&path).unwrap();
+        let mut wrong = transition("a", 0, 1, 1.0);
+        if let Record::Transition { obs, .. } = &mut wrong {
+            obs.push(9.0);
+        }
+        log.append(&[
+            transition("a", 0, 0, 1.0),
+            wrong.clone(),
+            transition("a", 0, 2, 1.0),
+        ])
+        .unwrap();
+        drop(log);
+        let mut reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.len(), 2);
+        let err = reopened.append(vec![wrong]).unwrap_err();
+        assert!(matches!(err, ReplayError::Dimension { .. }), "{err}");
+        assert_eq!(reopened.len(), 2);
+    }
+
+    #[test]
+    fn an_episode_numbered_u32_max_resumes_without_overflow() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        buffer
+            .append(vec![transition("a", u32::MAX, u32::MAX, 1.0)])
+            .unwrap();
+        drop(buffer);
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.episodes()[0].steps, u32::MAX);
+    }
+
+    fn episode(agent: &str, episode: u32, steps: u32) -> Vec<Record> {
+        let mut records: Vec<Record> = (0..steps)
+            .map(|step| transition(agent, episode, step, episode as f32))
+            .collect();
+        records.push(
+            EpisodeSummary {
+                agent: agent.into(),
+                episode,
+                steps,
+                episode_return: (episode * steps) as f32,
+                end: EpisodeEnd::TimeLimit,
+            }
+            .into(),
+        );
+        records
+    }
+
+    /// The episode of every transition in the buffer, read back from its rewards.
+    fn episodes_held(buffer: &ReplayBuffer) -> Vec<u32> {
+        let mut held: Vec<u32> = buffer.owners.iter().map(|&(_, e)| e).collect();
+        held.dedup();
+        held
+    }
+
+    #[test]
+    fn a_capacity_evicts_the_oldest_whole_episodes_and_keeps_the_log_bounded() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        buffer.set_capacity(Some(10)).unwrap();
+        // An episode of agent b stays open the whole time: it is never evicted.
+        buffer.append(vec![transition("b", 0, 0, 9.0)]).unwrap();
+        for e in 0..20 {
+            buffer.append(episode("a", e, 4)).unwrap();
+            assert!(buffer.len() <= 10 + 1, "episode {e}: {} kept", buffer.len());
+        }
+        // a's newest two episodes (8 transitions) and b's open one are kept.
+        assert_eq!(buffer.len(), 9);
+        assert_eq!(episodes_held(&buffer), vec![0, 18, 19]);
+        assert_eq!(buffer.episodes().len(), 20, "summaries are never evicted");
+        let kept = buffer.transitions().clone();
+        drop(buffer);
+        // The log was compacted: it holds at most twice the capacity, plus what is open.
+        let unbounded = ReplayBuffer::open(&path, task).unwrap();
+        assert!(unbounded.len() <= 2 * 10 + 1, "{} on disk", unbounded.len());
+        assert_eq!(
+            unbounded.episodes().len(),
+            21,
+            "b's episode is now interrupted"
+        );
+        drop(unbounded);
+        // Reopened with the same capacity, the buffer holds exactly what it held.
+        let mut reopened = ReplayBuffer::open(&path, task).unwrap();
+        reopened.set_capacity(Some(10)).unwrap();
+        assert_eq!(reopened.transitions(), &kept);
     }
 
     /// A planner that lost the run (a newer claim is in the log) and wrote on: its records are
     /// skipped on reading, the new owner's are kept, and the applied actions are kept as such.
     #[test]
     fn records_of_a_fenced_owner_are_skipped_and_origins_kept() {
-        let dir = std::env::temp_dir().join(format!("ebmpc-replay-fence-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let path = dir.join("replay.log");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
         let task = TaskId::Cartpole.spec();
         let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
         old_owner.claim(1, "pa").unwrap();
-        old_owner
-            .push("a", 0, 0, &[0.0; 4], &[0.5], PLANNED, &[1.0; 4], 1.0)
-            .unwrap();
+        old_owner.append(vec![transition("a", 0, 0, 1.0)]).unwrap();
         let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!((new_owner.epoch(), new_owner.len()), (1, 1));
         new_owner.claim(2, "pb").unwrap();
-        new_owner
-            .push(
-                "a",
-                0,
-                1,
-                &[1.0; 4],
-                &[-3.0],
-                ActionOrigin::Applied,
-                &[2.0; 4],
-                1.0,
-            )
-            .unwrap();
+        let mut applied = transition("a", 0, 1, 1.0);
+        if let Record::Transition { act, origin, .. } = &mut applied {
+            *act = vec![-3.0];
+            *origin = ActionOrigin::Applied;
+        }
+        new_owner.append(vec![applied]).unwrap();
         // The old owner, partitioned, still writes under epoch 1.
-        old_owner
-            .push("a", 0, 1, &[1.0; 4], &[0.7], PLANNED, &[9.0; 4], 1.0)
-            .unwrap();
+        old_owner.append(vec![transition("a", 0, 1, 1.0)]).unwrap();
         drop((old_owner, new_owner));
 
         let reopened = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(reopened.epoch(), 2);
         assert_eq!(reopened.stale_skipped(), 1);
         assert_eq!(reopened.len(), 2);
-        assert_eq!(
-            reopened.origins(),
-            &[ActionOrigin::Planned, ActionOrigin::Applied]
-        );
+        assert_eq!(reopened.origins(), &[PLANNED, ActionOrigin::Applied]);
         assert_eq!(reopened.transitions().row(1).1, &[-3.0]);
-        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Eviction keeps each transition's origin with it, and a planner that lost the run does
+    /// not compact the log the new owner writes to (that would replace the new owner's file).
+    #[test]
+    fn eviction_keeps_origins_aligned_and_a_fenced_owner_never_compacts() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
+        old_owner.claim(1, "pa").unwrap();
+        old_owner.set_capacity(Some(4)).unwrap();
+        for e in 0..3 {
+            let mut records = episode("a", e, 4);
+            // Episode e's first step was applied by the agent, the others planned.
+            if let Record::Transition { origin, .. } = &mut records[0] {
+                *origin = ActionOrigin::Applied;
+            }
+            old_owner.append(records).unwrap();
+        }
+        // Only the newest episode is kept in memory, its origins with it.
+        assert_eq!(old_owner.len(), 4);
+        assert_eq!(
+            old_owner.origins(),
+            &[ActionOrigin::Applied, PLANNED, PLANNED, PLANNED]
+        );
+        // Compacted (8 evicted ≥ 4 kept): the log holds the claim and the newest episode.
+        let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(new_owner.len(), 4);
+        new_owner.claim(2, "pb").unwrap();
+        new_owner.append(episode("b", 0, 2)).unwrap();
+        let before = std::fs::read(&path).unwrap();
+        // The old owner, fenced without knowing, evicts again: the log stays as it is.
+        for e in 3..6 {
+            old_owner.append(episode("a", e, 4)).unwrap();
+        }
+        let after = std::fs::read(&path).unwrap();
+        assert_eq!(after[..before.len()], before[..], "nothing rewritten");
+        drop((old_owner, new_owner));
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.epoch(), 2);
+        assert_eq!(
+            reopened.len(),
+            6,
+            "the new owner's transitions are all kept"
+        );
+        assert_eq!(reopened.stale_skipped(), 3 * 5);
     }
 }

@@ -13,21 +13,24 @@
 //! agents (and runs) proceed concurrently; planning itself runs on the blocking pool, and
 //! training on the run's trainer task, so neither stalls the transport.
 
+mod log_limit;
 pub mod status;
 mod worker;
 
 use crate::config::{Preset, ServiceConfig};
 use crate::fleet::{Fleet, FleetError, Owner};
 use crate::persist::{self, PersistError, RunDir};
-use crate::run::{EventSink, Run};
+use crate::run::{EventSink, Hosting, Run};
+use crate::trainer::TrainLimits;
 use proto::{
     AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorCode, ErrorReport,
     Keys, PROTOCOL_VERSION, RunEvent, RunEventKind, RunSpec,
 };
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
-use tokio::sync::mpsc;
+use tokio::sync::{Semaphore, mpsc};
 use tokio::task::JoinHandle;
 use worker::{AgentWorker, Incoming};
 use zenoh::bytes::Encoding as ZEncoding;
@@ -41,6 +44,8 @@ pub enum ServiceError {
     SessionConfig(#[from] proto::session::SessionConfigError),
     #[error("joining the fleet: {0}")]
     Fleet(#[from] crate::fleet::FleetError),
+    #[error(transparent)]
+    DataDir(#[from] persist::admin::AdminError),
 }
 
 fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
@@ -57,8 +62,19 @@ const AGENT_QUEUE: usize = 64;
 /// observation, published just before it exits, could find its session already gone.
 const AGENT_LINGER: std::time::Duration = std::time::Duration::from_secs(2);
 
-/// How long a worker may take to finish its message in hand at shutdown.
-const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(10);
+/// How long the workers may take, together, to finish their messages in hand at shutdown.
+/// The daemon promises to exit within 10 s of SIGTERM (systemd's `TimeoutStopSec` is well
+/// above); this leaves the rest for closing the session and the blocking pool.
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Bytes beyond `[limits] max_payload_bytes` that Zenoh's transport accepts in one message
+/// (its key expression and headers), so that a payload just over the limit still arrives
+/// and is refused with a clear error instead of being dropped silently.
+const ZENOH_HEADROOM: u64 = 64 << 10;
+
+/// Attach requests handled at once (each may open a run: disk I/O and model construction);
+/// beyond this a request is refused at once instead of queueing without bound.
+const CONCURRENT_ATTACHES: usize = 8;
 
 struct AgentHandle {
     tx: mpsc::Sender<Incoming>,
@@ -76,6 +92,8 @@ struct RunHandle {
 pub(crate) struct Outbox {
     session: zenoh::Session,
     keys: Keys,
+    /// Refusals are logged at a bounded rate: a client controls how many it causes.
+    refusal_log: Arc<log_limit::LogLimit>,
 }
 
 impl Outbox {
@@ -108,6 +126,21 @@ impl Outbox {
         }
     }
 
+    /// Whether `agent` of `run` holds a liveliness token now.
+    pub(crate) async fn agent_alive(&self, run: &str, agent: &str) -> bool {
+        match self
+            .session
+            .liveliness()
+            .get(self.keys.agent_alive(run, agent))
+            .timeout(std::time::Duration::from_secs(5))
+            .await
+        {
+            Ok(replies) => replies.recv_async().await.is_ok(),
+            // Cannot ask: count the agent as alive rather than close a working session.
+            Err(_) => true,
+        }
+    }
+
     /// Reports an error to the agent that caused it, and logs it.
     pub(crate) async fn report(
         &self,
@@ -116,7 +149,10 @@ impl Outbox {
         report: ErrorReport,
         encoding: Encoding,
     ) {
-        tracing::warn!(%run, %agent, code = ?report.code, episode = ?report.episode, step = ?report.step, "rejected: {}", report.message);
+        self.refusal_log.warn(|| {
+            let (run, agent) = (truncated(run), truncated(agent));
+            tracing::warn!(%run, %agent, code = ?report.code, episode = ?report.episode, step = ?report.step, "rejected: {}", report.message);
+        });
         self.publish(&self.keys.error(run, agent), &report, encoding)
             .await;
     }
@@ -136,12 +172,27 @@ impl From<ErrorReport> for Refusal {
     }
 }
 
+/// Why taking a run over failed, on the blocking pool.
+enum Taking {
+    Fleet(FleetError),
+    Open(crate::run::OpenError),
+}
+
 /// The planner daemon.
 pub struct Service {
     config: ServiceConfig,
     outbox: Outbox,
     fleet: Arc<Fleet>,
     runs: Mutex<HashMap<String, RunHandle>>,
+    /// Stored runs that could not be opened, with the reason: listed by `status`, refused at
+    /// attach, left on disk untouched for the operator.
+    failed: Mutex<BTreeMap<String, String>>,
+    /// Held while a new run is opened (off the event loop), so that two agents attaching to
+    /// the same new run at once open it once. Hosted runs are joined without it.
+    opening: tokio::sync::Mutex<()>,
+    attach_slots: Arc<Semaphore>,
+    /// Raised at shutdown: every run's training stops before its next minibatch.
+    cancel_training: Arc<AtomicBool>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -152,6 +203,9 @@ impl Service {
         config: ServiceConfig,
         shutdown: impl Future<Output = ()>,
     ) -> Result<(), ServiceError> {
+        // Held until serving ends: `planner-service runs delete|archive` refuse meanwhile.
+        let _daemon_lock =
+            persist::admin::DaemonLock::acquire(&config.data_dir, &config.planner_id)?;
         let base = match &config.zenoh_config {
             Some(path) => Some(zenoh::Config::from_file(path).map_err(zenoh_err)?),
             None => None,
@@ -171,6 +225,18 @@ impl Service {
                 .insert_json5("mode", "\"client\"")
                 .map_err(zenoh_err)?;
         }
+        // Zenoh reassembles messages of up to 1 GiB by default: bound it near the payload
+        // limit, so an oversized message is dropped by the transport before it is buffered.
+        let max_message = config
+            .limits
+            .max_payload_bytes
+            .saturating_add(ZENOH_HEADROOM);
+        zconfig
+            .insert_json5(
+                "transport/link/rx/max_message_size",
+                &max_message.to_string(),
+            )
+            .map_err(zenoh_err)?;
         let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
         let keys = Keys::new(&config.prefix);
         let planner_id = config.planner_id.clone();
@@ -185,10 +251,15 @@ impl Service {
             outbox: Outbox {
                 session: session.clone(),
                 keys: keys.clone(),
+                refusal_log: Arc::default(),
             },
             fleet,
             config,
             runs: Mutex::new(HashMap::new()),
+            failed: Mutex::new(BTreeMap::new()),
+            opening: tokio::sync::Mutex::new(()),
+            attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
+            cancel_training: Arc::new(AtomicBool::new(false)),
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
@@ -225,8 +296,10 @@ impl Service {
             // channels; an unbiased select could drop the agent first and refuse its last step.
             tokio::select! {
                 biased;
+                // Attaching may open a run (disk, model construction): it runs on a task of
+                // its own, so the loop keeps routing every other agent's observations.
                 query = attach.recv_async() => match query {
-                    Ok(query) => service.attach(query).await,
+                    Ok(query) => service.spawn_attach(query),
                     Err(e) => { tracing::error!(error = %e, "attach queryable closed"); break; }
                 },
                 sample = observations.recv_async() => match sample {
@@ -258,7 +331,12 @@ impl Service {
     /// Stops every worker (each finishes the message in hand, within a grace period) and every
     /// trainer. The replay logs are synced at every episode end and every transition is
     /// handed to the OS before it is acknowledged, so nothing acknowledged is lost either way.
+    ///
+    /// Everything stops at once: training is cancelled (it ends before its next minibatch),
+    /// and every worker is given the same [`SHUTDOWN_GRACE`], concurrently, so a daemon with
+    /// many agents stops as fast as one with a single agent.
     async fn stop(&self) {
+        self.cancel_training.store(true, Ordering::SeqCst);
         let runs: Vec<RunHandle> = self
             .runs
             .lock()
@@ -266,20 +344,26 @@ impl Service {
             .drain()
             .map(|(_, h)| h)
             .collect();
+        let mut workers = Vec::new();
         for handle in runs {
             handle.trainer.abort();
             for (agent, worker) in handle.agents {
                 drop(worker.tx);
-                let abort = worker.task.abort_handle();
-                if tokio::time::timeout(SHUTDOWN_GRACE, worker.task)
-                    .await
-                    .is_err()
-                {
-                    tracing::warn!(run = %handle.run.name(), %agent, "worker did not finish in time; abandoned");
-                    abort.abort();
-                }
+                workers.push((handle.run.name().to_string(), agent, worker.task));
             }
         }
+        let deadline = tokio::time::Instant::now() + SHUTDOWN_GRACE;
+        let mut finishing = tokio::task::JoinSet::new();
+        for (run, agent, task) in workers {
+            finishing.spawn(async move {
+                let abort = task.abort_handle();
+                if tokio::time::timeout_at(deadline, task).await.is_err() {
+                    tracing::warn!(%run, %agent, "worker did not finish in time; abandoned");
+                    abort.abort();
+                }
+            });
+        }
+        while finishing.join_next().await.is_some() {}
     }
 
     fn event_sink(&self) -> EventSink {
@@ -299,33 +383,62 @@ impl Service {
         })
     }
 
-    async fn attach(&self, query: zenoh::query::Query) {
-        let key = query.key_expr().as_str().to_string();
-        // Another planner owns this run: stay silent (dropping the query ends this planner's
-        // part in it), so the agent's query gets the owner's answer and no other.
-        if let Some(run) = self.outbox.keys().parse_attach(&key)
+    /// Handles an attach query on a task of its own, or refuses it at once when
+    /// [`CONCURRENT_ATTACHES`] are already in hand.
+    ///
+    /// A query for a run another planner owns is dropped at once, unanswered (dropping it ends
+    /// this planner's part in it), so the agent gets the owner's answer and no other: not
+    /// even a refusal for want of a slot.
+    fn spawn_attach(self: &Arc<Self>, query: zenoh::query::Query) {
+        if let Some(run) = self.outbox.keys().parse_attach(query.key_expr().as_str())
             && !self.fleet.is_mine(run)
         {
-            tracing::debug!(%key, owner = ?self.fleet.owner(run), "attach for a run owned elsewhere");
+            tracing::debug!(%run, owner = ?self.fleet.owner(run), "attach for a run owned elsewhere");
             return;
         }
-        let encoding = query
-            .encoding()
-            .map(|e| Encoding::from_mime(&e.to_string()))
-            .unwrap_or_default();
+        match self.attach_slots.clone().try_acquire_owned() {
+            Ok(slot) => {
+                let service = self.clone();
+                self.runtime.spawn(async move {
+                    service.attach(query).await;
+                    drop(slot);
+                });
+            }
+            Err(_) => {
+                let encoding = query_encoding(&query);
+                let report = ErrorReport::new(
+                    ErrorCode::Refused,
+                    format!(
+                        "{CONCURRENT_ATTACHES} attach requests are in hand already: try again shortly"
+                    ),
+                );
+                self.runtime.spawn(async move {
+                    reply_attach(&query, AttachOutcome::Rejected(report), encoding).await
+                });
+            }
+        }
+    }
+
+    async fn attach(&self, query: zenoh::query::Query) {
+        let key = query.key_expr().as_str().to_string();
+        let encoding = query_encoding(&query);
         let outcome = match self.outbox.keys().parse_attach(&key) {
             None => AttachOutcome::Rejected(ErrorReport::new(
                 ErrorCode::Refused,
-                format!("`{key}` is not an attach key"),
+                format!("`{}` is not an attach key", truncated(&key)),
             )),
             Some(run) => {
-                let bytes = query
-                    .payload()
-                    .map(|p| p.to_bytes().into_owned())
-                    .unwrap_or_default();
+                let size = query.payload().map_or(0, |p| p.len());
+                let bytes = match self.check_payload(size) {
+                    Ok(()) => query
+                        .payload()
+                        .map(|p| p.to_bytes().into_owned())
+                        .unwrap_or_default(),
+                    Err(report) => return self.refuse_attach(&query, &key, report, encoding).await,
+                };
                 match proto::decode::<AttachRequest>(&bytes, encoding) {
                     Err(e) => AttachOutcome::Rejected(codec_report(&e)),
-                    Ok(request) => match self.attach_agent(run, request) {
+                    Ok(request) => match self.attach_agent(run, request).await {
                         Ok(accepted) => AttachOutcome::Accepted(accepted),
                         Err(Refusal::Report(report)) => AttachOutcome::Rejected(report),
                         // Another planner is taking the run over at this moment: its answer
@@ -336,28 +449,52 @@ impl Service {
             }
         };
         if let AttachOutcome::Rejected(report) = &outcome {
+            let key = truncated(&key);
+            self.outbox.refusal_log.warn(|| {
+                tracing::warn!(%key, code = ?report.code, "attach refused: {}", report.message);
+            });
+        }
+        reply_attach(&query, outcome, encoding).await;
+    }
+
+    async fn refuse_attach(
+        &self,
+        query: &zenoh::query::Query,
+        key: &str,
+        report: ErrorReport,
+        encoding: Encoding,
+    ) {
+        let key = truncated(key);
+        self.outbox.refusal_log.warn(|| {
             tracing::warn!(%key, code = ?report.code, "attach refused: {}", report.message);
+        });
+        reply_attach(query, AttachOutcome::Rejected(report), encoding).await;
+    }
+
+    /// Refuses a message of `size` bytes over `[limits] max_payload_bytes`, before anything
+    /// decodes (or copies) it.
+    fn check_payload(&self, size: usize) -> Result<(), ErrorReport> {
+        let limit = self.config.limits.max_payload_bytes;
+        if size as u64 > limit {
+            return Err(ErrorReport::new(
+                ErrorCode::Refused,
+                format!(
+                    "a message of {size} bytes is over this planner's limit of {limit} bytes ([limits] max_payload_bytes)"
+                ),
+            ));
         }
-        let reply = AttachReply {
-            version: PROTOCOL_VERSION,
-            outcome,
-        };
-        match proto::encode(&reply, encoding) {
-            Ok(bytes) => {
-                if let Err(e) = query
-                    .reply(key.as_str(), bytes)
-                    .encoding(ZEncoding::from(encoding.mime()))
-                    .await
-                {
-                    tracing::warn!(%key, error = %e, "attach reply failed");
-                }
-            }
-            Err(e) => tracing::error!(error = %e, "cannot encode attach reply"),
-        }
+        Ok(())
+    }
+
+    fn is_hosted(&self, run: &str) -> bool {
+        self.runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .contains_key(run)
     }
 
     /// Creates or joins the run and starts the agent's worker.
-    fn attach_agent(
+    async fn attach_agent(
         &self,
         run_name: &str,
         request: AttachRequest,
@@ -365,26 +502,24 @@ impl Service {
         let refuse = |msg: String| Refusal::Report(ErrorReport::new(ErrorCode::Refused, msg));
         proto::validate_name(run_name).map_err(|e| refuse(e.to_string()))?;
         proto::validate_name(&request.agent).map_err(|e| refuse(e.to_string()))?;
-        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-        if !runs.contains_key(run_name) {
-            if runs.len() >= self.config.max_runs {
-                return Err(refuse(format!(
-                    "this planner already hosts its limit of {} runs",
-                    self.config.max_runs
-                )));
-            }
-            let run = self.open_run(run_name, request.spec.clone())?;
-            self.host(&mut runs, run);
+        if !self.is_hosted(run_name) {
+            self.open_new_run(run_name, &request.spec).await?;
         }
-        let handle = runs.get_mut(run_name).expect("inserted above");
+        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+        let handle = runs.get_mut(run_name).ok_or_else(|| {
+            ErrorReport::new(
+                ErrorCode::Internal,
+                format!("run `{run_name}` closed while attaching: attach again"),
+            )
+        })?;
         let run = handle.run.clone();
-        if run.spec().task != request.spec.task {
+        if let Some(difference) = spec_difference(run.spec(), &request.spec) {
             return Err(refuse(format!(
-                "run `{run_name}` learns {}, not {}: use another run name",
-                run.spec().task,
-                request.spec.task
+                "run `{run_name}` was created with {difference}: attach with the run's spec, or use another run name"
             )));
         }
+        // Sessions that ended (idle without a liveliness token) free their slots.
+        handle.agents.retain(|_, a| !a.task.is_finished());
         if let Some(old) = handle.agents.remove(&request.agent) {
             // The same agent attaching again (it restarted): its old worker ends, and any
             // episode it left open is recorded as interrupted by the new worker's first step.
@@ -400,7 +535,10 @@ impl Service {
             request.agent.clone(),
             self.outbox.clone(),
             self.fleet.clone(),
+            self.config.limits.magnitudes(run.task()),
         )?;
+        let idle = std::time::Duration::from_secs(self.config.limits.agent_idle_seconds);
+        let worker = worker.idle_after(idle);
         let (tx, rx) = mpsc::channel(AGENT_QUEUE);
         let task = self.runtime.spawn(worker.run(rx));
         handle
@@ -443,37 +581,100 @@ impl Service {
             .cem
             .validate()
             .map_err(|e| refuse(format!("invalid planner configuration: {e}")))?;
+        self.config
+            .limits
+            .check(&preset)
+            .map_err(|e| refuse(e.to_string()))?;
         Ok(preset)
     }
 
-    /// Takes run `name` over (a new ownership epoch) and opens it in the data directory (new,
-    /// or stored by this or another planner).
-    fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, Refusal> {
-        let preset = self.preset_for(&spec)?;
-        let dir = RunDir::new(&self.config.data_dir, name);
-        let internal = |what: String| ErrorReport::new(ErrorCode::Internal, what);
-        let epoch = self.fleet.take(name, &dir).map_err(|e| match e {
-            FleetError::Persist(PersistError::EpochTaken { .. }) => Refusal::Contended,
-            e => internal(format!("cannot take run `{name}` over: {e}")).into(),
-        })?;
-        let ownership = (epoch, self.config.planner_id.as_str());
-        Run::open(
-            name.to_string(),
-            spec,
-            preset,
-            dir,
-            self.event_sink(),
-            ownership,
-        )
-        .map_err(|e| {
-            self.fleet
-                .step_down(name, format!("the run could not be opened: {e}"));
-            internal(format!("cannot open run `{name}`: {e}")).into()
-        })
+    /// Opens a run that is not hosted yet (new, or stored but not resumed), one at a time.
+    async fn open_new_run(&self, name: &str, spec: &RunSpec) -> Result<(), Refusal> {
+        let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
+        let _opening = self.opening.lock().await;
+        if self.is_hosted(name) {
+            return Ok(()); // another agent opened it meanwhile
+        }
+        if let Some(reason) = self
+            .failed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(name)
+        {
+            return Err(refuse(format!(
+                "run `{name}` is stored here but cannot be opened ({reason}): ask the operator, or use another run name"
+            ))
+            .into());
+        }
+        let hosted = self
+            .runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .len();
+        if hosted >= self.config.max_runs {
+            return Err(refuse(format!(
+                "this planner already hosts its limit of {} runs",
+                self.config.max_runs
+            ))
+            .into());
+        }
+        let run = self.open_run(name, spec.clone()).await?;
+        self.host(run);
+        Ok(())
     }
 
-    fn host(&self, runs: &mut HashMap<String, RunHandle>, run: Arc<Run>) {
+    /// Takes run `name` over (a new ownership epoch) and opens it in the data directory (new,
+    /// or stored by this or another planner) on the blocking pool: claiming the epoch, reading
+    /// the replay log and building the models may take a while, and a failure there (even a
+    /// panic) is this run's alone.
+    async fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, Refusal> {
+        let preset = self.preset_for(&spec)?;
+        let dir = RunDir::new(&self.config.data_dir, name);
+        let hosting = Hosting {
+            events: self.event_sink(),
+            train_limits: TrainLimits {
+                max_seconds: self.config.limits.max_retrain_seconds,
+                cancel: self.cancel_training.clone(),
+            },
+            replay_capacity: self.config.storage.replay_capacity,
+        };
+        let internal = |why: String| {
+            Refusal::Report(ErrorReport::new(
+                ErrorCode::Internal,
+                format!("cannot open run `{name}`: {why}"),
+            ))
+        };
+        let (fleet, planner, owned) = (
+            self.fleet.clone(),
+            self.config.planner_id.clone(),
+            name.to_string(),
+        );
+        let opened = tokio::task::spawn_blocking(move || {
+            let epoch = fleet.take(&owned, &dir).map_err(Taking::Fleet)?;
+            Run::open(owned.clone(), spec, preset, dir, hosting, (epoch, &planner)).map_err(|e| {
+                fleet.step_down(&owned, format!("the run could not be opened: {e}"));
+                Taking::Open(e)
+            })
+        })
+        .await;
+        match opened {
+            Ok(Ok(run)) => Ok(run),
+            Ok(Err(Taking::Fleet(FleetError::Persist(PersistError::EpochTaken { .. })))) => {
+                Err(Refusal::Contended)
+            }
+            Ok(Err(Taking::Fleet(e))) => Err(internal(format!("cannot take it over: {e}"))),
+            Ok(Err(Taking::Open(e))) => Err(internal(e.to_string())),
+            Err(e) => {
+                self.fleet
+                    .step_down(name, format!("opening the run failed: {e}"));
+                Err(internal(e.to_string()))
+            }
+        }
+    }
+
+    fn host(&self, run: Arc<Run>) {
         let trainer = self.runtime.spawn(run.clone().trainer_loop());
+        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         runs.insert(
             run.name().to_string(),
             RunHandle {
@@ -490,8 +691,10 @@ impl Service {
     /// this resumes a restarted daemon's runs (all stored runs, for a planner without peers):
     /// status lists them at once, their trainers catch up with episodes stored after the last
     /// checkpoint, and agents re-attach to them. Stored runs are taken even beyond `max_runs`
-    /// (the limit is on creating runs, never on keeping data). A run that cannot be opened is
-    /// logged and left on disk untouched.
+    /// (the limit is on creating runs, never on keeping data). A run that cannot be opened
+    /// (over today's limits, damaged, even one whose opening panics) is set aside: logged,
+    /// listed by `status` as failed with the reason, refused at attach, not tried again by
+    /// this daemon, and left on disk untouched; the daemon serves the others.
     async fn rebalance(&self) {
         let mut lost: Vec<(String, String)> = self
             .fleet
@@ -526,9 +729,13 @@ impl Service {
                 return;
             }
         };
-        let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         for (name, dir) in stored {
-            if runs.contains_key(&name) || !self.fleet.is_mine(&name) {
+            let set_aside = self
+                .failed
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .contains_key(&name);
+            if set_aside || self.is_hosted(&name) || !self.fleet.is_mine(&name) {
                 continue;
             }
             let spec = match dir.read_spec() {
@@ -538,15 +745,18 @@ impl Service {
                     continue;
                 }
                 Err(e) => {
-                    tracing::error!(run = %name, error = %e, "cannot read a stored run's spec; not resumed");
+                    self.set_aside(&name, format!("cannot read its spec: {e}"));
                     continue;
                 }
             };
-            match self.open_run(&name, spec) {
-                Ok(run) => self.host(&mut runs, run),
-                Err(Refusal::Report(report)) => {
-                    tracing::error!(run = %name, "stored run not resumed: {}", report.message);
-                }
+            // One opening at a time, as at attach: an agent may be opening this run now.
+            let _opening = self.opening.lock().await;
+            if self.is_hosted(&name) {
+                continue;
+            }
+            match self.open_run(&name, spec).await {
+                Ok(run) => self.host(run),
+                Err(Refusal::Report(report)) => self.set_aside(&name, report.message),
                 Err(Refusal::Contended) => {
                     tracing::info!(run = %name, "another planner took the run over first");
                 }
@@ -581,41 +791,72 @@ impl Service {
         }
     }
 
+    fn set_aside(&self, run: &str, reason: String) {
+        tracing::error!(%run, "stored run set aside, not resumed: {reason}");
+        self.failed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(run.to_string(), reason);
+    }
+
     /// The status report of this planner.
     pub fn status_report(&self) -> status::PlannerStatus {
-        let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-        let mut reports: Vec<status::RunStatus> = runs
-            .values()
-            .map(|h| {
-                let run = &h.run;
-                let returns = run.returns();
-                let mut agents: Vec<String> = h.agents.keys().cloned().collect();
-                agents.sort();
+        // The runs and their agents' names, then each run's counters: no run's replay buffer
+        // is locked, so a run busy on its disk delays no status report.
+        let hosted: Vec<(Arc<Run>, Vec<String>)> = {
+            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            runs.values()
+                .map(|h| {
+                    let mut agents: Vec<String> = h
+                        .agents
+                        .iter()
+                        .filter(|(_, a)| !a.task.is_finished())
+                        .map(|(name, _)| name.clone())
+                        .collect();
+                    agents.sort();
+                    (h.run.clone(), agents)
+                })
+                .collect()
+        };
+        let mut reports: Vec<status::RunStatus> = hosted
+            .into_iter()
+            .map(|(run, agents)| {
+                let tally = run.tally();
                 status::RunStatus {
                     name: run.name().to_string(),
                     task: run.spec().task.to_string(),
                     method: run.preset().method.clone(),
                     mode: run.mode(),
-                    // Counted from the same snapshot as the returns, so the two always agree.
-                    episodes: returns.len() as u32,
-                    transitions: run.transitions_stored(),
+                    episodes: tally.episodes,
+                    transitions: tally.transitions,
                     models_version: run.models().version,
                     epoch: run.epoch(),
                     training: run.is_training(),
                     exploring: run.exploring(),
-                    last_returns: returns[returns.len().saturating_sub(10)..].to_vec(),
+                    last_returns: tally.last_returns,
                     agents,
                     planning_latency: run.latency(),
                 }
             })
             .collect();
         reports.sort_by(|a, b| a.name.cmp(&b.name));
+        let failed_runs = self
+            .failed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .iter()
+            .map(|(name, reason)| status::FailedRun {
+                name: name.clone(),
+                reason: reason.clone(),
+            })
+            .collect();
         status::PlannerStatus {
             planner_id: self.config.planner_id.clone(),
             protocol_version: PROTOCOL_VERSION,
             uptime_seconds: self.started.elapsed().as_secs_f64(),
             runs: reports,
             fleet: self.fleet.status(),
+            failed_runs,
         }
     }
 
@@ -687,7 +928,10 @@ impl Service {
             .keys()
             .parse_agent_key(&key, proto::AgentChannel::Obs)
         else {
-            tracing::warn!(%key, "ignoring sample on a key that is not an observation key");
+            let key = truncated(&key);
+            self.outbox.refusal_log.warn(|| {
+                tracing::warn!(%key, "ignoring sample on a key that is not an observation key");
+            });
             return;
         };
         if !self.fleet.is_mine(run) {
@@ -709,7 +953,8 @@ impl Service {
                 },
             }
         };
-        let result = match tx {
+        let result = match tx.and_then(|tx| self.check_payload(sample.payload().len()).map(|()| tx))
+        {
             Err(report) => Err(report),
             Ok(tx) => {
                 let incoming = Incoming {
@@ -731,6 +976,85 @@ impl Service {
             self.outbox.report(run, agent, report, encoding).await;
         }
     }
+}
+
+/// Characters of a received key shown in a log line: a key is client-chosen.
+const SHOWN_KEY_CHARS: usize = 128;
+
+/// `key` cut to [`SHOWN_KEY_CHARS`], for logs and replies.
+fn truncated(key: &str) -> String {
+    if key.chars().count() <= SHOWN_KEY_CHARS {
+        return key.to_string();
+    }
+    let shown: String = key.chars().take(SHOWN_KEY_CHARS).collect();
+    format!("{shown}… ({} bytes)", key.len())
+}
+
+/// The encoding a query's payload is in (its answer goes back in the same).
+fn query_encoding(query: &zenoh::query::Query) -> Encoding {
+    query
+        .encoding()
+        .map(|e| Encoding::from_mime(&e.to_string()))
+        .unwrap_or_default()
+}
+
+async fn reply_attach(query: &zenoh::query::Query, outcome: AttachOutcome, encoding: Encoding) {
+    let key = query.key_expr().as_str().to_string();
+    let reply = AttachReply {
+        version: PROTOCOL_VERSION,
+        outcome,
+    };
+    match proto::encode(&reply, encoding) {
+        Ok(bytes) => {
+            if let Err(e) = query
+                .reply(key.as_str(), bytes)
+                .encoding(ZEncoding::from(encoding.mime()))
+                .await
+            {
+                tracing::warn!(%key, error = %e, "attach reply failed");
+            }
+        }
+        Err(e) => tracing::error!(error = %e, "cannot encode attach reply"),
+    }
+}
+
+/// How a later attach's spec differs from the run's, in words (`None`: it does not). A run
+/// has one spec: an agent asking for another one would otherwise be served a run it did not
+/// ask for without knowing.
+fn spec_difference(run: &RunSpec, asked: &RunSpec) -> Option<String> {
+    if run.task != asked.task {
+        return Some(format!("task {}, not {}", run.task, asked.task));
+    }
+    let preset = |p: &Option<String>| p.clone().unwrap_or_else(|| "(the default)".into());
+    if run.preset != asked.preset {
+        return Some(format!(
+            "preset {}, not {}",
+            preset(&run.preset),
+            preset(&asked.preset)
+        ));
+    }
+    if run.mode != asked.mode {
+        return Some(format!("mode {:?}, not {:?}", run.mode, asked.mode));
+    }
+    if run.seed != asked.seed {
+        return Some(format!("seed {}, not {}", run.seed, asked.seed));
+    }
+    if run.overrides != asked.overrides {
+        let set = |o: &proto::PlannerOverrides| match serde_json::to_value(o) {
+            Ok(serde_json::Value::Object(fields)) => {
+                let set: serde_json::Map<_, _> =
+                    fields.into_iter().filter(|(_, v)| !v.is_null()).collect();
+                serde_json::Value::Object(set).to_string()
+            }
+            _ => format!("{o:?}"),
+        };
+        return Some(format!(
+            "overrides {}, not {}",
+            set(&run.overrides),
+            set(&asked.overrides)
+        ));
+    }
+    None
 }
 
 /// The error report for bytes that did not decode.

@@ -54,6 +54,16 @@ pub struct PlannerStatus {
     pub runs: Vec<RunStatus>,
     /// The fleet as this planner sees it, and its recent ownership events.
     pub fleet: crate::fleet::FleetStatus,
+    /// Stored runs this planner could not open, set aside with the reason.
+    #[serde(default)]
+    pub failed_runs: Vec<FailedRun>,
+}
+
+/// A stored run that could not be opened (it stays on disk untouched).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FailedRun {
+    pub name: String,
+    pub reason: String,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -5,7 +5,8 @@ use super::{Outbox, codec_report};
 use crate::agent::AgentSession;
 use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
-use crate::run::{Run, StoreError};
+use crate::run::{Refused, Run, StoreError, sync_log};
+use proto::task::Magnitudes;
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
     PlanStats, TrainMode,
@@ -27,12 +28,17 @@ pub(crate) struct AgentWorker {
     name: String,
     outbox: Outbox,
     fleet: Arc<Fleet>,
+    /// The largest observation and reward magnitudes accepted from this agent.
+    magnitudes: Magnitudes,
     session: AgentSession,
     /// Taken while a plan runs on the blocking pool, then put back.
     planner: Option<MpcPlanner>,
     explore_rng: StdRng,
     /// Sync mode: finished episodes the models must cover before this agent's next episode.
     wait_for_episodes: Option<u32>,
+    /// How long the worker waits for an observation before it checks that the agent still
+    /// holds its liveliness token (and closes the session if not).
+    idle: std::time::Duration,
 }
 
 /// A stable seed per (run seed, agent name), so runs are reproducible.
@@ -73,24 +79,49 @@ impl AgentWorker {
         name: String,
         outbox: Outbox,
         fleet: Arc<Fleet>,
+        magnitudes: Magnitudes,
     ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
         Ok(Self {
-            session: AgentSession::new(name.clone()),
+            session: AgentSession::new(name.clone(), run.task().episode_len),
             planner: Some(new_planner(&run, seed)?),
             explore_rng: StdRng::seed_from_u64(seed.rotate_left(17)),
             wait_for_episodes: None,
+            idle: std::time::Duration::MAX,
             run,
             name,
             outbox,
             fleet,
+            magnitudes,
         })
     }
 
-    /// Handles observations until the service drops the channel, then records an unfinished
-    /// episode as interrupted.
+    /// Closes the session after `idle` without an observation if the agent then holds no
+    /// liveliness token.
+    pub(crate) fn idle_after(mut self, idle: std::time::Duration) -> Self {
+        self.idle = idle;
+        self
+    }
+
+    /// The next observation; `None` when the service dropped the channel, or when the agent
+    /// was silent for the idle time and holds no liveliness token.
+    async fn next(&self, rx: &mut mpsc::Receiver<Incoming>) -> Option<Incoming> {
+        loop {
+            match tokio::time::timeout(self.idle, rx.recv()).await {
+                Ok(incoming) => return incoming,
+                Err(_) if self.outbox.agent_alive(self.run.name(), &self.name).await => {}
+                Err(_) => {
+                    tracing::info!(run = %self.run.name(), agent = %self.name, idle_seconds = self.idle.as_secs(), "agent idle without a liveliness token; its session is closed");
+                    return None;
+                }
+            }
+        }
+    }
+
+    /// Handles observations until the service drops the channel (or the agent is gone idle),
+    /// then records an unfinished episode as interrupted.
     pub(crate) async fn run(mut self, mut rx: mpsc::Receiver<Incoming>) {
-        while let Some(incoming) = rx.recv().await {
+        while let Some(incoming) = self.next(&mut rx).await {
             let encoding = incoming.encoding;
             if let Err(report) = self.handle(incoming).await {
                 self.outbox
@@ -98,13 +129,16 @@ impl AgentWorker {
                     .await;
             }
         }
-        if let Some(summary) = self.session.interrupt()
-            && let Err(e) = self.run.store_interrupted(summary)
-        {
-            if let StoreError::Fenced(_) = e {
-                self.fleet.report_fenced(self.run.name());
+        if let Some(summary) = self.session.interrupt() {
+            match self.run.store_interrupted(summary) {
+                Ok(syncer) => sync_log(self.run.name(), syncer).await,
+                Err(e) => {
+                    if let StoreError::Fenced(_) = e {
+                        self.fleet.report_fenced(self.run.name());
+                    }
+                    tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode")
+                }
             }
-            tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode");
         }
     }
 
@@ -112,14 +146,14 @@ impl AgentWorker {
         let msg: Observation =
             proto::decode(&incoming.bytes, incoming.encoding).map_err(|e| codec_report(&e))?;
         let position = |r: ErrorReport| r.at(msg.episode, msg.step);
-        proto::validate::validate_observation(&msg, self.run.task())
+        proto::validate::validate_observation(&msg, self.run.task(), &self.magnitudes)
             .map_err(|e| e.report(msg.episode, msg.step))?;
-        let accepted = self.session.observe(&msg)?;
-        let must_cover = self
+        let (accepted, stored) = self
             .run
-            .store(&self.name, msg.episode, msg.step, &msg.obs, &accepted)
-            .map_err(|e| match e {
-                StoreError::Fenced(fenced) => {
+            .accept(&mut self.session, &msg)
+            .map_err(|refused| match refused {
+                Refused::Step(report) => report,
+                Refused::Fenced(fenced) => {
                     // Another planner owns the run now: step down, and send the agent there.
                     self.fleet.report_fenced(self.run.name());
                     position(ErrorReport::new(
@@ -127,11 +161,10 @@ impl AgentWorker {
                         format!("{fenced}: attach again"),
                     ))
                 }
-                StoreError::Replay(e) => position(ErrorReport::new(
-                    ErrorCode::Internal,
-                    format!("could not store the transition: {e}"),
-                )),
             })?;
+        // The episode's records reach the disk before this agent's next message is taken.
+        sync_log(self.run.name(), stored.sync).await;
+        let must_cover = stored.must_cover;
         if let Some(finished) = &accepted.finished {
             tracing::info!(run = %self.run.name(), agent = %self.name, episode = finished.episode, steps = finished.steps, episode_return = finished.episode_return, "episode finished");
             if self.run.mode() == TrainMode::Sync {

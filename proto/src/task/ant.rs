@@ -4,7 +4,7 @@
 //! 8 joints), then qvel (14, starting with the root's x velocity). Actions ±1, 1000 steps of
 //! 0.05 s. The episode terminates when the torso height leaves [0.2, 1.0].
 
-use super::{TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, squared_norm};
+use super::{Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, squared_norm};
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
     id: TaskId::Ant,
@@ -15,6 +15,7 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     episode_len: 1000,
     control_dt: 0.05,
     state_feature_dim: 27,
+    magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
         is_terminal,

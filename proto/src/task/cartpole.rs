@@ -3,7 +3,8 @@
 //! Observation `[x, θ, ẋ, θ̇]`; action: the force on the cart, ±3. 200 steps of 0.04 s.
 
 use super::{
-    TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal, squared_norm,
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
+    squared_norm,
 };
 
 /// Pole length in metres (the reward's target is the tip straight above the rail's origin).
@@ -18,6 +19,7 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     episode_len: 200,
     control_dt: 0.04,
     state_feature_dim: 5,
+    magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
         is_terminal: never_terminal,

@@ -3,7 +3,7 @@
 //! Observation (18): forward velocity of the root `Δx/dt`, then qpos without the root x (8:
 //! root z, root pitch, 6 joints), then qvel (9). Actions ±1, 1000 steps of 0.05 s.
 
-use super::{TaskFunctions, TaskId, TaskSpec, never_terminal, squared_norm};
+use super::{Magnitudes, TaskFunctions, TaskId, TaskSpec, never_terminal, squared_norm};
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
     id: TaskId::HalfCheetah,
@@ -14,6 +14,7 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     episode_len: 1000,
     control_dt: 0.05,
     state_feature_dim: 18,
+    magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
         is_terminal: never_terminal,

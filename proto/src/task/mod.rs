@@ -105,7 +105,32 @@ pub struct TaskSpec {
     pub control_dt: f64,
     /// Length of [`TaskSpec::state_features`]: the observation as the dynamics model sees it.
     pub state_feature_dim: usize,
+    /// The largest observation and reward magnitudes an agent may send for this task.
+    pub magnitudes: Magnitudes,
     pub(crate) functions: TaskFunctions,
+}
+
+/// The largest magnitudes a task's observations and rewards may take. Finite is not enough: a
+/// value like 3.4e38 is finite, but the difference of two of them (the dynamics model's
+/// target) overflows to infinity and poisons training. A planner refuses larger values, and
+/// its operator can change them per task (`[limits.magnitudes.<task>]`) for a custom robot.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Magnitudes {
+    /// Largest `|x|` of any observation coordinate.
+    pub observation: f32,
+    /// Largest `|r|` of one step's reward.
+    pub reward: f32,
+}
+
+impl Magnitudes {
+    /// The catalog's bound for every task: 10⁴ for both, far above the positions, velocities
+    /// and per-step rewards of the catalog's tasks, and far below where a difference or a
+    /// square leaves f32's range (10⁸ ≪ 3.4·10³⁸).
+    pub const GENEROUS: Magnitudes = Magnitudes {
+        observation: 1e4,
+        reward: 1e4,
+    };
 }
 
 /// The per-task functions behind [`TaskSpec`]'s methods.

@@ -7,7 +7,9 @@
 //! the observation (sim-bridge's `assets/pusher.xml` marks it with a site, and its tests check
 //! the two agree).
 
-use super::{TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal};
+use super::{
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
+};
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
     id: TaskId::Pusher,
@@ -18,6 +20,7 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     episode_len: 150,
     control_dt: 0.04,
     state_feature_dim: 20,
+    magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
         is_terminal: never_terminal,

@@ -6,7 +6,9 @@
 //! ebmpc's arm (sim-bridge's `assets/reacher3d.xml` is built from the constants here, and its
 //! tests check the two agree), so the simulator and the planner share one definition.
 
-use super::{TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal};
+use super::{
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
+};
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
     id: TaskId::Reacher3d,
@@ -17,6 +19,7 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     episode_len: 150,
     control_dt: 0.02,
     state_feature_dim: 17,
+    magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
         is_terminal: never_terminal,
