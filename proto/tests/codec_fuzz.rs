@@ -220,7 +220,12 @@ fn generated_messages_round_trip() {
     for _ in 0..2_000 {
         let msg = observation(&mut rng);
         for encoding in [Encoding::Postcard, Encoding::Json] {
-            let finite = msg.obs.iter().chain(&msg.reward).all(|x| x.is_finite());
+            let finite = msg
+                .obs
+                .iter()
+                .chain(&msg.reward)
+                .chain(msg.applied.iter().flatten())
+                .all(|x| x.is_finite());
             if encoding == Encoding::Json && !finite {
                 continue;
             }
