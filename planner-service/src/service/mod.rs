@@ -23,7 +23,7 @@ use proto::{
 };
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use tokio::sync::{Semaphore, mpsc};
 use tokio::task::JoinHandle;
@@ -165,6 +165,8 @@ pub struct Service {
     attach_slots: Arc<Semaphore>,
     /// Raised at shutdown: every run's training stops before its next minibatch.
     cancel_training: Arc<AtomicBool>,
+    /// Observations and attaches dropped unanswered because their key had a wildcard.
+    wildcards_dropped: AtomicU64,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -212,6 +214,7 @@ impl Service {
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             cancel_training: Arc::new(AtomicBool::new(false)),
+            wildcards_dropped: AtomicU64::new(0),
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
@@ -333,6 +336,9 @@ impl Service {
     /// Handles an attach query on a task of its own, or refuses it at once when
     /// [`CONCURRENT_ATTACHES`] are already in hand.
     fn spawn_attach(self: &Arc<Self>, query: zenoh::query::Query) {
+        if query.key_expr().is_wild() {
+            return self.drop_wildcard("attach", query.key_expr().as_str());
+        }
         match self.attach_slots.clone().try_acquire_owned() {
             Ok(slot) => {
                 let service = self.clone();
@@ -695,6 +701,7 @@ impl Service {
             uptime_seconds: self.started.elapsed().as_secs_f64(),
             runs: reports,
             failed_runs,
+            wildcards_dropped: self.wildcards_dropped.load(Ordering::Relaxed),
         }
     }
 
@@ -757,8 +764,22 @@ impl Service {
         });
     }
 
+    /// Drops a `what` (observation or attach) put on a wildcard key, unanswered: an answer
+    /// could only go to a key the sender chose, which matches every agent under it, so each
+    /// of them would receive a report it did not cause. Counted, and logged at a bounded rate.
+    fn drop_wildcard(&self, what: &str, key: &str) {
+        self.wildcards_dropped.fetch_add(1, Ordering::Relaxed);
+        let key = truncated(key);
+        self.outbox.refusal_log.warn(|| {
+            tracing::warn!(%key, "dropped an {what} on a wildcard key, unanswered: send on your own agent's key");
+        });
+    }
+
     /// Hands an observation to its agent's worker, or reports why it cannot be handled.
     async fn route(&self, sample: zenoh::sample::Sample) {
+        if sample.key_expr().is_wild() {
+            return self.drop_wildcard("observation", sample.key_expr().as_str());
+        }
         let key = sample.key_expr().as_str().to_string();
         let encoding = Encoding::from_mime(&sample.encoding().to_string());
         let Some((run, agent)) = self

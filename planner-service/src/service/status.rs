@@ -55,6 +55,9 @@ pub struct PlannerStatus {
     /// Stored runs this planner could not open, set aside with the reason.
     #[serde(default)]
     pub failed_runs: Vec<FailedRun>,
+    /// Observations and attaches dropped unanswered because their key had a wildcard.
+    #[serde(default)]
+    pub wildcards_dropped: u64,
 }
 
 /// A stored run that could not be opened (it stays on disk untouched).
