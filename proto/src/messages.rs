@@ -177,6 +177,11 @@ pub struct PlannerOverrides {
     pub icem_keep_elites: Option<f32>,
     /// iCEM: population decay factor per iteration (≥ 1).
     pub icem_population_decay: Option<f32>,
+    /// Milliseconds from an observation's arrival to its action: planning stops iterating
+    /// when the next iteration would cross it. `0` turns the deadline off (every configured
+    /// iteration runs, as a simulator that waits for its action wants); absent: the task's
+    /// control period.
+    pub deadline_ms: Option<u32>,
 }
 
 /// What an agent asks for when it attaches: which task it is and how its run should plan.
@@ -304,6 +309,11 @@ pub struct PlanStats {
     pub iterations: u32,
     /// Version of the models that planned.
     pub models_version: u64,
+    /// Iterations were left out because the next one would have crossed the run's deadline.
+    pub cut: bool,
+    /// The action was sent after the run's deadline, or no iteration fitted before it (the
+    /// action is then the previous plan's next one).
+    pub missed: bool,
 }
 
 /// The planner's answer to an observation.

@@ -140,6 +140,8 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                             mean_energy: 0.0,
                             iterations: 1,
                             models_version: 0,
+                            cut: false,
+                            missed: false,
                         },
                     };
                     s.put(k.act(&run, &agent), publish_bytes(&action)).await.unwrap();

@@ -1,6 +1,7 @@
 //! The planner's choice of optimiser ([`CemConfig::optimizer`]): one type that the MPC loop
 //! drives the same way whichever search runs underneath.
 
+use super::anytime::IterationClock;
 use super::cem::{Cem, CemConfig, CemOutcome, ConfigError, Optimizer, PopulationObjective};
 use super::icem::Icem;
 
@@ -45,10 +46,14 @@ impl Search {
         }
     }
 
-    pub fn optimize<O: PopulationObjective + ?Sized>(&mut self, objective: &mut O) -> CemOutcome {
+    pub fn optimize<O: PopulationObjective + ?Sized>(
+        &mut self,
+        objective: &mut O,
+        clock: &mut IterationClock,
+    ) -> CemOutcome {
         match self {
-            Search::Cem(s) => s.optimize(objective),
-            Search::Icem(s) => s.optimize(objective),
+            Search::Cem(s) => s.optimize(objective, clock),
+            Search::Icem(s) => s.optimize(objective, clock),
         }
     }
 

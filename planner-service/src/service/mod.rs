@@ -681,6 +681,8 @@ impl Service {
                     last_returns: tally.last_returns,
                     agents,
                     planning_latency: run.latency(),
+                    deadline_ms: run.preset().deadline_ms,
+                    plan_tally: run.plan_tally(),
                 }
             })
             .collect();
@@ -777,6 +779,7 @@ impl Service {
 
     /// Hands an observation to its agent's worker, or reports why it cannot be handled.
     async fn route(&self, sample: zenoh::sample::Sample) {
+        let received = std::time::Instant::now();
         if sample.key_expr().is_wild() {
             return self.drop_wildcard("observation", sample.key_expr().as_str());
         }
@@ -816,6 +819,7 @@ impl Service {
                 let incoming = Incoming {
                     bytes: sample.payload().to_bytes().into_owned(),
                     encoding,
+                    received,
                 };
                 tx.try_send(incoming).map_err(|e| match e {
                     mpsc::error::TrySendError::Full(_) => ErrorReport::new(
