@@ -10,6 +10,7 @@
 //! training on the run's trainer task, so neither stalls the transport.
 
 mod log_limit;
+pub mod metrics;
 pub mod status;
 mod worker;
 
@@ -23,7 +24,7 @@ use proto::{
 };
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use tokio::sync::{Semaphore, mpsc};
 use tokio::task::JoinHandle;
@@ -39,6 +40,8 @@ pub enum ServiceError {
     SessionConfig(#[from] proto::session::SessionConfigError),
     #[error(transparent)]
     DataDir(#[from] persist::admin::AdminError),
+    #[error("metrics endpoint: {0}")]
+    Metrics(String),
 }
 
 fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
@@ -87,11 +90,16 @@ pub(crate) struct Outbox {
     keys: Keys,
     /// Refusals are logged at a bounded rate: a client controls how many it causes.
     refusal_log: Arc<log_limit::LogLimit>,
+    metrics: Arc<metrics::Metrics>,
 }
 
 impl Outbox {
     pub(crate) fn keys(&self) -> &Keys {
         &self.keys
+    }
+
+    pub(crate) fn metrics(&self) -> &metrics::Metrics {
+        &self.metrics
     }
 
     /// Publishes `msg` on `key` in `encoding`, logging (not failing) on transport errors: the
@@ -142,6 +150,7 @@ impl Outbox {
         report: ErrorReport,
         encoding: Encoding,
     ) {
+        self.metrics.record_refusal(report.code);
         self.refusal_log.warn(|| {
             let (run, agent) = (truncated(run), truncated(agent));
             tracing::warn!(%run, %agent, code = ?report.code, episode = ?report.episode, step = ?report.step, "rejected: {}", report.message);
@@ -165,8 +174,6 @@ pub struct Service {
     attach_slots: Arc<Semaphore>,
     /// Raised at shutdown: every run's training stops before its next minibatch.
     cancel_training: Arc<AtomicBool>,
-    /// Observations and attaches dropped unanswered because their key had a wildcard.
-    wildcards_dropped: AtomicU64,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -207,6 +214,7 @@ impl Service {
                 session: session.clone(),
                 keys: keys.clone(),
                 refusal_log: Arc::default(),
+                metrics: Arc::default(),
             },
             config,
             runs: Mutex::new(HashMap::new()),
@@ -214,7 +222,6 @@ impl Service {
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             cancel_training: Arc::new(AtomicBool::new(false)),
-            wildcards_dropped: AtomicU64::new(0),
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
@@ -242,6 +249,10 @@ impl Service {
             .declare_subscriber(keys.all_agents_alive())
             .await
             .map_err(zenoh_err)?;
+        let metrics_endpoint = match service.config.metrics.listen {
+            Some(addr) => Some(service.serve_metrics(addr).await?),
+            None => None,
+        };
         tracing::info!(planner = %planner_id, prefix = %keys.prefix(), "planner serving");
 
         tokio::pin!(shutdown);
@@ -273,9 +284,34 @@ impl Service {
             }
         }
         tracing::info!("shutting down");
+        if let Some(endpoint) = metrics_endpoint {
+            endpoint.abort();
+        }
         service.stop().await;
         session.close().await.map_err(zenoh_err)?;
         Ok(())
+    }
+
+    /// Serves the metrics as Prometheus text on `addr` (`GET /metrics`) on a task of its own.
+    async fn serve_metrics(
+        self: &Arc<Self>,
+        addr: std::net::SocketAddr,
+    ) -> Result<JoinHandle<()>, ServiceError> {
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|e| ServiceError::Metrics(format!("cannot listen on {addr}: {e}")))?;
+        let bound = listener
+            .local_addr()
+            .map_err(|e| ServiceError::Metrics(e.to_string()))?;
+        tracing::info!(%bound, "metrics endpoint listening (GET /metrics)");
+        // A weak reference: the endpoint must not keep a stopped service alive.
+        let service = Arc::downgrade(self);
+        Ok(self.runtime.spawn(metrics::serve(listener, move || {
+            service
+                .upgrade()
+                .map(|s| s.outbox.metrics.render(&s.status_report()))
+                .unwrap_or_default()
+        })))
     }
 
     /// Stops every worker (each finishes the message in hand, within a grace period) and every
@@ -703,7 +739,8 @@ impl Service {
             uptime_seconds: self.started.elapsed().as_secs_f64(),
             runs: reports,
             failed_runs,
-            wildcards_dropped: self.wildcards_dropped.load(Ordering::Relaxed),
+            wildcards_dropped: self.outbox.metrics.wildcards_dropped(),
+            refused: self.outbox.metrics.refusals(),
         }
     }
 
@@ -770,7 +807,7 @@ impl Service {
     /// could only go to a key the sender chose, which matches every agent under it, so each
     /// of them would receive a report it did not cause. Counted, and logged at a bounded rate.
     fn drop_wildcard(&self, what: &str, key: &str) {
-        self.wildcards_dropped.fetch_add(1, Ordering::Relaxed);
+        self.outbox.metrics.record_wildcard();
         let key = truncated(key);
         self.outbox.refusal_log.warn(|| {
             tracing::warn!(%key, "dropped an {what} on a wildcard key, unanswered: send on your own agent's key");

@@ -80,6 +80,9 @@ pub struct PlannerStatus {
     /// Observations and attaches dropped unanswered because their key had a wildcard.
     #[serde(default)]
     pub wildcards_dropped: u64,
+    /// Messages answered with an error report, by error code, since the daemon started.
+    #[serde(default)]
+    pub refused: std::collections::BTreeMap<String, u64>,
 }
 
 /// A stored run that could not be opened (it stays on disk untouched).

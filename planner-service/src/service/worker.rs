@@ -260,6 +260,13 @@ impl AgentWorker {
         let missed = planned && (late || (deadline.is_some() && iterations == 0));
         if planned {
             self.run.record_plan(planning_ms, iterations, cut, missed);
+            self.outbox.metrics().record_plan(
+                self.run.name(),
+                f64::from(planning_ms) / 1e3,
+                iterations,
+                cut,
+                missed,
+            );
         }
         Ok(Action {
             version: PROTOCOL_VERSION,
