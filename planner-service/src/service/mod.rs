@@ -174,6 +174,8 @@ pub struct Service {
     attach_slots: Arc<Semaphore>,
     /// Raised at shutdown: every run's training stops before its next minibatch.
     cancel_training: Arc<AtomicBool>,
+    /// Plans in flight across all runs: retraining yields to them (see [`crate::share`]).
+    plans: Arc<crate::share::PlanGate>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -222,6 +224,7 @@ impl Service {
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             cancel_training: Arc::new(AtomicBool::new(false)),
+            plans: Arc::default(),
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
@@ -512,6 +515,7 @@ impl Service {
             request.agent.clone(),
             self.outbox.clone(),
             magnitudes,
+            self.plans.clone(),
         )?;
         let idle = std::time::Duration::from_secs(self.config.limits.agent_idle_seconds);
         let worker = worker.idle_after(idle);
@@ -607,6 +611,7 @@ impl Service {
             train_limits: TrainLimits {
                 max_seconds: self.config.limits.max_retrain_seconds,
                 cancel: self.cancel_training.clone(),
+                yield_to: Some(self.plans.clone()),
             },
             replay_capacity: self.config.storage.replay_capacity,
         };

@@ -5,6 +5,7 @@ use super::{Outbox, codec_report};
 use crate::agent::AgentSession;
 use crate::plan::MpcPlanner;
 use crate::run::{Run, sync_log};
+use crate::share::PlanGate;
 use proto::task::Magnitudes;
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
@@ -43,6 +44,9 @@ pub(crate) struct AgentWorker {
     /// How long the worker waits for an observation before it checks that the agent still
     /// holds its liveliness token (and closes the session if not).
     idle: std::time::Duration,
+    /// The daemon's plans in flight: this worker's plans count there while they run, so that
+    /// retraining yields to them.
+    plans: Arc<PlanGate>,
 }
 
 /// A stable seed per (run seed, agent name), so runs are reproducible.
@@ -83,6 +87,7 @@ impl AgentWorker {
         name: String,
         outbox: Outbox,
         magnitudes: Magnitudes,
+        plans: Arc<PlanGate>,
     ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
         Ok(Self {
@@ -95,6 +100,7 @@ impl AgentWorker {
             name,
             outbox,
             magnitudes,
+            plans,
         })
     }
 
@@ -209,7 +215,9 @@ impl AgentWorker {
                 let obs = msg.obs.clone();
                 let plan_models = models.clone();
                 let plan_deadline = deadline.map(|d| d - ANSWER_MARGIN);
+                let plans = self.plans.clone();
                 let joined = tokio::task::spawn_blocking(move || {
+                    let _planning = plans.planning();
                     let outcome = planner.plan(
                         &obs,
                         &plan_models.dynamics,
