@@ -41,7 +41,7 @@ except ImportError:  # pragma: no cover - exercised by hand
         "error: the `eclipse-zenoh` Python package is missing: pip install 'eclipse-zenoh~=1.10.0'"
     )
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 TASK = "cartpole"
 OBS_DIM = 4
 ACT_DIM = 1
@@ -80,8 +80,9 @@ class ToyCartpole:
         self.state = [self.rng.gauss(0.0, 0.05) for _ in range(OBS_DIM)]
         return list(self.state)
 
-    def step(self, force: float) -> tuple[list[float], float]:
-        """Applies `force` for one control step; returns the new observation and the reward."""
+    def step(self, force: float) -> tuple[list[float], float, float]:
+        """Applies `force`, clipped to the actuator's bounds, for one control step; returns the
+        new observation, the reward and the force actually applied."""
         force = max(-ACTION_BOUND, min(ACTION_BOUND, force))
         x, theta, x_dot, theta_dot = self.state
         h = self.dt / self.substeps
@@ -96,7 +97,7 @@ class ToyCartpole:
             x += h * x_dot
             theta += h * theta_dot
         self.state = [x, theta, x_dot, theta_dot]
-        return list(self.state), self.reward(force, self.state)
+        return list(self.state), self.reward(force, self.state), force
 
     def reward(self, force: float, next_obs: list[float]) -> float:
         """The catalog's cartpole reward (proto/src/task/cartpole.rs)."""
@@ -147,6 +148,9 @@ class Link:
 
     def __init__(self, session: zenoh.Session, keys: Keys, run: str, agent: str):
         self.session, self.keys, self.run, self.agent = session, keys, run, agent
+        # The run's ownership epoch at attach: actions of older epochs come from a planner that
+        # lost the run (in a fleet of planners) and are ignored.
+        self.epoch = 0
         self.inbox: queue.Queue[tuple[str, dict]] = queue.Queue()
         self.token = session.liveliness().declare_token(keys.agent_alive(run, agent))
         self.subscribers = [
@@ -182,8 +186,10 @@ class Link:
         deadline = time.monotonic() + patience
         while True:
             wait = max(0.5, min(5.0, deadline - time.monotonic()))
+            # Every planner gets the query; only the run's owner answers.
             for reply in self.session.get(
-                key, payload=payload, encoding=zenoh.Encoding.APPLICATION_JSON, timeout=wait
+                key, payload=payload, encoding=zenoh.Encoding.APPLICATION_JSON, timeout=wait,
+                target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
             ):
                 if reply.ok is None:
                     reason = reply.err.payload.to_string()
@@ -193,6 +199,7 @@ class Link:
                 if "Rejected" in outcome:
                     raise ControllerError(f"attach refused: {describe(outcome['Rejected'])}")
                 accepted = outcome["Accepted"]
+                self.epoch = accepted.get("epoch", 0)
                 self._wait_until_planner_listens(deadline)
                 return accepted
             if time.monotonic() + 0.5 >= deadline:
@@ -222,6 +229,9 @@ class Link:
                 ) from None
             if channel == "error":
                 raise ControllerError(f"the planner reported: {describe(message)}")
+            if message.get("epoch", 0) < self.epoch:
+                print(f"ignoring an action of stale epoch {message.get('epoch')}", file=sys.stderr)
+                continue
             if (message.get("episode"), message.get("step")) == (episode, step):
                 return message
             # An answer to an earlier step cannot come after its successor's question was
@@ -284,7 +294,7 @@ def play_episode(link: Link, env: ToyCartpole, episode: int, args: argparse.Name
         else:
             random_actions += 1
         models = stats.get("models_version", models)
-        obs, reward = env.step(validated_action(message))
+        obs, reward, applied = env.step(validated_action(message))
         total += reward
         observation = {
             "version": PROTOCOL_VERSION,
@@ -292,6 +302,8 @@ def play_episode(link: Link, env: ToyCartpole, episode: int, args: argparse.Name
             "step": step + 1,
             "obs": obs,
             "reward": reward,
+            # What the actuator applied (clipped to its bounds): the planner stores this one.
+            "applied": [applied],
         }
         if step + 1 == args.steps:
             observation["end"] = "time_limit"

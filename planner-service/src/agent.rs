@@ -5,14 +5,15 @@
 //! completes the transition. Everything is checked before anything is stored: a message out of
 //! order is reported to the sender and changes nothing.
 
-use crate::replay::EpisodeSummary;
+use crate::replay::{ActionOrigin, EpisodeSummary};
 use proto::{EpisodeEnd, ErrorCode, ErrorReport, Observation};
 
 /// What an accepted observation means for the run.
 #[derive(Debug, PartialEq)]
 pub struct Accepted {
-    /// The transition this observation completes: `(s, a, reward)`, with `s'` the observation.
-    pub transition: Option<(Vec<f32>, Vec<f32>, f32)>,
+    /// The transition this observation completes: `(s, a, origin, reward)`, with `s'` the
+    /// observation and `a` the action the agent says it applied, or else the one planned.
+    pub transition: Option<(Vec<f32>, Vec<f32>, ActionOrigin, f32)>,
     /// The episode this observation ended, if it did.
     pub finished: Option<EpisodeSummary>,
     /// An earlier episode this one replaced before it finished (the agent restarted).
@@ -143,11 +144,15 @@ impl AgentSession {
                 msg.step
             )));
         }
-        let Some(action) = current.action.take() else {
+        let Some(planned) = current.action.take() else {
             return Err(out_of_order(format!(
                 "step {} arrived before the action for step {} was sent",
                 msg.step, current.step
             )));
+        };
+        let (action, origin) = match &msg.applied {
+            Some(applied) => (applied.clone(), ActionOrigin::Applied),
+            None => (planned, ActionOrigin::Planned),
         };
         let reward = msg.reward.expect("validated: steps after 0 carry a reward");
         let obs = std::mem::replace(&mut current.obs, msg.obs.clone());
@@ -161,7 +166,7 @@ impl AgentSession {
             None => None,
         };
         Ok(Accepted {
-            transition: Some((obs, action, reward)),
+            transition: Some((obs, action, origin, reward)),
             finished,
             abandoned: None,
         })
@@ -219,12 +224,21 @@ mod tests {
         assert!(first.needs_action());
         s.acted(0, &[1.0]);
         let second = s.observe(&obs(0, 1, 1.0, Some(0.5), None)).unwrap();
-        assert_eq!(second.transition, Some((vec![0.0; 4], vec![1.0], 0.5)));
+        assert_eq!(
+            second.transition,
+            Some((vec![0.0; 4], vec![1.0], ActionOrigin::Planned, 0.5))
+        );
         s.acted(1, &[2.0]);
+        // The agent clipped the planned 2.0 to 1.5: the transition holds what it applied.
         let last = s
-            .observe(&obs(0, 2, 2.0, Some(0.25), Some(EpisodeEnd::TimeLimit)))
+            .observe(
+                &obs(0, 2, 2.0, Some(0.25), Some(EpisodeEnd::TimeLimit)).with_applied(vec![1.5]),
+            )
             .unwrap();
-        assert_eq!(last.transition, Some((vec![1.0; 4], vec![2.0], 0.25)));
+        assert_eq!(
+            last.transition,
+            Some((vec![1.0; 4], vec![1.5], ActionOrigin::Applied, 0.25))
+        );
         assert!(!last.needs_action());
         let summary = last.finished.unwrap();
         assert_eq!(

@@ -14,6 +14,7 @@ pub mod config;
 pub mod data;
 pub mod dynamics;
 pub mod energy;
+pub mod fleet;
 pub mod models;
 pub mod nn;
 pub mod persist;

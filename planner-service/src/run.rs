@@ -50,6 +50,8 @@ pub struct Run {
     tally: Mutex<Tally>,
     /// Where checkpoints go (`None`: the run lives in memory only).
     dir: Option<RunDir>,
+    /// The ownership epoch this planner holds the run at (see `crate::fleet`).
+    epoch: u64,
 }
 
 /// The counters of a run's buffer that `status` reports.
@@ -108,6 +110,39 @@ pub enum OpenError {
     Persist(#[from] PersistError),
 }
 
+/// Why an observation's results could not be stored.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("replay buffer: {0}")]
+    Replay(#[from] ReplayError),
+    #[error(transparent)]
+    Fenced(#[from] Fenced),
+}
+
+/// Why an agent's observation was refused.
+#[derive(Debug)]
+pub enum Refused {
+    /// Out of order, or not stored (a full disk): the agent is told why and may send again.
+    Step(ErrorReport),
+    /// This planner lost the run to another: nothing was stored, the planner steps down and
+    /// the agent must attach again (to the new owner).
+    Fenced(Fenced),
+}
+
+/// This planner no longer owns the run: another took it over at a newer epoch (or its epoch
+/// cannot be read, which is treated the same: never write without knowing).
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "run `{run}` was taken over by another planner (this planner holds epoch {held}, the run is at {})",
+    .current.map_or_else(|| "an unreadable epoch".to_string(), |e| format!("epoch {e}"))
+)]
+pub struct Fenced {
+    pub run: String,
+    pub held: u64,
+    /// The run's current epoch; `None` if it could not be read.
+    pub current: Option<u64>,
+}
+
 impl std::fmt::Debug for Run {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Run")
@@ -118,20 +153,23 @@ impl std::fmt::Debug for Run {
 }
 
 impl Run {
-    /// Opens the run stored in `dir`, or starts it there: records its spec, recovers its replay
-    /// buffer (cutting a torn tail, bounded to `replay_capacity` transitions if given) and
-    /// loads the newest usable checkpoint. If the buffer holds
-    /// finished episodes the models were not trained on, the trainer is woken at once so the
-    /// models catch up with the data.
+    /// Opens the run stored in `dir`, or starts it there, as its owner at `epoch` (already
+    /// claimed in `dir` by `planner`): recovers its replay buffer (cutting a torn tail,
+    /// skipping records of fenced owners), records the claim in it, bounds it to
+    /// `replay_capacity` transitions if given, loads the newest usable checkpoint and records
+    /// its spec. If the buffer holds finished episodes the models were not trained on, the
+    /// trainer is woken at once so the models catch up with the data.
     pub fn open(
         name: String,
         spec: RunSpec,
         preset: Preset,
         dir: RunDir,
         hosting: Hosting,
+        (epoch, planner): (u64, &str),
     ) -> Result<Arc<Self>, OpenError> {
         let task = spec.task.spec();
         let mut buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        buffer.claim(epoch, planner)?;
         buffer.set_capacity(hosting.replay_capacity)?;
         let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
@@ -147,6 +185,7 @@ impl Run {
             transitions = buffer.len(),
             episodes = buffer.episodes().len(),
             models_version = models.version,
+            epoch,
             path = %dir.root().display(),
             "run opened"
         );
@@ -177,6 +216,7 @@ impl Run {
             .filter(|e| e.end != EpisodeEnd::Interrupted)
             .count() as u32;
         let covered = models.episodes_covered;
+        let epoch = buffer.epoch();
         let mut tally = Tally {
             transitions: buffer.len(),
             ..Tally::default()
@@ -202,6 +242,7 @@ impl Run {
             plan_tally: Mutex::new(PlanTally::default()),
             tally: Mutex::new(tally),
             dir,
+            epoch,
         });
         if stored > covered {
             run.wake_trainer.notify_one();
@@ -227,6 +268,32 @@ impl Run {
 
     pub fn mode(&self) -> TrainMode {
         self.spec.mode
+    }
+
+    /// The ownership epoch this planner holds the run at.
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Checks on disk that this planner still owns the run: no other planner has claimed a
+    /// newer epoch. Done before anything is written at episode boundaries and before a
+    /// checkpoint, so a planner that lost the run (partitioned, paused) stops writing at the
+    /// next boundary at the latest. A run in memory only is never fenced.
+    pub fn check_owner(&self) -> Result<(), Fenced> {
+        let Some(dir) = &self.dir else { return Ok(()) };
+        let fenced = |current| Fenced {
+            run: self.name.clone(),
+            held: self.epoch,
+            current,
+        };
+        match dir.current_epoch() {
+            Ok(current) if current == self.epoch => Ok(()),
+            Ok(current) => Err(fenced(Some(current))),
+            Err(e) => {
+                tracing::error!(run = %self.name, error = %e, "cannot read the run's ownership epoch");
+                Err(fenced(None))
+            }
+        }
     }
 
     /// The models in use now.
@@ -310,23 +377,31 @@ impl Run {
     /// Takes a validated observation from `session`'s agent: checks that it follows on, stores
     /// what it completes, and only then moves the session on. If the store fails (a full
     /// disk) the agent gets a [`ErrorCode::Storage`] error and its session stays where it was,
-    /// so it can send the same observation again once the disk has room.
+    /// so it can send the same observation again once the disk has room. If this planner lost
+    /// the run, nothing is stored and [`Refused::Fenced`] says so.
     pub fn accept(
         &self,
         session: &mut AgentSession,
         msg: &Observation,
-    ) -> Result<(Accepted, Stored), ErrorReport> {
+    ) -> Result<(Accepted, Stored), Refused> {
         let mut next = session.clone();
-        let accepted = next.observe(msg)?;
+        let accepted = next.observe(msg).map_err(Refused::Step)?;
         let stored = self
             .store(session.name(), msg.episode, msg.step, &msg.obs, &accepted)
-            .map_err(|e| {
-                tracing::error!(run = %self.name, agent = %session.name(), error = %e, "cannot store a transition; the step is refused");
-                ErrorReport::new(
-                    ErrorCode::Storage,
-                    format!("the planner could not store this step, send it again later: {e}"),
-                )
-                .at(msg.episode, msg.step)
+            .map_err(|e| match e {
+                StoreError::Fenced(fenced) => Refused::Fenced(fenced),
+                StoreError::Replay(e) => {
+                    tracing::error!(run = %self.name, agent = %session.name(), error = %e, "cannot store a transition; the step is refused");
+                    Refused::Step(
+                        ErrorReport::new(
+                            ErrorCode::Storage,
+                            format!(
+                                "the planner could not store this step, send it again later: {e}"
+                            ),
+                        )
+                        .at(msg.episode, msg.step),
+                    )
+                }
             })?;
         *session = next;
         Ok((accepted, stored))
@@ -334,7 +409,8 @@ impl Run {
 
     /// Stores what an accepted observation produced — an episode it abandoned, its
     /// transition (with `next_obs`), the episode it finished — in one append, so that either
-    /// all of it is stored or none.
+    /// all of it is stored or none. At episode boundaries (a start, an end) it first checks
+    /// that this planner still owns the run, and stores nothing if not.
     fn store(
         &self,
         agent: &str,
@@ -342,18 +418,23 @@ impl Run {
         step: u32,
         next_obs: &[f32],
         accepted: &Accepted,
-    ) -> Result<Stored, ReplayError> {
+    ) -> Result<Stored, StoreError> {
+        if accepted.transition.is_none() || accepted.finished.is_some() {
+            self.check_owner()?;
+        }
         let mut records = Vec::with_capacity(3);
         if let Some(abandoned) = &accepted.abandoned {
             records.push(Record::from(abandoned.clone()));
         }
-        if let Some((obs, act, reward)) = &accepted.transition {
+        if let Some((obs, act, origin, reward)) = &accepted.transition {
             records.push(Record::Transition {
+                epoch: self.epoch,
                 agent: agent.to_string(),
                 episode,
                 step: step - 1,
                 obs: obs.clone(),
                 act: act.clone(),
+                origin: *origin,
                 next_obs: next_obs.to_vec(),
                 reward: *reward,
             });
@@ -395,11 +476,13 @@ impl Run {
     }
 
     /// Records an episode that an agent left unfinished (it vanished or detached), and
-    /// returns the handle that syncs it to disk.
+    /// returns the handle that syncs it to disk, unless this planner no longer owns the run
+    /// (the new owner records it when it reads the log).
     pub fn store_interrupted(
         &self,
         summary: EpisodeSummary,
-    ) -> Result<Option<LogSyncer>, ReplayError> {
+    ) -> Result<Option<LogSyncer>, StoreError> {
+        self.check_owner()?;
         let mut buffer = self.lock_buffer();
         buffer.append(vec![Record::from(summary)])?;
         Ok(buffer.syncer())
@@ -433,18 +516,22 @@ impl Run {
             let current = self.models();
             let preset = self.preset.clone();
             let seed = self.spec.seed;
-            let dir = self.dir.clone();
+            let run = self.clone();
             let task = self.task;
             let limits = self.hosting.train_limits.clone();
             let outcome = tokio::task::spawn_blocking(move || {
                 let trained = retrain(&current, &data, &preset, episodes, seed, &limits)?;
                 // Checkpoint before the swap: models in use are always on disk too, so a
                 // restart never plans with models older than the ones agents last saw. Only
-                // finite models get here: `retrain` refuses the others.
-                if let Some(dir) = dir {
-                    match dir.save_models(&trained.0, task) {
-                        Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
-                        Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
+                // finite models get here: `retrain` refuses the others. A planner that lost the
+                // run writes no checkpoint over the new owner's.
+                if let Some(dir) = &run.dir {
+                    match run.check_owner() {
+                        Err(e) => tracing::warn!(error = %e, "no checkpoint written"),
+                        Ok(()) => match dir.save_models(&trained.0, task) {
+                            Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
+                            Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
+                        },
                     }
                 }
                 Ok(trained)
@@ -536,12 +623,17 @@ mod tests {
             buffer,
             models,
             None,
-            Hosting {
-                events: Arc::new(|_: &str, _: RunEventKind| {}),
-                train_limits: TrainLimits::unbounded(),
-                replay_capacity: None,
-            },
+            quiet_hosting(),
         )
+    }
+
+    /// Hosting that drops events and bounds nothing.
+    fn quiet_hosting() -> Hosting {
+        Hosting {
+            events: Arc::new(|_: &str, _: RunEventKind| {}),
+            train_limits: TrainLimits::unbounded(),
+            replay_capacity: None,
+        }
     }
 
     fn obs(episode: u32, step: u32, end: Option<EpisodeEnd>) -> Observation {
@@ -565,7 +657,9 @@ mod tests {
         // storage error and the session stays at step 3.
         full.store(true, Ordering::SeqCst);
         for attempt in [obs(0, 4, None), obs(0, 4, Some(EpisodeEnd::TimeLimit))] {
-            let err = run.accept(&mut session, &attempt).unwrap_err();
+            let Refused::Step(err) = run.accept(&mut session, &attempt).unwrap_err() else {
+                panic!("a run in memory is never fenced");
+            };
             assert_eq!(err.code, ErrorCode::Storage, "{err:?}");
             assert_eq!((err.episode, err.step), (Some(0), Some(4)));
             assert_eq!(session.position(), Some((0, 3)));
@@ -605,5 +699,67 @@ mod tests {
         assert_eq!(accepted.abandoned.unwrap().end, EpisodeEnd::Interrupted);
         assert!(stored.sync.is_some());
         assert_eq!(stored.must_cover, None);
+    }
+
+    fn open(dir: &RunDir, planner: &str) -> Arc<Run> {
+        let spec = RunSpec {
+            task: TaskId::Cartpole,
+            preset: Some("cem".into()),
+            overrides: Default::default(),
+            mode: TrainMode::Async,
+            seed: 1,
+        };
+        let preset = small_preset();
+        let epoch = dir
+            .claim_epoch_after(dir.current_epoch().unwrap(), planner)
+            .unwrap();
+        Run::open(
+            "r".into(),
+            spec,
+            preset,
+            dir.clone(),
+            quiet_hosting(),
+            (epoch, planner),
+        )
+        .unwrap()
+    }
+
+    /// What the start of an episode asks to store: nothing but the boundary check.
+    fn episode_start() -> Accepted {
+        Accepted {
+            transition: None,
+            finished: None,
+            abandoned: None,
+        }
+    }
+
+    /// A planner whose run was taken over at a newer epoch stores nothing at the next episode
+    /// boundary, and says so; the new owner stores on.
+    #[test]
+    fn an_owner_that_lost_the_run_is_fenced_at_the_next_boundary() {
+        let data = tempfile::tempdir().unwrap();
+        let dir = RunDir::new(data.path(), "r");
+        let old = open(&dir, "pa");
+        assert_eq!(old.epoch(), 1);
+        old.store("a", 0, 0, &[0.0; 4], &episode_start()).unwrap();
+        let new = open(&dir, "pb");
+        assert_eq!(new.epoch(), 2);
+        let err = old
+            .store("a", 1, 0, &[0.0; 4], &episode_start())
+            .unwrap_err();
+        assert!(
+            matches!(
+                err,
+                StoreError::Fenced(Fenced {
+                    held: 1,
+                    current: Some(2),
+                    ..
+                })
+            ),
+            "{err}"
+        );
+        assert!(old.check_owner().is_err());
+        new.store("a", 1, 0, &[0.0; 4], &episode_start()).unwrap();
+        new.check_owner().unwrap();
     }
 }

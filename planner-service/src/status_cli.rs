@@ -5,6 +5,13 @@
 //! on `{prefix}/planners/{id}/status`. This client queries one planner or, by default, all of
 //! them with a wildcard, through the same explicit endpoints (or router) the agents use.
 //!
+//! It joins as a Zenoh *client*, not a peer: a fresh peer routes a query by the queryables it
+//! has heard of, and right after connecting to a router it has heard of none yet, so its query
+//! went nowhere and ended at once with no answer (what made `status` through a router fail
+//! most of the time). A client hands every query to its router, which knows all queryables.
+//! It also reads the planners' liveliness tokens first, so it knows whom to expect, asks again
+//! those that did not answer, and names those still silent at the deadline.
+//!
 //! The report is read into this module's own lenient mirror of the daemon's types: unknown
 //! fields are ignored and missing ones take defaults, so an operator's `status` keeps working
 //! against a planner of another release instead of refusing the whole report.
@@ -12,6 +19,7 @@
 use anyhow::{Context, Result, bail};
 use proto::Keys;
 use serde::Deserialize;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -51,6 +59,37 @@ pub struct PlannerReport {
     pub protocol_version: u16,
     pub uptime_seconds: f64,
     pub runs: Vec<RunReport>,
+    pub fleet: FleetReport,
+}
+
+/// The fleet as a planner sees it (a lenient mirror of `fleet::FleetStatus`).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct FleetReport {
+    pub planners: Vec<String>,
+    pub pins: PinsReport,
+    pub events: Vec<EventReport>,
+}
+
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct PinsReport {
+    pub serve: Vec<String>,
+    pub refuse: Vec<String>,
+}
+
+/// One ownership event (a lenient mirror of `fleet::FleetEvent`: every field optional, so a
+/// newer daemon's kinds still display).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct EventReport {
+    pub at_unix_s: f64,
+    pub event: String,
+    pub run: Option<String>,
+    pub epoch: Option<u64>,
+    pub previous: Option<String>,
+    pub planner: Option<String>,
+    pub reason: Option<String>,
 }
 
 /// One run in a planner's report (a lenient mirror of `service::status::RunStatus`).
@@ -65,6 +104,7 @@ pub struct RunReport {
     pub episodes: u64,
     pub transitions: u64,
     pub models_version: u64,
+    pub epoch: u64,
     pub training: bool,
     pub exploring: bool,
     /// `(agent, episode, return)`, oldest first.
@@ -141,17 +181,90 @@ async fn query(args: &StatusArgs) -> Result<Vec<(String, serde_json::Value)>> {
         listen: Vec::new(),
         connect: args.connect.clone(),
     };
-    let config = proto::session::zenoh_config(&endpoints, base)?;
+    let mut config = proto::session::zenoh_config(&endpoints, base)?;
+    config
+        .insert_json5("mode", "\"client\"")
+        .map_err(|e| anyhow::anyhow!("client mode: {e}"))?;
     let session = zenoh::open(config)
         .await
         .map_err(|e| anyhow::anyhow!("opening the zenoh session: {e}"))?;
-    let key = status_key(args);
     let timeout = Duration::try_from_secs_f64(args.timeout)
         .with_context(|| format!("--timeout {}", args.timeout))?;
+    let deadline = tokio::time::Instant::now() + timeout;
+    let keys = Keys::new(&args.prefix);
+    let expected = match &args.planner {
+        Some(id) => BTreeSet::from([id.clone()]),
+        None => live_planners(&session, &keys, timeout).await?,
+    };
+    let mut reports: BTreeMap<String, (String, serde_json::Value)> = BTreeMap::new();
+    let mut key = status_key(args);
+    loop {
+        let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+        for (from, value) in ask(&session, &key, left).await? {
+            reports.insert(planner_id(&value).to_string(), (from, value));
+        }
+        let missing: Vec<&String> = expected
+            .iter()
+            .filter(|id| !reports.contains_key(*id))
+            .collect();
+        let Some(next) = missing.first() else { break };
+        if tokio::time::Instant::now() + RETRY_PAUSE >= deadline {
+            let names: Vec<&str> = missing.iter().map(|s| s.as_str()).collect();
+            eprintln!(
+                "warning: planner{} {} {} alive but did not answer within {} s",
+                if names.len() == 1 { "" } else { "s" },
+                names.join(", "),
+                if names.len() == 1 { "is" } else { "are" },
+                args.timeout
+            );
+            break;
+        }
+        tokio::time::sleep(RETRY_PAUSE).await;
+        key = keys.planner_status(next);
+    }
+    session
+        .close()
+        .await
+        .map_err(|e| anyhow::anyhow!("closing the zenoh session: {e}"))?;
+    Ok(reports.into_values().collect())
+}
+
+/// Pause before asking a planner again that is alive but did not answer.
+const RETRY_PAUSE: Duration = Duration::from_millis(200);
+
+/// The planners whose liveliness tokens the router knows.
+async fn live_planners(
+    session: &zenoh::Session,
+    keys: &Keys,
+    timeout: Duration,
+) -> Result<BTreeSet<String>> {
+    let replies = session
+        .liveliness()
+        .get(keys.all_planners_alive())
+        .timeout(timeout)
+        .await
+        .map_err(|e| anyhow::anyhow!("reading the planners' liveliness: {e}"))?;
+    let mut live = BTreeSet::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result()
+            && let Some(id) = keys.parse_planner_alive(sample.key_expr().as_str())
+        {
+            live.insert(id.to_string());
+        }
+    }
+    Ok(live)
+}
+
+/// One status query on `key` (a planner's or the wildcard): the JSON answers with their keys.
+async fn ask(
+    session: &zenoh::Session,
+    key: &str,
+    timeout: Duration,
+) -> Result<Vec<(String, serde_json::Value)>> {
     // Every planner answers on the same wildcard query: no consolidation, or all but one of
     // their answers could be dropped as duplicates.
     let replies = session
-        .get(&key)
+        .get(key)
         .target(QueryTarget::All)
         .consolidation(ConsolidationMode::None)
         .timeout(timeout)
@@ -173,11 +286,6 @@ async fn query(args: &StatusArgs) -> Result<Vec<(String, serde_json::Value)>> {
             ),
         }
     }
-    session
-        .close()
-        .await
-        .map_err(|e| anyhow::anyhow!("closing the zenoh session: {e}"))?;
-    reports.sort_by(|a, b| planner_id(&a.1).cmp(planner_id(&b.1)));
     Ok(reports)
 }
 
@@ -204,6 +312,7 @@ pub fn render(reports: &[PlannerReport]) -> String {
             report.runs.len(),
             if report.runs.len() == 1 { "" } else { "s" },
         );
+        render_fleet(&mut out, &report.fleet);
         if report.runs.is_empty() {
             continue;
         }
@@ -222,6 +331,66 @@ pub fn render(reports: &[PlannerReport]) -> String {
     out
 }
 
+/// How many of a planner's most recent ownership events the table shows.
+const EVENTS_SHOWN: usize = 8;
+
+/// The fleet line (only in a fleet or with pins: a lone planner's report stays as it was) and
+/// the recent ownership events.
+fn render_fleet(out: &mut String, fleet: &FleetReport) {
+    let pinned = !fleet.pins.serve.is_empty() || !fleet.pins.refuse.is_empty();
+    if fleet.planners.len() > 1 || pinned {
+        let list = |l: &[String]| {
+            if l.is_empty() {
+                "-".to_string()
+            } else {
+                l.join(" ")
+            }
+        };
+        let _ = writeln!(
+            out,
+            "fleet: {} planners ({}); serves {}; refuses {}",
+            fleet.planners.len(),
+            fleet.planners.join(", "),
+            if fleet.pins.serve.is_empty() {
+                "*".to_string()
+            } else {
+                list(&fleet.pins.serve)
+            },
+            list(&fleet.pins.refuse),
+        );
+    }
+    let events = &fleet.events[fleet.events.len().saturating_sub(EVENTS_SHOWN)..];
+    let ownership: Vec<String> = events.iter().filter_map(describe_event).collect();
+    if !ownership.is_empty() {
+        out.push_str("ownership events:\n");
+        for line in ownership {
+            let _ = writeln!(out, "  {line}");
+        }
+    }
+}
+
+/// One event as a line: when (UTC time of day) and what.
+fn describe_event(e: &EventReport) -> Option<String> {
+    let secs = e.at_unix_s.max(0.0) as u64 % 86400;
+    let at = format!("{:02}:{:02}:{:02}", secs / 3600, secs / 60 % 60, secs % 60);
+    let run = e.run.as_deref().unwrap_or("?");
+    let epoch = e.epoch.map_or_else(|| "?".to_string(), |n| n.to_string());
+    let what = match e.event.as_str() {
+        "took" => match &e.previous {
+            Some(previous) => format!("took {run} at epoch {epoch} (from {previous})"),
+            None => format!("took {run} at epoch {epoch}"),
+        },
+        "stepped_down" => format!(
+            "stepped down from {run} (epoch {epoch}): {}",
+            e.reason.as_deref().unwrap_or("?")
+        ),
+        "planner_joined" => format!("planner {} joined", e.planner.as_deref()?),
+        "planner_left" => format!("planner {} left", e.planner.as_deref()?),
+        other => other.to_string(),
+    };
+    Some(format!("{at} {what}"))
+}
+
 /// A column: its heading and whether its cells are numbers (right-aligned).
 struct Column {
     heading: &'static str,
@@ -232,7 +401,7 @@ const fn col(heading: &'static str, numeric: bool) -> Column {
     Column { heading, numeric }
 }
 
-const COLUMNS: [Column; 11] = [
+const COLUMNS: [Column; 12] = [
     col("RUN", false),
     col("TASK", false),
     col("PRESET", false),
@@ -241,6 +410,7 @@ const COLUMNS: [Column; 11] = [
     col("TRANSITIONS", true),
     col("STATE", false),
     col("MODELS", true),
+    col("EPOCH", true),
     col("AGENTS", true),
     col("LAST RETURNS", false),
     col("PLAN MS p50/p90/p99", false),
@@ -256,6 +426,7 @@ fn run_row(run: &RunReport) -> Vec<String> {
         run.transitions.to_string(),
         state(run),
         format!("v{}", run.models_version),
+        run.epoch.to_string(),
         run.agents.len().to_string(),
         last_returns(&run.last_returns),
         latency(run.planning_latency.as_ref()),
@@ -352,9 +523,19 @@ mod tests {
     /// a field this client does not know.
     const FIXTURE: &str = r#"{
         "planner_id": "lab-1",
-        "protocol_version": 1,
+        "protocol_version": 2,
         "uptime_seconds": 3725.4,
         "some_future_field": {"x": 1},
+        "fleet": {
+            "planners": ["lab-1", "lab-2"],
+            "pins": {"serve": [], "refuse": ["gpu-*"]},
+            "events": [
+                {"at_unix_s": 3661.5, "event": "planner_joined", "planner": "lab-2"},
+                {"at_unix_s": 3700.0, "event": "took", "run": "cartpole-deen", "epoch": 3, "previous": "lab-2"},
+                {"at_unix_s": 3710.0, "event": "stepped_down", "run": "ant-2", "epoch": 4, "reason": "lab-2 holds it at epoch 5"},
+                {"at_unix_s": 3720.0, "event": "some_future_event", "run": "x"}
+            ]
+        },
         "runs": [
             {
                 "name": "cartpole-deen",
@@ -364,6 +545,7 @@ mod tests {
                 "episodes": 7,
                 "transitions": 1400,
                 "models_version": 6,
+                "epoch": 3,
                 "training": true,
                 "exploring": false,
                 "last_returns": [["bridge-0", 0, 1.5], ["bridge-0", 1, 2.25], ["bridge-1", 0, 3.0],
@@ -380,6 +562,7 @@ mod tests {
                 "episodes": 0,
                 "transitions": 40,
                 "models_version": 0,
+                "epoch": 1,
                 "training": false,
                 "exploring": true,
                 "last_returns": [],
@@ -408,10 +591,16 @@ mod tests {
     #[test]
     fn renders_the_table() {
         let expected = "\
-planner lab-1 (protocol 1, up 1h02m): 2 runs
-RUN            TASK      PRESET    MODE   EPISODES  TRANSITIONS  STATE      MODELS  AGENTS  LAST RETURNS                   PLAN MS p50/p90/p99
-cartpole-deen  cartpole  cem+deen  sync          7         1400  training       v6       2  3.00 10.12 48.00 97.50 120.00  12.2/20.0/31.5 (n=1000)
-ant-1          ant       pets      async         0           40  exploring      v0       0  -                              -
+planner lab-1 (protocol 2, up 1h02m): 2 runs
+fleet: 2 planners (lab-1, lab-2); serves *; refuses gpu-*
+ownership events:
+  01:01:01 planner lab-2 joined
+  01:01:40 took cartpole-deen at epoch 3 (from lab-2)
+  01:01:50 stepped down from ant-2 (epoch 4): lab-2 holds it at epoch 5
+  01:02:00 some_future_event
+RUN            TASK      PRESET    MODE   EPISODES  TRANSITIONS  STATE      MODELS  EPOCH  AGENTS  LAST RETURNS                   PLAN MS p50/p90/p99
+cartpole-deen  cartpole  cem+deen  sync          7         1400  training       v6      3       2  3.00 10.12 48.00 97.50 120.00  12.2/20.0/31.5 (n=1000)
+ant-1          ant       pets      async         0           40  exploring      v0      1       0  -                              -
 agents:
   cartpole-deen: bridge-0, bridge-1
   ant-1: (none attached)
@@ -426,6 +615,7 @@ agents:
             protocol_version: 1,
             uptime_seconds: 59.9,
             runs: Vec::new(),
+            fleet: FleetReport::default(),
         };
         let text = render(&[idle.clone(), fixture()]);
         assert!(

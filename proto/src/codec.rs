@@ -102,6 +102,7 @@ mod tests {
             obs: vec![0.5, -1.0, 2.0, 0.0],
             reward: Some(0.25),
             end: None,
+            applied: Some(vec![1.5]),
         }
     }
 
@@ -115,10 +116,10 @@ mod tests {
 
     #[test]
     fn json_is_readable_by_other_languages() {
-        let json = r#"{"version":1,"episode":0,"step":0,"obs":[1,2,3,4]}"#;
+        let json = r#"{"version":2,"episode":0,"step":0,"obs":[1,2,3,4]}"#;
         let obs: Observation = decode(json.as_bytes(), Encoding::Json).unwrap();
         assert_eq!(obs.obs, vec![1.0, 2.0, 3.0, 4.0]);
-        assert_eq!(obs.reward, None);
+        assert_eq!((obs.reward, obs.applied), (None, None));
     }
 
     #[test]
@@ -144,7 +145,7 @@ mod tests {
         for bad in [
             &bytes[..bytes.len() - 3],
             &[][..],
-            &[1, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
+            &[2, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
         ] {
             assert!(
                 matches!(

@@ -7,8 +7,10 @@
 //! {prefix}/runs/{run}/attach                 queryable         attach an agent to a run
 //! {prefix}/runs/{run}/events                 planner → all     training, model updates, episodes
 //! {prefix}/planners/{id}/status              queryable         JSON status of a planner
+//! {prefix}/planners/{id}/fleet               queryable         JSON pinning rules of a planner
 //! {prefix}/alive/planners/{id}               liveliness token of a planner
 //! {prefix}/alive/runs/{run}/agents/{agent}   liveliness token of an agent
+//! {prefix}/alive/leases/{run}/{epoch}/{id}   liveliness token: planner `id` owns `run` at `epoch`
 //! ```
 
 /// The default key prefix.
@@ -127,6 +129,33 @@ impl Keys {
 
     pub fn planner_status(&self, planner: &str) -> String {
         format!("{}/planners/{planner}/status", self.prefix)
+    }
+
+    /// Where a planner serves its fleet profile (the run-name patterns it serves or refuses).
+    pub fn planner_fleet(&self, planner: &str) -> String {
+        format!("{}/planners/{planner}/fleet", self.prefix)
+    }
+
+    /// The liveliness token a planner holds while it owns `run` at ownership `epoch`.
+    pub fn run_lease(&self, run: &str, epoch: u64, planner: &str) -> String {
+        format!("{}/alive/leases/{run}/{epoch}/{planner}", self.prefix)
+    }
+
+    /// Every run's lease tokens.
+    pub fn all_leases(&self) -> String {
+        format!("{}/alive/leases/*/*/*", self.prefix)
+    }
+
+    /// `(run, epoch, planner)` of a lease token key.
+    pub fn parse_lease<'k>(&self, key: &'k str) -> Option<(&'k str, u64, &'k str)> {
+        let rest = key
+            .strip_prefix(self.prefix.as_str())?
+            .strip_prefix("/alive/leases/")?;
+        let mut parts = rest.split('/');
+        let run = parts.next()?;
+        let epoch = parts.next()?.parse().ok()?;
+        let planner = parts.next()?;
+        parts.next().is_none().then_some((run, epoch, planner))
     }
 
     pub fn planner_alive(&self, planner: &str) -> String {
@@ -251,6 +280,14 @@ mod tests {
             Some(("r", "a"))
         );
         assert_eq!(k.parse_planner_alive(&k.planner_alive("p1")), Some("p1"));
+        assert_eq!(
+            k.parse_lease(&k.run_lease("r.1", 7, "p1")),
+            Some(("r.1", 7, "p1"))
+        );
+        assert_eq!(k.parse_lease("lab/ebmpc/alive/leases/r/x/p1"), None);
+        assert_eq!(k.parse_lease("lab/ebmpc/alive/leases/r/1/p1/x"), None);
+        assert_eq!(k.all_leases(), "lab/ebmpc/alive/leases/*/*/*");
+        assert_eq!(k.planner_fleet("p1"), "lab/ebmpc/planners/p1/fleet");
         assert_eq!(k.all_obs(), "lab/ebmpc/runs/*/agents/*/obs");
     }
 

@@ -7,8 +7,9 @@
 use crate::task::TaskId;
 use serde::{Deserialize, Serialize};
 
-/// The protocol version this build speaks.
-pub const PROTOCOL_VERSION: u16 = 1;
+/// The protocol version this build speaks. Version 2 added the ownership epoch to
+/// [`AttachAccepted`] and [`Action`], and the applied action to [`Observation`].
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// How the trainer interacts with acting agents (design.md).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -235,6 +236,12 @@ pub struct AttachAccepted {
     pub models_version: u64,
     /// The episode number the agent should use next (resuming runs continue numbering).
     pub next_episode: u32,
+    /// The run's ownership epoch: it grows by one each time a planner takes the run over. Every
+    /// [`Action`] carries the epoch of the planner that sent it; an agent ignores actions of an
+    /// epoch older than the newest it has seen (a planner that lost the run but does not know
+    /// it yet).
+    #[serde(default)]
+    pub epoch: u64,
 }
 
 /// Why an episode ended.
@@ -263,6 +270,12 @@ pub struct Observation {
     /// Set on the last observation of an episode. The planner answers it with no action.
     #[serde(default)]
     pub end: Option<EpisodeEnd>,
+    /// The action the agent actually applied at the previous step, when it differs from the
+    /// one planned (a robot clipped it, a safety layer or a person overrode it). The replay
+    /// stores this one then, so the models learn what really happened. Absent at step 0; it
+    /// must have the task's action dimension, be finite and lie within the action bounds.
+    #[serde(default)]
+    pub applied: Option<Vec<f32>>,
 }
 
 impl Observation {
@@ -281,7 +294,14 @@ impl Observation {
             obs,
             reward,
             end,
+            applied: None,
         }
+    }
+
+    /// The same observation, saying that `action` was applied at the previous step.
+    pub fn with_applied(mut self, action: Vec<f32>) -> Self {
+        self.applied = Some(action);
+        self
     }
 }
 
@@ -325,6 +345,9 @@ pub struct Action {
     pub step: u32,
     pub action: Vec<f32>,
     pub stats: PlanStats,
+    /// The ownership epoch of the planner that sent it (see [`AttachAccepted::epoch`]).
+    #[serde(default)]
+    pub epoch: u64,
 }
 
 /// Machine-readable kind of an [`ErrorReport`].
@@ -351,7 +374,8 @@ pub enum ErrorCode {
     Refused,
     /// Something failed inside the planner.
     Internal,
-    /// A finite number beyond the task's magnitude bound (it would overflow the models).
+    /// A finite number outside its allowed range: beyond the task's magnitude bound (it would
+    /// overflow the models), or an applied action beyond the task's action bounds.
     OutOfRange,
     /// The planner could not store the message (e.g. its disk is full). Nothing of it was
     /// kept and the agent's session did not move on: send the same message again later.

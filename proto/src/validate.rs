@@ -35,6 +35,15 @@ pub enum ValidationError {
     RewardAtReset,
     #[error("step {0} carries no reward")]
     MissingReward(u32),
+    #[error("step 0 starts an episode: no action was applied before it")]
+    AppliedAtReset,
+    #[error("applied action[{index}] is {value}, outside the task's bounds [{low}, {high}]")]
+    AppliedOutOfRange {
+        index: usize,
+        value: f32,
+        low: f32,
+        high: f32,
+    },
 }
 
 impl ValidationError {
@@ -45,10 +54,12 @@ impl ValidationError {
             ValidationError::NonFinite { .. } | ValidationError::NonFiniteReward(_) => {
                 ErrorCode::NonFinite
             }
-            ValidationError::OutOfRange { .. } => ErrorCode::OutOfRange,
-            ValidationError::RewardAtReset | ValidationError::MissingReward(_) => {
-                ErrorCode::OutOfOrder
+            ValidationError::OutOfRange { .. } | ValidationError::AppliedOutOfRange { .. } => {
+                ErrorCode::OutOfRange
             }
+            ValidationError::RewardAtReset
+            | ValidationError::MissingReward(_)
+            | ValidationError::AppliedAtReset => ErrorCode::OutOfOrder,
         }
     }
 
@@ -106,12 +117,39 @@ pub fn validate_observation(
 ) -> Result<(), ValidationError> {
     check_vector("observation", task, &msg.obs, task.obs_dim)?;
     check_magnitude("observation", &msg.obs, magnitudes.observation)?;
+    if let Some(applied) = &msg.applied {
+        if msg.step == 0 {
+            return Err(ValidationError::AppliedAtReset);
+        }
+        check_applied(applied, task)?;
+    }
     match (msg.step, msg.reward) {
         (0, Some(_)) => Err(ValidationError::RewardAtReset),
         (0, None) => Ok(()),
         (step, None) => Err(ValidationError::MissingReward(step)),
         (_, Some(r)) if !r.is_finite() => Err(ValidationError::NonFiniteReward(r)),
         (_, Some(r)) => check_magnitude("reward", &[r], magnitudes.reward),
+    }
+}
+
+/// Checks the action an agent says it applied: the task's dimension, finite, and within the
+/// action bounds (a real actuator cannot apply more than its limits, so a value outside them is
+/// a broken sender, and storing it would teach the models transitions no agent can make).
+fn check_applied(applied: &[f32], task: &TaskSpec) -> Result<(), ValidationError> {
+    check_vector("applied action", task, applied, task.act_dim)?;
+    let bounds = task.action_low.iter().zip(task.action_high);
+    match applied
+        .iter()
+        .zip(bounds)
+        .position(|(v, (lo, hi))| v < lo || v > hi)
+    {
+        Some(index) => Err(ValidationError::AppliedOutOfRange {
+            index,
+            value: applied[index],
+            low: task.action_low[index],
+            high: task.action_high[index],
+        }),
+        None => Ok(()),
     }
 }
 
@@ -138,6 +176,10 @@ mod tests {
         validate_observation(&obs(5, vec![0.0; 4], Some(0.3)), task, m).unwrap();
         // The bound itself is allowed.
         validate_observation(&obs(5, vec![m.observation; 4], Some(-m.reward)), task, m).unwrap();
+        for bound in [-3.0, 0.5, 3.0] {
+            let applied = obs(5, vec![0.0; 4], Some(0.3)).with_applied(vec![bound]);
+            validate_observation(&applied, task, m).unwrap();
+        }
     }
 
     #[test]
@@ -156,6 +198,34 @@ mod tests {
             (obs(1, vec![0.0; 4], Some(f32::NAN)), ErrorCode::NonFinite),
             (obs(1, vec![0.0; 4], None), ErrorCode::OutOfOrder),
             (obs(0, vec![0.0; 4], Some(1.0)), ErrorCode::OutOfOrder),
+            (
+                obs(0, vec![0.0; 4], None).with_applied(vec![0.0]),
+                ErrorCode::OutOfOrder,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![0.0, 0.0]),
+                ErrorCode::Dimension,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![]),
+                ErrorCode::Dimension,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![f32::NAN]),
+                ErrorCode::NonFinite,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![f32::NEG_INFINITY]),
+                ErrorCode::NonFinite,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![3.001]),
+                ErrorCode::OutOfRange,
+            ),
+            (
+                obs(1, vec![0.0; 4], Some(0.0)).with_applied(vec![-1e30]),
+                ErrorCode::OutOfRange,
+            ),
             (
                 obs(0, vec![0.0, f32::MAX, 0.0, 0.0], None),
                 ErrorCode::OutOfRange,

@@ -54,7 +54,12 @@ fn observation(rng: &mut StdRng) -> Observation {
         _ => None,
     };
     let reward = rng.random_bool(0.5).then(|| float(rng));
-    Observation::new(rng.random(), rng.random(), floats(rng, 40), reward, end)
+    let obs = Observation::new(rng.random(), rng.random(), floats(rng, 40), reward, end);
+    if rng.random_bool(0.5) {
+        obs.with_applied(floats(rng, 12))
+    } else {
+        obs
+    }
 }
 
 fn attach_request(rng: &mut StdRng) -> AttachRequest {
@@ -98,6 +103,7 @@ fn action(rng: &mut StdRng) -> Action {
             cut: rng.random(),
             missed: rng.random(),
         },
+        epoch: rng.random(),
     }
 }
 
@@ -216,7 +222,12 @@ fn generated_messages_round_trip() {
     for _ in 0..2_000 {
         let msg = observation(&mut rng);
         for encoding in [Encoding::Postcard, Encoding::Json] {
-            let finite = msg.obs.iter().chain(&msg.reward).all(|x| x.is_finite());
+            let finite = msg
+                .obs
+                .iter()
+                .chain(&msg.reward)
+                .chain(msg.applied.iter().flatten())
+                .all(|x| x.is_finite());
             if encoding == Encoding::Json && !finite {
                 continue;
             }

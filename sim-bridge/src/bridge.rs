@@ -8,9 +8,12 @@
 //! Each wait for an action has a deadline. The first action of every episode but this process's
 //! first may wait for the planner to retrain (sync mode), so it gets the longer train timeout.
 //! Training events are logged as they arrive, so a long wait shows what the planner is doing.
-//! If the planner restarts (its liveliness token goes and comes back) or says it no longer knows
-//! this agent, the bridge attaches again and starts the interrupted episode over under a new
-//! number; the planner has recorded the old one as interrupted.
+//! If the planner goes away (its liveliness token goes: it stopped, died, or lost the router) or
+//! says it no longer knows this agent, the bridge attaches again, to whichever planner owns the
+//! run then (the same one restarted, or another of the fleet that took the run over), and starts
+//! the interrupted episode over under a new number; the old one is recorded as interrupted.
+//! Actions of an ownership epoch older than the one attached to are ignored, and every
+//! observation says which action was applied (the planned one clamped into the bounds).
 
 use crate::env::Env;
 use crate::error::SimError;
@@ -236,7 +239,8 @@ pub async fn run(
         } else {
             FirstWait::Action
         };
-        match run_episode(&mut env, &mut link, config, episode, first_wait).await? {
+        let at = (episode, accepted.epoch);
+        match run_episode(&mut env, &mut link, config, at, first_wait).await? {
             EpisodeOutcome::Finished(record) => {
                 reattached = 0;
                 episode += 1;
@@ -316,7 +320,7 @@ async fn run_episode(
     env: &mut Env,
     link: &mut PlannerLink,
     config: &BridgeConfig,
-    episode: u32,
+    (episode, epoch): (u32, u64),
     first_wait: FirstWait,
 ) -> Result<EpisodeOutcome, BridgeError> {
     let started = Instant::now();
@@ -339,6 +343,7 @@ async fn run_episode(
             task: env.spec(),
             episode,
             step,
+            epoch,
             timeout,
             while_training,
         };
@@ -365,7 +370,10 @@ async fn run_episode(
         } else {
             None
         };
-        sent = Observation::new(episode, step, outcome.obs, Some(outcome.reward), end);
+        // Say what was applied (the planned action clamped into the task's bounds), so the
+        // planner stores what really happened.
+        sent = Observation::new(episode, step, outcome.obs, Some(outcome.reward), end)
+            .with_applied(outcome.applied);
         link.send(&sent).await?;
         if let Some(end) = end {
             let wall_seconds = started.elapsed().as_secs_f64();
@@ -400,6 +408,9 @@ struct Wait {
     task: &'static TaskSpec,
     episode: u32,
     step: u32,
+    /// The run's ownership epoch at attach: actions of older epochs come from a planner that
+    /// lost the run and are ignored.
+    epoch: u64,
     timeout: Duration,
     while_training: bool,
 }
@@ -415,6 +426,7 @@ async fn wait_for_action(
         task,
         episode,
         step,
+        epoch,
         timeout,
         while_training,
     } = wait;
@@ -431,6 +443,15 @@ async fn wait_for_action(
             });
         };
         match inbound? {
+            Inbound::Action(stale) if stale.epoch < epoch => {
+                tracing::warn!(
+                    episode = stale.episode,
+                    step = stale.step,
+                    stale_epoch = stale.epoch,
+                    epoch,
+                    "ignoring an action from a planner that lost the run"
+                );
+            }
             Inbound::Action(action) if action.episode == episode && action.step == step => {
                 proto::validate::validate_action(&action, task).map_err(|e| {
                     BridgeError::InvalidAction {
@@ -477,14 +498,12 @@ async fn wait_for_action(
                 }
                 log_event(&event);
             }
-            // A restarted planner has lost the observation in flight and this agent's session.
-            Inbound::PlannerBack => return Ok(Waited::PlannerLost("the planner restarted".into())),
-            Inbound::PlannerGone => tracing::warn!(
-                "the planner went away; waiting up to {:.0} s for it to come back",
-                deadline
-                    .saturating_duration_since(tokio::time::Instant::now())
-                    .as_secs_f64()
-            ),
+            // In a fleet another planner takes the run over; alone, the planner may come
+            // back. Either way the observation in flight is lost: attach again (the attach
+            // waits for whichever planner owns the run now).
+            Inbound::PlannerGone => {
+                return Ok(Waited::PlannerLost("the planner went away".into()));
+            }
         }
     }
 }

@@ -23,6 +23,8 @@ pub struct StepOutcome {
     /// The episode reached its time limit (`episode_len` steps, or the cap set with
     /// [`Env::cap_episode_length`]) without terminating.
     pub truncated: bool,
+    /// The action the simulator applied: the one given, clamped into the task's bounds.
+    pub applied: Vec<f32>,
 }
 
 impl StepOutcome {
@@ -187,6 +189,7 @@ impl Env {
         Ok(StepOutcome {
             obs: self.obs.clone(),
             reward,
+            applied: self.action.clone(),
             terminated,
             truncated,
         })

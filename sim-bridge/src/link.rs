@@ -20,6 +20,7 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;
+use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::{Sample, SampleKind};
 
 /// The encoding this agent speaks (the planner answers in the encoding it receives).
@@ -40,11 +41,9 @@ pub(crate) enum Inbound {
     Error(ErrorReport),
     /// Something that happened to the run (training, models, other agents' episodes).
     Event(RunEvent),
-    /// The attached planner's liveliness token went away (it stopped, or the link broke).
+    /// The attached planner's liveliness token went away (it stopped, died, or the link broke):
+    /// attach again, to whichever planner owns the run then.
     PlannerGone,
-    /// The planner's token is back after [`Inbound::PlannerGone`]: it restarted and has
-    /// forgotten this agent.
-    PlannerBack,
 }
 
 /// One agent's connection to its run.
@@ -217,11 +216,15 @@ impl PlannerLink {
         payload: &[u8],
         wait: Duration,
     ) -> Result<Option<AttachReply>, BridgeError> {
+        // All planners get the query; only the run's owner answers (the others stay silent),
+        // and without consolidation its answer is delivered as soon as it comes.
         let replies = self
             .session
             .get(key)
             .payload(payload.to_vec())
             .encoding(ZEncoding::from(ENCODING.mime()))
+            .target(QueryTarget::All)
+            .consolidation(ConsolidationMode::None)
             .timeout(wait)
             .await
             .map_err(zenoh_err(format!("querying {key}")))?;
@@ -301,16 +304,9 @@ impl PlannerLink {
                 }
                 sample = alive => {
                     let sample = sample.map_err(|e| closed("planner liveliness", e))?;
-                    match (sample.kind(), self.planner_gone) {
-                        (SampleKind::Delete, false) => {
-                            self.planner_gone = true;
-                            return Ok(Inbound::PlannerGone);
-                        }
-                        (SampleKind::Put, true) => {
-                            self.planner_gone = false;
-                            return Ok(Inbound::PlannerBack);
-                        }
-                        _ => {}
+                    if sample.kind() == SampleKind::Delete && !self.planner_gone {
+                        self.planner_gone = true;
+                        return Ok(Inbound::PlannerGone);
                     }
                 }
             }

@@ -41,6 +41,13 @@ fn free_endpoint() -> String {
     format!("tcp/127.0.0.1:{}", listener.local_addr().unwrap().port())
 }
 
+/// The run's ownership epoch the scripted planner attaches agents at.
+const EPOCH: u64 = 4;
+
+/// The step at which an action of an older epoch arrives before the real one (the bridge must
+/// ignore it: the replay check below would see its effect otherwise).
+const STALE_AT: u32 = 7;
+
 /// The deterministic "policy" of the scripted planner: a slow sine of the step.
 fn scripted_action(step: u32) -> Vec<f32> {
     vec![3.0 * (step as f32 * 0.3).sin()]
@@ -86,6 +93,7 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                             episodes_done: 5,
                             models_version: 0,
                             next_episode: 5,
+                            epoch: EPOCH,
                         }),
                     };
                     seen2.lock().unwrap().attach.push(request);
@@ -143,7 +151,13 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                             cut: false,
                             missed: false,
                         },
+                        epoch: EPOCH,
                     };
+                    if obs.step == STALE_AT {
+                        // A planner that lost the run answers first, with another action.
+                        let stale = Action { epoch: EPOCH - 1, action: vec![-2.5], ..action.clone() };
+                        s.put(k.act(&run, &agent), publish_bytes(&stale)).await.unwrap();
+                    }
                     s.put(k.act(&run, &agent), publish_bytes(&action)).await.unwrap();
                 }
                 else => break,
@@ -239,6 +253,11 @@ async fn episodes_run_step_by_step_and_report_the_simulators_rewards() {
                 record.episode
             );
             assert_eq!(msg.reward, Some(outcome.reward));
+            assert_eq!(
+                msg.applied.as_ref(),
+                Some(&outcome.applied),
+                "the applied action is sent"
+            );
             assert_eq!(msg.end, (step == 200).then_some(EpisodeEnd::TimeLimit));
             total += outcome.reward;
         }

@@ -8,9 +8,11 @@ use proto::{
     Action, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorReport, Keys,
     Observation, PROTOCOL_VERSION, RunEvent, RunSpec,
 };
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
+use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::Sample;
 
 type Inbox = Subscriber<FifoChannelHandler<Sample>>;
@@ -34,6 +36,8 @@ pub struct Client {
     pub actions: Inbox,
     pub errors: Inbox,
     pub events: Inbox,
+    /// The run's ownership epoch at the last attach; actions of older epochs are ignored.
+    epoch: AtomicU64,
     _token: zenoh::liveliness::LivelinessToken,
 }
 
@@ -67,6 +71,7 @@ impl Client {
             actions,
             errors,
             events,
+            epoch: AtomicU64::new(0),
             _token: token,
         })
     }
@@ -85,6 +90,7 @@ impl Client {
             .outcome
         {
             AttachOutcome::Accepted(accepted) => {
+                self.epoch.store(accepted.epoch, Ordering::SeqCst);
                 // Give the planner's subscriber a moment to match our publications.
                 tokio::time::sleep(Duration::from_millis(300)).await;
                 Ok(accepted)
@@ -97,10 +103,13 @@ impl Client {
     /// reply, retrying while no planner answers (it may be starting).
     pub async fn attach_raw(&self, run: &str, payload: Vec<u8>, mime: &str) -> Result<AttachReply> {
         for _ in 0..300 {
+            // Every planner gets the query, only the run's owner answers.
             let replies = self
                 .session
                 .get(self.keys.attach(run))
                 .payload(payload.clone())
+                .target(QueryTarget::All)
+                .consolidation(ConsolidationMode::None)
                 .encoding(zenoh::bytes::Encoding::from(mime))
                 .timeout(Duration::from_secs(5))
                 .await
@@ -132,18 +141,30 @@ impl Client {
             .await
     }
 
-    /// The next action or error for this agent.
+    /// The ownership epoch of the run at the last attach.
+    pub fn epoch(&self) -> u64 {
+        self.epoch.load(Ordering::SeqCst)
+    }
+
+    /// The next action or error for this agent (actions of an epoch older than the one
+    /// attached to come from a planner that lost the run, and are skipped).
     pub async fn answer(&self, timeout: Duration) -> Result<Answer> {
-        tokio::select! {
-            sample = self.actions.recv_async() => {
-                let sample = sample.map_err(|e| anyhow!("actions: {e}"))?;
-                Ok(Answer::Action(decode(&sample)?))
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            tokio::select! {
+                sample = self.actions.recv_async() => {
+                    let sample = sample.map_err(|e| anyhow!("actions: {e}"))?;
+                    let action: Action = decode(&sample)?;
+                    if action.epoch >= self.epoch() {
+                        return Ok(Answer::Action(action));
+                    }
+                }
+                sample = self.errors.recv_async() => {
+                    let sample = sample.map_err(|e| anyhow!("errors: {e}"))?;
+                    return Ok(Answer::Error(decode(&sample)?));
+                }
+                () = tokio::time::sleep_until(deadline) => bail!("no answer for `{}` within {timeout:?}", self.agent),
             }
-            sample = self.errors.recv_async() => {
-                let sample = sample.map_err(|e| anyhow!("errors: {e}"))?;
-                Ok(Answer::Error(decode(&sample)?))
-            }
-            () = tokio::time::sleep(timeout) => bail!("no answer for `{}` within {timeout:?}", self.agent),
         }
     }
 
@@ -231,21 +252,28 @@ fn decode<T: serde::de::DeserializeOwned>(sample: &Sample) -> Result<T> {
     Ok(proto::decode(&sample.payload().to_bytes(), encoding)?)
 }
 
-/// Queries a planner's status over `session`.
+/// Queries a planner's status over `session`, asking again for up to 10 s while no answer
+/// comes (a peer session that just connected to a router does not know the planners'
+/// queryables yet, and its query then ends at once with no answer).
 pub async fn status(session: &zenoh::Session, planner_id: &str) -> Result<PlannerStatus> {
-    let replies = session
-        .get(Keys::default().planner_status(planner_id))
-        .timeout(Duration::from_secs(10))
-        .await
-        .map_err(|e| anyhow!("status query: {e}"))?;
-    let reply = replies
-        .recv_async()
-        .await
-        .map_err(|_| anyhow!("planner `{planner_id}` did not answer the status query"))?;
-    let sample = reply
-        .result()
-        .map_err(|e| anyhow!("status error reply: {e:?}"))?;
-    Ok(serde_json::from_slice(&sample.payload().to_bytes())?)
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let replies = session
+            .get(Keys::default().planner_status(planner_id))
+            .timeout(Duration::from_secs(10))
+            .await
+            .map_err(|e| anyhow!("status query: {e}"))?;
+        if let Ok(reply) = replies.recv_async().await {
+            let sample = reply
+                .result()
+                .map_err(|e| anyhow!("status error reply: {e:?}"))?;
+            return Ok(serde_json::from_slice(&sample.payload().to_bytes())?);
+        }
+        if tokio::time::Instant::now() >= deadline {
+            bail!("planner `{planner_id}` did not answer the status query");
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 /// A toy cart-pole-shaped system for scripted agents: deterministic, bounded, and cheap, so a

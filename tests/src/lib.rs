@@ -271,13 +271,24 @@ impl Planner {
 /// `dir/data` and listening on `listen` (if any: a daemon may also only connect, as its
 /// config's Zenoh file says), and waits until it serves.
 pub fn serve(dir: &Path, config: &str, listen: Option<&str>) -> Result<Guarded> {
+    serve_data(dir, &dir.join("data"), config, listen)
+}
+
+/// As [`serve`], with the data directory `data_dir` (planners of a fleet share one).
+pub fn serve_data(
+    dir: &Path,
+    data_dir: &Path,
+    config: &str,
+    listen: Option<&str>,
+) -> Result<Guarded> {
+    std::fs::create_dir_all(dir)?;
     let config_path = dir.join("planner.toml");
     std::fs::write(&config_path, config)?;
     let mut cmd = Command::new(&binaries().planner);
     cmd.args(["serve", "--config"])
         .arg(&config_path)
         .arg("--data-dir")
-        .arg(dir.join("data"));
+        .arg(data_dir);
     if let Some(endpoint) = listen {
         cmd.args(["--listen", endpoint]);
     }
@@ -286,6 +297,24 @@ pub fn serve(dir: &Path, config: &str, listen: Option<&str>) -> Result<Guarded> 
     let mut process = Guarded::spawn("planner-service", cmd, log)?;
     process.wait_for_log("planner serving", Duration::from_secs(60))?;
     Ok(process)
+}
+
+/// A Zenoh router in this process, listening on `endpoint` (multicast scouting off), as a
+/// site's `zenohd` would run: every process of a test connects to it. Closed when dropped.
+pub async fn router(endpoint: &str) -> Result<zenoh::Session> {
+    let mut config = zenoh::Config::default();
+    for (key, value) in [
+        ("mode", "\"router\"".to_string()),
+        ("scouting/multicast/enabled", "false".to_string()),
+        ("listen/endpoints", format!("[\"{endpoint}\"]")),
+    ] {
+        config
+            .insert_json5(key, &value)
+            .map_err(|e| anyhow::anyhow!("router config {key}: {e}"))?;
+    }
+    zenoh::open(config)
+        .await
+        .map_err(|e| anyhow::anyhow!("router: {e}"))
 }
 
 /// Runs `planner-service status --connect endpoint` with `args`; its exit status, stdout and

@@ -127,6 +127,15 @@ fn bad_input_is_refused(endpoint: &str) {
                 Encoding::Postcard.mime(),
                 ErrorCode::OutOfOrder,
             ),
+            (
+                proto::encode(
+                    &obs(0, 0, vec![0.0; 4], None).with_applied(vec![0.0]),
+                    Encoding::Postcard,
+                )
+                .unwrap(),
+                Encoding::Postcard.mime(),
+                ErrorCode::OutOfOrder,
+            ),
         ];
         for (bytes, mime, code) in cases {
             client.send_raw("bad", bytes.clone(), mime).await.unwrap();
@@ -150,7 +159,7 @@ fn bad_input_is_refused(endpoint: &str) {
         client
             .send_raw(
                 "bad",
-                br#"{"version":1,"episode":0,"step":1,"obs":[1,2],"reward":0.5}"#.to_vec(),
+                br#"{"version":2,"episode":0,"step":1,"obs":[1,2],"reward":0.5}"#.to_vec(),
                 "application/json",
             )
             .await
@@ -159,6 +168,19 @@ fn bad_input_is_refused(endpoint: &str) {
         assert_eq!(sample.encoding().to_string(), "application/json");
         let report: ErrorReport = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
         assert_eq!(report.code, ErrorCode::Dimension);
+        // A hostile applied action (cartpole's bounds are ±3): refused, the episode stays put.
+        for (applied, code) in [
+            (vec![3.5], ErrorCode::OutOfRange),
+            (vec![-1e38], ErrorCode::OutOfRange),
+            (vec![f32::NAN], ErrorCode::NonFinite),
+            (vec![0.0, 0.0], ErrorCode::Dimension),
+            (vec![], ErrorCode::Dimension),
+        ] {
+            let msg = obs(0, 1, vec![0.0; 4], Some(0.5)).with_applied(applied.clone());
+            client.send(&msg).await.unwrap();
+            let report = client.next_error().await.unwrap();
+            assert_eq!(report.code, code, "{applied:?} → {report}");
+        }
         // Steps out of order after a good one: the episode is not advanced by them.
         client.send(&obs(0, 0, vec![0.0; 4], None)).await.unwrap();
         match client.answer(Duration::from_secs(20)).await.unwrap() {

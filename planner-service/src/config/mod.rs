@@ -38,6 +38,9 @@ pub struct ServiceConfig {
     /// Overrides applied to every run's preset before the agent's own (e.g. smaller networks
     /// for a quick test), keyed like the attach message's overrides.
     pub overrides: proto::PlannerOverrides,
+    /// Pinning in a fleet of planners: the run-name patterns this planner serves (`serve`,
+    /// empty: all) or refuses (`refuse`). See `crate::fleet`.
+    pub fleet: crate::fleet::Pins,
     /// Bounds on everything a client chooses (`[limits]`).
     pub limits: Limits,
     /// How runs keep their data on disk (`[storage]`).
@@ -78,6 +81,7 @@ impl Default for ServiceConfig {
             max_agents_per_run: 16,
             allowed_presets: Vec::new(),
             overrides: proto::PlannerOverrides::default(),
+            fleet: crate::fleet::Pins::default(),
             limits: Limits::default(),
             storage: StorageConfig::default(),
             metrics: MetricsConfig::default(),
@@ -100,6 +104,8 @@ pub enum ConfigError {
     },
     #[error("invalid planner id: {0}")]
     PlannerId(#[from] proto::keys::InvalidName),
+    #[error("[fleet]: {0}")]
+    Pins(#[from] crate::fleet::PinsError),
     #[error(transparent)]
     Limits(#[from] InvalidLimits),
 }
@@ -122,6 +128,7 @@ impl ServiceConfig {
     /// Checks what serde cannot.
     pub fn validate(&self) -> Result<(), ConfigError> {
         proto::validate_name(&self.planner_id)?;
+        self.fleet.validate()?;
         self.limits.validate()?;
         Ok(())
     }
@@ -141,9 +148,14 @@ mod tests {
             [overrides]
             population = 50
             inference_precision = "f32"
+            [fleet]
+            serve = ["ant-*"]
             "#,
         )
         .unwrap();
+        assert_eq!(config.fleet.serve, vec!["ant-*".to_string()]);
+        assert!(config.fleet.refuse.is_empty());
+        config.validate().unwrap();
         assert_eq!(config.planner_id, "lab-1");
         assert_eq!(config.max_runs, 4);
         assert_eq!(config.overrides.population, Some(50));
@@ -168,6 +180,18 @@ mod tests {
     #[test]
     fn rejects_unknown_keys() {
         assert!(toml::from_str::<ServiceConfig>("max_run = 3").is_err());
+        assert!(toml::from_str::<ServiceConfig>("[fleet]\nserves = []").is_err());
+    }
+
+    #[test]
+    fn rejects_bad_pins() {
+        let config: ServiceConfig = toml::from_str("[fleet]\nrefuse = [\"a/b\"]").unwrap();
+        let err = config.validate().unwrap_err();
+        assert!(
+            err.to_string()
+                .starts_with("[fleet]: invalid run-name pattern"),
+            "{err}"
+        );
     }
 
     /// The shipped example listens on loopback only, and its `[limits]` block states the

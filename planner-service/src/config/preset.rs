@@ -902,7 +902,10 @@ mod tests {
         let mut bytes = proto::encode(&request, proto::Encoding::Postcard).unwrap();
         bytes.push(1);
         assert!(proto::decode::<proto::AttachRequest>(&bytes, proto::Encoding::Postcard).is_err());
-        let json = r#"{"version":1,"agent":"a","spec":{"task":"cartpole","overrides":{"dynamics_hidden_size":64,"hidden_size":64}}}"#;
+        let json = format!(
+            r#"{{"version":{},"agent":"a","spec":{{"task":"cartpole","overrides":{{"dynamics_hidden_size":64,"hidden_size":64}}}}}}"#,
+            proto::PROTOCOL_VERSION
+        );
         let err = proto::decode::<proto::AttachRequest>(json.as_bytes(), proto::Encoding::Json)
             .unwrap_err();
         assert!(err.to_string().contains("hidden_size"), "{err}");

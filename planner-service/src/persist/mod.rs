@@ -4,7 +4,13 @@
 //! {data_dir}/runs/{run}/run.json                     the run's spec (task, preset, overrides, mode, seed)
 //! {data_dir}/runs/{run}/replay.log                   every transition (see crate::replay)
 //! {data_dir}/runs/{run}/models-{version:08}.safetensors   model checkpoints, newest two kept
+//! {data_dir}/runs/{run}/epochs/{epoch:020}           ownership epochs (the planner id inside)
 //! ```
+//!
+//! The ownership epoch fences planners that share one data directory (see `crate::fleet`): a
+//! planner takes a run over by creating the file of the next epoch with `O_CREAT | O_EXCL`, so
+//! of two planners racing for the same epoch exactly one succeeds, and a planner whose epoch is
+//! no longer the newest file knows it has lost the run.
 //!
 //! Every file but the append-only replay log is written whole to a temporary file, synced, and
 //! renamed over its final name (then the directory is synced), so a crash at any moment leaves
@@ -28,6 +34,9 @@ use std::path::{Path, PathBuf};
 const CHECKPOINTS_KEPT: usize = 2;
 
 const SPEC_FILE: &str = "run.json";
+const EPOCHS_DIR: &str = "epochs";
+/// Epoch files kept per run (older ones are removed after a claim; only the newest counts).
+const EPOCHS_KEPT: usize = 4;
 const CHECKPOINT_PREFIX: &str = "models-";
 const CHECKPOINT_SUFFIX: &str = ".safetensors";
 
@@ -49,6 +58,8 @@ pub enum PersistError {
         path: String,
         source: CheckpointError,
     },
+    #[error("ownership epoch {epoch} of {path} was taken by another planner at the same moment")]
+    EpochTaken { path: String, epoch: u64 },
 }
 
 fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> PersistError + '_ {
@@ -109,6 +120,72 @@ impl RunDir {
                 path: path.display().to_string(),
                 source,
             })
+    }
+
+    fn epochs_dir(&self) -> PathBuf {
+        self.root.join(EPOCHS_DIR)
+    }
+
+    /// Claimed epochs, newest first.
+    fn epochs(&self) -> Result<Vec<u64>, PersistError> {
+        let dir = self.epochs_dir();
+        let entries = match fs::read_dir(&dir) {
+            Ok(entries) => entries,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(io_error(&dir)(e)),
+        };
+        let mut epochs: Vec<u64> = entries
+            .filter_map(|entry| entry.ok()?.file_name().into_string().ok()?.parse().ok())
+            .collect();
+        epochs.sort_unstable_by(|a, b| b.cmp(a));
+        Ok(epochs)
+    }
+
+    /// The run's current ownership epoch (0: never claimed).
+    pub fn current_epoch(&self) -> Result<u64, PersistError> {
+        Ok(self.epochs()?.first().copied().unwrap_or(0))
+    }
+
+    /// The planner that claimed `epoch`, if its file is there and readable.
+    pub fn epoch_holder(&self, epoch: u64) -> Option<String> {
+        fs::read_to_string(self.epochs_dir().join(format!("{epoch:020}"))).ok()
+    }
+
+    /// Takes the epoch after `seen` (the newest the caller found) for `planner`: creates its
+    /// file exclusively (synced, and the directory synced), so no two planners ever hold the
+    /// same epoch. Fails with [`PersistError::EpochTaken`] if another planner created it first.
+    pub fn claim_epoch_after(&self, seen: u64, planner: &str) -> Result<u64, PersistError> {
+        let dir = self.epochs_dir();
+        fs::create_dir_all(&dir).map_err(io_error(&dir))?;
+        let epoch = seen + 1;
+        let path = dir.join(format!("{epoch:020}"));
+        let mut file = match fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&path)
+        {
+            Ok(file) => file,
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                return Err(PersistError::EpochTaken {
+                    path: self.root.display().to_string(),
+                    epoch,
+                });
+            }
+            Err(e) => return Err(io_error(&path)(e)),
+        };
+        file.write_all(planner.as_bytes())
+            .and_then(|()| file.sync_all())
+            .map_err(io_error(&path))?;
+        fs::File::open(&dir)
+            .and_then(|d| d.sync_all())
+            .map_err(io_error(&dir))?;
+        for old in self.epochs()?.into_iter().skip(EPOCHS_KEPT) {
+            let old = dir.join(format!("{old:020}"));
+            if let Err(e) = fs::remove_file(&old) {
+                tracing::warn!(path = %old.display(), error = %e, "cannot remove an old epoch file");
+            }
+        }
+        Ok(epoch)
     }
 
     fn checkpoint_path(&self, version: u64) -> PathBuf {
@@ -322,6 +399,37 @@ mod tests {
             .map(|e| e.unwrap().file_name().into_string().unwrap())
             .collect();
         assert!(names.iter().all(|n| !n.ends_with(".tmp")), "{names:?}");
+        fs::remove_dir_all(&data).unwrap();
+    }
+
+    #[test]
+    fn epochs_are_claimed_once_each_and_grow() {
+        let data = temp_dir("epochs");
+        let dir = RunDir::new(&data, "r");
+        assert_eq!(dir.current_epoch().unwrap(), 0);
+        assert_eq!(dir.claim_epoch_after(0, "pa").unwrap(), 1);
+        assert_eq!(dir.claim_epoch_after(1, "pb").unwrap(), 2);
+        assert_eq!(dir.current_epoch().unwrap(), 2);
+        // Two planners that both found epoch 2 the newest race for 3: exactly one gets it.
+        assert_eq!(dir.claim_epoch_after(2, "pc").unwrap(), 3);
+        let err = dir.claim_epoch_after(2, "pd").unwrap_err();
+        assert!(
+            matches!(err, PersistError::EpochTaken { epoch: 3, .. }),
+            "{err}"
+        );
+        assert_eq!(
+            fs::read_to_string(dir.epochs_dir().join(format!("{:020}", 3))).unwrap(),
+            "pc"
+        );
+        for (seen, planner) in [(3, "pa"), (4, "pb"), (5, "pc"), (6, "pd")] {
+            dir.claim_epoch_after(seen, planner).unwrap();
+        }
+        assert_eq!(dir.current_epoch().unwrap(), 7);
+        assert_eq!(
+            dir.epochs().unwrap(),
+            vec![7, 6, 5, 4],
+            "only the newest are kept"
+        );
         fs::remove_dir_all(&data).unwrap();
     }
 }

@@ -21,6 +21,13 @@
 //!
 //! Logs written before the format carried a header (`len | crc32(payload) | payload`, no
 //! marker) are read and rewritten in this format once, on opening (new file, fsync, rename).
+//!
+//! Format 3 added ownership epochs and the applied action to the records (claims, and the
+//! `epoch`/`origin` fields; see [`Record`]). The payloads of format 2 are valid format-3
+//! payloads (the old record variants keep their tags), so a format-2 log is upgraded on opening
+//! by rewriting it whole under the new version (new file, fsync, rename): from then on a build
+//! that reads only format 2 refuses the file rather than taking the new records for damage and
+//! cutting them off.
 
 use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
@@ -34,8 +41,8 @@ const MAX_RECORD: u32 = 16 << 20;
 /// The first bytes of a log file in this format.
 const MAGIC: &[u8; 8] = b"EBMPCRL\0";
 
-/// The format version written after [`MAGIC`].
-const FORMAT_VERSION: u32 = 2;
+/// The format version written after [`MAGIC`] (3: ownership epochs and applied actions).
+const FORMAT_VERSION: u32 = 3;
 
 /// Bytes of the file header: magic and version.
 const FILE_HEADER_LEN: usize = MAGIC.len() + 4;
@@ -47,7 +54,12 @@ const SYNC: [u8; 4] = [0xEB, 0x5C, 0xA1, 0x7E];
 const RECORD_HEADER_LEN: usize = SYNC.len() + 8;
 
 /// One entry of the log.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+///
+/// Every entry an owner writes carries its ownership `epoch` (see `crate::fleet`): when a
+/// planner takes a run over it writes a [`Record::Claim`] with a higher epoch, and from then on
+/// entries of older epochs (written by a planner that lost the run and did not know yet) are
+/// stale and skipped when the log is read.
+#[derive(Clone, Debug, PartialEq)]
 pub enum Record {
     /// First record of every file: what the buffer holds.
     Header {
@@ -55,8 +67,71 @@ pub enum Record {
         obs_dim: u32,
         act_dim: u32,
     },
-    /// One transition `(s, a, s')` with its reward, from `agent`'s `episode` at `step`.
+    /// Planner `planner` took the run over at `epoch`.
+    Claim { epoch: u64, planner: String },
+    /// One transition `(s, a, s')` with its reward, from `agent`'s `episode` at `step`; `act`
+    /// is the action the agent applied if it said so, else the one planned (`origin` says which).
     Transition {
+        epoch: u64,
+        agent: String,
+        episode: u32,
+        step: u32,
+        obs: Vec<f32>,
+        act: Vec<f32>,
+        origin: ActionOrigin,
+        next_obs: Vec<f32>,
+        reward: f32,
+    },
+    /// `agent` finished `episode`.
+    EpisodeEnd {
+        epoch: u64,
+        agent: String,
+        episode: u32,
+        steps: u32,
+        episode_return: f32,
+        end: proto::EpisodeEnd,
+    },
+}
+
+impl Record {
+    /// The ownership epoch an entry was written under (`None` for the header and claims, which
+    /// are never stale).
+    pub fn epoch(&self) -> Option<u64> {
+        match self {
+            Record::Header { .. } | Record::Claim { .. } => None,
+            Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => Some(*epoch),
+        }
+    }
+
+    /// Puts the entry under ownership epoch `to` (the header and claims carry none).
+    pub fn set_epoch(&mut self, to: u64) {
+        match self {
+            Record::Header { .. } | Record::Claim { .. } => {}
+            Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => *epoch = to,
+        }
+    }
+}
+
+/// Which action a stored transition holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+pub enum ActionOrigin {
+    /// The action the planner sent (the agent did not say it applied another).
+    Planned,
+    /// The action the agent said it applied (clipped, overridden, teleoperated).
+    Applied,
+}
+
+/// The records as postcard writes them: the variant index is the on-disk tag, so variants are
+/// only ever added at the end. Logs written before ownership epochs hold `TransitionV1` and
+/// `EpisodeEndV1`; they are read as epoch 0 with the planned action and never written again.
+#[derive(Serialize, Deserialize)]
+enum OnDisk {
+    Header {
+        task: proto::TaskId,
+        obs_dim: u32,
+        act_dim: u32,
+    },
+    TransitionV1 {
         agent: String,
         episode: u32,
         step: u32,
@@ -65,14 +140,175 @@ pub enum Record {
         next_obs: Vec<f32>,
         reward: f32,
     },
-    /// `agent` finished `episode`.
-    EpisodeEnd {
+    EpisodeEndV1 {
         agent: String,
         episode: u32,
         steps: u32,
         episode_return: f32,
         end: proto::EpisodeEnd,
     },
+    Claim {
+        epoch: u64,
+        planner: String,
+    },
+    Transition {
+        epoch: u64,
+        agent: String,
+        episode: u32,
+        step: u32,
+        obs: Vec<f32>,
+        act: Vec<f32>,
+        origin: ActionOrigin,
+        next_obs: Vec<f32>,
+        reward: f32,
+    },
+    EpisodeEnd {
+        epoch: u64,
+        agent: String,
+        episode: u32,
+        steps: u32,
+        episode_return: f32,
+        end: proto::EpisodeEnd,
+    },
+}
+
+impl From<OnDisk> for Record {
+    fn from(stored: OnDisk) -> Self {
+        match stored {
+            OnDisk::Header {
+                task,
+                obs_dim,
+                act_dim,
+            } => Record::Header {
+                task,
+                obs_dim,
+                act_dim,
+            },
+            OnDisk::TransitionV1 {
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                next_obs,
+                reward,
+            } => Record::Transition {
+                epoch: 0,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin: ActionOrigin::Planned,
+                next_obs,
+                reward,
+            },
+            OnDisk::EpisodeEndV1 {
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            } => Record::EpisodeEnd {
+                epoch: 0,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            },
+            OnDisk::Claim { epoch, planner } => Record::Claim { epoch, planner },
+            OnDisk::Transition {
+                epoch,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin,
+                next_obs,
+                reward,
+            } => Record::Transition {
+                epoch,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin,
+                next_obs,
+                reward,
+            },
+            OnDisk::EpisodeEnd {
+                epoch,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            } => Record::EpisodeEnd {
+                epoch,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            },
+        }
+    }
+}
+
+impl From<Record> for OnDisk {
+    fn from(record: Record) -> Self {
+        match record {
+            Record::Header {
+                task,
+                obs_dim,
+                act_dim,
+            } => OnDisk::Header {
+                task,
+                obs_dim,
+                act_dim,
+            },
+            Record::Claim { epoch, planner } => OnDisk::Claim { epoch, planner },
+            Record::Transition {
+                epoch,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin,
+                next_obs,
+                reward,
+            } => OnDisk::Transition {
+                epoch,
+                agent,
+                episode,
+                step,
+                obs,
+                act,
+                origin,
+                next_obs,
+                reward,
+            },
+            Record::EpisodeEnd {
+                epoch,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            } => OnDisk::EpisodeEnd {
+                epoch,
+                agent,
+                episode,
+                steps,
+                episode_return,
+                end,
+            },
+        }
+    }
 }
 
 /// Failures of the log file.
@@ -89,6 +325,14 @@ pub enum LogError {
         "replay log {path}: format version {found} is newer than this build reads ({FORMAT_VERSION})"
     )]
     Format { path: PathBuf, found: u32 },
+    #[error(
+        "replay log {path}: claimed by another planner at epoch {found} (this one holds {held}); not rewritten"
+    )]
+    Fenced {
+        path: PathBuf,
+        held: u64,
+        found: u64,
+    },
 }
 
 /// What opening a log found.
@@ -190,8 +434,13 @@ impl ReplayLog {
                     found: version,
                 });
             }
-            let (recovered, good_len) = scan(&bytes);
-            if recovered.truncated_bytes > 0 {
+            let (mut recovered, good_len) = scan(&bytes);
+            if version < FORMAT_VERSION {
+                // Same records, new version: written whole, so a crash leaves either file.
+                write_file(path, &bytes[FILE_HEADER_LEN..good_len as usize]).map_err(io)?;
+                tracing::info!(path = %path.display(), from = version, "replay log upgraded to format {FORMAT_VERSION}");
+                recovered.migrated = true;
+            } else if recovered.truncated_bytes > 0 {
                 let file = open_rw(path).map_err(io)?;
                 file.set_len(good_len).map_err(io)?;
                 file.sync_all().map_err(io)?;
@@ -206,7 +455,7 @@ impl ReplayLog {
         } else {
             migrate_legacy(path, &bytes)?
         };
-        let file = open_rw(path).map_err(io)?;
+        let file = open_append(path).map_err(io)?;
         let end = file.metadata().map_err(io)?.len();
         let syncer = LogSyncer {
             path: path.to_path_buf(),
@@ -232,11 +481,7 @@ impl ReplayLog {
     pub fn append(&mut self, records: &[Record]) -> Result<(), LogError> {
         let mut bytes = Vec::new();
         for record in records {
-            let payload = postcard::to_stdvec(record).map_err(|e| LogError::Encode {
-                path: self.path.clone(),
-                reason: e.to_string(),
-            })?;
-            encode_record(&payload, &mut bytes);
+            encode_record(&self.path, record, &mut bytes)?;
         }
         let io = |source| LogError::Io {
             path: self.path.clone(),
@@ -264,7 +509,15 @@ impl ReplayLog {
     /// fsynced, renamed over the log, and the directory fsynced, so a crash at any moment
     /// leaves the old log or the new one. Writing continues on the new file (through the
     /// plain file: a wrapper given to [`ReplayLog::open_with`] is not carried over).
-    pub fn rewrite(&mut self, mut keep: impl FnMut(&Record) -> bool) -> Result<(), LogError> {
+    ///
+    /// Refused with [`LogError::Fenced`] if the file holds a claim newer than `held_epoch`,
+    /// the epoch the caller owns the run at: the new owner writes to this file, and replacing
+    /// it would lose what it wrote.
+    pub fn rewrite(
+        &mut self,
+        held_epoch: u64,
+        mut keep: impl FnMut(&Record) -> bool,
+    ) -> Result<(), LogError> {
         let io = |source| LogError::Io {
             path: self.path.clone(),
             source,
@@ -275,16 +528,27 @@ impl ReplayLog {
         }
         let bytes = std::fs::read(&self.path).map_err(io)?;
         let (recovered, _) = scan(&bytes);
+        let newest_claim = recovered
+            .records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Claim { epoch, .. } => Some(*epoch),
+                _ => None,
+            })
+            .max();
+        if let Some(found) = newest_claim.filter(|&e| e > held_epoch) {
+            return Err(LogError::Fenced {
+                path: self.path.clone(),
+                held: held_epoch,
+                found,
+            });
+        }
         let mut out = Vec::new();
         for record in recovered.records.iter().filter(|r| keep(r)) {
-            let payload = postcard::to_stdvec(record).map_err(|e| LogError::Encode {
-                path: self.path.clone(),
-                reason: e.to_string(),
-            })?;
-            encode_record(&payload, &mut out);
+            encode_record(&self.path, record, &mut out)?;
         }
         write_file(&self.path, &out).map_err(io)?;
-        let mut file = open_rw(&self.path).map_err(io)?;
+        let mut file = open_append(&self.path).map_err(io)?;
         let end = file.metadata().map_err(io)?.len();
         file.truncate_to(end).map_err(io)?;
         self.syncer = LogSyncer {
@@ -315,12 +579,34 @@ fn open_rw(path: &Path) -> std::io::Result<File> {
         .open(path)
 }
 
+/// The writer's handle: in append mode, every write lands at the end of the file as it is
+/// then, so a planner that lost the run (and does not know it yet) cannot overwrite the new
+/// owner's records (see `crate::fleet`).
+fn open_append(path: &Path) -> std::io::Result<File> {
+    OpenOptions::new()
+        .read(true)
+        .append(true)
+        .create(true)
+        .open(path)
+}
+
 fn is_current_format(bytes: &[u8]) -> bool {
     bytes.len() >= FILE_HEADER_LEN && bytes.starts_with(MAGIC)
 }
 
+/// Appends `record`, encoded as it is stored ([`OnDisk`]) and framed, to `out`.
+fn encode_record(path: &Path, record: &Record, out: &mut Vec<u8>) -> Result<(), LogError> {
+    let payload =
+        postcard::to_stdvec(&OnDisk::from(record.clone())).map_err(|e| LogError::Encode {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+    frame(&payload, out);
+    Ok(())
+}
+
 /// Appends one framed record holding `payload` to `out`.
-fn encode_record(payload: &[u8], out: &mut Vec<u8>) {
+fn frame(payload: &[u8], out: &mut Vec<u8>) {
     let len = (payload.len() as u32).to_le_bytes();
     let mut crc = crc32fast::Hasher::new();
     crc.update(&len);
@@ -352,8 +638,8 @@ fn read_record(bytes: &[u8], at: usize) -> Option<(Record, usize)> {
     if hasher.finalize() != crc {
         return None;
     }
-    let record = postcard::from_bytes::<Record>(payload).ok()?;
-    Some((record, start + len as usize))
+    let record = postcard::from_bytes::<OnDisk>(payload).ok()?;
+    Some((record.into(), start + len as usize))
 }
 
 /// Every intact record of a current-format file, and the length of the file up to the end of
@@ -400,8 +686,8 @@ fn parse_legacy(bytes: &[u8]) -> (Vec<Record>, usize) {
         if crc32fast::hash(payload) != crc {
             break;
         }
-        match postcard::from_bytes::<Record>(payload) {
-            Ok(record) => records.push(record),
+        match postcard::from_bytes::<OnDisk>(payload) {
+            Ok(record) => records.push(record.into()),
             Err(_) => break,
         }
         at += 8 + len as usize;
@@ -420,11 +706,7 @@ fn migrate_legacy(path: &Path, bytes: &[u8]) -> Result<Recovered, LogError> {
     let (records, parsed) = parse_legacy(bytes);
     let mut out = Vec::with_capacity(bytes.len() + records.len() * SYNC.len() + FILE_HEADER_LEN);
     for record in &records {
-        let payload = postcard::to_stdvec(record).map_err(|e| LogError::Encode {
-            path: path.to_path_buf(),
-            reason: e.to_string(),
-        })?;
-        encode_record(&payload, &mut out);
+        encode_record(path, record, &mut out)?;
     }
     let unread = bytes.len() - parsed;
     if unread > 0 {
@@ -466,11 +748,13 @@ pub(crate) mod tests {
 
     fn transition(step: u32) -> Record {
         Record::Transition {
+            epoch: 1,
             agent: "a".into(),
             episode: 0,
             step,
             obs: vec![step as f32; 4],
             act: vec![0.5],
+            origin: ActionOrigin::Planned,
             next_obs: vec![step as f32 + 1.0; 4],
             reward: 0.1,
         }
@@ -478,6 +762,24 @@ pub(crate) mod tests {
 
     fn temp_path(dir: &tempfile::TempDir) -> PathBuf {
         dir.path().join("replay.log")
+    }
+
+    /// Transition `step` as the releases before ownership epochs encoded it (formats 1 and 2),
+    /// and what reading it gives: epoch 0, the planned action.
+    fn old_transition(step: u32) -> (Vec<u8>, Record) {
+        let payload = postcard::to_stdvec(&OnDisk::TransitionV1 {
+            agent: "a".into(),
+            episode: 0,
+            step,
+            obs: vec![step as f32; 4],
+            act: vec![0.5],
+            next_obs: vec![step as f32 + 1.0; 4],
+            reward: 0.1,
+        })
+        .unwrap();
+        let mut read = transition(step);
+        read.set_epoch(0);
+        (payload, read)
     }
 
     /// A disk that fills up on demand: while `full` is set, every write puts a prefix of its
@@ -587,22 +889,25 @@ pub(crate) mod tests {
         let path = temp_path(&dir);
         // The format written before this one: len | crc32(payload) | payload.
         let mut old = Vec::new();
+        let mut expected = Vec::new();
         for step in 0..4 {
-            let payload = postcard::to_stdvec(&transition(step)).unwrap();
+            let (payload, read) = old_transition(step);
             old.extend_from_slice(&(payload.len() as u32).to_le_bytes());
             old.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
             old.extend_from_slice(&payload);
+            expected.push(read);
         }
         std::fs::write(&path, &old).unwrap();
         let (mut log, rec) = ReplayLog::open(&path).unwrap();
         assert!(rec.migrated);
-        assert_eq!(rec.records, (0..4).map(transition).collect::<Vec<_>>());
+        assert_eq!(rec.records, expected);
         log.append(&[transition(4)]).unwrap();
         drop(log);
         assert!(std::fs::read(&path).unwrap().starts_with(MAGIC));
         let (_, rec) = ReplayLog::open(&path).unwrap();
         assert!(!rec.migrated);
-        assert_eq!(rec.records, (0..5).map(transition).collect::<Vec<_>>());
+        expected.push(transition(4));
+        assert_eq!(rec.records, expected);
         assert!(!path.with_extension("log.v1-damaged").exists());
     }
 
@@ -610,14 +915,14 @@ pub(crate) mod tests {
     fn an_old_format_log_with_a_torn_tail_keeps_its_original_beside_the_new_one() {
         let dir = tempfile::tempdir().unwrap();
         let path = temp_path(&dir);
-        let payload = postcard::to_stdvec(&transition(0)).unwrap();
+        let (payload, read) = old_transition(0);
         let mut old = (payload.len() as u32).to_le_bytes().to_vec();
         old.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
         old.extend_from_slice(&payload);
         old.extend_from_slice(&[7, 0, 0]);
         std::fs::write(&path, &old).unwrap();
         let (_, rec) = ReplayLog::open(&path).unwrap();
-        assert_eq!(rec.records, vec![transition(0)]);
+        assert_eq!(rec.records, vec![read]);
         assert_eq!(rec.truncated_bytes, 3);
         assert_eq!(
             std::fs::read(path.with_extension("log.v1-damaged")).unwrap(),
@@ -661,5 +966,114 @@ pub(crate) mod tests {
         let err = ReplayLog::open(&path).unwrap_err();
         assert!(err.to_string().contains("newer"), "{err}");
         assert_eq!(std::fs::read(&path).unwrap(), bytes);
+    }
+
+    /// A format-2 log (written before ownership epochs, its records encoded as that release
+    /// did) is upgraded to the current format on opening: every record reads as epoch 0 with
+    /// the planned action, a damaged record in it is still skipped, and new records append
+    /// after it.
+    #[test]
+    fn a_format_2_log_is_upgraded_and_extended() {
+        /// The record type of the release before epochs, as it was.
+        #[derive(Serialize)]
+        enum OldRecord {
+            Header {
+                task: proto::TaskId,
+                obs_dim: u32,
+                act_dim: u32,
+            },
+            Transition {
+                agent: String,
+                episode: u32,
+                step: u32,
+                obs: Vec<f32>,
+                act: Vec<f32>,
+                next_obs: Vec<f32>,
+                reward: f32,
+            },
+            EpisodeEnd {
+                agent: String,
+                episode: u32,
+                steps: u32,
+                episode_return: f32,
+                end: proto::EpisodeEnd,
+            },
+        }
+        let old = [
+            OldRecord::Header {
+                task: proto::TaskId::Cartpole,
+                obs_dim: 4,
+                act_dim: 1,
+            },
+            OldRecord::Transition {
+                agent: "a".into(),
+                episode: 0,
+                step: 0,
+                obs: vec![0.0; 4],
+                act: vec![0.5],
+                next_obs: vec![1.0; 4],
+                reward: 0.1,
+            },
+            OldRecord::EpisodeEnd {
+                agent: "a".into(),
+                episode: 0,
+                steps: 1,
+                episode_return: 0.1,
+                end: proto::EpisodeEnd::TimeLimit,
+            },
+        ];
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&2u32.to_le_bytes());
+        for record in &old {
+            frame(&postcard::to_stdvec(record).unwrap(), &mut bytes);
+        }
+        // A damaged record between the last two: format 2 resynchronised on it, so does 3.
+        frame(&[0xff; 9], &mut bytes);
+        let at = bytes.len() - 9;
+        bytes[at] ^= 0x01;
+        let mut tail = Vec::new();
+        frame(&postcard::to_stdvec(&old[2]).unwrap(), &mut tail);
+        bytes.extend_from_slice(&tail);
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        std::fs::write(&path, &bytes).unwrap();
+        let (mut log, rec) = ReplayLog::open(&path).unwrap();
+        assert!(rec.migrated);
+        assert_eq!((rec.truncated_bytes, rec.damaged_regions), (0, 1));
+        assert_eq!(rec.records.len(), 4);
+        let upgraded = std::fs::read(&path).unwrap();
+        assert_eq!(
+            upgraded[MAGIC.len()..FILE_HEADER_LEN],
+            FORMAT_VERSION.to_le_bytes()
+        );
+        assert_eq!(
+            rec.records[1],
+            Record::Transition {
+                epoch: 0,
+                agent: "a".into(),
+                episode: 0,
+                step: 0,
+                obs: vec![0.0; 4],
+                act: vec![0.5],
+                origin: ActionOrigin::Planned,
+                next_obs: vec![1.0; 4],
+                reward: 0.1,
+            }
+        );
+        assert_eq!(rec.records[2].epoch(), Some(0));
+        let claim = Record::Claim {
+            epoch: 1,
+            planner: "p".into(),
+        };
+        log.append(&[claim.clone(), transition(1)]).unwrap();
+        drop(log);
+        let (_, rec) = ReplayLog::open(&path).unwrap();
+        assert!(!rec.migrated);
+        assert_eq!(rec.records.len(), 6);
+        assert_eq!(
+            rec.records[3], rec.records[2],
+            "both episode ends read alike"
+        );
+        assert_eq!(rec.records[4..], [claim, transition(1)]);
     }
 }

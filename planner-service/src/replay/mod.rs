@@ -5,7 +5,7 @@ mod log;
 
 #[cfg(test)]
 pub(crate) use log::tests as log_tests;
-pub use log::{LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog};
+pub use log::{ActionOrigin, LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog};
 
 use crate::data::Transitions;
 use proto::{EpisodeEnd, TaskSpec};
@@ -51,11 +51,19 @@ pub enum ReplayError {
 pub struct ReplayBuffer {
     task: &'static TaskSpec,
     transitions: Transitions,
+    /// Which action each transition holds, in the order of `transitions`.
+    origins: Vec<ActionOrigin>,
     /// The episode each transition belongs to: (index into `agents`, episode number).
     owners: Vec<(u32, u32)>,
     agents: Vec<String>,
     episodes: Vec<EpisodeSummary>,
     log: Option<ReplayLog>,
+    /// The ownership epoch of the newest claim: what this buffer writes under, and below which
+    /// records are stale.
+    epoch: u64,
+    /// Records of an older epoch found after a newer claim when the log was opened (written by
+    /// a planner that had lost the run); skipped.
+    stale_skipped: usize,
     /// Most transitions kept (`None`: all).
     capacity: Option<usize>,
     /// Episodes evicted from memory whose records may still be in the log.
@@ -65,6 +73,8 @@ pub struct ReplayBuffer {
 }
 
 impl From<EpisodeSummary> for Record {
+    /// The episode's end record, at epoch 0 until a buffer stores it under its own (see
+    /// [`ReplayBuffer::append`]).
     fn from(summary: EpisodeSummary) -> Self {
         let EpisodeSummary {
             agent,
@@ -74,6 +84,7 @@ impl From<EpisodeSummary> for Record {
             end,
         } = summary;
         Record::EpisodeEnd {
+            epoch: 0,
             agent,
             episode,
             steps,
@@ -89,17 +100,22 @@ impl ReplayBuffer {
         Self {
             task,
             transitions: Transitions::new(task.obs_dim, task.act_dim),
+            origins: Vec::new(),
             owners: Vec::new(),
             agents: Vec::new(),
             episodes: Vec::new(),
             log: None,
+            epoch: 0,
+            stale_skipped: 0,
             capacity: None,
             evicted: HashSet::new(),
             evicted_on_disk: 0,
         }
     }
 
-    /// Opens the buffer stored at `path` (creating it), recovering every intact record.
+    /// Opens the buffer stored at `path` (creating it), recovering every intact record except
+    /// stale ones: an entry whose epoch is below that of a claim before it was written by a
+    /// planner that had lost the run, and is skipped (with a warning).
     ///
     /// Episodes the log holds transitions of but no end (the daemon stopped in their middle)
     /// are recorded as interrupted here: their transitions stay (they were acknowledged), and
@@ -152,6 +168,10 @@ impl ReplayBuffer {
         }
         let mut open_episodes: BTreeMap<(String, u32), EpisodeSummary> = BTreeMap::new();
         for record in records {
+            if record.epoch().is_some_and(|e| e < buffer.epoch) {
+                buffer.stale_skipped += 1;
+                continue;
+            }
             if !buffer.fits(&record) {
                 tracing::warn!(path = %path.display(), "skipped a replay record whose dimensions do not fit the task");
                 continue;
@@ -179,9 +199,12 @@ impl ReplayBuffer {
                 Record::EpisodeEnd { agent, episode, .. } => {
                     open_episodes.remove(&(agent.clone(), *episode));
                 }
-                Record::Header { .. } => {}
+                Record::Header { .. } | Record::Claim { .. } => {}
             }
             buffer.apply(&record);
+        }
+        if buffer.stale_skipped > 0 {
+            tracing::warn!(path = %path.display(), records = buffer.stale_skipped, epoch = buffer.epoch, "skipped records a planner wrote after it had lost the run");
         }
         let left_open: Vec<Record> = open_episodes
             .into_values()
@@ -209,22 +232,25 @@ impl ReplayBuffer {
                     && next_obs.len() == self.task.obs_dim
                     && act.len() == self.task.act_dim
             }
-            Record::Header { .. } | Record::EpisodeEnd { .. } => true,
+            Record::Header { .. } | Record::Claim { .. } | Record::EpisodeEnd { .. } => true,
         }
     }
 
     fn apply(&mut self, record: &Record) {
         match record {
             Record::Header { .. } => {}
+            Record::Claim { epoch, .. } => self.epoch = self.epoch.max(*epoch),
             Record::Transition {
                 agent,
                 episode,
                 obs,
                 act,
+                origin,
                 next_obs,
                 ..
             } => {
                 self.transitions.push(obs, act, next_obs);
+                self.origins.push(*origin);
                 let index = match self.agents.iter().position(|a| a == agent) {
                     Some(index) => index,
                     None => {
@@ -240,6 +266,7 @@ impl ReplayBuffer {
                 steps,
                 episode_return,
                 end,
+                ..
             } => self.episodes.push(EpisodeSummary {
                 agent: agent.clone(),
                 episode: *episode,
@@ -252,8 +279,12 @@ impl ReplayBuffer {
 
     /// Stores `records` together: when this returns `Ok` they are all in the log (as far as
     /// the OS is concerned) and in memory; on error none of them is in either, so the caller
-    /// can refuse what they came from and accept it again later.
-    pub fn append(&mut self, records: Vec<Record>) -> Result<(), ReplayError> {
+    /// can refuse what they came from and accept it again later. Every transition and episode
+    /// end is stored under the buffer's ownership epoch, whatever epoch it was built with.
+    pub fn append(&mut self, mut records: Vec<Record>) -> Result<(), ReplayError> {
+        for record in &mut records {
+            record.set_epoch(self.epoch);
+        }
         if let Some(record) = records.iter().find(|r| !self.fits(r)) {
             return Err(ReplayError::Dimension {
                 record: format!("{record:?}"),
@@ -272,6 +303,29 @@ impl ReplayBuffer {
             self.evict()?;
         }
         Ok(())
+    }
+
+    /// Takes the buffer over for `planner` at ownership `epoch` (above every earlier claim):
+    /// records the claim, synced, and writes everything after it under `epoch`.
+    pub fn claim(&mut self, epoch: u64, planner: &str) -> Result<(), ReplayError> {
+        self.append(vec![Record::Claim {
+            epoch,
+            planner: planner.to_string(),
+        }])?;
+        if let Some(syncer) = self.syncer() {
+            syncer.sync()?;
+        }
+        Ok(())
+    }
+
+    /// The ownership epoch this buffer writes under.
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Stale records skipped when the log was opened.
+    pub fn stale_skipped(&self) -> usize {
+        self.stale_skipped
     }
 
     /// Bounds the transitions kept to `capacity` (`None`: unbounded), evicting at once if the
@@ -319,6 +373,11 @@ impl ReplayBuffer {
         let keep: Vec<bool> = self.owners.iter().map(|o| !dropped.contains(o)).collect();
         let before = self.len();
         self.transitions.retain(|i| keep[i]);
+        let mut row = 0;
+        self.origins.retain(|_| {
+            row += 1;
+            keep[row - 1]
+        });
         self.owners.retain(|o| !dropped.contains(o));
         self.evicted_on_disk += before - self.len();
         tracing::info!(
@@ -333,7 +392,10 @@ impl ReplayBuffer {
         Ok(())
     }
 
-    /// Rewrites the log without the records of evicted episodes' transitions.
+    /// Rewrites the log without the records of evicted episodes' transitions, unless another
+    /// planner has claimed the run since (its records must not be rewritten by a planner that
+    /// lost the run: the compaction is skipped, and this planner steps down at its next
+    /// ownership check).
     fn compact(&mut self) -> Result<(), ReplayError> {
         let Some(log) = &mut self.log else {
             self.evicted.clear();
@@ -341,12 +403,17 @@ impl ReplayBuffer {
             return Ok(());
         };
         let evicted = &self.evicted;
-        log.rewrite(|record| match record {
+        let rewritten = log.rewrite(self.epoch, |record| match record {
             Record::Transition { agent, episode, .. } => {
                 !evicted.contains(&(agent.clone(), *episode))
             }
-            Record::Header { .. } | Record::EpisodeEnd { .. } => true,
-        })?;
+            Record::Header { .. } | Record::Claim { .. } | Record::EpisodeEnd { .. } => true,
+        });
+        if let Err(LogError::Fenced { found, .. }) = &rewritten {
+            tracing::warn!(path = %log.path().display(), held = self.epoch, found, "the run was claimed by another planner; the log is not compacted");
+            return Ok(());
+        }
+        rewritten?;
         tracing::info!(path = %log.path().display(), removed = self.evicted_on_disk, kept = self.transitions.len(), "compacted the replay log");
         self.evicted.clear();
         self.evicted_on_disk = 0;
@@ -360,6 +427,11 @@ impl ReplayBuffer {
 
     pub fn transitions(&self) -> &Transitions {
         &self.transitions
+    }
+
+    /// Which action each stored transition holds (in the order of [`Self::transitions`]).
+    pub fn origins(&self) -> &[ActionOrigin] {
+        &self.origins
     }
 
     pub fn episodes(&self) -> &[EpisodeSummary] {
@@ -380,14 +452,18 @@ mod tests {
     use super::*;
     use proto::TaskId;
 
+    const PLANNED: ActionOrigin = ActionOrigin::Planned;
+
     /// A transition of `agent`'s `episode` at `step` with the cartpole's dimensions.
     fn transition(agent: &str, episode: u32, step: u32, reward: f32) -> Record {
         Record::Transition {
+            epoch: 0,
             agent: agent.into(),
             episode,
             step,
             obs: vec![step as f32; 4],
             act: vec![0.1],
+            origin: PLANNED,
             next_obs: vec![step as f32 + 1.0; 4],
             reward,
         }
@@ -562,5 +638,83 @@ mod tests {
         let mut reopened = ReplayBuffer::open(&path, task).unwrap();
         reopened.set_capacity(Some(10)).unwrap();
         assert_eq!(reopened.transitions(), &kept);
+    }
+
+    /// A planner that lost the run (a newer claim is in the log) and wrote on: its records are
+    /// skipped on reading, the new owner's are kept, and the applied actions are kept as such.
+    #[test]
+    fn records_of_a_fenced_owner_are_skipped_and_origins_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
+        old_owner.claim(1, "pa").unwrap();
+        old_owner.append(vec![transition("a", 0, 0, 1.0)]).unwrap();
+        let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!((new_owner.epoch(), new_owner.len()), (1, 1));
+        new_owner.claim(2, "pb").unwrap();
+        let mut applied = transition("a", 0, 1, 1.0);
+        if let Record::Transition { act, origin, .. } = &mut applied {
+            *act = vec![-3.0];
+            *origin = ActionOrigin::Applied;
+        }
+        new_owner.append(vec![applied]).unwrap();
+        // The old owner, partitioned, still writes under epoch 1.
+        old_owner.append(vec![transition("a", 0, 1, 1.0)]).unwrap();
+        drop((old_owner, new_owner));
+
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.epoch(), 2);
+        assert_eq!(reopened.stale_skipped(), 1);
+        assert_eq!(reopened.len(), 2);
+        assert_eq!(reopened.origins(), &[PLANNED, ActionOrigin::Applied]);
+        assert_eq!(reopened.transitions().row(1).1, &[-3.0]);
+    }
+
+    /// Eviction keeps each transition's origin with it, and a planner that lost the run does
+    /// not compact the log the new owner writes to (that would replace the new owner's file).
+    #[test]
+    fn eviction_keeps_origins_aligned_and_a_fenced_owner_never_compacts() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = TaskId::Cartpole.spec();
+        let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
+        old_owner.claim(1, "pa").unwrap();
+        old_owner.set_capacity(Some(4)).unwrap();
+        for e in 0..3 {
+            let mut records = episode("a", e, 4);
+            // Episode e's first step was applied by the agent, the others planned.
+            if let Record::Transition { origin, .. } = &mut records[0] {
+                *origin = ActionOrigin::Applied;
+            }
+            old_owner.append(records).unwrap();
+        }
+        // Only the newest episode is kept in memory, its origins with it.
+        assert_eq!(old_owner.len(), 4);
+        assert_eq!(
+            old_owner.origins(),
+            &[ActionOrigin::Applied, PLANNED, PLANNED, PLANNED]
+        );
+        // Compacted (8 evicted ≥ 4 kept): the log holds the claim and the newest episode.
+        let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(new_owner.len(), 4);
+        new_owner.claim(2, "pb").unwrap();
+        new_owner.append(episode("b", 0, 2)).unwrap();
+        let before = std::fs::read(&path).unwrap();
+        // The old owner, fenced without knowing, evicts again: the log stays as it is.
+        for e in 3..6 {
+            old_owner.append(episode("a", e, 4)).unwrap();
+        }
+        let after = std::fs::read(&path).unwrap();
+        assert_eq!(after[..before.len()], before[..], "nothing rewritten");
+        drop((old_owner, new_owner));
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.epoch(), 2);
+        assert_eq!(
+            reopened.len(),
+            6,
+            "the new owner's transitions are all kept"
+        );
+        assert_eq!(reopened.stale_skipped(), 3 * 5);
     }
 }

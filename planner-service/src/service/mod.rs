@@ -4,7 +4,11 @@
 //! ```text
 //! attach query ──▶ Service::attach ──▶ Run (created or joined) + agent worker task
 //! obs sample ────▶ Service::route ───▶ agent worker (in order) ──▶ validate → store → act
+//! fleet change ──▶ Service::rebalance ──▶ step down from lost runs, take over free ones
 //! ```
+//! In a fleet of planners ([`crate::fleet`]) the service serves only the runs it owns: it
+//! stays silent on other runs' attach queries and observations, so the owner's answer is the
+//! only one. A planner with no peers owns every run.
 //! Each agent has one worker task, so its observations are handled strictly in order while
 //! agents (and runs) proceed concurrently; planning itself runs on the blocking pool, and
 //! training on the run's trainer task, so neither stalls the transport.
@@ -15,7 +19,8 @@ pub mod status;
 mod worker;
 
 use crate::config::{Preset, ServiceConfig};
-use crate::persist::{self, RunDir};
+use crate::fleet::{Fleet, FleetError, Owner};
+use crate::persist::{self, PersistError, RunDir};
 use crate::run::{EventSink, Hosting, Run};
 use crate::trainer::TrainLimits;
 use proto::{
@@ -38,6 +43,8 @@ pub enum ServiceError {
     Zenoh(String),
     #[error(transparent)]
     SessionConfig(#[from] proto::session::SessionConfigError),
+    #[error("joining the fleet: {0}")]
+    Fleet(#[from] crate::fleet::FleetError),
     #[error(transparent)]
     DataDir(#[from] persist::admin::AdminError),
     #[error("metrics endpoint: {0}")]
@@ -160,10 +167,31 @@ impl Outbox {
     }
 }
 
+/// Why this planner does not attach an agent.
+enum Refusal {
+    /// Said to the agent.
+    Report(ErrorReport),
+    /// Not said: another planner claimed the run's next ownership epoch first (so it answers).
+    Contended,
+}
+
+impl From<ErrorReport> for Refusal {
+    fn from(report: ErrorReport) -> Self {
+        Refusal::Report(report)
+    }
+}
+
+/// Why taking a run over failed, on the blocking pool.
+enum Taking {
+    Fleet(FleetError),
+    Open(crate::run::OpenError),
+}
+
 /// The planner daemon.
 pub struct Service {
     config: ServiceConfig,
     outbox: Outbox,
+    fleet: Arc<Fleet>,
     runs: Mutex<HashMap<String, RunHandle>>,
     /// Stored runs that could not be opened, with the reason: listed by `status`, refused at
     /// attach, left on disk untouched for the operator.
@@ -187,7 +215,8 @@ impl Service {
         shutdown: impl Future<Output = ()>,
     ) -> Result<(), ServiceError> {
         // Held until serving ends: `planner-service runs delete|archive` refuse meanwhile.
-        let _data_dir_lock = persist::admin::DataDirLock::acquire(&config.data_dir)?;
+        let _daemon_lock =
+            persist::admin::DaemonLock::acquire(&config.data_dir, &config.planner_id)?;
         let base = match &config.zenoh_config {
             Some(path) => Some(zenoh::Config::from_file(path).map_err(zenoh_err)?),
             None => None,
@@ -197,6 +226,16 @@ impl Service {
             connect: config.connect.clone(),
         };
         let mut zconfig = proto::session::zenoh_config(&endpoints, base)?;
+        if config.listen.is_empty() && config.zenoh_config.is_none() {
+            // Nothing connects to this planner (it only connects, to a router): join as a
+            // Zenoh client. A peer routes queries by the queryables and tokens it has heard
+            // of, and right after connecting to a router it has heard of none, so the fleet's
+            // first look at the live planners and leases would come back empty and a restarted
+            // planner would take runs that others hold. A client asks the router, which knows.
+            zconfig
+                .insert_json5("mode", "\"client\"")
+                .map_err(zenoh_err)?;
+        }
         // Zenoh reassembles messages of up to 1 GiB by default: bound it near the payload
         // limit, so an oversized message is dropped by the transport before it is buffered.
         let max_message = config
@@ -211,6 +250,14 @@ impl Service {
             .map_err(zenoh_err)?;
         let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
         let keys = Keys::new(&config.prefix);
+        let planner_id = config.planner_id.clone();
+        let (fleet, mut fleet_changes) = Fleet::join(
+            session.clone(),
+            keys.clone(),
+            planner_id.clone(),
+            config.fleet.clone(),
+        )
+        .await?;
         let service = Arc::new(Service {
             outbox: Outbox {
                 session: session.clone(),
@@ -218,6 +265,7 @@ impl Service {
                 refusal_log: Arc::default(),
                 metrics: Arc::default(),
             },
+            fleet,
             config,
             runs: Mutex::new(HashMap::new()),
             failed: Mutex::new(BTreeMap::new()),
@@ -228,8 +276,8 @@ impl Service {
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
-        service.resume_stored_runs().await;
-        let planner_id = service.config.planner_id.clone();
+        // Resume the stored runs that are ours (all of them for a planner without peers).
+        service.rebalance().await;
         let _alive = session
             .liveliness()
             .declare_token(keys.planner_alive(&planner_id))
@@ -283,6 +331,11 @@ impl Service {
                     Ok(token) => service.liveliness(token),
                     Err(e) => { tracing::error!(error = %e, "liveliness subscriber closed"); break; }
                 },
+                Some(()) = fleet_changes.recv() => {
+                    // One rebalance covers every change queued so far.
+                    while fleet_changes.try_recv().is_ok() {}
+                    service.rebalance().await;
+                }
                 () = &mut shutdown => break,
             }
         }
@@ -374,9 +427,19 @@ impl Service {
 
     /// Handles an attach query on a task of its own, or refuses it at once when
     /// [`CONCURRENT_ATTACHES`] are already in hand.
+    ///
+    /// A query for a run another planner owns is dropped at once, unanswered (dropping it ends
+    /// this planner's part in it), so the agent gets the owner's answer and no other: not
+    /// even a refusal for want of a slot.
     fn spawn_attach(self: &Arc<Self>, query: zenoh::query::Query) {
         if query.key_expr().is_wild() {
             return self.drop_wildcard("attach", query.key_expr().as_str());
+        }
+        if let Some(run) = self.outbox.keys().parse_attach(query.key_expr().as_str())
+            && !self.fleet.is_mine(run)
+        {
+            tracing::debug!(%run, owner = ?self.fleet.owner(run), "attach for a run owned elsewhere");
+            return;
         }
         match self.attach_slots.clone().try_acquire_owned() {
             Ok(slot) => {
@@ -422,7 +485,10 @@ impl Service {
                     Err(e) => AttachOutcome::Rejected(codec_report(&e)),
                     Ok(request) => match self.attach_agent(run, request).await {
                         Ok(accepted) => AttachOutcome::Accepted(accepted),
-                        Err(report) => AttachOutcome::Rejected(report),
+                        Err(Refusal::Report(report)) => AttachOutcome::Rejected(report),
+                        // Another planner is taking the run over at this moment: its answer
+                        // is the one the agent must get.
+                        Err(Refusal::Contended) => return,
                     },
                 }
             }
@@ -477,8 +543,8 @@ impl Service {
         &self,
         run_name: &str,
         request: AttachRequest,
-    ) -> Result<AttachAccepted, ErrorReport> {
-        let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
+    ) -> Result<AttachAccepted, Refusal> {
+        let refuse = |msg: String| Refusal::Report(ErrorReport::new(ErrorCode::Refused, msg));
         proto::validate_name(run_name).map_err(|e| refuse(e.to_string()))?;
         proto::validate_name(&request.agent).map_err(|e| refuse(e.to_string()))?;
         if !self.is_hosted(run_name) {
@@ -509,12 +575,12 @@ impl Service {
                 self.config.max_agents_per_run
             )));
         }
-        let magnitudes = self.config.limits.magnitudes(run.task());
         let worker = AgentWorker::new(
             run.clone(),
             request.agent.clone(),
             self.outbox.clone(),
-            magnitudes,
+            self.fleet.clone(),
+            self.config.limits.magnitudes(run.task()),
             self.plans.clone(),
         )?;
         let idle = std::time::Duration::from_secs(self.config.limits.agent_idle_seconds);
@@ -533,6 +599,7 @@ impl Service {
             episodes_done: run.episodes_stored(),
             models_version: models.version,
             next_episode: run.next_episode(&request.agent),
+            epoch: run.epoch(),
         })
     }
 
@@ -568,7 +635,7 @@ impl Service {
     }
 
     /// Opens a run that is not hosted yet (new, or stored but not resumed), one at a time.
-    async fn open_new_run(&self, name: &str, spec: &RunSpec) -> Result<(), ErrorReport> {
+    async fn open_new_run(&self, name: &str, spec: &RunSpec) -> Result<(), Refusal> {
         let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
         let _opening = self.opening.lock().await;
         if self.is_hosted(name) {
@@ -582,7 +649,8 @@ impl Service {
         {
             return Err(refuse(format!(
                 "run `{name}` is stored here but cannot be opened ({reason}): ask the operator, or use another run name"
-            )));
+            ))
+            .into());
         }
         let hosted = self
             .runs
@@ -593,17 +661,19 @@ impl Service {
             return Err(refuse(format!(
                 "this planner already hosts its limit of {} runs",
                 self.config.max_runs
-            )));
+            ))
+            .into());
         }
         let run = self.open_run(name, spec.clone()).await?;
         self.host(run);
         Ok(())
     }
 
-    /// Opens run `name` in the data directory (new, or stored by an earlier daemon) on the
-    /// blocking pool: reading its replay log and building its models may take a while, and a
-    /// failure there (even a panic) is this run's alone.
-    async fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, ErrorReport> {
+    /// Takes run `name` over (a new ownership epoch) and opens it in the data directory (new,
+    /// or stored by this or another planner) on the blocking pool: claiming the epoch, reading
+    /// the replay log and building the models may take a while, and a failure there (even a
+    /// panic) is this run's alone.
+    async fn open_run(&self, name: &str, spec: RunSpec) -> Result<Arc<Run>, Refusal> {
         let preset = self.preset_for(&spec)?;
         let dir = RunDir::new(&self.config.data_dir, name);
         let hosting = Hosting {
@@ -615,19 +685,37 @@ impl Service {
             },
             replay_capacity: self.config.storage.replay_capacity,
         };
-        let owned = name.to_string();
-        let opened =
-            tokio::task::spawn_blocking(move || Run::open(owned, spec, preset, dir, hosting)).await;
         let internal = |why: String| {
-            ErrorReport::new(
+            Refusal::Report(ErrorReport::new(
                 ErrorCode::Internal,
                 format!("cannot open run `{name}`: {why}"),
-            )
+            ))
         };
+        let (fleet, planner, owned) = (
+            self.fleet.clone(),
+            self.config.planner_id.clone(),
+            name.to_string(),
+        );
+        let opened = tokio::task::spawn_blocking(move || {
+            let epoch = fleet.take(&owned, &dir).map_err(Taking::Fleet)?;
+            Run::open(owned.clone(), spec, preset, dir, hosting, (epoch, &planner)).map_err(|e| {
+                fleet.step_down(&owned, format!("the run could not be opened: {e}"));
+                Taking::Open(e)
+            })
+        })
+        .await;
         match opened {
             Ok(Ok(run)) => Ok(run),
-            Ok(Err(e)) => Err(internal(e.to_string())),
-            Err(e) => Err(internal(e.to_string())),
+            Ok(Err(Taking::Fleet(FleetError::Persist(PersistError::EpochTaken { .. })))) => {
+                Err(Refusal::Contended)
+            }
+            Ok(Err(Taking::Fleet(e))) => Err(internal(format!("cannot take it over: {e}"))),
+            Ok(Err(Taking::Open(e))) => Err(internal(e.to_string())),
+            Err(e) => {
+                self.fleet
+                    .step_down(name, format!("opening the run failed: {e}"));
+                Err(internal(e.to_string()))
+            }
         }
     }
 
@@ -644,22 +732,59 @@ impl Service {
         );
     }
 
-    /// Re-opens every run stored in the data directory, so a restarted daemon carries on where
-    /// it stopped: status lists them at once, their trainers catch up with episodes stored
-    /// after the last checkpoint, and agents re-attach to them. Stored runs are resumed even
-    /// beyond `max_runs` (the limit is on creating runs, never on keeping data). A run that
-    /// cannot be opened (over today's limits, damaged, even one whose opening panics) is set
-    /// aside: logged, listed by `status` as failed with the reason, refused at attach, and
-    /// left on disk untouched; the daemon serves the others.
-    async fn resume_stored_runs(&self) {
+    /// Brings the runs this planner hosts in line with the fleet's view: steps down from the
+    /// runs another planner now owns (a newer lease, a newer epoch on disk, or reported fenced
+    /// by a worker), then takes over every stored run that is free and placed here. At start
+    /// this resumes a restarted daemon's runs (all stored runs, for a planner without peers):
+    /// status lists them at once, their trainers catch up with episodes stored after the last
+    /// checkpoint, and agents re-attach to them. Stored runs are taken even beyond `max_runs`
+    /// (the limit is on creating runs, never on keeping data). A run that cannot be opened
+    /// (over today's limits, damaged, even one whose opening panics) is set aside: logged,
+    /// listed by `status` as failed with the reason, refused at attach, not tried again by
+    /// this daemon, and left on disk untouched; the daemon serves the others.
+    async fn rebalance(&self) {
+        let mut lost: Vec<(String, String)> = self
+            .fleet
+            .take_fenced()
+            .into_iter()
+            .map(|run| {
+                (
+                    run,
+                    "its epoch on disk is newer than this planner's".to_string(),
+                )
+            })
+            .collect();
+        {
+            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            for (name, handle) in runs.iter() {
+                if let Owner::Holder { planner, epoch } = self.fleet.owner(name)
+                    && planner != self.config.planner_id
+                {
+                    lost.push((name.clone(), format!("{planner} holds it at epoch {epoch}")));
+                } else if let Err(e) = handle.run.check_owner() {
+                    lost.push((name.clone(), e.to_string()));
+                }
+            }
+        }
+        for (name, reason) in lost {
+            self.step_down(&name, reason).await;
+        }
         let stored = match persist::stored_runs(&self.config.data_dir) {
             Ok(stored) => stored,
             Err(e) => {
-                tracing::error!(error = %e, "cannot list stored runs; none resumed");
+                tracing::error!(error = %e, "cannot list stored runs; none taken over");
                 return;
             }
         };
         for (name, dir) in stored {
+            let set_aside = self
+                .failed
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .contains_key(&name);
+            if set_aside || self.is_hosted(&name) || !self.fleet.is_mine(&name) {
+                continue;
+            }
             let spec = match dir.read_spec() {
                 Ok(Some(spec)) => spec,
                 Ok(None) => {
@@ -671,10 +796,45 @@ impl Service {
                     continue;
                 }
             };
+            // One opening at a time, as at attach: an agent may be opening this run now.
+            let _opening = self.opening.lock().await;
+            if self.is_hosted(&name) {
+                continue;
+            }
             match self.open_run(&name, spec).await {
                 Ok(run) => self.host(run),
-                Err(report) => self.set_aside(&name, report.message),
+                Err(Refusal::Report(report)) => self.set_aside(&name, report.message),
+                Err(Refusal::Contended) => {
+                    tracing::info!(run = %name, "another planner took the run over first");
+                }
             }
+        }
+    }
+
+    /// Gives up run `name`: its trainer and workers stop, its lease goes, and each attached
+    /// agent is told to attach again (its query then reaches the new owner).
+    async fn step_down(&self, name: &str, reason: String) {
+        let Some(handle) = self
+            .runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(name)
+        else {
+            return;
+        };
+        handle.trainer.abort();
+        self.fleet.step_down(name, reason.clone());
+        for (agent, worker) in handle.agents {
+            worker.task.abort();
+            let report = ErrorReport::new(
+                ErrorCode::NotAttached,
+                format!("run `{name}` moved to another planner ({reason}): attach again"),
+            );
+            // JSON: every agent decodes by the sample's declared encoding, and JSON is the one
+            // all of them (Python included) speak.
+            self.outbox
+                .report(name, &agent, report, Encoding::Json)
+                .await;
         }
     }
 
@@ -717,6 +877,7 @@ impl Service {
                     episodes: tally.episodes,
                     transitions: tally.transitions,
                     models_version: run.models().version,
+                    epoch: run.epoch(),
                     training: run.is_training(),
                     exploring: run.exploring(),
                     last_returns: tally.last_returns,
@@ -743,6 +904,7 @@ impl Service {
             protocol_version: PROTOCOL_VERSION,
             uptime_seconds: self.started.elapsed().as_secs_f64(),
             runs: reports,
+            fleet: self.fleet.status(),
             failed_runs,
             wildcards_dropped: self.outbox.metrics.wildcards_dropped(),
             refused: self.outbox.metrics.refusals(),
@@ -838,6 +1000,9 @@ impl Service {
             });
             return;
         };
+        if !self.fleet.is_mine(run) {
+            return; // its owner answers
+        }
         let tx = {
             let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
             match runs.get(run) {

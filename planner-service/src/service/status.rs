@@ -74,6 +74,8 @@ pub struct PlannerStatus {
     pub protocol_version: u16,
     pub uptime_seconds: f64,
     pub runs: Vec<RunStatus>,
+    /// The fleet as this planner sees it, and its recent ownership events.
+    pub fleet: crate::fleet::FleetStatus,
     /// Stored runs this planner could not open, set aside with the reason.
     #[serde(default)]
     pub failed_runs: Vec<FailedRun>,
@@ -101,6 +103,8 @@ pub struct RunStatus {
     pub episodes: u32,
     pub transitions: usize,
     pub models_version: u64,
+    /// The ownership epoch this planner holds the run at.
+    pub epoch: u64,
     pub training: bool,
     pub exploring: bool,
     /// The last (up to 10) finished episodes: agent, episode, return.

@@ -3,8 +3,9 @@
 
 use super::{Outbox, codec_report};
 use crate::agent::AgentSession;
+use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
-use crate::run::{Run, sync_log};
+use crate::run::{Refused, Run, StoreError, sync_log};
 use crate::share::PlanGate;
 use proto::task::Magnitudes;
 use proto::{
@@ -33,6 +34,7 @@ pub(crate) struct AgentWorker {
     run: Arc<Run>,
     name: String,
     outbox: Outbox,
+    fleet: Arc<Fleet>,
     /// The largest observation and reward magnitudes accepted from this agent.
     magnitudes: Magnitudes,
     session: AgentSession,
@@ -86,6 +88,7 @@ impl AgentWorker {
         run: Arc<Run>,
         name: String,
         outbox: Outbox,
+        fleet: Arc<Fleet>,
         magnitudes: Magnitudes,
         plans: Arc<PlanGate>,
     ) -> Result<Self, ErrorReport> {
@@ -99,6 +102,7 @@ impl AgentWorker {
             run,
             name,
             outbox,
+            fleet,
             magnitudes,
             plans,
         })
@@ -141,6 +145,9 @@ impl AgentWorker {
             match self.run.store_interrupted(summary) {
                 Ok(syncer) => sync_log(self.run.name(), syncer).await,
                 Err(e) => {
+                    if let StoreError::Fenced(_) = e {
+                        self.fleet.report_fenced(self.run.name());
+                    }
                     tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode")
                 }
             }
@@ -153,7 +160,20 @@ impl AgentWorker {
         let position = |r: ErrorReport| r.at(msg.episode, msg.step);
         proto::validate::validate_observation(&msg, self.run.task(), &self.magnitudes)
             .map_err(|e| e.report(msg.episode, msg.step))?;
-        let (accepted, stored) = self.run.accept(&mut self.session, &msg)?;
+        let (accepted, stored) = self
+            .run
+            .accept(&mut self.session, &msg)
+            .map_err(|refused| match refused {
+                Refused::Step(report) => report,
+                Refused::Fenced(fenced) => {
+                    // Another planner owns the run now: step down, and send the agent there.
+                    self.fleet.report_fenced(self.run.name());
+                    position(ErrorReport::new(
+                        ErrorCode::NotAttached,
+                        format!("{fenced}: attach again"),
+                    ))
+                }
+            })?;
         // The episode's records reach the disk before this agent's next message is taken.
         sync_log(self.run.name(), stored.sync).await;
         let must_cover = stored.must_cover;
@@ -291,6 +311,7 @@ impl AgentWorker {
                 cut,
                 missed,
             },
+            epoch: self.run.epoch(),
         })
     }
 }
