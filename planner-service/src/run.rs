@@ -6,7 +6,7 @@ use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
 use crate::replay::{EpisodeSummary, LogSyncer, Record, ReplayBuffer, ReplayError};
-use crate::service::status::{Latency, LatencyWindow};
+use crate::service::status::{Latency, LatencyWindow, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
     EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, TaskSpec, TrainMode,
@@ -44,6 +44,7 @@ pub struct Run {
     wake_trainer: Notify,
     hosting: Hosting,
     latencies: Mutex<LatencyWindow>,
+    plan_tally: Mutex<PlanTally>,
     /// What `status` reports of the buffer, kept apart from it so a report never waits for a
     /// buffer busy writing to disk.
     tally: Mutex<Tally>,
@@ -238,6 +239,7 @@ impl Run {
             wake_trainer: Notify::new(),
             hosting,
             latencies: Mutex::new(LatencyWindow::default()),
+            plan_tally: Mutex::new(PlanTally::default()),
             tally: Mutex::new(tally),
             dir,
             epoch,
@@ -329,12 +331,25 @@ impl Run {
             .unwrap_or(0)
     }
 
-    /// Records how long a planned action took.
-    pub fn record_latency(&self, ms: f32) {
+    /// Records a planned action: how long it took, its iterations, whether the deadline cut
+    /// it short and whether it missed the deadline.
+    pub fn record_plan(&self, ms: f32, iterations: u32, cut: bool, missed: bool) {
         self.latencies
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .record(ms);
+        self.plan_tally
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .record(iterations, cut, missed);
+    }
+
+    /// How this run's plans went against its deadline.
+    pub fn plan_tally(&self) -> PlanTally {
+        *self
+            .plan_tally
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
     }
 
     /// Planning latency percentiles of the recent planned actions.

@@ -41,6 +41,8 @@ pub struct TrainLimits {
     pub max_seconds: f64,
     /// Raised when the daemon stops: training ends before its next minibatch.
     pub cancel: Arc<AtomicBool>,
+    /// The daemon's plans in flight, which retraining yields to between minibatches.
+    pub yield_to: Option<Arc<crate::share::PlanGate>>,
 }
 
 impl TrainLimits {
@@ -50,6 +52,7 @@ impl TrainLimits {
         Self {
             max_seconds: f64::INFINITY,
             cancel: Arc::new(AtomicBool::new(false)),
+            yield_to: None,
         }
     }
 
@@ -91,6 +94,7 @@ pub fn retrain(
             .map(|s| usize::try_from(s).unwrap_or(usize::MAX)),
         deadline,
         cancel: Some(limits.cancel.clone()),
+        yield_to: limits.yield_to.clone(),
     };
     let mut next = current.clone();
     let dynamics = next.dynamics.fit(

@@ -192,6 +192,9 @@ impl Keys {
     }
 
     /// `(run, agent)` of an agent-level key on `channel`, or `None` if the key is not one.
+    /// Both chunks pass [`validate_name`]: a wildcard (`*`, `**`, `$*`) or any other chunk that
+    /// is not a name never parses, so no reply is ever addressed to a key the sender chose
+    /// beyond two checked names.
     pub fn parse_agent_key<'k>(
         &self,
         key: &'k str,
@@ -204,7 +207,8 @@ impl Keys {
         let run = parts.next()?;
         (parts.next()? == "agents").then_some(())?;
         let agent = parts.next()?;
-        (parts.next()? == channel.suffix() && parts.next().is_none()).then_some((run, agent))
+        (parts.next()? == channel.suffix() && parts.next().is_none()).then_some(())?;
+        (validate_name(run).is_ok() && validate_name(agent).is_ok()).then_some((run, agent))
     }
 
     /// `(run, agent)` of an agent's liveliness token key.
@@ -261,6 +265,15 @@ mod tests {
             k.parse_agent_key("other/runs/r1/agents/a/obs", AgentChannel::Obs),
             None
         );
+        for not_names in [
+            "lab/ebmpc/runs/*/agents/*/obs",
+            "lab/ebmpc/runs/r1/agents/*/obs",
+            "lab/ebmpc/runs/**/agents/a/obs",
+            "lab/ebmpc/runs/r$*/agents/a/obs",
+            "lab/ebmpc/runs/r 1/agents/a/obs",
+        ] {
+            assert_eq!(k.parse_agent_key(not_names, AgentChannel::Obs), None);
+        }
         assert_eq!(k.parse_attach(&k.attach("run.7")), Some("run.7"));
         assert_eq!(
             k.parse_agent_alive(&k.agent_alive("r", "a")),

@@ -187,6 +187,11 @@ pub struct PlannerOverrides {
     pub icem_population_decay: Option<f32>,
     /// Adam planning: step size as a fraction of each action's half-range.
     pub adam_learning_rate: Option<f32>,
+    /// Milliseconds from an observation's arrival to its action: planning stops iterating
+    /// when the next iteration would cross it. `0` turns the deadline off (every configured
+    /// iteration runs, as a simulator that waits for its action wants); absent: the task's
+    /// control period.
+    pub deadline_ms: Option<u32>,
 }
 
 /// What an agent asks for when it attaches: which task it is and how its run should plan.
@@ -333,6 +338,11 @@ pub struct PlanStats {
     pub iterations: u32,
     /// Version of the models that planned.
     pub models_version: u64,
+    /// Iterations were left out because the next one would have crossed the run's deadline.
+    pub cut: bool,
+    /// The action was sent after the run's deadline, or no iteration fitted before it (the
+    /// action is then the previous plan's next one).
+    pub missed: bool,
 }
 
 /// The planner's answer to an observation.

@@ -100,6 +100,8 @@ fn action(rng: &mut StdRng) -> Action {
             mean_energy: x,
             iterations: rng.random(),
             models_version: rng.random(),
+            cut: rng.random(),
+            missed: rng.random(),
         },
         epoch: rng.random(),
     }

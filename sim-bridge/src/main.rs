@@ -179,6 +179,12 @@ struct SpecArgs {
     /// iCEM: population decay factor per iteration (default 1.25).
     #[arg(long)]
     icem_population_decay: Option<f32>,
+    /// Milliseconds from each observation to its action; planning stops iterating before it
+    /// would cross it. 0 (the default here) turns it off: a simulator waits for its action,
+    /// so its plans run every configured iteration, as the paper's did. A controller that
+    /// omits it gets the task's control period.
+    #[arg(long, default_value_t = 0)]
+    deadline_ms: u32,
 }
 
 /// Command-line spelling of [`TrainMode`].
@@ -226,6 +232,7 @@ impl SpecArgs {
                 icem_noise_beta: self.icem_noise_beta,
                 icem_keep_elites: self.icem_keep_elites,
                 icem_population_decay: self.icem_population_decay,
+                deadline_ms: Some(self.deadline_ms),
                 // The other overrides (batch sizes, learning rates, σ, CEM smoothing, the
                 // epoch schedule, the gradient-step cap) have no flag here: the planner's
                 // `[overrides]` or a controller's attach message sets them.

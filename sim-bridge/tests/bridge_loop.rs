@@ -148,6 +148,8 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                             mean_energy: 0.0,
                             iterations: 1,
                             models_version: 0,
+                            cut: false,
+                            missed: false,
                         },
                         epoch: EPOCH,
                     };

@@ -175,6 +175,20 @@ fn oversized() -> Vec<(PlannerOverrides, &'static str)> {
         ),
         (
             PlannerOverrides {
+                deadline_ms: Some(u32::MAX),
+                ..o()
+            },
+            "deadline_ms = 4294967295",
+        ),
+        (
+            PlannerOverrides {
+                deadline_ms: Some(1),
+                ..o()
+            },
+            "deadline_ms must be 0 (off) or at least",
+        ),
+        (
+            PlannerOverrides {
                 max_gradient_steps: Some(0),
                 ..o()
             },

@@ -115,7 +115,7 @@ fn episode(
     loop {
         match planner.as_mut() {
             Some((p, m)) => {
-                action.copy_from_slice(p.plan(&obs, &m.dynamics, &m.regularizer).action);
+                action.copy_from_slice(p.plan(&obs, &m.dynamics, &m.regularizer, None).action);
             }
             None => {
                 for (a, (lo, hi)) in action
@@ -217,7 +217,7 @@ pub fn run(
         let mut ended = false;
         for _ in 0..config.mpc_steps {
             let action = planner
-                .plan(&obs, &models.dynamics, &models.regularizer)
+                .plan(&obs, &models.dynamics, &models.regularizer, None)
                 .action
                 .to_vec();
             let out = env.step(&action)?;

@@ -51,6 +51,9 @@ pub struct Limits {
     pub max_retrain_seconds: f64,
     /// Largest message accepted, in bytes, checked on the raw payload before decoding.
     pub max_payload_bytes: u64,
+    /// Longest per-run deadline an agent may ask for (`deadline_ms`), in milliseconds: a plan
+    /// holds the cores it plans on for up to that long.
+    pub max_deadline_ms: u64,
     /// Seconds an agent's session waits for its next observation before it is closed if the
     /// agent has no liveliness token (it vanished without its token's deletion reaching us);
     /// its open episode is recorded as interrupted and its slot freed.
@@ -77,6 +80,7 @@ impl Default for Limits {
             max_plan_multiply_adds: 4_000_000_000_000,
             max_retrain_seconds: 3_600.0,
             max_payload_bytes: 64 << 10,
+            max_deadline_ms: 60_000,
             agent_idle_seconds: 3_600,
             magnitudes: BTreeMap::new(),
         }
@@ -126,6 +130,7 @@ impl Limits {
             ("max_model_bytes", self.max_model_bytes),
             ("max_plan_multiply_adds", self.max_plan_multiply_adds),
             ("max_payload_bytes", self.max_payload_bytes),
+            ("max_deadline_ms", self.max_deadline_ms),
             ("agent_idle_seconds", self.agent_idle_seconds),
         ];
         if let Some((name, _)) = counts.iter().find(|(_, v)| *v == 0) {
@@ -243,6 +248,14 @@ impl Limits {
                 "max_batch_size",
             ),
         ];
+        if let Some(ms) = preset.deadline_ms {
+            sizes.push((
+                "deadline_ms",
+                u64::from(ms),
+                self.max_deadline_ms,
+                "max_deadline_ms",
+            ));
+        }
         match preset.schedule {
             proto::EpochSchedule::Constant => {}
             proto::EpochSchedule::DropAfter { epochs, .. } => sizes.push((

@@ -45,6 +45,17 @@ pub struct ServiceConfig {
     pub limits: Limits,
     /// How runs keep their data on disk (`[storage]`).
     pub storage: StorageConfig,
+    /// The Prometheus endpoint (`[metrics]`).
+    pub metrics: MetricsConfig,
+}
+
+/// `[metrics]`: where the Prometheus text endpoint listens.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MetricsConfig {
+    /// Address of the endpoint (`GET /metrics`), e.g. `127.0.0.1:9464`. Absent: no endpoint.
+    /// It carries no authentication: keep it on loopback, or behind a proxy that has some.
+    pub listen: Option<std::net::SocketAddr>,
 }
 
 /// `[storage]`: how much of its experience a run keeps.
@@ -73,6 +84,7 @@ impl Default for ServiceConfig {
             fleet: crate::fleet::Pins::default(),
             limits: Limits::default(),
             storage: StorageConfig::default(),
+            metrics: MetricsConfig::default(),
         }
     }
 }

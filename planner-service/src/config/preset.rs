@@ -72,6 +72,19 @@ pub struct Preset {
     /// multiply-add rate on CPUs with AVX-512 BF16 (f32 is used where the CPU lacks it).
     #[serde(default = "default_precision")]
     pub inference_precision: InferencePrecision,
+    /// Milliseconds from an observation's arrival to its action (`None`: no deadline). The
+    /// task's control period unless overridden: a robot needs its action within it.
+    #[serde(default)]
+    pub deadline_ms: Option<u32>,
+}
+
+/// The shortest deadline a run may ask for: below it a plan cannot even be answered in time
+/// (decoding, storing and publishing take a millisecond or so).
+pub const MIN_DEADLINE_MS: u32 = 5;
+
+/// A task's control period in whole milliseconds (at least 1): its default deadline.
+fn control_period_ms(task: TaskId) -> u32 {
+    ((task.spec().control_dt * 1e3).round() as u32).max(1)
 }
 
 fn default_precision() -> InferencePrecision {
@@ -298,6 +311,7 @@ impl Preset {
             schedule: t.schedule,
             max_gradient_steps: None,
             inference_precision: default_precision(),
+            deadline_ms: Some(control_period_ms(task)),
         })
     }
 
@@ -470,6 +484,16 @@ impl Preset {
         }
         if let Some(p) = o.inference_precision {
             self.inference_precision = p;
+        }
+        match o.deadline_ms {
+            Some(0) => self.deadline_ms = None,
+            Some(ms) if ms < MIN_DEADLINE_MS => {
+                return Err(invalid(format!(
+                    "deadline_ms must be 0 (off) or at least {MIN_DEADLINE_MS}, not {ms}"
+                )));
+            }
+            Some(ms) => self.deadline_ms = Some(ms),
+            None => {}
         }
         self.apply_optimizer(o)?;
         if self.cem.elites > self.cem.population {
@@ -791,8 +815,10 @@ mod tests {
             icem_keep_elites: Some(0.2),
             icem_population_decay: Some(1.5),
             adam_learning_rate: None,
+            deadline_ms: Some(25),
         };
         p.apply(&o).unwrap();
+        assert_eq!(p.deadline_ms, Some(25));
         assert_eq!(p.cem.optimizer, Optimizer::Icem);
         assert_eq!(
             (
@@ -848,7 +874,35 @@ mod tests {
             schedule: _,
             max_gradient_steps: _,
             inference_precision: _,
+            deadline_ms: _,
         } = p;
+    }
+
+    /// A run's deadline is its task's control period unless overridden; 0 turns it off, and
+    /// a deadline too short to answer in is refused.
+    #[test]
+    fn the_deadline_defaults_to_the_control_period() {
+        let period = |task: TaskId| Preset::new(task, None).unwrap().deadline_ms;
+        assert_eq!(period(TaskId::Cartpole), Some(40));
+        assert_eq!(period(TaskId::Reacher3d), Some(20));
+        assert_eq!(period(TaskId::HalfCheetah), Some(50));
+        let mut p = Preset::new(TaskId::Cartpole, None).unwrap();
+        let deadline = |ms| PlannerOverrides {
+            deadline_ms: Some(ms),
+            ..Default::default()
+        };
+        p.apply(&deadline(0)).unwrap();
+        assert_eq!(p.deadline_ms, None);
+        p.apply(&deadline(200)).unwrap();
+        assert_eq!(p.deadline_ms, Some(200));
+        for hostile in [1, MIN_DEADLINE_MS - 1] {
+            let err = p.apply(&deadline(hostile)).unwrap_err().to_string();
+            assert!(err.contains("deadline_ms"), "{err}");
+        }
+        // The upper bound is a limit: u32::MAX is over it.
+        p.apply(&deadline(u32::MAX)).unwrap();
+        let err = crate::config::Limits::default().check(&p).unwrap_err();
+        assert_eq!((err.field, err.setting), ("deadline_ms", "max_deadline_ms"));
     }
 
     /// Hostile values of every real-valued and scheduled override are refused, naming the field.

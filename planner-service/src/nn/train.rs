@@ -20,6 +20,10 @@ pub struct FitBudget {
     pub deadline: Option<Instant>,
     /// Set from outside (the daemon shutting down): no further minibatch starts.
     pub cancel: Option<Arc<AtomicBool>>,
+    /// Plans to yield to: before each minibatch the fit waits while any is in flight (at most
+    /// [`crate::share::MAX_YIELD`]). Only off rayon's worker threads: a fit running on one (an
+    /// ensemble member trained in parallel) would hold the very thread a plan needs.
+    pub yield_to: Option<Arc<crate::share::PlanGate>>,
 }
 
 impl From<usize> for FitBudget {
@@ -136,6 +140,11 @@ pub fn run_epochs(
                     run.loss = (total / count as f64) as f32;
                 }
                 break 'epochs;
+            }
+            if let Some(plans) = &budget.yield_to
+                && rayon::current_thread_index().is_none()
+            {
+                plans.wait_for_plans(crate::share::MAX_YIELD);
             }
             total += step(batch, rng) as f64 * batch.len() as f64;
             count += batch.len();

@@ -41,6 +41,7 @@
 //! and on the first call with a model (again only for a model of another shape);
 //! [`AdamPlanner::optimize`] allocates nothing.
 
+use super::anytime::IterationClock;
 use super::cem::{CemConfig, CemOutcome, ConfigError, SequenceBox};
 use crate::dynamics::{Ensemble, MeanTape};
 use crate::energy::{EnergyGradScratch, Regularizer};
@@ -238,6 +239,7 @@ impl AdamPlanner {
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
+        clock: &mut IterationClock,
     ) -> CemOutcome {
         assert_eq!(obs.len(), self.task.obs_dim, "observation dimension");
         self.prepare(dynamics, regularizer);
@@ -256,19 +258,32 @@ impl AdamPlanner {
         self.best.copy_from_slice(&self.warm);
         self.best_return = f32::NEG_INFINITY;
         self.best_energy = 0.0;
-        let iterations = self.config.iterations;
+        let (iterations, population) = (self.config.iterations, self.config.population);
+        let mut done = 0;
+        let mut cut = false;
         for step in 1..=iterations + 1 {
+            // One iteration is a forward and a backward pass; the last forward pass only
+            // scores the final step. A deadline stops before an iteration that would cross it
+            // (the step taken last is then left unscored: the best scored sequence answers).
+            let scores_only = step > iterations;
+            if !scores_only && !clock.may_start(population, step == 1) {
+                cut = true;
+                break;
+            }
             self.forward(obs, dynamics, regularizer);
             self.keep_best();
-            if step > iterations {
+            if scores_only {
                 break;
             }
             self.backward(dynamics);
             self.adam_step(step as i32);
+            clock.finished(population);
+            done += 1;
         }
         CemOutcome {
-            iterations: iterations as u32,
+            iterations: done,
             elite_return: self.best_return,
+            cut,
         }
     }
 
@@ -670,8 +685,10 @@ mod tests {
         // velocity's; the optimum below is what shows the model learned `w`.)
         dynamics.fit(&data, 30, &mut rng);
         let mut planner = AdamPlanner::new(spec, config(5, 4, 60, 1), 0.0, 1).unwrap();
-        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None);
+        let mut clock = IterationClock::default();
+        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None, &mut clock);
         assert_eq!(outcome.iterations, 60);
+        assert!(!outcome.cut);
         for (t, step) in planner.best().chunks_exact(6).enumerate() {
             for (d, (a, want)) in step.iter().zip(&optimum).enumerate() {
                 assert!(
@@ -690,6 +707,14 @@ mod tests {
         planner.shift();
         assert_eq!(&planner.mean()[..24], &planner.best()[6..]);
         assert_eq!(&planner.mean()[24..], &[0.0; 6]);
+        // A deadline already passed leaves no time for a step: the answer is that warm start.
+        let warm = planner.mean().to_vec();
+        clock.start(Some(
+            std::time::Instant::now() - std::time::Duration::from_millis(1),
+        ));
+        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None, &mut clock);
+        assert_eq!((outcome.iterations, outcome.cut), (0, true));
+        assert_eq!(planner.best(), &warm[..]);
         planner.reset();
         assert!(planner.mean().iter().all(|&a| a == 0.0));
     }

@@ -18,6 +18,7 @@
 //! All buffers are allocated in [`Cem::new`]; [`Cem::optimize`] allocates nothing.
 
 use super::adam::AdamConfig;
+use super::anytime::IterationClock;
 use super::icem::IcemConfig;
 pub use proto::Optimizer;
 use rand::rngs::StdRng;
@@ -120,8 +121,11 @@ pub enum ConfigError {
 /// What one solve did.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CemOutcome {
-    /// Iterations run (at least 1).
+    /// Iterations run: at least 1 unless a deadline left no time for one (then the
+    /// distribution is the warm start, untouched).
     pub iterations: u32,
+    /// Iterations were left out because the next one would have crossed the deadline.
+    pub cut: bool,
     /// Mean score of the last iteration's elites; `-inf` if every one of them was non-finite.
     pub elite_return: f32,
 }
@@ -267,22 +271,35 @@ impl Cem {
         &self.order[..self.config.elites]
     }
 
-    /// Runs one solve from the warm-start mean, leaving the result in [`Cem::mean`].
-    pub fn optimize<O: PopulationObjective + ?Sized>(&mut self, objective: &mut O) -> CemOutcome {
+    /// Runs one solve from the warm-start mean, leaving the result in [`Cem::mean`]; stops
+    /// early when `clock` says the next iteration would cross its deadline.
+    pub fn optimize<O: PopulationObjective + ?Sized>(
+        &mut self,
+        objective: &mut O,
+        clock: &mut IterationClock,
+    ) -> CemOutcome {
         self.var.copy_from_slice(&self.init_var);
         let mut iterations = 0;
         let mut elite_return = f32::NEG_INFINITY;
+        let mut cut = false;
+        let population = self.config.population;
         while iterations < self.config.iterations
             && (iterations == 0 || self.max_variance() > self.config.min_variance)
         {
+            if !clock.may_start(population, iterations == 0) {
+                cut = true;
+                break;
+            }
             self.sample();
             objective.evaluate(&self.samples, &mut self.returns);
             elite_return = self.refit();
+            clock.finished(population);
             iterations += 1;
         }
         CemOutcome {
             iterations: iterations as u32,
             elite_return,
+            cut,
         }
     }
 
@@ -441,7 +458,7 @@ mod tests {
             out_of_bounds: 0,
             calls: 0,
         };
-        let outcome = cem.optimize(&mut objective);
+        let outcome = cem.optimize(&mut objective, &mut IterationClock::default());
         for (m, t) in cem.mean().iter().zip(&target) {
             assert!(
                 (m - t).abs() < 0.02,
@@ -452,6 +469,72 @@ mod tests {
         assert!(outcome.elite_return > -1e-3, "{outcome:?}");
         assert_eq!(objective.out_of_bounds, 0);
         assert_eq!(outcome.iterations as usize, objective.calls);
+    }
+
+    /// A quadratic whose every evaluation takes at least `pause`.
+    struct Slow(Quadratic, std::time::Duration);
+
+    impl PopulationObjective for Slow {
+        fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]) {
+            std::thread::sleep(self.1);
+            self.0.evaluate(actions, returns);
+        }
+    }
+
+    fn quadratic(target: Vec<f32>) -> Quadratic {
+        Quadratic {
+            target,
+            lower: -3.0,
+            upper: 3.0,
+            out_of_bounds: 0,
+            calls: 0,
+        }
+    }
+
+    #[test]
+    fn a_deadline_cuts_the_iterations_and_keeps_the_best_so_far() {
+        use std::time::{Duration, Instant};
+        // Each iteration takes at least 20 ms: at most 10 of the 30 fit in 200 ms, and the
+        // clock stops before one that would end after the deadline.
+        let cfg = CemConfig {
+            min_variance: 0.0, // only the deadline stops it early
+            ..config(2)
+        };
+        let mut cem = Cem::new(cfg, &[-3.0], &[3.0], 7).unwrap();
+        let mut objective = Slow(quadratic(vec![1.0, -1.0]), Duration::from_millis(20));
+        let mut clock = IterationClock::default();
+        clock.start(Some(Instant::now() + Duration::from_millis(200)));
+        let outcome = cem.optimize(&mut objective, &mut clock);
+        assert!(outcome.cut, "{outcome:?}");
+        assert!(outcome.iterations < 10, "{outcome:?}");
+        assert_eq!(outcome.iterations as usize, objective.0.calls);
+        // A deadline that has passed leaves the warm start untouched: no iteration runs.
+        let warm = cem.mean().to_vec();
+        clock.start(Some(Instant::now() - Duration::from_millis(1)));
+        let outcome = cem.optimize(&mut objective, &mut clock);
+        assert_eq!((outcome.iterations, outcome.cut), (0, true));
+        assert_eq!(cem.mean(), &warm[..]);
+    }
+
+    #[test]
+    fn a_deadline_that_does_not_bind_changes_nothing() {
+        // The same seed with no deadline and with one an hour away: the same solves, draw
+        // for draw (the clock is read, never the random state).
+        let solve = |deadline: Option<std::time::Instant>| {
+            let mut cem = Cem::new(config(3), &[-3.0], &[3.0], 11).unwrap();
+            let mut clock = IterationClock::default();
+            let mut means = Vec::new();
+            for _ in 0..3 {
+                clock.start(deadline);
+                let outcome = cem.optimize(&mut quadratic(vec![0.5, -1.0, 2.0]), &mut clock);
+                assert!(!outcome.cut);
+                means.extend_from_slice(cem.mean());
+                cem.shift();
+            }
+            means
+        };
+        let later = std::time::Instant::now() + std::time::Duration::from_secs(3600);
+        assert_eq!(solve(None), solve(Some(later)));
     }
 
     #[test]
@@ -465,7 +548,7 @@ mod tests {
             out_of_bounds: 0,
             calls: 0,
         };
-        cem.optimize(&mut objective);
+        cem.optimize(&mut objective, &mut IterationClock::default());
         assert_eq!(objective.out_of_bounds, 0);
         // The cap on the variance near a bound slows the approach to it (as in PETS), so the
         // mean gets close to the bound rather than onto it.
@@ -492,7 +575,7 @@ mod tests {
             out_of_bounds: 0,
             calls: 0,
         };
-        let outcome = cem.optimize(&mut objective);
+        let outcome = cem.optimize(&mut objective, &mut IterationClock::default());
         assert!(
             outcome.iterations > 1 && outcome.iterations < 200,
             "{outcome:?}"
@@ -517,7 +600,7 @@ mod tests {
             }
         }
         let mut cem = Cem::new(config(1), &[-1.0], &[1.0], 5).unwrap();
-        let outcome = cem.optimize(&mut Poisoned);
+        let outcome = cem.optimize(&mut Poisoned, &mut IterationClock::default());
         assert!((cem.mean()[0] + 0.5).abs() < 0.02, "{:?}", cem.mean());
         assert!(outcome.elite_return.is_finite());
     }
@@ -547,7 +630,7 @@ mod tests {
             let mut cfg_short = cem.config().clone();
             cfg_short.iterations = 2;
             cem.config = cfg_short;
-            cem.optimize(&mut objective);
+            cem.optimize(&mut objective, &mut IterationClock::default());
             cem.mean().to_vec()
         };
         assert_eq!(run(11), run(11));

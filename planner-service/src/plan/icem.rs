@@ -24,6 +24,7 @@
 //!
 //! All buffers are allocated in [`Icem::new`]; [`Icem::optimize`] allocates nothing.
 
+use super::anytime::IterationClock;
 use super::cem::{CemConfig, CemOutcome, ConfigError, PopulationObjective, SequenceBox};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -257,15 +258,25 @@ impl Icem {
     }
 
     /// Runs one solve from the warm-start mean; the plan is [`Icem::best`].
-    pub fn optimize<O: PopulationObjective + ?Sized>(&mut self, objective: &mut O) -> CemOutcome {
+    /// Stops early when `clock` says the next iteration would cross its deadline.
+    pub fn optimize<O: PopulationObjective + ?Sized>(
+        &mut self,
+        objective: &mut O,
+        clock: &mut IterationClock,
+    ) -> CemOutcome {
         self.std.copy_from_slice(&self.init_std);
         self.best_return = f32::NEG_INFINITY;
         let dim = self.mean.len();
         let iterations = self.config.iterations;
         let mut done = 0;
         let mut elite_return = f32::NEG_INFINITY;
+        let mut cut = false;
         while done < iterations && (done == 0 || self.max_variance() > self.config.min_variance) {
             let n = self.population_at(done);
+            if !clock.may_start(n, done == 0) {
+                cut = true;
+                break;
+            }
             self.sample(n);
             // Kept elites (shifted ones keep the fresh sample's last action) lead the population.
             let kept = self.kept_count.min(n);
@@ -282,11 +293,13 @@ impl Icem {
             }
             objective.evaluate(&self.samples[..n * dim], &mut self.returns[..n]);
             elite_return = self.refit(n);
+            clock.finished(n);
             done += 1;
         }
         CemOutcome {
             iterations: done as u32,
             elite_return,
+            cut,
         }
     }
 
@@ -450,7 +463,7 @@ mod tests {
         for seed in 0..5 {
             let mut objective = SmoothTarget::new(horizon, act_dim);
             let mut icem = Icem::new(config(horizon, 100, 6), &lo, &hi, seed).unwrap();
-            icem.optimize(&mut objective);
+            icem.optimize(&mut objective, &mut IterationClock::default());
             icem_error -= objective.score(icem.best());
             icem_samples += objective.scored;
 
@@ -458,7 +471,7 @@ mod tests {
             let mut cem_config = config(horizon, 200, 6);
             cem_config.optimizer = Optimizer::Cem;
             let mut cem = Cem::new(cem_config, &lo, &hi, seed).unwrap();
-            cem.optimize(&mut objective);
+            cem.optimize(&mut objective, &mut IterationClock::default());
             cem_error -= objective.score(cem.mean());
             cem_samples += objective.scored;
         }
@@ -560,7 +573,7 @@ mod tests {
             }
         }
         let mut objective = Bounds(0);
-        let outcome = icem.optimize(&mut objective);
+        let outcome = icem.optimize(&mut objective, &mut IterationClock::default());
         assert_eq!(objective.0, 0);
         assert!(outcome.iterations >= 1);
         assert!(icem.best().iter().all(|&a| a > 1.5), "{:?}", icem.best());
@@ -572,7 +585,7 @@ mod tests {
         let (horizon, act_dim) = (10, 2);
         let mut icem = Icem::new(config(horizon, 60, 3), &[-1.0; 2], &[1.0; 2], 4).unwrap();
         let mut objective = SmoothTarget::new(horizon, act_dim);
-        icem.optimize(&mut objective);
+        icem.optimize(&mut objective, &mut IterationClock::default());
         let dim = horizon * act_dim;
         assert_eq!(icem.kept_count, 3, "30 % of 10 elites");
         let first_kept = icem.kept[..dim].to_vec();
@@ -591,7 +604,7 @@ mod tests {
             }
         }
         let mut record = Record(Vec::new());
-        icem.optimize(&mut record);
+        icem.optimize(&mut record, &mut IterationClock::default());
         assert_eq!(&record.0[..dim - act_dim], &first_kept[act_dim..]);
         icem.reset();
         assert_eq!(icem.kept_count, 0);
@@ -602,7 +615,7 @@ mod tests {
     fn same_seed_same_plan() {
         let run = |seed| {
             let mut icem = Icem::new(config(6, 40, 3), &[-1.0], &[1.0], seed).unwrap();
-            icem.optimize(&mut SmoothTarget::new(6, 1));
+            icem.optimize(&mut SmoothTarget::new(6, 1), &mut IterationClock::default());
             icem.best().to_vec()
         };
         assert_eq!(run(3), run(3));

@@ -5,9 +5,11 @@
 //!   population), the real-time option.
 //! - [`imagine`]: the objective of the paper's eq. 5, rolling the learned dynamics forward for
 //!   a whole population at once (particles, ensembles, energy, termination), in parallel chunks.
+//! - [`anytime`]: the deadline of one solve, and when the next iteration would cross it.
 //! - [`mpc`]: [`MpcPlanner`], one agent's model-predictive controller tying the two together.
 
 pub mod adam;
+pub mod anytime;
 pub mod cem;
 pub mod icem;
 pub mod imagine;
@@ -15,6 +17,7 @@ pub mod mpc;
 mod search;
 
 pub use adam::{AdamConfig, AdamPlanner};
+pub use anytime::IterationClock;
 pub use cem::{Cem, CemConfig, CemOutcome, ConfigError, Optimizer, PopulationObjective};
 pub use icem::{Icem, IcemConfig};
 pub use imagine::Imagination;

@@ -3,10 +3,12 @@
 
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
+use crate::plan::anytime::IterationClock;
 use crate::plan::cem::{CemConfig, ConfigError};
 use crate::plan::imagine::Imagination;
 use crate::plan::search::{Imagined, Search};
 use proto::TaskSpec;
+use std::time::Instant;
 
 /// One agent's planner. Owns the optimiser's distribution (the warm start), the imagination's
 /// buffers and the random state, so planning allocates nothing.
@@ -17,6 +19,8 @@ pub struct MpcPlanner {
     imagination: Imagination,
     /// The action chosen by the last [`MpcPlanner::plan`] (the warm start has moved on since).
     action: Vec<f32>,
+    /// This agent's iteration timings, which decide how many iterations fit a deadline.
+    clock: IterationClock,
 }
 
 /// The answer to one observation.
@@ -29,8 +33,11 @@ pub struct PlanOutcome<'a> {
     pub predicted_return: f32,
     /// Mean energy per imagined transition of those elites (0 without a regulariser).
     pub mean_energy: f32,
-    /// Optimiser iterations run (fewer than configured after an early CEM stop).
+    /// Optimiser iterations run (fewer than configured after an early stop); 0 when the
+    /// deadline left no time for one, and the action is the previous plan's next one.
     pub iterations: u32,
+    /// Iterations were left out because the next one would have crossed the deadline.
+    pub cut: bool,
 }
 
 /// A plan optimised from scratch, with what the model imagines it will earn step by step: the
@@ -97,6 +104,7 @@ impl MpcPlanner {
             search,
             imagination,
             action: vec![0.0; task.act_dim],
+            clock: IterationClock::default(),
         })
     }
 
@@ -115,11 +123,18 @@ impl MpcPlanner {
 
     /// Plans from `obs` and returns the first action of the best plan found. The rest of the
     /// plan, shifted by one step, warm-starts the next call.
+    ///
+    /// With a `deadline`, iterations stop when the next one would end after it (see
+    /// [`IterationClock`]) and the best plan so far answers; when not even one fits, the
+    /// answer is the previous plan's next action (the warm start), with no elites scored
+    /// (`predicted_return` is `-inf`, `mean_energy` 0). Without one, every configured
+    /// iteration runs, exactly as the seed dictates.
     pub fn plan(
         &mut self,
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
+        deadline: Option<Instant>,
     ) -> PlanOutcome<'_> {
         let mut objective = Imagined {
             imagination: &mut self.imagination,
@@ -127,14 +142,21 @@ impl MpcPlanner {
             dynamics,
             regularizer,
         };
-        let (outcome, mean_energy) = self.search.optimize(&mut objective);
-        self.action.copy_from_slice(self.search.first_action());
+        self.clock.start(deadline);
+        let (outcome, mean_energy) = self.search.optimize(&mut objective, &mut self.clock);
+        if outcome.iterations == 0 {
+            self.action
+                .copy_from_slice(&self.search.mean()[..self.task.act_dim]);
+        } else {
+            self.action.copy_from_slice(self.search.first_action());
+        }
         self.search.shift();
         PlanOutcome {
             action: &self.action,
             predicted_return: outcome.elite_return,
             mean_energy,
             iterations: outcome.iterations,
+            cut: outcome.cut,
         }
     }
 
@@ -155,7 +177,8 @@ impl MpcPlanner {
             dynamics,
             regularizer,
         };
-        let (outcome, _) = self.search.optimize(&mut objective);
+        self.clock.start(None);
+        let (outcome, _) = self.search.optimize(&mut objective, &mut self.clock);
         let actions = self.search.plan().to_vec();
         self.search.set_mean(&warm_start);
         let horizon = self.search.config().horizon;
@@ -242,7 +265,7 @@ mod tests {
         let dynamics = learned_cart();
         let task = TaskId::Cartpole.spec();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 3).unwrap();
-        let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
         assert!(right.action[0] < -1.0, "{right:?}");
         assert!(
             right.predicted_return > 5.0 && right.predicted_return <= 8.0,
@@ -250,7 +273,7 @@ mod tests {
         );
         assert_eq!((right.iterations, right.mean_energy), (5, 0.0));
         planner.reset();
-        let left = planner.plan(&[-0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        let left = planner.plan(&[-0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
         assert!(left.action[0] > 1.0, "{left:?}");
     }
 
@@ -285,7 +308,7 @@ mod tests {
         // The regularised plan is the more familiar one, step for step on average.
         let mean_energy = |plan: &ImaginedPlan| plan.energies.iter().sum::<f32>();
         assert!(mean_energy(&regularised) < mean_energy(&unregularised));
-        let outcome = careful.plan(&obs, &dynamics, &deen);
+        let outcome = careful.plan(&obs, &dynamics, &deen, None);
         assert!(
             outcome.mean_energy.is_finite() && outcome.mean_energy > 0.0,
             "{outcome:?}"
@@ -299,14 +322,17 @@ mod tests {
         let obs = [0.5, PI, 0.0, 0.0];
         let mut a = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
         let mut b = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
-        let first = a.plan(&obs, &dynamics, &Regularizer::None).action[0];
-        assert_eq!(first, b.plan(&obs, &dynamics, &Regularizer::None).action[0]);
+        let first = a.plan(&obs, &dynamics, &Regularizer::None, None).action[0];
+        assert_eq!(
+            first,
+            b.plan(&obs, &dynamics, &Regularizer::None, None).action[0]
+        );
         // The warm start is the plan shifted by one step, with the neutral action appended.
         let plan = a.search.mean().to_vec();
         assert_eq!(plan[plan.len() - 1], 0.0);
-        let second = a.plan(&obs, &dynamics, &Regularizer::None).action[0];
+        let second = a.plan(&obs, &dynamics, &Regularizer::None, None).action[0];
         b.reset();
-        let fresh = b.plan(&obs, &dynamics, &Regularizer::None).action[0];
+        let fresh = b.plan(&obs, &dynamics, &Regularizer::None, None).action[0];
         assert_ne!(
             second, fresh,
             "warm and cold starts drew from different distributions"
@@ -318,7 +344,7 @@ mod tests {
         let dynamics = learned_cart();
         let task = TaskId::Cartpole.spec();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 2).unwrap();
-        planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
         let warm = planner.search.mean().to_vec();
         let imagined = planner.imagine_plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
         assert_eq!(planner.search.mean(), &warm[..]);
@@ -353,15 +379,18 @@ mod tests {
         let mut obs = [0.5, PI, 0.0, 0.0];
         for _ in 0..3 {
             let planned = planner
-                .plan(&obs, &dynamics, &Regularizer::None)
+                .plan(&obs, &dynamics, &Regularizer::None, None)
                 .action
                 .to_vec();
-            cem.optimize(&mut Imagined {
-                imagination: &mut imagination,
-                obs: &obs,
-                dynamics: &dynamics,
-                regularizer: &Regularizer::None,
-            });
+            cem.optimize(
+                &mut Imagined {
+                    imagination: &mut imagination,
+                    obs: &obs,
+                    dynamics: &dynamics,
+                    regularizer: &Regularizer::None,
+                },
+                &mut IterationClock::default(),
+            );
             assert_eq!(planned, cem.first_action());
             cem.shift();
             obs[0] += 0.1 * planned[0];
@@ -377,11 +406,52 @@ mod tests {
         cfg.population = 50;
         cfg.elites = 10;
         let mut planner = MpcPlanner::new(task, cfg, 0.0, false, 3).unwrap();
-        let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
         assert!(right.action[0] < -1.0, "{right:?}");
         planner.reset();
-        let left = planner.plan(&[-0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        let left = planner.plan(&[-0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
         assert!(left.action[0] > 1.0, "{left:?}");
+    }
+
+    #[test]
+    fn a_plan_with_no_time_answers_the_previous_plan_shifted() {
+        use std::time::{Duration, Instant};
+        let dynamics = learned_cart();
+        let task = TaskId::Cartpole.spec();
+        let obs = [0.5, PI, 0.0, 0.0];
+        let mut planner = MpcPlanner::new(task, config(), 0.0, false, 4).unwrap();
+        let first = planner.plan(&obs, &dynamics, &Regularizer::None, None);
+        assert!(first.iterations > 0 && !first.cut, "{first:?}");
+        // The warm start is the plan shifted by one step: its first action is what a plan
+        // that cannot run one iteration answers.
+        let shifted = planner.search.mean()[0];
+        let passed = Some(Instant::now() - Duration::from_millis(1));
+        let late = planner.plan(&obs, &dynamics, &Regularizer::None, passed);
+        assert_eq!((late.iterations, late.cut), (0, true));
+        assert_eq!(late.action, &[shifted]);
+        assert_eq!(late.mean_energy, 0.0);
+    }
+
+    #[test]
+    fn a_deadline_that_does_not_bind_plans_as_without_one() {
+        // Same seed, same observations: no deadline and a deadline an hour away take the same
+        // actions, every iteration run, nothing cut.
+        let dynamics = learned_cart();
+        let task = TaskId::Cartpole.spec();
+        let later = std::time::Instant::now() + std::time::Duration::from_secs(3600);
+        let actions = |deadline| {
+            let mut planner = MpcPlanner::new(task, config(), 0.0, false, 8).unwrap();
+            let mut obs = [0.5, PI, 0.0, 0.0];
+            let mut taken = Vec::new();
+            for _ in 0..4 {
+                let outcome = planner.plan(&obs, &dynamics, &Regularizer::None, deadline);
+                assert!(outcome.iterations > 0 && !outcome.cut, "{outcome:?}");
+                taken.push(outcome.action[0]);
+                obs[0] += 0.1 * outcome.action[0];
+            }
+            taken
+        };
+        assert_eq!(actions(None), actions(Some(later)));
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! drives the same way whichever search runs underneath.
 
 use super::adam::AdamPlanner;
+use super::anytime::IterationClock;
 use super::cem::{Cem, CemConfig, CemOutcome, ConfigError, Optimizer, PopulationObjective};
 use super::icem::Icem;
 use super::imagine::Imagination;
@@ -78,17 +79,30 @@ impl Search {
         }
     }
 
-    /// One solve, and the mean energy per imagined step of what it settled on (CEM and iCEM:
-    /// their last elites; Adam: its best sequence).
-    pub fn optimize(&mut self, problem: &mut Imagined<'_>) -> (CemOutcome, f32) {
+    /// One solve within the clock's deadline, and the mean energy per imagined step of what
+    /// it settled on (CEM and iCEM: their last elites; Adam: its best sequence; 0 when the
+    /// deadline left no time for an iteration).
+    pub fn optimize(
+        &mut self,
+        problem: &mut Imagined<'_>,
+        clock: &mut IterationClock,
+    ) -> (CemOutcome, f32) {
         let outcome = match self {
-            Search::Cem(s) => s.optimize(problem),
-            Search::Icem(s) => s.optimize(problem),
+            Search::Cem(s) => s.optimize(problem, clock),
+            Search::Icem(s) => s.optimize(problem, clock),
             Search::Adam(s) => {
-                let outcome = s.optimize(problem.obs, problem.dynamics, problem.regularizer);
-                return (outcome, s.best_energy());
+                let outcome = s.optimize(problem.obs, problem.dynamics, problem.regularizer, clock);
+                let energy = if outcome.iterations == 0 {
+                    0.0
+                } else {
+                    s.best_energy()
+                };
+                return (outcome, energy);
             }
         };
+        if outcome.iterations == 0 {
+            return (outcome, 0.0);
+        }
         let elites = match self {
             Search::Cem(s) => s.elites(),
             Search::Icem(s) => s.elites(),

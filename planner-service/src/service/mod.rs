@@ -14,6 +14,7 @@
 //! training on the run's trainer task, so neither stalls the transport.
 
 mod log_limit;
+pub mod metrics;
 pub mod status;
 mod worker;
 
@@ -46,6 +47,8 @@ pub enum ServiceError {
     Fleet(#[from] crate::fleet::FleetError),
     #[error(transparent)]
     DataDir(#[from] persist::admin::AdminError),
+    #[error("metrics endpoint: {0}")]
+    Metrics(String),
 }
 
 fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
@@ -94,11 +97,16 @@ pub(crate) struct Outbox {
     keys: Keys,
     /// Refusals are logged at a bounded rate: a client controls how many it causes.
     refusal_log: Arc<log_limit::LogLimit>,
+    metrics: Arc<metrics::Metrics>,
 }
 
 impl Outbox {
     pub(crate) fn keys(&self) -> &Keys {
         &self.keys
+    }
+
+    pub(crate) fn metrics(&self) -> &metrics::Metrics {
+        &self.metrics
     }
 
     /// Publishes `msg` on `key` in `encoding`, logging (not failing) on transport errors: the
@@ -149,6 +157,7 @@ impl Outbox {
         report: ErrorReport,
         encoding: Encoding,
     ) {
+        self.metrics.record_refusal(report.code);
         self.refusal_log.warn(|| {
             let (run, agent) = (truncated(run), truncated(agent));
             tracing::warn!(%run, %agent, code = ?report.code, episode = ?report.episode, step = ?report.step, "rejected: {}", report.message);
@@ -193,6 +202,8 @@ pub struct Service {
     attach_slots: Arc<Semaphore>,
     /// Raised at shutdown: every run's training stops before its next minibatch.
     cancel_training: Arc<AtomicBool>,
+    /// Plans in flight across all runs: retraining yields to them (see [`crate::share`]).
+    plans: Arc<crate::share::PlanGate>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -252,6 +263,7 @@ impl Service {
                 session: session.clone(),
                 keys: keys.clone(),
                 refusal_log: Arc::default(),
+                metrics: Arc::default(),
             },
             fleet,
             config,
@@ -260,6 +272,7 @@ impl Service {
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             cancel_training: Arc::new(AtomicBool::new(false)),
+            plans: Arc::default(),
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
@@ -287,6 +300,10 @@ impl Service {
             .declare_subscriber(keys.all_agents_alive())
             .await
             .map_err(zenoh_err)?;
+        let metrics_endpoint = match service.config.metrics.listen {
+            Some(addr) => Some(service.serve_metrics(addr).await?),
+            None => None,
+        };
         tracing::info!(planner = %planner_id, prefix = %keys.prefix(), "planner serving");
 
         tokio::pin!(shutdown);
@@ -323,9 +340,34 @@ impl Service {
             }
         }
         tracing::info!("shutting down");
+        if let Some(endpoint) = metrics_endpoint {
+            endpoint.abort();
+        }
         service.stop().await;
         session.close().await.map_err(zenoh_err)?;
         Ok(())
+    }
+
+    /// Serves the metrics as Prometheus text on `addr` (`GET /metrics`) on a task of its own.
+    async fn serve_metrics(
+        self: &Arc<Self>,
+        addr: std::net::SocketAddr,
+    ) -> Result<JoinHandle<()>, ServiceError> {
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|e| ServiceError::Metrics(format!("cannot listen on {addr}: {e}")))?;
+        let bound = listener
+            .local_addr()
+            .map_err(|e| ServiceError::Metrics(e.to_string()))?;
+        tracing::info!(%bound, "metrics endpoint listening (GET /metrics)");
+        // A weak reference: the endpoint must not keep a stopped service alive.
+        let service = Arc::downgrade(self);
+        Ok(self.runtime.spawn(metrics::serve(listener, move || {
+            service
+                .upgrade()
+                .map(|s| s.outbox.metrics.render(&s.status_report()))
+                .unwrap_or_default()
+        })))
     }
 
     /// Stops every worker (each finishes the message in hand, within a grace period) and every
@@ -390,6 +432,9 @@ impl Service {
     /// this planner's part in it), so the agent gets the owner's answer and no other: not
     /// even a refusal for want of a slot.
     fn spawn_attach(self: &Arc<Self>, query: zenoh::query::Query) {
+        if query.key_expr().is_wild() {
+            return self.drop_wildcard("attach", query.key_expr().as_str());
+        }
         if let Some(run) = self.outbox.keys().parse_attach(query.key_expr().as_str())
             && !self.fleet.is_mine(run)
         {
@@ -536,6 +581,7 @@ impl Service {
             self.outbox.clone(),
             self.fleet.clone(),
             self.config.limits.magnitudes(run.task()),
+            self.plans.clone(),
         )?;
         let idle = std::time::Duration::from_secs(self.config.limits.agent_idle_seconds);
         let worker = worker.idle_after(idle);
@@ -635,6 +681,7 @@ impl Service {
             train_limits: TrainLimits {
                 max_seconds: self.config.limits.max_retrain_seconds,
                 cancel: self.cancel_training.clone(),
+                yield_to: Some(self.plans.clone()),
             },
             replay_capacity: self.config.storage.replay_capacity,
         };
@@ -836,6 +883,8 @@ impl Service {
                     last_returns: tally.last_returns,
                     agents,
                     planning_latency: run.latency(),
+                    deadline_ms: run.preset().deadline_ms,
+                    plan_tally: run.plan_tally(),
                 }
             })
             .collect();
@@ -857,6 +906,8 @@ impl Service {
             runs: reports,
             fleet: self.fleet.status(),
             failed_runs,
+            wildcards_dropped: self.outbox.metrics.wildcards_dropped(),
+            refused: self.outbox.metrics.refusals(),
         }
     }
 
@@ -919,8 +970,23 @@ impl Service {
         });
     }
 
+    /// Drops a `what` (observation or attach) put on a wildcard key, unanswered: an answer
+    /// could only go to a key the sender chose, which matches every agent under it, so each
+    /// of them would receive a report it did not cause. Counted, and logged at a bounded rate.
+    fn drop_wildcard(&self, what: &str, key: &str) {
+        self.outbox.metrics.record_wildcard();
+        let key = truncated(key);
+        self.outbox.refusal_log.warn(|| {
+            tracing::warn!(%key, "dropped an {what} on a wildcard key, unanswered: send on your own agent's key");
+        });
+    }
+
     /// Hands an observation to its agent's worker, or reports why it cannot be handled.
     async fn route(&self, sample: zenoh::sample::Sample) {
+        let received = std::time::Instant::now();
+        if sample.key_expr().is_wild() {
+            return self.drop_wildcard("observation", sample.key_expr().as_str());
+        }
         let key = sample.key_expr().as_str().to_string();
         let encoding = Encoding::from_mime(&sample.encoding().to_string());
         let Some((run, agent)) = self
@@ -960,6 +1026,7 @@ impl Service {
                 let incoming = Incoming {
                     bytes: sample.payload().to_bytes().into_owned(),
                     encoding,
+                    received,
                 };
                 tx.try_send(incoming).map_err(|e| match e {
                     mpsc::error::TrySendError::Full(_) => ErrorReport::new(

@@ -38,6 +38,28 @@ impl LatencyWindow {
     }
 }
 
+/// How a run's plans went against its deadline, since the daemon started.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PlanTally {
+    /// Planned actions answered.
+    pub plans: u64,
+    /// Plans whose iterations were cut short by the deadline.
+    pub cut: u64,
+    /// Actions sent after the deadline, or with no iteration run before it.
+    pub deadline_misses: u64,
+    /// Iterations run, over all plans.
+    pub iterations: u64,
+}
+
+impl PlanTally {
+    pub fn record(&mut self, iterations: u32, cut: bool, missed: bool) {
+        self.plans += 1;
+        self.cut += u64::from(cut);
+        self.deadline_misses += u64::from(missed);
+        self.iterations += u64::from(iterations);
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Latency {
     pub p50_ms: f32,
@@ -57,6 +79,12 @@ pub struct PlannerStatus {
     /// Stored runs this planner could not open, set aside with the reason.
     #[serde(default)]
     pub failed_runs: Vec<FailedRun>,
+    /// Observations and attaches dropped unanswered because their key had a wildcard.
+    #[serde(default)]
+    pub wildcards_dropped: u64,
+    /// Messages answered with an error report, by error code, since the daemon started.
+    #[serde(default)]
+    pub refused: std::collections::BTreeMap<String, u64>,
 }
 
 /// A stored run that could not be opened (it stays on disk untouched).
@@ -83,6 +111,11 @@ pub struct RunStatus {
     pub last_returns: Vec<(String, u32, f32)>,
     pub agents: Vec<String>,
     pub planning_latency: Option<Latency>,
+    /// The run's deadline in milliseconds (`None`: off).
+    #[serde(default)]
+    pub deadline_ms: Option<u32>,
+    #[serde(default)]
+    pub plan_tally: PlanTally,
 }
 
 #[cfg(test)]

@@ -6,6 +6,7 @@ use crate::agent::AgentSession;
 use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
 use crate::run::{Refused, Run, StoreError, sync_log};
+use crate::share::PlanGate;
 use proto::task::Magnitudes;
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
@@ -14,14 +15,20 @@ use proto::{
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 
 /// A received observation, still encoded.
 pub(crate) struct Incoming {
     pub bytes: Vec<u8>,
     pub encoding: Encoding,
+    /// When the service took it off the transport: the run's deadline counts from here, so
+    /// time spent queued behind the agent's earlier messages counts against it too.
+    pub received: Instant,
 }
+
+/// Time kept back from a plan's deadline for building and publishing its action.
+const ANSWER_MARGIN: Duration = Duration::from_millis(1);
 
 pub(crate) struct AgentWorker {
     run: Arc<Run>,
@@ -39,6 +46,9 @@ pub(crate) struct AgentWorker {
     /// How long the worker waits for an observation before it checks that the agent still
     /// holds its liveliness token (and closes the session if not).
     idle: std::time::Duration,
+    /// The daemon's plans in flight: this worker's plans count there while they run, so that
+    /// retraining yields to them.
+    plans: Arc<PlanGate>,
 }
 
 /// A stable seed per (run seed, agent name), so runs are reproducible.
@@ -80,6 +90,7 @@ impl AgentWorker {
         outbox: Outbox,
         fleet: Arc<Fleet>,
         magnitudes: Magnitudes,
+        plans: Arc<PlanGate>,
     ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
         Ok(Self {
@@ -93,6 +104,7 @@ impl AgentWorker {
             outbox,
             fleet,
             magnitudes,
+            plans,
         })
     }
 
@@ -182,75 +194,107 @@ impl AgentWorker {
                 planner.reset();
             }
         }
-        let action = self.act(&msg).await.map_err(position)?;
+        let deadline = self
+            .run
+            .preset()
+            .deadline_ms
+            .map(|ms| incoming.received + Duration::from_millis(u64::from(ms)));
+        let action = self.act(&msg, deadline).await.map_err(position)?;
         self.session.acted(msg.step, &action.action);
         let key = self.outbox.keys().act(self.run.name(), &self.name);
         self.outbox.publish(&key, &action, incoming.encoding).await;
         Ok(())
     }
 
-    /// The action for `msg`: random while exploring, planned with the run's models otherwise.
-    async fn act(&mut self, msg: &Observation) -> Result<Action, ErrorReport> {
+    /// The action for `msg`: random while exploring, planned with the run's models otherwise,
+    /// within `deadline` when the run has one.
+    async fn act(
+        &mut self,
+        msg: &Observation,
+        deadline: Option<Instant>,
+    ) -> Result<Action, ErrorReport> {
         let started = Instant::now();
         let task = self.run.task();
         let models = self.run.models();
-        let (action, source, predicted_return, mean_energy, iterations) = if self.run.exploring() {
-            let action: Vec<f32> = task
-                .action_low
-                .iter()
-                .zip(task.action_high)
-                .map(|(&lo, &hi)| self.explore_rng.random_range(lo..=hi))
-                .collect();
-            (action, ActionSource::Random, 0.0, 0.0, 0)
-        } else {
-            let mut planner = self.planner.take().ok_or_else(|| {
-                ErrorReport::new(
-                    ErrorCode::Internal,
-                    "this agent's planner was lost in an earlier failure: attach again",
-                )
-            })?;
-            let obs = msg.obs.clone();
-            let plan_models = models.clone();
-            let joined = tokio::task::spawn_blocking(move || {
-                let outcome = planner.plan(&obs, &plan_models.dynamics, &plan_models.regularizer);
-                let planned = (
-                    outcome.action.to_vec(),
-                    outcome.predicted_return,
-                    outcome.mean_energy,
-                    outcome.iterations,
-                );
-                (planner, planned)
-            })
-            .await;
-            let (planner, outcome) = match joined {
-                Ok(done) => done,
-                Err(e) => {
-                    // The planner panicked: start this agent over with a fresh one.
-                    self.planner =
-                        new_planner(&self.run, agent_seed(self.run.spec().seed, &self.name)).ok();
-                    return Err(ErrorReport::new(
+        let (action, source, predicted_return, mean_energy, iterations, cut) =
+            if self.run.exploring() {
+                let action: Vec<f32> = task
+                    .action_low
+                    .iter()
+                    .zip(task.action_high)
+                    .map(|(&lo, &hi)| self.explore_rng.random_range(lo..=hi))
+                    .collect();
+                (action, ActionSource::Random, 0.0, 0.0, 0, false)
+            } else {
+                let mut planner = self.planner.take().ok_or_else(|| {
+                    ErrorReport::new(
                         ErrorCode::Internal,
-                        format!("planning failed: {e}"),
-                    ));
-                }
+                        "this agent's planner was lost in an earlier failure: attach again",
+                    )
+                })?;
+                let obs = msg.obs.clone();
+                let plan_models = models.clone();
+                let plan_deadline = deadline.map(|d| d - ANSWER_MARGIN);
+                let plans = self.plans.clone();
+                let joined = tokio::task::spawn_blocking(move || {
+                    let _planning = plans.planning();
+                    let outcome = planner.plan(
+                        &obs,
+                        &plan_models.dynamics,
+                        &plan_models.regularizer,
+                        plan_deadline,
+                    );
+                    let planned = (
+                        outcome.action.to_vec(),
+                        outcome.predicted_return,
+                        outcome.mean_energy,
+                        outcome.iterations,
+                        outcome.cut,
+                    );
+                    (planner, planned)
+                })
+                .await;
+                let (planner, outcome) = match joined {
+                    Ok(done) => done,
+                    Err(e) => {
+                        // The planner panicked: start this agent over with a fresh one.
+                        self.planner =
+                            new_planner(&self.run, agent_seed(self.run.spec().seed, &self.name))
+                                .ok();
+                        return Err(ErrorReport::new(
+                            ErrorCode::Internal,
+                            format!("planning failed: {e}"),
+                        ));
+                    }
+                };
+                self.planner = Some(planner);
+                let (action, predicted_return, mean_energy, iterations, cut) = outcome;
+                // A model that diverged on every elite scores −inf; JSON cannot carry that, and
+                // the statistic is informational, so report the most negative finite number.
+                let (predicted_return, mean_energy) =
+                    (finite_or_min(predicted_return), finite_or_min(mean_energy));
+                (
+                    action,
+                    ActionSource::Planned,
+                    predicted_return,
+                    mean_energy,
+                    iterations,
+                    cut,
+                )
             };
-            self.planner = Some(planner);
-            let (action, predicted_return, mean_energy, iterations) = outcome;
-            // A model that diverged on every elite scores −inf; JSON cannot carry that, and
-            // the statistic is informational, so report the most negative finite number.
-            let (predicted_return, mean_energy) =
-                (finite_or_min(predicted_return), finite_or_min(mean_energy));
-            (
-                action,
-                ActionSource::Planned,
-                predicted_return,
-                mean_energy,
-                iterations,
-            )
-        };
         let planning_ms = started.elapsed().as_secs_f32() * 1e3;
-        if source == ActionSource::Planned {
-            self.run.record_latency(planning_ms);
+        let planned = source == ActionSource::Planned;
+        let late = deadline.is_some_and(|d| Instant::now() > d);
+        let missed = planned && (late || (deadline.is_some() && iterations == 0));
+        if planned {
+            self.run.record_plan(planning_ms, iterations, cut, missed);
+            self.outbox.metrics().record_plan(
+                self.run.name(),
+                f64::from(planning_ms) / 1e3,
+                iterations,
+                cut,
+                missed,
+            );
         }
         Ok(Action {
             version: PROTOCOL_VERSION,
@@ -264,6 +308,8 @@ impl AgentWorker {
                 mean_energy,
                 iterations,
                 models_version: models.version,
+                cut,
+                missed,
             },
             epoch: self.run.epoch(),
         })

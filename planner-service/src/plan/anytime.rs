@@ -1,0 +1,111 @@
+//! Anytime planning: a solve stops iterating when its next iteration would finish after the
+//! plan's deadline, and answers with the best plan found so far.
+//!
+//! The cost of the next iteration is estimated from the iterations already timed, per scored
+//! candidate (iCEM's population shrinks from one iteration to the next): the latest iteration
+//! of this solve, or for a solve's first iteration the latest of an earlier solve. Without a
+//! deadline nothing is estimated or cut, so a seeded planner takes exactly the actions it
+//! always did; the only cost is reading the clock once per iteration.
+
+use std::time::{Duration, Instant};
+
+/// The time budget of one solve, and the iteration timings that outlive it. Owned by one
+/// planner (one agent): its timings describe its models and population on this machine.
+#[derive(Clone, Debug, Default)]
+pub struct IterationClock {
+    /// When the solve in hand must have ended; `None`: never cut.
+    deadline: Option<Instant>,
+    /// Seconds per scored candidate of the latest timed iteration; `None` before any.
+    per_candidate: Option<f64>,
+    /// When the iteration in hand started.
+    started: Option<Instant>,
+}
+
+impl IterationClock {
+    /// Starts a solve that must end by `deadline` (`None`: runs every configured iteration).
+    pub fn start(&mut self, deadline: Option<Instant>) {
+        self.deadline = deadline;
+        self.started = None;
+    }
+
+    /// Whether an iteration scoring `candidates` may start now: always without a deadline,
+    /// otherwise when the estimate says it ends by the deadline (or nothing is timed yet). A
+    /// first iteration refused halves the estimate, so a planner whose estimate came from a
+    /// slow moment (a burst of load) tries again soon instead of answering unplanned for ever.
+    pub fn may_start(&mut self, candidates: usize, first: bool) -> bool {
+        let Some(deadline) = self.deadline else {
+            return true;
+        };
+        let now = Instant::now();
+        let fits = match self.per_candidate {
+            None => now < deadline,
+            Some(per) => now + Duration::from_secs_f64(per * candidates as f64) <= deadline,
+        };
+        if fits {
+            self.started = Some(now);
+        } else if first && let Some(per) = self.per_candidate.as_mut() {
+            *per *= 0.5;
+        }
+        fits
+    }
+
+    /// Records the end of the iteration that [`IterationClock::may_start`] let start.
+    pub fn finished(&mut self, candidates: usize) {
+        if let Some(started) = self.started.take() {
+            let seconds = started.elapsed().as_secs_f64();
+            self.per_candidate = Some(seconds / candidates.max(1) as f64);
+        }
+    }
+
+    /// Whether the solve in hand has a deadline.
+    pub fn has_deadline(&self) -> bool {
+        self.deadline.is_some()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn without_a_deadline_every_iteration_starts() {
+        let mut clock = IterationClock::default();
+        clock.start(None);
+        for _ in 0..3 {
+            assert!(clock.may_start(1_000_000, false));
+            clock.finished(1);
+        }
+        assert!(!clock.has_deadline());
+    }
+
+    #[test]
+    fn a_passed_deadline_refuses_and_an_estimate_over_it_refuses() {
+        let mut clock = IterationClock::default();
+        clock.start(Some(Instant::now() - Duration::from_millis(1)));
+        assert!(!clock.may_start(10, true), "the deadline has passed");
+        // One candidate took at least 20 ms: 10 of them cannot fit in 100 ms.
+        clock.start(Some(Instant::now() + Duration::from_secs(3600)));
+        assert!(clock.may_start(1, true));
+        std::thread::sleep(Duration::from_millis(20));
+        clock.finished(1);
+        clock.start(Some(Instant::now() + Duration::from_millis(100)));
+        assert!(!clock.may_start(10, false));
+        // They fit in an hour.
+        clock.start(Some(Instant::now() + Duration::from_secs(3600)));
+        assert!(clock.may_start(10, false));
+    }
+
+    #[test]
+    fn a_refused_first_iteration_halves_the_estimate() {
+        let mut clock = IterationClock {
+            per_candidate: Some(1.0),
+            ..Default::default()
+        };
+        clock.start(Some(Instant::now() + Duration::from_secs(3600)));
+        // 8000 candidates at 1 s each cannot fit in an hour; at 0.25 s (after two halvings)
+        // 8000 × 0.25 = 2000 s can.
+        assert!(!clock.may_start(8000, true));
+        assert!(!clock.may_start(8000, true));
+        assert!(clock.may_start(8000, true));
+    }
+}
