@@ -15,12 +15,14 @@
 //!   own kernel by it, and a claim nobody can re-measure rots.
 //!
 //! The weight-gradient transposes of the training passes are timed too. Every figure but the
-//! `matmul_par` row runs on the calling thread. Inputs are uniform in `[-1, 1)`, so no product
-//! meets a denormal.
+//! `matmul_par` row runs on the calling thread and is timed in that thread's CPU time (the
+//! `matmul_par` row in the process's, both threads' time summed), so a core lost to another
+//! process does not lower a rate; the CPU share column says how much of the wall time the
+//! measurement had the CPU. Inputs are uniform in `[-1, 1)`, so no product meets a denormal.
 
 use super::BenchError;
 use super::peak::{Peak, percent};
-use super::timing::{BATCHES, Timing, measure_for};
+use super::timing::{BATCHES, Clock, Timing, measure_for};
 use crate::nn::Activation;
 use crate::nn::matmul::{
     Encoding, Init, MatMut, MatRef, PackedMatrix, bf16_pair, matmul, matmul_packed, matmul_par,
@@ -95,14 +97,16 @@ pub(super) struct Settings {
     pub seed: u64,
 }
 
-/// One kernel's time per product.
+/// One kernel's CPU time per product.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Throughput {
     pub best_ms: f64,
     pub median_ms: f64,
-    /// GFLOP/s at the best and the median batch (`2·m·n·k` per product).
+    /// GFLOP/s per CPU second at the best and the median batch (`2·m·n·k` per product).
     pub best_gflops: f64,
     pub median_gflops: f64,
+    /// CPU time over wall time of the timed batches (see [`Timing::cpu_share`]).
+    pub cpu_share: Option<f64>,
 }
 
 impl Throughput {
@@ -113,6 +117,7 @@ impl Throughput {
             median_ms: t.median_ms,
             best_gflops: gflops(t.min_ms),
             median_gflops: gflops(t.median_ms),
+            cpu_share: t.cpu_share,
         }
     }
 }
@@ -148,6 +153,7 @@ pub struct ProductTiming {
 pub struct TransposeTiming {
     pub rows: usize,
     pub cols: usize,
+    /// CPU time per transpose.
     pub best_us: f64,
     pub median_us: f64,
 }
@@ -164,8 +170,9 @@ pub struct KernelReport {
     pub layers: Vec<LayerTiming>,
     pub products: Vec<ProductTiming>,
     pub transposes: Vec<TransposeTiming>,
-    /// This core's peak, measured before and after the kernels (the higher): every f32 row is a fraction of the f32
-    /// FMA peak, every bf16 row of the bf16 dot peak (`matmul_par` rows of twice the peak).
+    /// This core's peak, measured before and after the kernels (the higher): every f32 row is
+    /// a fraction of the f32 FMA peak, every bf16 row of the bf16 dot peak (per CPU second, so
+    /// the two-thread `matmul_par` rows too).
     pub peak: Peak,
 }
 
@@ -223,7 +230,7 @@ fn time_layer(
     let wt = MatRef::new(&w, k, m).t();
     let mut c = vec![0.0; m * ld];
 
-    let general = measure_for(batch, || {
+    let general = measure_for(Clock::Thread, batch, || {
         matmul(
             MatMut::with_stride(&mut c, m, n, ld),
             wt,
@@ -237,7 +244,7 @@ fn time_layer(
     });
 
     let packed = PackedMatrix::pack(wt);
-    let packed_f32 = measure_for(batch, || {
+    let packed_f32 = measure_for(Clock::Thread, batch, || {
         matmul_packed(
             MatMut::with_stride(&mut c, m, n, ld),
             Encoding::F32,
@@ -255,7 +262,7 @@ fn time_layer(
         let (y_rows, c_rows) = (pairs.storage_rows(k), pairs.storage_rows(m));
         let y = to_bf16_pairs(&h, k, n, ld);
         let mut c = vec![0.0; c_rows * ld];
-        measure_for(batch, || {
+        measure_for(Clock::Thread, batch, || {
             matmul_packed(
                 MatMut::with_stride(&mut c, c_rows, n, ld),
                 pairs,
@@ -301,8 +308,8 @@ fn time_product(shape: Shape, batch: Duration, rng: &mut StdRng) -> ProductTimin
     let x = random(rng, m * k);
     let y = random(rng, k * n);
     let mut c = vec![0.0; m * n];
-    let mut ours_with = |product: fn(MatMut<'_>, MatRef<'_>, MatRef<'_>, Init<'_>)| {
-        measure_for(batch, || {
+    let mut ours_with = |clock, product: fn(MatMut<'_>, MatRef<'_>, MatRef<'_>, Init<'_>)| {
+        measure_for(clock, batch, || {
             product(
                 MatMut::new(&mut c, m, n),
                 MatRef::new(&x, m, k),
@@ -312,9 +319,9 @@ fn time_product(shape: Shape, batch: Duration, rng: &mut StdRng) -> ProductTimin
             black_box(&mut c);
         })
     };
-    let ours = ours_with(matmul);
-    let ours_parallel = ours_with(matmul_par);
-    let gemm = measure_for(batch, || {
+    let ours = ours_with(Clock::Thread, matmul);
+    let ours_parallel = ours_with(Clock::Process, matmul_par);
+    let gemm = measure_for(Clock::Thread, batch, || {
         // SAFETY: `c` is m × n, `x` m × k and `y` k × n, all dense row-major (column stride 1,
         // row stride the width), and nothing else accesses them during the call.
         unsafe {
@@ -354,7 +361,7 @@ fn time_transpose(rows: usize, cols: usize, batch: Duration) -> TransposeTiming 
     let src: Vec<f32> = (0..rows * cols).map(|v| v as f32).collect();
     let ld_dst = rows.div_ceil(16) * 16;
     let mut dst = vec![0.0; cols * ld_dst];
-    let t = measure_for(batch, || {
+    let t = measure_for(Clock::Thread, batch, || {
         transpose(black_box(&src), rows, cols, cols, &mut dst, ld_dst);
         black_box(&mut dst);
     });
@@ -376,21 +383,23 @@ fn write_row(
 ) -> fmt::Result {
     write!(
         f,
-        "\n  {label:<20} {kernel:<22} {:>9.3} {:>9.1} {:>6} {:>10.3} {:>9.1} {:>6}",
+        "\n  {label:<20} {kernel:<22} {:>9.3} {:>9.1} {:>6} {:>10.3} {:>9.1} {:>6} {:>6}",
         t.best_ms,
         t.best_gflops,
         percent(t.best_gflops, peak),
         t.median_ms,
         t.median_gflops,
-        percent(t.median_gflops, peak)
+        percent(t.median_gflops, peak),
+        t.cpu_share
+            .map_or("-".to_string(), |s| format!("{:.0}%", 100.0 * s))
     )
 }
 
 fn write_header(f: &mut fmt::Formatter<'_>, first: &str) -> fmt::Result {
     write!(
         f,
-        "\n  {first:<20} {:<22} {:>9} {:>9} {:>6} {:>10} {:>9} {:>6}",
-        "kernel", "best ms", "GFLOP/s", "peak", "median ms", "GFLOP/s", "peak"
+        "\n  {first:<20} {:<22} {:>9} {:>9} {:>6} {:>10} {:>9} {:>6} {:>6}",
+        "kernel", "best ms", "GFLOP/s", "peak", "median ms", "GFLOP/s", "peak", "CPU"
     )
 }
 
@@ -399,11 +408,11 @@ impl fmt::Display for KernelReport {
         write!(
             f,
             "bench kernel: {:?} kernels, per product the best and the median of {BATCHES} \
-             batches; GFLOP/s count 2·m·n·k\n  {}",
+             batches in CPU time (ms per product; GFLOP/s count 2·m·n·k per CPU second; CPU: \
+             the share of the wall time the batches were on a CPU)\n  {}",
             self.simd, self.peak
         )?;
         let (f32_peak, bf16_peak) = (self.peak.f32_gflops, self.peak.bf16_gflops);
-        let par_peak = f32_peak.map(|p| p * self.parallel_threads as f64);
         if !self.layers.is_empty() {
             write!(
                 f,
@@ -435,6 +444,7 @@ impl fmt::Display for KernelReport {
                 "\n\n  dense products C = X·Y against the gemm crate (m×n×k: C is m×n)"
             )?;
             write_header(f, "product")?;
+            // Both threads' CPU time counts, so its rate is per core as well.
             let parallel = format!("ours, matmul_par ({}t)", self.parallel_threads);
             for p in &self.products {
                 write_row(
@@ -444,7 +454,7 @@ impl fmt::Display for KernelReport {
                     &p.ours,
                     f32_peak,
                 )?;
-                write_row(f, "", &parallel, &p.ours_parallel, par_peak)?;
+                write_row(f, "", &parallel, &p.ours_parallel, f32_peak)?;
                 write_row(f, "", "gemm, one thread", &p.gemm, f32_peak)?;
             }
         }
@@ -454,7 +464,7 @@ impl fmt::Display for KernelReport {
         for t in &self.transposes {
             write!(
                 f,
-                "\n  transpose {}×{} (weight-gradient operand): {:.2} µs best, {:.2} µs median",
+                "\n  transpose {}×{} (weight-gradient operand): {:.2} µs best, {:.2} µs median (CPU)",
                 t.rows, t.cols, t.best_us, t.median_us
             )?;
         }
@@ -472,6 +482,7 @@ mod tests {
             .all(|v| v.is_finite() && *v > 0.0)
             && t.best_ms <= t.median_ms
             && t.best_gflops >= t.median_gflops
+            && t.cpu_share.is_none_or(|s| s > 0.0 && s.is_finite())
     }
 
     #[test]
@@ -519,6 +530,7 @@ mod tests {
             "gemm, one thread",
             "transpose 19×6",
             "measured peak per core",
+            "in CPU time",
         ] {
             assert!(text.contains(needle), "{needle} missing from\n{text}");
         }

@@ -12,7 +12,7 @@
 //! trials is kept. Where the CPU lacks AVX-512 (or AVX-512 BF16) the corresponding peak is
 //! `None`: the kernels then run a different instruction mix and no 512-bit peak applies.
 
-use std::time::Duration;
+use super::cputime::thread_cpu_time;
 
 /// Independent accumulators, as in `peak.c`.
 const CHAINS: usize = 12;
@@ -129,18 +129,6 @@ impl Best {
             self.rate = Some(self.rate.map_or(rate, |b| b.max(rate)));
         }
     }
-}
-
-/// Time the calling thread has spent on a CPU, to the nanosecond (`CLOCK_THREAD_CPUTIME_ID`;
-/// `schedstat` is only updated at scheduler ticks, too coarse for millisecond trials).
-fn thread_cpu_time() -> Option<Duration> {
-    let mut t = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `t` is a valid timespec for the call to fill.
-    let ok = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) } == 0;
-    ok.then(|| Duration::new(t.tv_sec as u64, t.tv_nsec as u32))
 }
 
 #[cfg(target_arch = "x86_64")]

@@ -1,9 +1,15 @@
-//! `bench train`: milliseconds per training step (one minibatch) of the dynamics model and of
-//! DEEN, at the preset's sizes and batch sizes, and how a DEEN step splits into its phases.
+//! `bench train`: CPU milliseconds per training step (one minibatch) of the dynamics model and
+//! of DEEN, at the preset's sizes and batch sizes, their matrix-product rate as a fraction of
+//! the per-core f32 peak, and how a DEEN step splits into its phases.
+//!
+//! Steps run their products on rayon's pool (`matmul_par`), so they are timed in the whole
+//! process's CPU time: every thread's time counts, spinning for work included, and the rate per
+//! CPU second compares with one core's peak however many threads took part and however loaded
+//! the machine was. The CPU share says how much of `threads × wall time` that was.
 
 use super::peak::{Peak, percent};
-use super::timing::{BATCHES, Timing, measure};
-use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
+use super::timing::{BATCHES, Clock, Samples, Timing, measure};
+use super::{BenchError, describe, preset, random_transitions};
 use crate::dynamics::{Ensemble, TrainWorkspace, TrainingSet};
 use crate::energy::{Deen, DeenWorkspace, RegularizerKind, transition_rows};
 use crate::nn::{Adam, FlushDenormals, InputGradTape, Mlp, Normalizer};
@@ -11,18 +17,55 @@ use proto::TaskId;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::fmt;
-use std::time::{Duration, Instant};
 
 /// Timing of one network's training steps.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StepTiming {
     pub sizes: Vec<usize>,
     pub batch: usize,
-    pub median_ms: f64,
-    pub min_ms: f64,
-    /// Matrix-product GFLOP/s at the median, where the step's operation count is simple to
-    /// state (dynamics: forward plus backward, `6·in·out` per layer per sample).
-    pub gflops: Option<f64>,
+    /// CPU time per step (all threads), fastest and median step.
+    pub time: Timing,
+    /// Floating-point operations of the step's matrix products (`2·m·n·k` each).
+    pub flops: f64,
+}
+
+impl StepTiming {
+    /// Matrix-product GFLOP/s per CPU second at the fastest and at the median step.
+    pub fn gflops(&self) -> (f64, f64) {
+        let rate = |ms: f64| self.flops / (ms * 1e-3) / 1e9;
+        (rate(self.time.min_ms), rate(self.time.median_ms))
+    }
+}
+
+/// Products per sample of a dynamics step (`Mlp::backward` without the input gradient): every
+/// layer's forward product and weight gradient, every layer's but the first's backward product.
+pub fn dynamics_step_flops(sizes: &[usize]) -> f64 {
+    layer_flops(sizes)
+        .enumerate()
+        .map(|(l, f)| if l == 0 { 2.0 * f } else { 3.0 * f })
+        .sum()
+}
+
+/// Products per sample of a DEEN step (`Mlp::input_gradient_train` then
+/// `input_gradient_backward`): every layer's forward product; for every layer but the scalar
+/// output one, the input-gradient product `W·δ`, the tangent forward `Wᵀ·ḣ` and the weight
+/// gradient `[ḣ h]·[δ; δ̇]ᵀ` (twice the batch as depth); and for those but the first the tangent
+/// backward `W·δ̇`.
+pub fn deen_step_flops(sizes: &[usize]) -> f64 {
+    let top = sizes.len().saturating_sub(2);
+    layer_flops(sizes)
+        .enumerate()
+        .map(|(l, f)| match l {
+            l if l == top => f,
+            0 => 5.0 * f,
+            _ => 6.0 * f,
+        })
+        .sum()
+}
+
+/// `2·in·out` per layer: one product of a layer on one sample.
+fn layer_flops(sizes: &[usize]) -> impl Iterator<Item = f64> + '_ {
+    sizes.windows(2).map(|w| 2.0 * w[0] as f64 * w[1] as f64)
 }
 
 /// Timing of training steps of both models of a task's preset.
@@ -52,11 +95,6 @@ pub struct DeenPhases {
     pub backward: Timing,
     /// One Adam update of every parameter.
     pub optimiser: Timing,
-}
-
-/// The fastest of some durations, in milliseconds.
-fn min_ms(times: &[Duration]) -> f64 {
-    times.iter().min().map_or(0.0, |t| t.as_secs_f64() * 1e3)
 }
 
 /// Transitions to draw minibatches from: enough for several distinct batches.
@@ -93,12 +131,10 @@ pub(super) fn run(
     model.set_normalizers(input_norm, target_norm);
     let mut workspace = TrainWorkspace::new(model, dynamics_batch);
     let dynamics_batches = batches(dynamics_batch, &mut rng);
-    let mut dynamics_times = time_steps(&dynamics_batches, warmup, |batch| {
+    let dynamics_time = time_steps(&dynamics_batches, warmup, |batch| {
         model.train_step(&set, batch, &mut workspace);
     });
     let dynamics_sizes = model.mlp().sizes().to_vec();
-    let dynamics_ms = median_ms(&mut dynamics_times);
-    let dynamics_flops = 3.0 * flops_per_row(&dynamics_sizes) * dynamics_batch as f64;
 
     let energy_batch = preset.energy.batch_size;
     let rows = transition_rows(&data);
@@ -109,7 +145,7 @@ pub(super) fn run(
     let mut workspace = DeenWorkspace::new(&deen, energy_batch);
     let energy_batches = batches(energy_batch, &mut rng);
     let mut noise_rng = StdRng::seed_from_u64(seed.wrapping_add(1));
-    let mut deen_times = time_steps(&energy_batches, warmup, |batch| {
+    let deen_time = time_steps(&energy_batches, warmup, |batch| {
         deen.train_step(&set, batch, &mut workspace, &mut noise_rng);
     });
     let deen_phases = deen_phases(deen.mlp(), &set, &energy_batches[0], steps);
@@ -118,18 +154,16 @@ pub(super) fn run(
         task,
         steps,
         dynamics: StepTiming {
+            flops: dynamics_step_flops(&dynamics_sizes) * dynamics_batch as f64,
             sizes: dynamics_sizes,
             batch: dynamics_batch,
-            median_ms: dynamics_ms,
-            min_ms: min_ms(&dynamics_times),
-            gflops: Some(dynamics_flops / (dynamics_ms * 1e-3) / 1e9),
+            time: dynamics_time,
         },
         deen: StepTiming {
             sizes: deen.mlp().sizes().to_vec(),
             batch: energy_batch,
-            median_ms: median_ms(&mut deen_times),
-            min_ms: min_ms(&deen_times),
-            gflops: None,
+            time: deen_time,
+            flops: deen_step_flops(deen.mlp().sizes()) * energy_batch as f64,
         },
         deen_phases,
         peak: peak.max(Peak::measure()),
@@ -150,14 +184,16 @@ fn deen_phases(mlp: &Mlp, set: &[f32], batch: &[usize], steps: usize) -> DeenPha
         }
     }
     let reps = steps.div_ceil(BATCHES);
-    let forward = measure(reps, || {
+    let forward = measure(Clock::Process, reps, || {
         mlp.input_gradient_train(&mut tape, samples);
     });
     let mut grads = vec![0.0; mlp.params().len()];
-    let backward = measure(reps, || mlp.input_gradient_backward(&mut tape, &mut grads));
+    let backward = measure(Clock::Process, reps, || {
+        mlp.input_gradient_backward(&mut tape, &mut grads)
+    });
     let mut params = mlp.params().to_vec();
     let mut adam = Adam::new(params.len(), 1e-3);
-    let optimiser = measure(reps, || adam.step(&mut params, &grads));
+    let optimiser = measure(Clock::Process, reps, || adam.step(&mut params, &grads));
     DeenPhases {
         forward,
         backward,
@@ -165,53 +201,47 @@ fn deen_phases(mlp: &Mlp, set: &[f32], batch: &[usize], steps: usize) -> DeenPha
     }
 }
 
-/// Runs `step` on every batch and returns the durations of those after the first `warmup`.
-fn time_steps(
-    batches: &[Vec<usize>],
-    warmup: usize,
-    mut step: impl FnMut(&[usize]),
-) -> Vec<Duration> {
-    let mut times = Vec::with_capacity(batches.len().saturating_sub(warmup));
+/// Runs `step` on every batch and times those after the first `warmup`, one step each, in the
+/// process's CPU time.
+fn time_steps(batches: &[Vec<usize>], warmup: usize, mut step: impl FnMut(&[usize])) -> Timing {
+    let mut samples = Samples::new(Clock::Process, batches.len().saturating_sub(warmup));
     for (i, batch) in batches.iter().enumerate() {
-        let start = Instant::now();
-        step(batch);
-        if i >= warmup {
-            times.push(start.elapsed());
-        }
+        samples.time(i >= warmup, 1, || step(batch));
     }
-    times
+    samples.timing()
 }
 
 impl fmt::Display for TrainReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "bench train: {} ({} timed steps each)\n  {}",
-            self.task, self.steps, self.peak
+            "bench train: {} ({} timed steps each, {} thread(s); CPU ms per step, all threads' \
+             time summed; GFLOP/s of the matrix products per CPU second, as a fraction of one \
+             core's f32 peak)\n  {}",
+            self.task, self.steps, self.threads, self.peak
         )?;
         for (name, t) in [("dynamics", &self.dynamics), ("DEEN", &self.deen)] {
+            let (best, median) = t.gflops();
             write!(
                 f,
-                "\n  {name:<9} {:<16} batch {:>3}: {:.3} ms per step median, {:.3} ms best",
+                "\n  {name:<9} {:<16} batch {:>3}: {:.3} ms best, {:.3} ms median; \
+                 {best:.1} GFLOP/s best = {} of peak, {median:.1} median = {}",
                 describe(&t.sizes),
                 t.batch,
-                t.median_ms,
-                t.min_ms
+                t.time.min_ms,
+                t.time.median_ms,
+                percent(best, self.peak.f32_gflops),
+                percent(median, self.peak.f32_gflops),
             )?;
-            if let Some(g) = t.gflops {
-                write!(
-                    f,
-                    ", {g:.1} GFLOP/s = {} of the f32 peak of {} core(s)",
-                    percent(g, self.peak.f32_gflops.map(|p| p * self.threads as f64)),
-                    self.threads
-                )?;
+            if let Some(share) = t.time.cpu_share {
+                write!(f, "; CPU share {:.0}%", share * 100.0)?;
             }
         }
         let p = &self.deen_phases;
         write!(
             f,
-            "\n  DEEN step phases (best of {BATCHES} batches): forward + input gradient {:.3} ms, \
-             double backprop {:.3} ms, Adam {:.3} ms",
+            "\n  DEEN step phases (CPU ms, best of {BATCHES} batches): forward + input gradient \
+             {:.3} ms, double backprop {:.3} ms, Adam {:.3} ms",
             p.forward.min_ms, p.backward.min_ms, p.optimiser.min_ms
         )
     }
@@ -227,9 +257,20 @@ mod tests {
         assert_eq!((report.dynamics.batch, report.deen.batch), (32, 32));
         assert_eq!(report.dynamics.sizes, vec![6, 200, 200, 200, 8]);
         assert_eq!(report.deen.sizes, vec![9, 200, 200, 200, 1]);
-        assert!(report.dynamics.median_ms > 0.0 && report.deen.median_ms > 0.0);
-        assert!(report.deen.min_ms > 0.0 && report.deen.min_ms <= report.deen.median_ms);
-        assert!(report.dynamics.gflops.is_some_and(|g| g > 0.0));
+        for t in [&report.dynamics, &report.deen] {
+            assert!(
+                t.time.min_ms > 0.0 && t.time.min_ms <= t.time.median_ms,
+                "{t:?}"
+            );
+            let (best, median) = t.gflops();
+            assert!(best >= median && median > 0.0 && best.is_finite(), "{t:?}");
+            assert!(t.time.cpu_share.is_none_or(|s| s > 0.0), "{t:?}");
+        }
+        // 6·200·200 + 4·200·200 + 2·(6·200 + 200·8) flops per sample, batch 32.
+        assert_eq!(
+            report.dynamics.flops,
+            32.0 * dynamics_step_flops(&[6, 200, 200, 200, 8])
+        );
         let p = &report.deen_phases;
         for t in [p.forward, p.backward, p.optimiser] {
             assert!(t.min_ms > 0.0 && t.min_ms <= t.median_ms && t.median_ms.is_finite());
@@ -238,7 +279,9 @@ mod tests {
         assert!(
             text.contains("DEEN")
                 && text.contains("double backprop")
-                && text.contains("of the f32 peak")
+                && text.contains("f32 peak")
+                && text.contains("of peak")
+                && text.contains("CPU ms")
                 && !text.contains("PyTorch"),
             "{text}"
         );
@@ -246,5 +289,21 @@ mod tests {
             run(TaskId::Cartpole, 0, 0, 0),
             Err(BenchError::Zero("steps"))
         ));
+    }
+
+    #[test]
+    fn counts_the_products_of_each_step() {
+        // in 3 → 4 → 5 → 1: layer flops 24, 40, 10 per sample.
+        let sizes = [3, 4, 5, 1];
+        // Dynamics: forward and weight gradient everywhere, backward product above layer 0.
+        assert_eq!(
+            dynamics_step_flops(&sizes),
+            2.0 * 24.0 + 3.0 * 40.0 + 3.0 * 10.0
+        );
+        // DEEN, in units of one layer product: the scalar output layer only its forward one;
+        // layer 0 forward, W·δ, Wᵀ·ḣ and the double-depth weight gradient (1 + 1 + 1 + 2); the
+        // middle layer those plus W·δ̇.
+        assert_eq!(deen_step_flops(&sizes), 5.0 * 24.0 + 6.0 * 40.0 + 10.0);
+        assert_eq!(deen_step_flops(&[3, 1]), 6.0);
     }
 }

@@ -24,9 +24,7 @@ mod x86;
 #[cfg(target_arch = "x86_64")]
 mod x86_packed;
 
-pub use packed::{
-    Encoding, PACK_ROWS, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed,
-};
+pub use packed::{Encoding, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed};
 
 use super::denormals;
 use super::simd::{SimdLevel, level};
@@ -268,8 +266,12 @@ fn matmul_at(lvl: SimdLevel, c: MatMut<'_>, x: MatRef<'_>, y: MatRef<'_>, init: 
 }
 
 /// Products smaller than this many multiply-adds run on one thread: below it, handing half
-/// to another thread costs more than it saves.
-const PARALLEL_MIN_MACS: usize = 1 << 20;
+/// to another thread costs more than it saves. Measured with `bench train` (CPU time): at the
+/// former 2²⁰ the cartpole steps (200-wide layers, batch 32: 1.3 M multiply-adds a product)
+/// were split, and a dynamics step cost 0.57 ms of CPU (both threads, the helper's waiting
+/// included) and about 1 ms of wall time on the loaded 2-core machine; unsplit it costs
+/// 0.10 ms of CPU.
+const PARALLEL_MIN_MACS: usize = 1 << 22;
 
 /// [`matmul`], with the rows of `C` split across two rayon tasks when the product is large.
 /// The floating-point mode (flush-to-zero) of the calling thread is carried to the helper.
@@ -353,11 +355,13 @@ fn transpose_at(
 mod tests;
 
 /// Product shapes `(m, n, k)` that exercise every edge of the packed kernels: `m` not a
-/// multiple of the 6-row block (every count of leftover rows), `n` not a multiple of the
-/// 16-float panel or the 4-panel tile (every count of leftover panels: 1–3, and 5 split as
-/// 3 + 2), and odd and even `k` (an odd one leaves the last bf16 pair half empty).
+/// multiple of the row block (every count of leftover rows of the f32 kernel's 12-row block
+/// and of the bf16 kernel's 6-row one), `n` not a multiple of the 16-float panel or of the
+/// tile (1 panel after the f32 kernel's 2-panel tiles; every bf16 tiling: 1, 2, 3, 4 and
+/// 3 + 2 panels, 3 + 3, 4 + 3, 4 + 3 + 3 + 3 and 4 × 4), and odd and even `k` (an odd one
+/// leaves the last bf16 pair half empty).
 #[cfg(test)]
-const RAGGED_SHAPES: [(usize, usize, usize); 12] = [
+const RAGGED_SHAPES: [(usize, usize, usize); 17] = [
     (1, 1, 1),
     (5, 3, 7),
     (12, 16, 12),
@@ -370,4 +374,9 @@ const RAGGED_SHAPES: [(usize, usize, usize); 12] = [
     (7, 80, 5),
     (11, 96, 3),
     (6, 200, 4),
+    (27, 40, 13),
+    (28, 48, 6),
+    (32, 21, 17),
+    (33, 65, 8),
+    (34, 250, 11),
 ];

@@ -1,10 +1,10 @@
 //! Inference layers `C = act(A · Y + b)` with `A` packed once in the kernel's own layout.
 //!
 //! During a planning call the weights never change, while each layer's product runs tens of
-//! thousands of times. A layer's `Wᵀ` is therefore packed once per model into blocks of
-//! [`PACK_ROWS`] output features: within a block, the `PACK_ROWS` weights the kernel broadcasts
-//! at one depth step are adjacent, and the depth steps follow each other. The kernel then reads
-//! its broadcast operand as one sequential stream (a cache line every 2⅔ steps) instead of one
+//! thousands of times. A layer's `Wᵀ` is therefore packed once per model into blocks of output
+//! features ([`Encoding::block_rows`]: 12 in f32, 6 in bf16): within a block, the weights the
+//! kernel broadcasts at one depth step are adjacent, and the depth steps follow each other. The
+//! kernel then reads its broadcast operand as one sequential stream instead of one
 //! line per step strided through the whole weight matrix, and addresses it with constant
 //! offsets rather than a runtime stride (packing alone measured 1–6 % faster; the fused
 //! activation below gives the rest).
@@ -35,11 +35,6 @@ use crate::nn::activation::Activation;
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::simd::{SimdLevel, bf16_dot_available, level};
 
-/// Output features per packed block: the row block of both the AVX-512 kernel (6 rows × 64
-/// columns of accumulators) and the AVX2 kernel (6 rows × 16). Even, so a block's rows pair
-/// up exactly when it writes [`Encoding::Bf16Pairs`].
-pub const PACK_ROWS: usize = 6;
-
 /// How the elements of a packed matrix, and of the feature-major activations it multiplies or
 /// writes, are stored.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -58,6 +53,17 @@ impl Encoding {
         match self {
             Encoding::F32 => features,
             Encoding::Bf16Pairs => features.div_ceil(2),
+        }
+    }
+
+    /// Output features per packed block of weights in this encoding: the row block of the
+    /// AVX-512 tile, 12 rows × 32 columns of accumulators in f32 and 6 rows × 64 in bf16 (see
+    /// `x86_packed.rs` for why they differ). Both even, so a block's rows pair up exactly
+    /// when it writes [`Encoding::Bf16Pairs`]; both multiples of the AVX2 kernel's 6 rows.
+    pub const fn block_rows(self) -> usize {
+        match self {
+            Encoding::F32 => 12,
+            Encoding::Bf16Pairs => 6,
         }
     }
 }
@@ -86,7 +92,8 @@ pub fn bf16_pair(low: f32, high: f32) -> f32 {
     f32::from_bits(u32::from(bf16_bits(low)) | (u32::from(bf16_bits(high)) << 16))
 }
 
-/// An `m × k` matrix packed for [`matmul_packed`]: with `R` = [`PACK_ROWS`] and `s` its depth
+/// An `m × k` matrix packed for [`matmul_packed`]: with `R` its encoding's
+/// [`block_rows`](Encoding::block_rows) and `s` its depth
 /// steps (`k` in f32, `⌈k/2⌉` bf16 pairs), block `b` holds rows `Rb..Rb + mr`
 /// (`mr = min(R, m − Rb)`) at offset `Rb·s`, step `d` of row `Rb + r` at `Rb·s + d·mr + r`.
 #[derive(Clone)]
@@ -133,11 +140,11 @@ impl PackedMatrix {
         element: impl Fn(&MatRef<'_>, usize, usize) -> f32,
     ) -> Self {
         let (m, k) = (a.rows, a.cols);
-        let steps = encoding.storage_rows(k);
+        let (steps, rows) = (encoding.storage_rows(k), encoding.block_rows());
         let mut data = AlignedBuf::zeros(m * steps);
         let out = data.as_mut_slice();
-        for i0 in (0..m).step_by(PACK_ROWS) {
-            let mr = PACK_ROWS.min(m - i0);
+        for i0 in (0..m).step_by(rows) {
+            let mr = rows.min(m - i0);
             let block = &mut out[i0 * steps..(i0 + mr) * steps];
             for d in 0..steps {
                 for r in 0..mr {
@@ -173,9 +180,9 @@ impl PackedMatrix {
         self.encoding.storage_rows(self.depth)
     }
 
-    /// Rows `i0..i0 + mr` as a strided view (`i0` a multiple of [`PACK_ROWS`]; f32 only).
+    /// Rows `i0..i0 + mr` as a strided view (f32 only; `i0` a multiple of its block rows).
     fn block(&self, i0: usize) -> MatRef<'_> {
-        let mr = PACK_ROWS.min(self.rows - i0);
+        let mr = Encoding::F32.block_rows().min(self.rows - i0);
         let data = &self.data.as_slice()[i0 * self.depth..];
         MatRef::strided(data, mr, self.depth, 1, mr)
     }
@@ -235,7 +242,7 @@ pub(super) fn matmul_packed_at(
             n,
             steps,
             a: a.data.as_slice().as_ptr(),
-            bf16_weights: a.encoding == Encoding::Bf16Pairs,
+            encoding: a.encoding,
             y: y.data.as_ptr(),
             ld_y: y.rs,
             c: c.data.as_mut_ptr(),
@@ -254,7 +261,7 @@ pub(super) fn matmul_packed_at(
     let k = a.depth;
     let ld_c = c.rs;
     let c_data = c.data;
-    for i0 in (0..m).step_by(PACK_ROWS) {
+    for i0 in (0..m).step_by(Encoding::F32.block_rows()) {
         let block = a.block(i0);
         let mr = block.rows;
         let c_block = &mut c_data[i0 * ld_c..];
@@ -321,26 +328,46 @@ mod tests {
     }
 
     #[test]
-    fn packing_lays_out_blocks_of_pack_rows() {
-        // Two full blocks and a ragged one of 2 rows, 3 columns.
-        let (m, k) = (2 * PACK_ROWS + 2, 3);
-        let a: Vec<f32> = (0..m * k).map(|v| v as f32).collect();
-        let p = PackedMatrix::pack(MatRef::new(&a, m, k));
-        let data = p.data.as_slice();
-        for i in 0..m {
-            let i0 = i / PACK_ROWS * PACK_ROWS;
-            let mr = PACK_ROWS.min(m - i0);
-            for d in 0..k {
-                assert_eq!(data[i0 * k + d * mr + (i - i0)], a[i * k + d], "({i}, {d})");
+    fn packing_lays_out_blocks_of_the_encodings_height() {
+        // Two full blocks and a ragged one of 2 rows, 4 columns (2 bf16 pairs).
+        for encoding in [Encoding::F32, Encoding::Bf16Pairs] {
+            let rows = encoding.block_rows();
+            let (m, k) = (2 * rows + 2, 4);
+            let a: Vec<f32> = (0..m * k).map(|v| v as f32).collect();
+            let view = MatRef::new(&a, m, k);
+            let (p, steps) = match encoding {
+                Encoding::F32 => (PackedMatrix::pack(view), k),
+                Encoding::Bf16Pairs => (PackedMatrix::pack_bf16(view), k / 2),
+            };
+            let element = |i: usize, d: usize| match encoding {
+                Encoding::F32 => a[i * k + d],
+                Encoding::Bf16Pairs => bf16_pair(a[i * k + 2 * d], a[i * k + 2 * d + 1]),
+            };
+            let data = p.data.as_slice();
+            for i in 0..m {
+                let i0 = i / rows * rows;
+                let mr = rows.min(m - i0);
+                for d in 0..steps {
+                    let got = data[i0 * steps + d * mr + (i - i0)];
+                    assert_eq!(
+                        got.to_bits(),
+                        element(i, d).to_bits(),
+                        "{encoding:?} ({i}, {d})"
+                    );
+                }
             }
+            // The last block is packed at its own height: its rows are adjacent.
+            let last = 2 * rows;
+            assert_eq!(
+                [
+                    data[last * steps].to_bits(),
+                    data[last * steps + 1].to_bits()
+                ],
+                [element(last, 0).to_bits(), element(last + 1, 0).to_bits()],
+                "{encoding:?}"
+            );
+            assert_eq!((p.rows(), p.depth(), p.encoding()), (m, k, encoding));
         }
-        // The last block is packed at its own height: its rows are adjacent.
-        let last = 2 * PACK_ROWS;
-        assert_eq!(
-            data[last * k..last * k + 2],
-            [a[last * k], a[(last + 1) * k]]
-        );
-        assert_eq!((p.rows(), p.depth()), (m, k));
     }
 
     #[test]

@@ -94,7 +94,9 @@ fn products_match_reference_for_ragged_shapes_every_init_and_level() {
 #[test]
 fn parallel_product_matches_reference() {
     let mut rng = StdRng::seed_from_u64(4);
-    for &(m, n, k) in &[(130, 70, 200), (500, 32, 100), (30, 40, 1000)] {
+    for &(m, n, k) in &[(130, 70, 500), (500, 32, 300), (30, 150, 1000)] {
+        // Large enough to be split across the two tasks (and an odd split: 130 = 72 + 58).
+        assert!(m * n * k >= super::PARALLEL_MIN_MACS && m >= 24);
         for init in 0..4 {
             check(None, m, n, k, init, &mut rng);
         }

@@ -1,22 +1,34 @@
 //! The AVX-512 kernel for packed layers (see [`packed`](super::packed)).
 //!
-//! A kernel owns up to 6 rows × `NP` 16-float panels of `C` in registers (24 accumulators and
-//! four panel registers for `NP = 4`), starts them at the bias, and per depth step loads one row
-//! segment of `Y` per panel and broadcasts the block's 6 adjacent packed weights — constant
-//! offsets from one pointer that advances by the block height. 6 × 64 was measured against
-//! 12 × 32 and 8 × 48 (same register budget): it needs half the broadcasts of 12 × 32 per
-//! multiply-add and came out a few percent ahead on the 200–500 wide layers. The finished tile
-//! is activated in registers and stored with masks, so any width works. As in `x86.rs`, rows
-//! are unrolled by a macro and pointer arithmetic is wrapping, for the dev profile's sake.
+//! A tile keeps a block of `C` in registers for the whole depth, starts it at the bias, and per
+//! depth step loads one row segment of `Y` per 16-float panel and broadcasts the block's
+//! adjacent packed weights — constant offsets from one pointer that advances by the block
+//! height. The finished tile is activated in registers and stored with masks, so any width
+//! works. As in `x86.rs`, rows are unrolled by a macro and pointer arithmetic is wrapping, for
+//! the dev profile's sake.
 //!
-//! The macro makes each tile twice: in f32 (one FMA per accumulator and depth step) and in bf16
-//! (one `VDPBF16PS` per accumulator and *pair* of depth steps, with the Y panel and the broadcast
-//! weight each carrying two bf16 values per 32-bit lane). Both share the epilogue, which stores
-//! f32 rows or, for a next layer in bf16, converts pairs of rows to bf16 pairs in registers. The
-//! two bodies differ only in their load and multiply instructions; they stay two macro arms
-//! rather than one generic kernel because the per-type helpers would need `#[target_feature]`,
-//! which rules out the forced inlining the inner loop depends on.
+//! The two encodings use different tiles, each the faster of the two 24-accumulator shapes
+//! for it (`bench kernel`, CPU time, best batches on the 200–500 wide layers):
+//! - **f32: 12 rows × 2 panels** (one FMA per accumulator and depth step). 6 × 4 panels needs
+//!   half the broadcasts but streams twice the `Y` cache lines per step (4 against 2 per 24
+//!   FMAs, from L2 on these layers: a row of blocks passes over all of `Y` before the next
+//!   block comes back to a panel). Measured: 6 × 64 ran the fused layers at 69–81 % of the f32
+//!   peak (76–87 % in a local build with the activation switched off); 12 × 32 runs them at
+//!   77–89 % (best batches of two runs, the second on a more loaded machine).
+//! - **bf16: 6 rows × 4 panels** (one `VDPBF16PS` per accumulator and *pair* of depth steps,
+//!   the `Y` panel and the broadcast weight each carrying two bf16 values per 32-bit lane), and
+//!   6 rows × 3 panels where a row of panels does not divide by 4. With the activation switched
+//!   off (a local build) its layers ran at 90–100 % of the bf16 peak; what the fused layers lose
+//!   (to 73–91 %) is the activation, which costs as much as in f32 against half the multiply
+//!   time.
+//!
+//! Both tiles share the epilogue, which stores f32 rows or, for a next layer in bf16, converts
+//! pairs of rows to bf16 pairs in registers. The two bodies differ only in their load and
+//! multiply instructions; they stay two macros rather than one generic kernel because the
+//! per-type helpers would need `#[target_feature]`, which rules out the forced inlining the
+//! inner loop depends on.
 
+use super::packed::Encoding;
 use super::x86::{load_scalar, mask16};
 use crate::nn::activation::Activation;
 use crate::nn::aligned::LANES;
@@ -30,8 +42,8 @@ pub(super) struct PackedRaw {
     /// Depth steps: `k` for f32 weights, `⌈k/2⌉` for bf16 pairs.
     pub steps: usize,
     pub a: *const f32,
-    /// `a` and `y` hold bf16 pairs (see `Encoding::Bf16Pairs`).
-    pub bf16_weights: bool,
+    /// How `a` and `y` are stored: f32, or bf16 pairs (see `Encoding::Bf16Pairs`).
+    pub encoding: Encoding,
     pub y: *const f32,
     pub ld_y: usize,
     pub c: *mut f32,
@@ -110,8 +122,8 @@ macro_rules! epilogue {
     };
 }
 
-macro_rules! packed512 {
-    ($name:ident, $bf16:ident; $($r:literal)+) => {
+macro_rules! f32_tile {
+    ($name:ident; $($r:literal)+) => {
         /// An f32 tile of the listed rows × `NP` panels of the block starting at row `i0`.
         #[inline]
         #[target_feature(enable = "avx512f")]
@@ -140,11 +152,15 @@ macro_rules! packed512 {
                 epilogue!(raw, acc, mask, i0, p0, NP, MR; $($r)+);
             }
         }
+    };
+}
 
-        /// The same tile from bf16 pairs: one `VDPBF16PS` per accumulator does two depth steps.
+macro_rules! bf16_tile {
+    ($name:ident; $($r:literal)+) => {
+        /// The tile from bf16 pairs: one `VDPBF16PS` per accumulator does two depth steps.
         #[inline]
         #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
-        unsafe fn $bf16<const NP: usize>(raw: &PackedRaw, i0: usize, p0: usize) {
+        unsafe fn $name<const NP: usize>(raw: &PackedRaw, i0: usize, p0: usize) {
             const MR: usize = [$($r),+].len();
             let PackedRaw { n, steps, ld_y, .. } = *raw;
             let mask: [__mmask16; NP] = std::array::from_fn(|j| mask16(n, (p0 + j) * LANES));
@@ -173,73 +189,151 @@ macro_rules! packed512 {
     };
 }
 
-packed512!(p512_1, bf16_1; 0);
-packed512!(p512_2, bf16_2; 0 1);
-packed512!(p512_3, bf16_3; 0 1 2);
-packed512!(p512_4, bf16_4; 0 1 2 3);
-packed512!(p512_5, bf16_5; 0 1 2 3 4);
-packed512!(p512_6, bf16_6; 0 1 2 3 4 5);
+f32_tile!(f32_1; 0);
+f32_tile!(f32_2; 0 1);
+f32_tile!(f32_3; 0 1 2);
+f32_tile!(f32_4; 0 1 2 3);
+f32_tile!(f32_5; 0 1 2 3 4);
+f32_tile!(f32_6; 0 1 2 3 4 5);
+f32_tile!(f32_7; 0 1 2 3 4 5 6);
+f32_tile!(f32_8; 0 1 2 3 4 5 6 7);
+f32_tile!(f32_9; 0 1 2 3 4 5 6 7 8);
+f32_tile!(f32_10; 0 1 2 3 4 5 6 7 8 9);
+f32_tile!(f32_11; 0 1 2 3 4 5 6 7 8 9 10);
+f32_tile!(f32_12; 0 1 2 3 4 5 6 7 8 9 10 11);
+bf16_tile!(bf16_1; 0);
+bf16_tile!(bf16_2; 0 1);
+bf16_tile!(bf16_3; 0 1 2);
+bf16_tile!(bf16_4; 0 1 2 3);
+bf16_tile!(bf16_5; 0 1 2 3 4);
+bf16_tile!(bf16_6; 0 1 2 3 4 5);
 
-/// Panels per full tile.
-const TILE_PANELS: usize = 4;
-
-/// Runs the tile kernel for a block of `mr ≤ 6` rows and `NP` panels.
+/// Runs the f32 tile for a block of `mr ≤ 12` rows and `NP` panels.
 #[inline]
 #[target_feature(enable = "avx512f")]
-unsafe fn tile<const NP: usize>(mr: usize, raw: &PackedRaw, i0: usize, p: usize) {
+unsafe fn f32_block<const NP: usize>(mr: usize, raw: &PackedRaw, i0: usize, p: usize) {
+    // SAFETY: forwarded from the caller.
+    unsafe {
+        match mr {
+            1 => f32_1::<NP>(raw, i0, p),
+            2 => f32_2::<NP>(raw, i0, p),
+            3 => f32_3::<NP>(raw, i0, p),
+            4 => f32_4::<NP>(raw, i0, p),
+            5 => f32_5::<NP>(raw, i0, p),
+            6 => f32_6::<NP>(raw, i0, p),
+            7 => f32_7::<NP>(raw, i0, p),
+            8 => f32_8::<NP>(raw, i0, p),
+            9 => f32_9::<NP>(raw, i0, p),
+            10 => f32_10::<NP>(raw, i0, p),
+            11 => f32_11::<NP>(raw, i0, p),
+            12 => f32_12::<NP>(raw, i0, p),
+            _ => unreachable!("f32 row block of {mr}"),
+        }
+    }
+}
+
+/// Runs the bf16 tile for a block of `mr ≤ 6` rows and `NP` panels.
+#[inline]
+#[target_feature(enable = "avx512f")]
+unsafe fn bf16_block<const NP: usize>(mr: usize, raw: &PackedRaw, i0: usize, p: usize) {
     // SAFETY: forwarded from the caller; the bf16 tiles run only when `matmul_packed` checked
     // for AVX-512 BF16.
     unsafe {
-        match (raw.bf16_weights, mr) {
-            (false, 1) => p512_1::<NP>(raw, i0, p),
-            (false, 2) => p512_2::<NP>(raw, i0, p),
-            (false, 3) => p512_3::<NP>(raw, i0, p),
-            (false, 4) => p512_4::<NP>(raw, i0, p),
-            (false, 5) => p512_5::<NP>(raw, i0, p),
-            (false, 6) => p512_6::<NP>(raw, i0, p),
-            (true, 1) => bf16_1::<NP>(raw, i0, p),
-            (true, 2) => bf16_2::<NP>(raw, i0, p),
-            (true, 3) => bf16_3::<NP>(raw, i0, p),
-            (true, 4) => bf16_4::<NP>(raw, i0, p),
-            (true, 5) => bf16_5::<NP>(raw, i0, p),
-            (true, 6) => bf16_6::<NP>(raw, i0, p),
-            _ => unreachable!("row block of {mr}"),
+        match mr {
+            1 => bf16_1::<NP>(raw, i0, p),
+            2 => bf16_2::<NP>(raw, i0, p),
+            3 => bf16_3::<NP>(raw, i0, p),
+            4 => bf16_4::<NP>(raw, i0, p),
+            5 => bf16_5::<NP>(raw, i0, p),
+            6 => bf16_6::<NP>(raw, i0, p),
+            _ => unreachable!("bf16 row block of {mr}"),
         }
     }
 }
 
 /// Block by block (each block's packed weights stay in L1 while every panel of `Y` passes
-/// through), four panels per tile and narrower tiles for the rest.
+/// through): f32 weights in tiles of 12 rows × 2 panels and a lone last panel; bf16 pairs in
+/// tiles of 6 rows × 4 and 3 panels (see [`bf16_tiling`]).
 ///
 /// # Safety
 /// The CPU must support AVX-512F and every extent of `raw` must be valid.
 #[target_feature(enable = "avx512f")]
 pub(super) unsafe fn drive(raw: &PackedRaw) {
     let panels = raw.n.div_ceil(LANES);
-    for i0 in (0..raw.m).step_by(super::packed::PACK_ROWS) {
-        let mr = super::packed::PACK_ROWS.min(raw.m - i0);
-        // A lone last panel would make a tile with one multiply-add per broadcast: end on
-        // 3 + 2 panels instead of 4 + 1 where there are five or more.
-        let full_tiles = match panels % TILE_PANELS {
-            1 if panels > TILE_PANELS => panels / TILE_PANELS - 1,
-            _ => panels / TILE_PANELS,
-        };
-        let mut p = 0;
+    let rows = raw.encoding.block_rows();
+    for i0 in (0..raw.m).step_by(rows) {
+        let mr = rows.min(raw.m - i0);
         // SAFETY (every call): the block and the panels named are inside the extents.
-        for _ in 0..full_tiles {
-            unsafe { tile::<TILE_PANELS>(mr, raw, i0, p) };
-            p += TILE_PANELS;
+        match raw.encoding {
+            Encoding::F32 => {
+                let mut p = 0;
+                while p + 2 <= panels {
+                    unsafe { f32_block::<2>(mr, raw, i0, p) };
+                    p += 2;
+                }
+                if p < panels {
+                    unsafe { f32_block::<1>(mr, raw, i0, p) };
+                }
+            }
+            Encoding::Bf16Pairs => {
+                let (fours, threes) = bf16_tiling(panels);
+                let mut p = 0;
+                for _ in 0..fours {
+                    unsafe { bf16_block::<4>(mr, raw, i0, p) };
+                    p += 4;
+                }
+                for _ in 0..threes {
+                    unsafe { bf16_block::<3>(mr, raw, i0, p) };
+                    p += 3;
+                }
+                match panels - p {
+                    0 => {}
+                    1 => unsafe { bf16_block::<1>(mr, raw, i0, p) },
+                    2 => unsafe { bf16_block::<2>(mr, raw, i0, p) },
+                    left => unreachable!("{left} panels left"),
+                }
+            }
         }
-        match panels - p {
-            0 => {}
-            1 => unsafe { tile::<1>(mr, raw, i0, p) },
-            2 => unsafe { tile::<2>(mr, raw, i0, p) },
-            3 => unsafe { tile::<3>(mr, raw, i0, p) },
-            5 => unsafe {
-                tile::<3>(mr, raw, i0, p);
-                tile::<2>(mr, raw, i0, p + 3);
-            },
-            left => unreachable!("{left} panels left"),
+    }
+}
+
+/// How a row of `panels` panels splits into bf16 tiles: `(fours, threes)` tiles of 4 and 3
+/// panels, then 1 or 2 panels left only where fewer than six are (`5` is `3 + 2`). A 2-panel
+/// tile does 12 multiply-adds per 6 broadcasts and 2 loads where a 4-panel one does 24 per 6
+/// and 4: a 200-column row (13 panels) split 4 + 4 + 3 + 2 ran the 200×200×200 swish layer at
+/// 360–376 GFLOP/s (best batches of three `bench kernel` runs), split 4 + 3 + 3 + 3 at 381–385
+/// (two runs).
+fn bf16_tiling(panels: usize) -> (usize, usize) {
+    let threes = [0, 3, 2, 1][panels % 4];
+    if panels >= 3 * threes {
+        ((panels - 3 * threes) / 4, threes)
+    } else {
+        (0, usize::from(panels >= 3))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::bf16_tiling;
+
+    #[test]
+    fn bf16_rows_split_into_tiles_of_three_and_four_panels() {
+        for panels in 0..40 {
+            let (fours, threes) = bf16_tiling(panels);
+            let left = panels - 4 * fours - 3 * threes;
+            if panels >= 6 {
+                assert_eq!(left, 0, "{panels}: {fours} × 4 + {threes} × 3");
+                assert!(
+                    threes < 4,
+                    "{panels}: three 3-panel tiles make three 4-panel ones"
+                );
+            } else {
+                assert!(left <= 2, "{panels}: {left} left");
+            }
         }
+        assert_eq!(bf16_tiling(13), (1, 3));
+        assert_eq!(bf16_tiling(16), (4, 0));
+        assert_eq!(bf16_tiling(5), (0, 1));
+        assert_eq!(bf16_tiling(2), (0, 0));
     }
 }
