@@ -121,7 +121,10 @@ mod tests {
         let obs: Observation = decode(json.as_bytes(), Encoding::Json).unwrap();
         assert_eq!(obs.obs, vec![1.0, 2.0, 3.0, 4.0]);
         assert_eq!((obs.reward, obs.applied), (None, None));
-        assert_eq!(obs.session, 0, "a JSON observation without a token is in no session");
+        assert_eq!(
+            obs.session, 0,
+            "a JSON observation without a token is in no session"
+        );
     }
 
     #[test]

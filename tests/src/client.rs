@@ -96,8 +96,7 @@ impl Client {
         {
             AttachOutcome::Accepted(accepted) => {
                 self.epoch.store(accepted.epoch, Ordering::SeqCst);
-                self.session_token
-                    .store(accepted.session, Ordering::SeqCst);
+                self.session_token.store(accepted.session, Ordering::SeqCst);
                 // Give the planner's subscriber a moment to match our publications.
                 tokio::time::sleep(Duration::from_millis(300)).await;
                 Ok(accepted)

@@ -171,7 +171,9 @@ fn a_vanished_agents_name_can_be_attached_again() {
     let dir = TempDir::new("identity-vanished");
     let mut planner = start(&dir);
     runtime().block_on(async {
-        let first = Client::connect(&planner.endpoint, RUN, AGENT).await.unwrap();
+        let first = Client::connect(&planner.endpoint, RUN, AGENT)
+            .await
+            .unwrap();
         let accepted = first.attach(&spec()).await.unwrap();
         let state = ToySystem::new(2).state.to_vec();
         let obs = Observation::new(accepted.next_episode, 0, state.clone(), None, None);
@@ -179,7 +181,9 @@ fn a_vanished_agents_name_can_be_attached_again() {
         // The process dies: its liveliness token goes with its session.
         first.close().await.unwrap();
 
-        let successor = Client::connect(&planner.endpoint, RUN, AGENT).await.unwrap();
+        let successor = Client::connect(&planner.endpoint, RUN, AGENT)
+            .await
+            .unwrap();
         let mut attached = None;
         for _ in 0..100 {
             match successor.attach(&spec()).await {

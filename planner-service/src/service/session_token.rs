@@ -30,7 +30,11 @@ mod tests {
     fn tokens_are_never_zero_and_do_not_repeat() {
         let tokens: std::collections::HashSet<u64> =
             (0..1000).map(|_| new_token().unwrap()).collect();
-        assert_eq!(tokens.len(), 1000, "1000 draws of 64 random bits repeated one");
+        assert_eq!(
+            tokens.len(),
+            1000,
+            "1000 draws of 64 random bits repeated one"
+        );
         assert!(!tokens.contains(&0));
     }
 }
