@@ -4,15 +4,33 @@
 //!
 //! ```text
 //! <out>/experiment.json        task, scale, episodes, overrides, methods, seeds (resume check)
-//! <out>/runs/<method>-s<seed>.csv   one bridge's episodes; `.csv.partial` while it runs
+//! <out>/runs/<method>-s<seed>.csv   one run's episodes; `.csv.partial` while it runs
+//! <out>/runs/<method>-s<seed>.csv.attempt   the episodes of the bridge now running
 //! <out>/episodes.csv           every run's rows with method and seed (results::HEADER)
 //! <out>/learning_curves.{png,svg}
 //! <out>/logs/, <out>/planner/  process logs and the daemon's data (not committed)
 //! ```
 //!
 //! A run counts as done when its `.csv` exists with all its episodes, so re-running the same
-//! command into the same folder skips the finished runs and starts the unfinished ones over
-//! (under a new run name: the daemon's half-filled buffer of the old attempt is left alone).
+//! command into the same folder skips the finished runs and **resumes** the unfinished ones.
+//!
+//! **Resuming a half-finished run.** A run keeps one daemon run name for its whole life
+//! (`<task>-<method>-s<seed>`), and the daemon's data lives in `<out>/planner/`, so a restarted
+//! experiment's daemon reopens the run from its stored replay buffer and newest model
+//! checkpoint. The episodes already recorded in `.csv.partial` (k of N) are kept and the
+//! bridge is asked for the remaining `N − k` only; it numbers them from the daemon's next
+//! episode and resets episode `e` from the seed `seed + e`, as an uninterrupted run does. Each
+//! attempt's bridge writes its own `.csv.attempt`, whose complete lines are appended to
+//! `.csv.partial` when the bridge ends (and, after a crash of the launcher itself, when the
+//! run is next started), so no recorded episode is lost or counted twice.
+//!
+//! What is identical to an uninterrupted run: the recorded episodes, the training data and
+//! every episode's start state. What is not: the episode that was cut short stays in the
+//! daemon's buffer as an interrupted episode (it is trained on), a retraining that was under
+//! way is redone from the newest checkpoint, the planner's random stream restarts from the
+//! run's seed when the daemon reopens the run, and an episode the daemon finished whose row the
+//! killed bridge had not yet written is played once more (the daemon then holds one episode
+//! more than the CSV, and the CSV's episode numbers skip one).
 
 use crate::manifest::Manifest;
 use crate::progress::Progress;
@@ -26,7 +44,7 @@ use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 /// What to run.
 #[derive(Clone, Debug)]
@@ -62,10 +80,22 @@ impl RunId {
         dir.join("runs").join(format!("{}.csv", self.stem()))
     }
 
-    /// The file the bridge writes while the run is going.
+    /// The episodes recorded so far while the run is unfinished (over all its attempts).
     pub fn partial_csv(&self, dir: &Path) -> PathBuf {
         dir.join("runs")
             .join(format!("{}.csv.partial", self.stem()))
+    }
+
+    /// The file the running bridge writes (merged into [`RunId::partial_csv`] when it ends).
+    pub fn attempt_csv(&self, dir: &Path) -> PathBuf {
+        dir.join("runs")
+            .join(format!("{}.csv.attempt", self.stem()))
+    }
+
+    /// The run's name in the daemon: the same for every attempt, so that a resumed attempt
+    /// continues the stored run.
+    pub fn daemon_run(&self, task: TaskId) -> String {
+        format!("{}-{}", task.name(), self.stem())
     }
 }
 
@@ -166,10 +196,6 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
     let queue = Mutex::new(pending);
     let failures = Mutex::new(Vec::new());
     let csv_lock = Mutex::new(());
-    let stamp = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0);
     std::thread::scope(|scope| {
         for _ in 0..exp.jobs.max(1) {
             scope.spawn(|| {
@@ -179,8 +205,7 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
                         .unwrap_or_else(std::sync::PoisonError::into_inner)
                         .pop_front();
                     let Some(run) = next else { break };
-                    let outcome =
-                        run_one(exp, &manifest, &planner.endpoint, &run, stamp, &progress);
+                    let outcome = run_one(exp, &manifest, &planner.endpoint, &run, &progress);
                     match outcome {
                         Ok(()) => {
                             let _guard = csv_lock.lock();
@@ -223,15 +248,32 @@ fn run_one(
     manifest: &Manifest,
     endpoint: &str,
     run: &RunId,
-    stamp: u64,
     progress: &Progress,
 ) -> Result<()> {
     let partial = run.partial_csv(&exp.out);
-    let _ = std::fs::remove_file(&partial);
+    let attempt = run.attempt_csv(&exp.out);
+    // A launcher killed while a bridge ran left that bridge's rows unmerged.
+    merge_attempt(&attempt, &partial)?;
+    let recorded = results::count_rows(&partial);
+    let remaining = (manifest.episodes as usize).saturating_sub(recorded);
     let log_path = exp.out.join("logs").join(format!("{}.log", run.stem()));
-    let log = std::fs::File::create(&log_path)
-        .with_context(|| format!("creating {}", log_path.display()))?;
-    let run_name = format!("{}-{}-{stamp}", exp.task.name(), run.stem());
+    let log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&log_path)
+        .with_context(|| format!("opening {}", log_path.display()))?;
+    let run_name = run.daemon_run(exp.task);
+    if remaining == 0 {
+        // Every episode was recorded before the last launcher stopped.
+        std::fs::rename(&partial, run.csv(&exp.out))?;
+        return Ok(());
+    }
+    if recorded > 0 {
+        progress.log(&format!(
+            "run {} resumes after {recorded} recorded episodes: {remaining} to go",
+            run.stem()
+        ));
+    }
     let mut cmd = Command::new(exp.bin_dir.join("sim-bridge"));
     cmd.arg("run")
         .args([
@@ -242,18 +284,19 @@ fn run_one(
             "--agent",
             "bridge",
         ])
-        .args(["--episodes", &manifest.episodes.to_string()])
+        .args(["--episodes", &remaining.to_string()])
         .args(["--seed", &run.seed.to_string()])
         .args(["--preset", &run.method])
         .args(["--connect", endpoint])
         .args(["--train-timeout", "86400"])
         .arg("--out")
-        .arg(&partial)
+        .arg(&attempt)
         .args(scale::bridge_flags(&manifest.overrides))
         .env("RUST_LOG", "info,zenoh=warn,mujoco=warn")
         .stdin(Stdio::null())
         .stdout(log.try_clone()?)
         .stderr(log);
+    stop_with_launcher(&mut cmd);
     let mut child = Guard(
         cmd.spawn()
             .with_context(|| format!("starting {}", exp.bin_dir.join("sim-bridge").display()))?,
@@ -262,9 +305,9 @@ fn run_one(
     let mut seen = 0;
     let status = loop {
         let status = child.0.try_wait()?;
-        let done = results::count_rows(&partial);
+        let done = results::count_rows(&attempt);
         if done > seen {
-            let rows = results::read_run_csv(&partial, exp.task.name(), &run.method, run.seed)
+            let rows = results::read_run_csv(&attempt, exp.task.name(), &run.method, run.seed)
                 .unwrap_or_default();
             for row in rows.iter().skip(seen) {
                 progress.episode(&bar, &run.stem(), row, manifest.episodes);
@@ -277,6 +320,7 @@ fn run_one(
         std::thread::sleep(Duration::from_millis(500));
     };
     progress.end_run(bar);
+    merge_attempt(&attempt, &partial)?;
     if !status.success() {
         bail!(
             "sim-bridge exited with {status}; see {}",
@@ -293,6 +337,50 @@ fn run_one(
     }
     std::fs::rename(&partial, run.csv(&exp.out))?;
     Ok(())
+}
+
+/// Appends the complete rows of a bridge's `attempt` file to the run's `partial` file (which
+/// gets the attempt's header if it has none yet) and removes the attempt. A line the bridge
+/// was cut off writing (no newline yet) is dropped.
+fn merge_attempt(attempt: &Path, partial: &Path) -> Result<()> {
+    let Ok(text) = std::fs::read_to_string(attempt) else {
+        return Ok(());
+    };
+    let mut lines = text.split_inclusive('\n').filter(|l| l.ends_with('\n'));
+    let Some(header) = lines.next() else {
+        std::fs::remove_file(attempt)?;
+        return Ok(());
+    };
+    let mut out = std::fs::read_to_string(partial).unwrap_or_default();
+    if out.trim().is_empty() {
+        out = header.to_string();
+    }
+    for line in lines.filter(|l| !l.trim().is_empty()) {
+        out.push_str(line);
+    }
+    let tmp = partial.with_extension("partial.tmp");
+    std::fs::write(&tmp, out).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, partial)?;
+    std::fs::remove_file(attempt)?;
+    Ok(())
+}
+
+/// Asks the kernel to send the child SIGTERM when the launcher dies, however it dies: a
+/// launcher killed with SIGKILL runs no destructor, and an orphaned daemon would keep the lock
+/// on `<out>/planner/` that the resumed experiment's daemon needs (SIGTERM is its clean
+/// shutdown, which syncs the run's data).
+fn stop_with_launcher(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: the closure runs in the forked child before exec and only makes one
+    // async-signal-safe system call.
+    unsafe {
+        cmd.pre_exec(|| {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) == -1 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
 }
 
 /// A child process killed when dropped (a bridge whose launcher is going away).
@@ -331,15 +419,17 @@ impl Daemon {
         let endpoint = format!("tcp/127.0.0.1:{port}");
         let log = std::fs::File::create(log_path)
             .with_context(|| format!("creating {}", log_path.display()))?;
-        let child = Command::new(bin)
-            .args(["serve", "--listen", &endpoint, "--planner-id"])
+        let mut cmd = Command::new(bin);
+        cmd.args(["serve", "--listen", &endpoint, "--planner-id"])
             .arg(format!("experiment-{port}"))
             .arg("--data-dir")
             .arg(data_dir)
             .env("RUST_LOG", "info,zenoh=warn")
             .stdin(Stdio::null())
             .stdout(log.try_clone()?)
-            .stderr(log)
+            .stderr(log);
+        stop_with_launcher(&mut cmd);
+        let child = cmd
             .spawn()
             .with_context(|| format!("starting {}", bin.display()))?;
         let mut daemon = Self { child, endpoint };

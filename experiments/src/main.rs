@@ -46,7 +46,7 @@ struct ExperimentArgs {
     /// Task to learn.
     #[arg(long)]
     task: TaskId,
-    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen.
+    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen, adam+dae.
     #[arg(long, value_delimiter = ',', default_value = "cem,cem+dae,cem+deen")]
     methods: Vec<String>,
     /// Sizes: `paper` (Table 2) or `small` (fits a 2-core machine; see the README).
@@ -100,8 +100,16 @@ struct ImaginationArgs {
     /// Number format of the models' inference: bf16 (the service's default) or f32.
     #[arg(long, default_value = "bf16")]
     inference_precision: proto::InferencePrecision,
+    /// Seed of the first run (the others follow: seed + 1, …).
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Runs, each learning from scratch with its own seed (≥ 3 for a confidence interval
+    /// worth the name).
+    #[arg(long, default_value_t = 1)]
+    seeds: u32,
+    /// Start states compared per run (the paper shows 1).
+    #[arg(long, default_value_t = 1)]
+    states: u32,
     /// Output folder (default: results/<task>/imagination-<scale>).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -242,36 +250,63 @@ fn imagination_command(args: ImaginationArgs) -> Result<()> {
             .join(format!("imagination-{}", args.scale.name()))
     });
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-    let config = imagination::ImaginationConfig {
-        task: args.task,
-        scale: args.scale,
-        plan_scale: args.plan_scale.unwrap_or(args.scale),
-        method: args.method,
-        train_episodes: args.episodes,
-        mpc_steps: args.mpc_steps,
-        inference_precision: args.inference_precision,
-        seed: args.seed,
-    };
     let started = Instant::now();
-    let result = imagination::run(&config, |e, ret| {
-        tracing::info!(
-            "training episode {}/{}: return {ret:.2} ({:.0} s so far)",
-            e + 1,
-            config.train_episodes,
-            started.elapsed().as_secs_f64()
-        );
-    })?;
+    let mut first = None;
+    let mut rows = Vec::new();
+    for s in 0..args.seeds.max(1) {
+        let config = imagination::ImaginationConfig {
+            task: args.task,
+            scale: args.scale,
+            plan_scale: args.plan_scale.unwrap_or(args.scale),
+            method: args.method.clone(),
+            train_episodes: args.episodes,
+            mpc_steps: args.mpc_steps,
+            inference_precision: args.inference_precision,
+            seed: args.seed.wrapping_add(u64::from(s)),
+            states: args.states,
+        };
+        let result = imagination::run(&config, |e, ret| {
+            tracing::info!(
+                "seed {}: training episode {}/{}: return {ret:.2} ({:.0} s so far)",
+                config.seed,
+                e + 1,
+                config.train_episodes,
+                started.elapsed().as_secs_f64()
+            );
+        })?;
+        rows.extend(result.states.iter().cloned());
+        imagination::write_csv(&out.join("imagination_states.csv"), &rows)?;
+        first.get_or_insert(result);
+    }
+    let result = first.context("no run")?;
     std::fs::write(out.join("imagination.csv"), result.to_csv())?;
     let [png, svg] = plot::save(&result, &out.join("imagination"), fonts::ensure())?;
-    for (kind, imagined, real) in result.totals() {
+    let summary = imagination::summary(&rows);
+    imagination::write_csv(&out.join("imagination_summary.csv"), &summary)?;
+    plot::save(
+        &imagination::SummaryFigure(&summary),
+        &out.join("imagination_summary"),
+        fonts::ensure(),
+    )?;
+    println!(
+        "over {} seed(s) and their start states (95 % bootstrap intervals):",
+        args.seeds
+    );
+    for r in &summary {
         println!(
-            "{:<5} imagined {imagined:>9.2}  real {real:>9.2}  gap {:>8.2}",
-            kind.name(),
-            imagined - real
+            "{:<5} {} states: gap {:>8.2} [{:.2}, {:.2}]  real {:>8.2} [{:.2}, {:.2}]",
+            r.regularizer,
+            r.states,
+            r.mean_gap,
+            r.gap_ci_low,
+            r.gap_ci_high,
+            r.mean_real_return,
+            r.real_ci_low,
+            r.real_ci_high
         );
     }
     println!(
-        "wrote {}, {} and {} in {:.1} min",
+        "wrote {}, imagination_states.csv, imagination_summary.{{csv,png,svg}}, {} and {} in {:.1} min",
         out.join("imagination.csv").display(),
         png.display(),
         svg.display(),

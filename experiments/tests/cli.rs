@@ -47,8 +47,12 @@ fn script(path: &Path, body: &str) {
 }
 
 /// Stand-ins for `planner-service` and `sim-bridge` in `dir`. The bridge appends its command
-/// line to `calls.log` and writes `--episodes` rows of sim-bridge's CSV format; with
-/// FAIL_SEED=<seed> in its environment it fails after one episode for that seed.
+/// line to `calls.log` and writes `--episodes` rows of sim-bridge's CSV format, numbered on
+/// from the episodes its `--run` already has (as the daemon's stored run numbers them: a file
+/// per run name stands for the daemon's replay). With FAIL_SEED=<seed> in its environment it
+/// fails after one episode for that seed; with HANG_SEED=<seed> it writes one episode for that
+/// seed, records its pid in `hung.pid` and hangs (a run in progress, for killing the
+/// launcher).
 fn fake_binaries(dir: &Path) {
     script(
         &dir.join("planner-service"),
@@ -64,18 +68,24 @@ while [ $# -gt 0 ]; do
     --out) out="$2"; shift;;
     --episodes) episodes="$2"; shift;;
     --seed) seed="$2"; shift;;
+    --run) run="$2"; shift;;
   esac
   shift
 done
+state="{dir}/daemon-$run"
+e=$(cat "$state" 2>/dev/null || echo 0)
+last=$((e + episodes))
 echo "episode,return,steps,wall_seconds,planned_steps,plan_ms_mean,train_seconds" > "$out"
-e=0
-while [ $e -lt $episodes ]; do
+while [ $e -lt $last ]; do
   echo "$e,$((seed * 100 + e)).5,200,0.010,200,12.500,1.250" >> "$out"
-  if [ "$FAIL_SEED" = "$seed" ]; then exit 3; fi
   e=$((e + 1))
+  echo $e > "$state"
+  if [ "$FAIL_SEED" = "$seed" ]; then exit 3; fi
+  if [ "$HANG_SEED" = "$seed" ]; then echo $$ > "{dir}/hung.pid"; exec sleep 300; fi
 done
 "#,
-            calls = calls.display()
+            calls = calls.display(),
+            dir = dir.display()
         ),
     );
 }
@@ -117,6 +127,110 @@ fn calls(bins: &Path) -> Vec<String> {
         .collect()
 }
 
+/// The episode numbers of one run in `episodes.csv`, in file order.
+fn episodes_of(out: &Path, method: &str, seed: u64) -> Vec<u32> {
+    std::fs::read_to_string(out.join("episodes.csv"))
+        .unwrap()
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[1] == method && f[2] == seed.to_string()).then(|| f[3].parse().unwrap())
+        })
+        .collect()
+}
+
+/// The launcher itself killed (SIGKILL) while a bridge is one episode into a run: the next
+/// launch keeps that episode, asks the bridge for the other two only, and the run ends with
+/// exactly three episodes, none twice.
+#[test]
+fn an_experiment_killed_mid_run_resumes_where_it_stopped() {
+    let bins = temp_dir("bins-killed");
+    fake_binaries(&bins);
+    let out = bins.join("results");
+    let mut cmd = exe();
+    cmd.args(["experiment", "--task", "cartpole", "--methods", "cem"])
+        .args(["--seeds", "1", "--episodes", "3", "--scale", "small"])
+        .arg("--out")
+        .arg(&out)
+        .arg("--bin-dir")
+        .arg(&bins)
+        .env("HANG_SEED", "0")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null());
+    let mut launcher = cmd.spawn().unwrap();
+    let pid_file = bins.join("hung.pid");
+    let started = std::time::Instant::now();
+    while !pid_file.exists() {
+        assert!(started.elapsed().as_secs() < 60, "the bridge never hung");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    launcher.kill().unwrap();
+    launcher.wait().unwrap();
+    // The bridge (and the daemon) were told to stop with the launcher: the hung stand-in's
+    // `sleep` gets SIGTERM from the kernel.
+    let hung = std::fs::read_to_string(&pid_file).unwrap();
+    let started = std::time::Instant::now();
+    // Alive: its /proc entry exists and is not a zombie waiting to be reaped.
+    let alive = || {
+        std::fs::read_to_string(format!("/proc/{}/stat", hung.trim())).is_ok_and(|stat| {
+            stat.rsplit(')')
+                .next()
+                .map(str::trim_start)
+                .is_some_and(|r| !r.starts_with('Z'))
+        })
+    };
+    while alive() {
+        if started.elapsed().as_secs() > 30 {
+            Command::new("kill").arg(hung.trim()).status().unwrap();
+            panic!("the bridge outlived the launcher");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    assert!(!out.join("runs/cem-s0.csv").exists());
+
+    let second = experiment_once(&bins, &out);
+    assert!(
+        second.status.success(),
+        "{}",
+        String::from_utf8_lossy(&second.stderr)
+    );
+    let all = calls(&bins);
+    assert_eq!(all.len(), 2, "{all:?}");
+    assert!(
+        all[0].contains("--episodes 3") && all[1].contains("--episodes 2"),
+        "{all:?}"
+    );
+    let run_name = |call: &str| {
+        let name = call
+            .split("--run ")
+            .nth(1)
+            .and_then(|r| r.split_whitespace().next());
+        name.map(str::to_string)
+    };
+    assert_eq!(
+        run_name(&all[0]),
+        run_name(&all[1]),
+        "one daemon run: {all:?}"
+    );
+    assert!(run_name(&all[0]).is_some(), "{all:?}");
+    assert_eq!(episodes_of(&out, "cem", 0), [0, 1, 2]);
+    std::fs::remove_dir_all(&bins).unwrap();
+}
+
+/// One cem run, seed 0, three episodes, as in the killed test.
+fn experiment_once(bins: &Path, out: &Path) -> std::process::Output {
+    exe()
+        .args(["experiment", "--task", "cartpole", "--methods", "cem"])
+        .args(["--seeds", "1", "--episodes", "3", "--scale", "small"])
+        .arg("--out")
+        .arg(out)
+        .arg("--bin-dir")
+        .arg(bins)
+        .output()
+        .unwrap()
+}
+
 #[test]
 fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
     let bins = temp_dir("bins");
@@ -151,7 +265,8 @@ fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
     assert!(out.join("runs/cem-s1.csv.partial").exists());
     assert!(out.join("learning_curves.png").exists());
 
-    // Second attempt: only the two failed runs start again, and all 12 rows are there.
+    // Second attempt: only the two failed runs start again, each resumed for its two missing
+    // episodes, and all 12 rows are there, every episode once.
     let second = experiment(&bins, &out, None);
     assert!(
         second.status.success(),
@@ -161,9 +276,13 @@ fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
     let after = calls(&bins);
     assert_eq!(after.len(), 6, "{after:?}");
     assert!(
-        after[4..].iter().all(|c| c.contains("--seed 1")),
+        after[4..]
+            .iter()
+            .all(|c| c.contains("--seed 1") && c.contains("--episodes 2")),
         "{after:?}"
     );
+    assert_eq!(episodes_of(&out, "cem+deen", 1), [0, 1, 2]);
+    assert_eq!(episodes_of(&out, "cem", 1), [0, 1, 2]);
     let csv = std::fs::read_to_string(out.join("episodes.csv")).unwrap();
     assert_eq!(csv.lines().count(), 13, "{csv}");
     assert!(

@@ -31,6 +31,7 @@ fn deen_narrows_the_gap_between_imagined_and_real_return() {
             mpc_steps: 10,
             inference_precision: InferencePrecision::Bf16,
             seed,
+            states: 1,
         };
         let result = run(&config, |_, _| {}).expect("the experiment runs");
         let gap = |kind: RegularizerKind| {

@@ -1,5 +1,6 @@
 //! The planning loop allocates nothing: a counting global allocator watches full `plan` calls
-//! with real (tiny) networks, an ensemble with sampled particles, and a DEEN.
+//! with real (tiny) networks, an ensemble with sampled particles, and a DEEN, for CEM, iCEM and
+//! Adam (whose back-propagation through the horizon keeps one training tape per step).
 //!
 //! The planner's own buffers and the networks' scratch are allocated when the planner is built
 //! and on its first call with a model; rayon's pool and gemm-free kernels need nothing per call.
@@ -100,7 +101,7 @@ fn pack(dynamics: &Ensemble, regularizer: &Regularizer) {
 /// the allocation counter is global, so no other test may run beside this one.
 #[test]
 fn planning_allocates_nothing_after_warm_up() {
-    for optimizer in [Optimizer::Cem, Optimizer::Icem] {
+    for optimizer in [Optimizer::Cem, Optimizer::Icem, Optimizer::Adam] {
         for precision in [InferencePrecision::F32, InferencePrecision::Bf16] {
             allocates_nothing_after_warm_up_in(optimizer, precision);
         }
@@ -146,6 +147,7 @@ fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: Inference
         particles: 4,
         optimizer,
         icem: IcemConfig::default(),
+        adam: planner_service::plan::AdamConfig::default(),
     };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(2)

@@ -77,13 +77,16 @@ impl std::str::FromStr for InferencePrecision {
 ///
 /// `cem` is the paper's (PETS-style CEM with Table 2's settings); `icem` is the improved CEM of
 /// Pinneri et al. (CoRL 2020): colored noise, kept elites, population decay, best sequence
-/// executed, several times fewer imagined trajectories for the same plan quality.
+/// executed, several times fewer imagined trajectories for the same plan quality; `adam` is
+/// gradient-based trajectory optimisation through the learned model (Boney et al. 2019, the
+/// paper's Adam + DAE baseline).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Optimizer {
     #[default]
     Cem,
     Icem,
+    Adam,
 }
 
 impl std::fmt::Display for Optimizer {
@@ -91,6 +94,7 @@ impl std::fmt::Display for Optimizer {
         f.write_str(match self {
             Optimizer::Cem => "cem",
             Optimizer::Icem => "icem",
+            Optimizer::Adam => "adam",
         })
     }
 }
@@ -98,12 +102,15 @@ impl std::fmt::Display for Optimizer {
 impl std::str::FromStr for Optimizer {
     type Err = String;
 
-    /// `cem` or `icem`, as in the TOML configuration and the JSON attach message.
+    /// `cem`, `icem` or `adam`, as in the TOML configuration and the JSON attach message.
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "cem" => Ok(Optimizer::Cem),
             "icem" => Ok(Optimizer::Icem),
-            other => Err(format!("unknown optimizer `{other}` (known: cem, icem)")),
+            "adam" => Ok(Optimizer::Adam),
+            other => Err(format!(
+                "unknown optimizer `{other}` (known: cem, icem, adam)"
+            )),
         }
     }
 }
@@ -180,6 +187,8 @@ pub struct PlannerOverrides {
     pub icem_keep_elites: Option<f32>,
     /// iCEM: population decay factor per iteration (≥ 1).
     pub icem_population_decay: Option<f32>,
+    /// Adam planning: step size as a fraction of each action's half-range.
+    pub adam_learning_rate: Option<f32>,
 }
 
 /// What an agent asks for when it attaches: which task it is and how its run should plan.

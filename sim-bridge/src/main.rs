@@ -106,7 +106,7 @@ struct RunArgs {
 #[derive(Args, Debug)]
 #[command(next_help_heading = "Run spec (used when the run is created)")]
 struct SpecArgs {
-    /// Planner preset: cem, cem+dae, cem+deen (the paper's default), pets, pets+deen.
+    /// Planner preset: cem, cem+dae, cem+deen (the paper's default), pets, pets+deen, adam+dae.
     #[arg(long)]
     preset: Option<String>,
     /// sync: the next episode starts once the models are retrained (the paper's protocol);
@@ -165,8 +165,9 @@ struct SpecArgs {
     /// multiply-add rate on CPUs with AVX-512 BF16) or f32.
     #[arg(long)]
     inference_precision: Option<InferencePrecision>,
-    /// Planning optimiser: cem (the paper's, the default) or icem (Pinneri et al. 2020:
-    /// colored noise, kept elites, decaying population; real-time planning).
+    /// Planning optimiser: cem (the paper's, the default), icem (Pinneri et al. 2020:
+    /// colored noise, kept elites, decaying population; real-time planning) or adam
+    /// (gradient-based, the adam+dae preset's).
     #[arg(long)]
     optimizer: Option<proto::Optimizer>,
     /// iCEM: exponent β of the colored noise (0 = white; planner default 2).

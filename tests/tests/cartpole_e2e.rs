@@ -168,3 +168,52 @@ fn the_bridge_rides_out_a_planner_killed_and_restarted() {
         .count();
     assert_eq!(finished, 3, "{:?}", buffer.episodes());
 }
+
+/// The gradient-based baseline through the service: a run created with the `adam+dae` preset
+/// explores one episode, trains its model and DAE, and plans every step of the next episode
+/// with Adam (40 candidates, two Adam steps: plumbing, not learning), within the bounds.
+#[test]
+fn adam_dae_plans_a_cartpole_episode_through_the_service() {
+    let dir = TempDir::new("cartpole-adam");
+    let mut planner = Planner::start(dir.path(), &config()).expect("planner starts");
+    let args = [
+        "--task",
+        "cartpole",
+        "--run",
+        "adam",
+        "--agent",
+        "bridge-0",
+        "--seed",
+        "4",
+        "--preset",
+        "adam+dae",
+        "--max-steps",
+        "30",
+    ];
+    let bridge = run_episodes(dir.path(), &planner, &args, 2, Duration::from_secs(300)).unwrap();
+    for row in &bridge.episodes {
+        assert_eq!(row.steps, 30, "{row:?}");
+        assert!(row.ret.is_finite(), "{row:?}");
+    }
+    check_random_then_planned(&bridge.episodes).unwrap();
+    let episodes = action_sources(&bridge.log);
+    assert_eq!(
+        episodes.len(),
+        2,
+        "per-episode summaries in:\n{}",
+        bridge.log
+    );
+    assert_eq!(episodes[1].0, 30, "every step planned:\n{}", bridge.log);
+    assert!(episodes[1].2 >= 1, "planned with trained models");
+    planner.stop().unwrap();
+    // The run was stored with Adam and the DAE, and its actions stayed in bounds.
+    let spec = std::fs::read_to_string(planner.data_dir.join("runs/adam/run.json")).unwrap();
+    assert!(spec.contains("\"adam+dae\""), "{spec}");
+    let buffer = planner.replay("adam", TaskId::Cartpole).unwrap();
+    assert_eq!(buffer.len(), 60);
+    for i in 0..buffer.len() {
+        let (s, a, s2) = buffer.transitions().row(i);
+        assert!(s.iter().chain(s2).all(|v| v.is_finite()), "transition {i}");
+        assert!(a[0].abs() <= 3.0, "transition {i}: {a:?}");
+    }
+}

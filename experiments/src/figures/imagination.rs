@@ -9,6 +9,13 @@
 //! step of each plan, the reward the model imagines against the reward the simulator gives when
 //! the plan is executed open-loop from the same state. The paper's point: without regularisation
 //! the optimiser finds plans whose imagined reward the real system does not deliver.
+//!
+//! One state proves little, so the comparison is repeated from `states` start states (the
+//! state `mpc_steps` MPC steps into each of `states` further episodes, reset from the seeds
+//! after the training ones) with the same models; [`ImaginationResult::states`] holds each
+//! state's imagined and real returns, and [`summary`] gives, over several seeds' results, the
+//! mean gap and mean real return per regulariser with bootstrap confidence intervals. The
+//! figure draws the first state.
 
 use crate::plot::{FAMILY, Figure, XAxis, chart, padded_range, plot_err};
 use crate::scale::Scale;
@@ -45,6 +52,22 @@ pub struct ImaginationConfig {
     /// Number format of the models' inference, in data collection and in the compared plans.
     pub inference_precision: InferencePrecision,
     pub seed: u64,
+    /// Start states compared (at least 1; the paper shows 1).
+    pub states: u32,
+}
+
+/// One regulariser's plan from one start state, summed over the steps that were executed.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StateRow {
+    pub seed: u64,
+    pub state: u32,
+    pub regularizer: String,
+    pub alpha: f32,
+    pub steps: usize,
+    pub imagined_return: f32,
+    pub real_return: f32,
+    /// `imagined_return − real_return`: how over-optimistic the plan was.
+    pub gap: f32,
 }
 
 /// One regulariser's plan: what the model imagined and what the simulator delivered.
@@ -67,7 +90,10 @@ pub struct ImaginationResult {
     pub mpc_steps: u32,
     /// Returns of the training episodes.
     pub training_returns: Vec<f32>,
+    /// The plans from the first start state (the figure).
     pub traces: Vec<PlanTrace>,
+    /// Every start state's plans, summed.
+    pub states: Vec<StateRow>,
 }
 
 /// Runs one episode with random actions (`planner` = None) or MPC; appends its transitions.
@@ -152,32 +178,11 @@ pub fn run(
         .0;
     }
 
-    // The state: `mpc_steps` steps of MPC into the next episode.
-    let start_seed = config.seed.wrapping_add(u64::from(config.train_episodes));
-    let mut prefix = Vec::new();
-    let mut obs = env.reset(start_seed).to_vec();
-    planner.reset();
-    for _ in 0..config.mpc_steps {
-        let action = planner
-            .plan(&obs, &models.dynamics, &models.regularizer)
-            .action
-            .to_vec();
-        let out = env.step(&action)?;
-        prefix.push(action);
-        let done = out.done();
-        obs = out.obs;
-        if done {
-            anyhow::bail!(
-                "the episode ended within the first {} MPC steps: ask for fewer",
-                config.mpc_steps
-            );
-        }
-    }
-
     let (_, energy_epochs) = preset.epochs(config.train_episodes);
     let mut plan_preset = Preset::new(task, Some(&config.method))?;
     plan_preset.apply(&config.plan_scale.overrides(task))?;
-    let mut traces = Vec::new();
+    // The three regularisers, trained once on the same data, compared from every state.
+    let mut regularizers = Vec::new();
     for kind in [
         RegularizerKind::None,
         RegularizerKind::Dae,
@@ -196,49 +201,108 @@ pub fn run(
         } else {
             plan_preset.energy_weight
         };
-        let mut fresh = MpcPlanner::new(
-            spec,
-            plan_preset.cem.clone(),
-            alpha,
-            false,
-            config.seed.wrapping_add(1000),
-        )?;
-        let plan = fresh.imagine_plan(&obs, &models.dynamics, &regularizer);
-        // Reality: the same state (replaying the same actions in a deterministic simulator),
-        // then the plan open-loop.
-        env.reset(start_seed);
-        for a in &prefix {
-            env.step(a)?;
+        regularizers.push((kind, regularizer, alpha));
+    }
+
+    let mut first_traces = None;
+    let mut states = Vec::new();
+    for state in 0..config.states.max(1) {
+        // The state: `mpc_steps` steps of MPC into a further episode.
+        let start_seed = config
+            .seed
+            .wrapping_add(u64::from(config.train_episodes) + u64::from(state));
+        let mut prefix = Vec::new();
+        let mut obs = env.reset(start_seed).to_vec();
+        planner.reset();
+        let mut ended = false;
+        for _ in 0..config.mpc_steps {
+            let action = planner
+                .plan(&obs, &models.dynamics, &models.regularizer)
+                .action
+                .to_vec();
+            let out = env.step(&action)?;
+            prefix.push(action);
+            ended = out.done();
+            obs = out.obs;
+            if ended {
+                break;
+            }
         }
-        let mut real = Vec::new();
-        for a in plan.actions.chunks_exact(spec.act_dim) {
-            match env.step(a) {
-                Ok(out) => {
-                    real.push(out.reward);
-                    if out.done() {
+        if ended {
+            tracing::warn!(
+                state,
+                "the episode ended within the first {} MPC steps: state left out",
+                config.mpc_steps
+            );
+            continue;
+        }
+        let mut traces = Vec::new();
+        for (kind, regularizer, alpha) in &regularizers {
+            let mut fresh = MpcPlanner::new(
+                spec,
+                plan_preset.cem.clone(),
+                *alpha,
+                false,
+                config.seed.wrapping_add(1000),
+            )?;
+            let plan = fresh.imagine_plan(&obs, &models.dynamics, regularizer);
+            // Reality: the same state (replaying the same actions in a deterministic
+            // simulator), then the plan open-loop.
+            env.reset(start_seed);
+            for a in &prefix {
+                env.step(a)?;
+            }
+            let mut real = Vec::new();
+            for a in plan.actions.chunks_exact(spec.act_dim) {
+                match env.step(a) {
+                    Ok(out) => {
+                        real.push(out.reward);
+                        if out.done() {
+                            break;
+                        }
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "the simulator stopped executing the plan");
                         break;
                     }
                 }
-                Err(e) => {
-                    tracing::warn!(error = %e, "the simulator stopped executing the plan");
-                    break;
-                }
             }
+            let steps = real.len();
+            let imagined_return: f32 = plan.rewards[..steps].iter().sum();
+            let real_return: f32 = real.iter().sum();
+            states.push(StateRow {
+                seed: config.seed,
+                state,
+                regularizer: kind.name().to_string(),
+                alpha: *alpha,
+                steps,
+                imagined_return,
+                real_return,
+                gap: imagined_return - real_return,
+            });
+            traces.push(PlanTrace {
+                regularizer: *kind,
+                alpha: *alpha,
+                imagined: plan.rewards,
+                real,
+                energies: plan.energies,
+            });
         }
-        traces.push(PlanTrace {
-            regularizer: kind,
-            alpha,
-            imagined: plan.rewards,
-            real,
-            energies: plan.energies,
-        });
+        first_traces.get_or_insert(traces);
     }
+    let Some(traces) = first_traces else {
+        anyhow::bail!(
+            "every episode ended within the first {} MPC steps: ask for fewer",
+            config.mpc_steps
+        );
+    };
     Ok(ImaginationResult {
         task,
         train_episodes: config.train_episodes,
         mpc_steps: config.mpc_steps,
         training_returns,
         traces,
+        states,
     })
 }
 
@@ -275,6 +339,191 @@ impl ImaginationResult {
                 )
             })
             .collect()
+    }
+}
+
+/// The mean of `values` over seeds and states, with a two-sided bootstrap confidence interval
+/// at `level` (e.g. 0.95): `groups` holds one seed's values (its states) each, and every
+/// resample draws seeds with replacement and then states with replacement within each drawn
+/// seed (a two-level bootstrap: states of one seed share its models, so they are not
+/// independent draws). Percentile interval over `resamples` resamples, seeded.
+pub fn bootstrap_mean(groups: &[Vec<f64>], resamples: usize, level: f64, seed: u64) -> Interval {
+    let groups: Vec<&Vec<f64>> = groups.iter().filter(|g| !g.is_empty()).collect();
+    let all: Vec<f64> = groups.iter().flat_map(|g| g.iter().copied()).collect();
+    let mean = all.iter().sum::<f64>() / all.len().max(1) as f64;
+    if groups.is_empty() {
+        return Interval {
+            mean: f64::NAN,
+            low: f64::NAN,
+            high: f64::NAN,
+        };
+    }
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut means: Vec<f64> = (0..resamples.max(1))
+        .map(|_| {
+            let (mut sum, mut n) = (0.0, 0usize);
+            for _ in 0..groups.len() {
+                let g = groups[rng.random_range(0..groups.len())];
+                for _ in 0..g.len() {
+                    sum += g[rng.random_range(0..g.len())];
+                    n += 1;
+                }
+            }
+            sum / n as f64
+        })
+        .collect();
+    means.sort_by(f64::total_cmp);
+    let at = |q: f64| means[((q * (means.len() - 1) as f64).round() as usize).min(means.len() - 1)];
+    let tail = (1.0 - level) / 2.0;
+    Interval {
+        mean,
+        low: at(tail),
+        high: at(1.0 - tail),
+    }
+}
+
+/// A mean and its confidence interval.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Interval {
+    pub mean: f64,
+    pub low: f64,
+    pub high: f64,
+}
+
+/// Per regulariser over every seed's states: the gap and the real return, each with a 95 %
+/// two-level bootstrap interval (10,000 resamples).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct SummaryRow {
+    pub regularizer: String,
+    pub alpha: f32,
+    pub seeds: usize,
+    pub states: usize,
+    pub mean_gap: f64,
+    pub gap_ci_low: f64,
+    pub gap_ci_high: f64,
+    pub mean_real_return: f64,
+    pub real_ci_low: f64,
+    pub real_ci_high: f64,
+}
+
+/// [`SummaryRow`]s of `rows` (any number of seeds and states), one per regulariser in the order
+/// they first appear.
+pub fn summary(rows: &[StateRow]) -> Vec<SummaryRow> {
+    let mut kinds: Vec<(&str, f32)> = Vec::new();
+    for r in rows {
+        if !kinds.iter().any(|(k, _)| *k == r.regularizer) {
+            kinds.push((&r.regularizer, r.alpha));
+        }
+    }
+    kinds
+        .into_iter()
+        .map(|(kind, alpha)| {
+            let mine: Vec<&StateRow> = rows.iter().filter(|r| r.regularizer == kind).collect();
+            let mut seeds: Vec<u64> = mine.iter().map(|r| r.seed).collect();
+            seeds.sort_unstable();
+            seeds.dedup();
+            let groups = |f: fn(&StateRow) -> f32| -> Vec<Vec<f64>> {
+                seeds
+                    .iter()
+                    .map(|s| {
+                        mine.iter()
+                            .filter(|r| r.seed == *s)
+                            .map(|r| f64::from(f(r)))
+                            .collect()
+                    })
+                    .collect()
+            };
+            let gap = bootstrap_mean(&groups(|r| r.gap), 10_000, 0.95, 1);
+            let real = bootstrap_mean(&groups(|r| r.real_return), 10_000, 0.95, 2);
+            SummaryRow {
+                regularizer: kind.to_string(),
+                alpha,
+                seeds: seeds.len(),
+                states: mine.len(),
+                mean_gap: gap.mean,
+                gap_ci_low: gap.low,
+                gap_ci_high: gap.high,
+                mean_real_return: real.mean,
+                real_ci_low: real.low,
+                real_ci_high: real.high,
+            }
+        })
+        .collect()
+}
+
+/// Writes serialisable rows as CSV (header from the field names).
+pub fn write_csv<T: serde::Serialize>(path: &std::path::Path, rows: &[T]) -> Result<()> {
+    let mut w =
+        csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
+    for r in rows {
+        w.serialize(r)?;
+    }
+    w.flush()?;
+    Ok(())
+}
+
+/// Reads the rows [`write_csv`] wrote of [`StateRow`]s.
+pub fn read_state_rows(path: &std::path::Path) -> Result<Vec<StateRow>> {
+    let mut r =
+        csv::Reader::from_path(path).with_context(|| format!("reading {}", path.display()))?;
+    Ok(r.deserialize().collect::<Result<_, _>>()?)
+}
+
+/// One statistic of a summary row: `(mean, interval low, interval high)`.
+type Statistic = fn(&SummaryRow) -> (f64, f64, f64);
+
+/// The summary as a figure: per regulariser, the mean gap and the mean real return with their
+/// intervals (points with error bars, one panel each).
+pub struct SummaryFigure<'a>(pub &'a [SummaryRow]);
+
+impl Figure for SummaryFigure<'_> {
+    fn size(&self) -> (u32, u32) {
+        (900, 380)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>, text: bool) -> Result<()> {
+        let rows = self.0;
+        let areas = root.split_evenly((1, 2));
+        let panels: [(&str, Statistic); 2] = [
+            ("imagined − real return", |r| {
+                (r.mean_gap, r.gap_ci_low, r.gap_ci_high)
+            }),
+            ("real return", |r| {
+                (r.mean_real_return, r.real_ci_low, r.real_ci_high)
+            }),
+        ];
+        for (area, (title, value)) in areas.iter().zip(panels) {
+            let yr = padded_range(rows.iter().flat_map(|r| {
+                let (_, lo, hi) = value(r);
+                [lo, hi, 0.0]
+            }));
+            let xr = (-0.5, rows.len() as f64 - 0.5);
+            let caption = format!(
+                "{title} ({})",
+                rows.iter()
+                    .map(|r| r.regularizer.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+            let mut c = chart(
+                area,
+                &caption,
+                (xr, XAxis::Steps),
+                yr,
+                ("regulariser", "mean, 95 % CI"),
+                text,
+            )?;
+            for (i, r) in rows.iter().enumerate() {
+                let (mean, lo, hi) = value(r);
+                let style = crate::plot::color(i).stroke_width(2);
+                let x = i as f64;
+                c.draw_series(std::iter::once(PathElement::new([(x, lo), (x, hi)], style)))
+                    .map_err(plot_err)?;
+                c.draw_series(std::iter::once(Circle::new((x, mean), 5, style.filled())))
+                    .map_err(plot_err)?;
+            }
+        }
+        Ok(())
     }
 }
 
@@ -354,4 +603,88 @@ pub fn check_task(task: TaskId) -> Result<()> {
     Env::new(task)
         .map(|_| ())
         .with_context(|| format!("{task} has no simulator"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn normal_groups(seeds: usize, states: usize, mean: f64, rng: &mut StdRng) -> Vec<Vec<f64>> {
+        (0..seeds)
+            .map(|_| {
+                (0..states)
+                    .map(|_| mean + rng.sample::<f64, _>(rand_distr::StandardNormal))
+                    .collect()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn bootstrap_intervals_cover_the_mean_and_narrow_with_data() {
+        let mut rng = StdRng::seed_from_u64(9);
+        // Over 200 repeated experiments the 95 % interval covers the true mean about 95 % of
+        // the time (a broad band: 85–100 %).
+        let covered = (0..200)
+            .filter(|&i| {
+                let g = normal_groups(3, 20, 2.0, &mut rng);
+                let ci = bootstrap_mean(&g, 500, 0.95, i);
+                ci.low <= 2.0 && 2.0 <= ci.high
+            })
+            .count();
+        assert!((170..=200).contains(&covered), "{covered}");
+        let small = bootstrap_mean(&normal_groups(3, 5, 0.0, &mut rng), 2000, 0.95, 1);
+        let large = bootstrap_mean(&normal_groups(3, 200, 0.0, &mut rng), 2000, 0.95, 1);
+        assert!(
+            large.high - large.low < 0.5 * (small.high - small.low),
+            "{small:?} {large:?}"
+        );
+        // Constant data: a point.
+        let flat = bootstrap_mean(&[vec![1.5; 4], vec![1.5; 4]], 100, 0.95, 0);
+        assert_eq!((flat.mean, flat.low, flat.high), (1.5, 1.5, 1.5));
+    }
+
+    #[test]
+    fn summary_per_regulariser_and_csv_round_trip() {
+        let row = |seed, state, regularizer: &str, imagined: f32, real: f32| StateRow {
+            seed,
+            state,
+            regularizer: regularizer.to_string(),
+            alpha: if regularizer == "none" { 0.0 } else { 0.05 },
+            steps: 30,
+            imagined_return: imagined,
+            real_return: real,
+            gap: imagined - real,
+        };
+        let rows = vec![
+            row(0, 0, "none", 10.0, 2.0),
+            row(0, 0, "deen", 5.0, 4.0),
+            row(1, 0, "none", 12.0, 2.0),
+            row(1, 0, "deen", 6.0, 4.0),
+        ];
+        let s = summary(&rows);
+        assert_eq!(s.len(), 2);
+        assert_eq!(
+            (s[0].regularizer.as_str(), s[0].seeds, s[0].states),
+            ("none", 2, 2)
+        );
+        assert_eq!((s[0].mean_gap, s[1].mean_gap), (9.0, 1.5));
+        assert!(s[0].gap_ci_low >= 8.0 && s[0].gap_ci_high <= 10.0, "{s:?}");
+        assert_eq!((s[1].mean_real_return, s[1].real_ci_low), (4.0, 4.0));
+        let dir = std::env::temp_dir().join(format!("ebmpc-states-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("states.csv");
+        write_csv(&path, &rows).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(
+            text.starts_with(
+                "seed,state,regularizer,alpha,steps,imagined_return,real_return,gap\n"
+            ),
+            "{text}"
+        );
+        assert_eq!(read_state_rows(&path).unwrap(), rows);
+        std::fs::remove_dir_all(&dir).unwrap();
+        // The summary figure draws its points.
+        let pixels = crate::plot::render_rgb(&SummaryFigure(&s), false).unwrap();
+        assert!(pixels.chunks_exact(3).any(|p| p != [255, 255, 255]));
+    }
 }

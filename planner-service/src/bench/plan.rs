@@ -199,7 +199,8 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
 /// Candidate sequences a solve of `iterations` iterations scores.
 fn candidates_scored(cem: &crate::plan::CemConfig, iterations: usize) -> usize {
     match cem.optimizer {
-        proto::Optimizer::Cem => iterations * cem.population,
+        // Adam: one forward rollout per candidate and step (its backward pass is not counted).
+        proto::Optimizer::Cem | proto::Optimizer::Adam => iterations * cem.population,
         proto::Optimizer::Icem => (0..iterations)
             .map(|i| crate::plan::icem::population_at(cem, i))
             .sum(),

@@ -327,6 +327,13 @@ impl Cost {
         let transitions = [c.iterations, c.population, c.particles, c.horizon]
             .iter()
             .fold(1u64, |n, &k| n.saturating_mul(k as u64));
+        // Adam runs one forward pass more than it has steps and back-propagates every step
+        // (one product per layer, as a forward pass: the input gradient only), so a step costs
+        // about two forward passes; counted as three, a bound with room for the extra pass.
+        let transitions = match c.optimizer {
+            crate::plan::Optimizer::Adam => transitions.saturating_mul(3),
+            crate::plan::Optimizer::Cem | crate::plan::Optimizer::Icem => transitions,
+        };
         Self {
             model_bytes: parameters.saturating_mul(BYTES_PER_PARAMETER),
             plan_multiply_adds: transitions.saturating_mul(per_transition),

@@ -25,7 +25,9 @@ pub mod model;
 
 pub use config::DynamicsConfig;
 pub use ensemble::Ensemble;
-pub use model::{DynamicsScratch, ModelParts, ProbabilisticModel, TrainWorkspace, TrainingSet};
+pub use model::{
+    DynamicsScratch, MeanTape, ModelParts, ProbabilisticModel, TrainWorkspace, TrainingSet,
+};
 
 #[cfg(test)]
 mod tests;

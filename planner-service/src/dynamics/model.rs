@@ -147,6 +147,27 @@ impl DynamicsScratch {
     }
 }
 
+/// Buffers for differentiating the mean prediction on up to `capacity` rows: the training tape
+/// (it keeps the activations the backward pass needs) and one row's worth of task transforms.
+/// See [`ProbabilisticModel::predict_mean_recorded`] and [`ProbabilisticModel::mean_backward`].
+#[derive(Clone, Debug)]
+pub struct MeanTape {
+    tape: Tape,
+    features: Vec<f32>,
+    target: Vec<f32>,
+    d_features: Vec<f32>,
+    d_target: Vec<f32>,
+}
+
+impl MeanTape {
+    /// Whether these buffers serve `model` on `rows` rows.
+    pub fn fits(&self, model: &ProbabilisticModel, rows: usize) -> bool {
+        self.tape.fits(&model.mlp, rows)
+            && self.features.len() == model.task.state_feature_dim
+            && self.target.len() == model.task.obs_dim
+    }
+}
+
 /// Everything that determines a model's predictions — what persistence stores. (Adam's
 /// moments are not included: a restored model's optimiser starts afresh.)
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -401,6 +422,117 @@ impl ProbabilisticModel {
             features: vec![0.0; self.task.state_feature_dim],
             target: vec![0.0; self.task.obs_dim],
             noise: AlignedBuf::zeros(self.task.obs_dim * ld),
+        }
+    }
+
+    /// Buffers for differentiating the mean prediction on up to `max_rows` rows.
+    pub fn mean_tape(&self, max_rows: usize) -> MeanTape {
+        let (f, o) = (self.task.state_feature_dim, self.task.obs_dim);
+        MeanTape {
+            tape: Tape::new(&self.mlp, max_rows),
+            features: vec![0.0; f],
+            target: vec![0.0; o],
+            d_features: vec![0.0; f],
+            d_target: vec![0.0; o],
+        }
+    }
+
+    /// The predicted mean next observations of `rows` transitions (as
+    /// [`ProbabilisticModel::predict_next`] without noise, but in f32 through the training
+    /// pass), recording in `tape` what [`ProbabilisticModel::mean_backward`] needs. Never
+    /// allocates.
+    pub fn predict_mean_recorded(
+        &self,
+        obs: &[f32],
+        act: &[f32],
+        rows: usize,
+        tape: &mut MeanTape,
+        next_obs: &mut [f32],
+    ) {
+        let task = self.task;
+        let (o, a) = (task.obs_dim, task.act_dim);
+        assert!(tape.fits(self, rows), "mean tape does not fit {rows} rows");
+        let ld = tape.tape.ld();
+        let input = tape.tape.input_mut();
+        for i in 0..rows {
+            task.state_features(&obs[i * o..(i + 1) * o], &mut tape.features);
+            for (k, &v) in tape
+                .features
+                .iter()
+                .chain(&act[i * a..(i + 1) * a])
+                .enumerate()
+            {
+                input[k * ld + i] = self.input_norm.normalize(k, v);
+            }
+        }
+        let out = self.mlp.forward_train(&mut tape.tape, rows);
+        for i in 0..rows {
+            for (k, t) in tape.target.iter_mut().enumerate() {
+                *t = self.target_norm.denormalize(k, out[k * ld + i]);
+            }
+            task.next_obs_from_target(
+                &obs[i * o..(i + 1) * o],
+                &tape.target,
+                &mut next_obs[i * o..(i + 1) * o],
+            );
+        }
+    }
+
+    /// Back-propagates `∂L/∂next_obs` (`d_next`, `rows × obs_dim`) through the last
+    /// [`ProbabilisticModel::predict_mean_recorded`] on `obs`: writes `∂L/∂obs` into `d_obs`
+    /// and `∂L/∂act` into `d_act` (both overwritten, sample-major). Never allocates.
+    pub fn mean_backward(
+        &self,
+        obs: &[f32],
+        rows: usize,
+        tape: &mut MeanTape,
+        d_next: &[f32],
+        d_obs: &mut [f32],
+        d_act: &mut [f32],
+    ) {
+        let task = self.task;
+        let (o, a, f) = (task.obs_dim, task.act_dim, task.state_feature_dim);
+        let ld = tape.tape.ld();
+        let MeanTape {
+            tape: mlp_tape,
+            features: _,
+            target: _,
+            d_features,
+            d_target,
+        } = tape;
+        let (_, out_grad) = mlp_tape.output_and_grad_mut();
+        // The log-variance outputs do not reach the mean: their gradient is zero.
+        for k in o..2 * o {
+            out_grad[k * ld..k * ld + rows].fill(0.0);
+        }
+        d_obs[..rows * o].fill(0.0);
+        for i in 0..rows {
+            let row = i * o..(i + 1) * o;
+            task.next_obs_from_target_backward(
+                &obs[row.clone()],
+                &d_next[row.clone()],
+                &mut d_obs[row],
+                d_target,
+            );
+            for (k, d) in d_target.iter().enumerate() {
+                out_grad[k * ld + i] = d * self.target_norm.std()[k];
+            }
+        }
+        self.mlp.backward_input(mlp_tape);
+        let input_grad = mlp_tape.input_grad();
+        let std = self.input_norm.std();
+        for i in 0..rows {
+            for (k, d) in d_features.iter_mut().enumerate() {
+                *d = input_grad[k * ld + i] / std[k];
+            }
+            for j in 0..a {
+                d_act[i * a + j] = input_grad[(f + j) * ld + i] / std[f + j];
+            }
+            task.state_features_backward(
+                &obs[i * o..(i + 1) * o],
+                d_features,
+                &mut d_obs[i * o..(i + 1) * o],
+            );
         }
     }
 

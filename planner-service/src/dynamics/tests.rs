@@ -341,3 +341,75 @@ fn empty_data_leaves_the_model_untouched() {
         "weights and statistics unchanged"
     );
 }
+
+/// The mean prediction's input gradient (through the task's features, both normalisers, the
+/// network and `next_obs_from_target`) against central differences, on the two tasks whose
+/// transforms are not plain identities and deltas, with non-trivial statistics.
+#[test]
+fn mean_prediction_gradient_matches_finite_differences() {
+    for task in [TaskId::Cartpole, TaskId::HalfCheetah] {
+        let spec = task.spec();
+        let (o, a, f) = (spec.obs_dim, spec.act_dim, spec.state_feature_dim);
+        let mut rng = StdRng::seed_from_u64(31);
+        let config = DynamicsConfig {
+            hidden_layers: 2,
+            hidden_size: 16,
+            ..small_config(1)
+        };
+        let mut model = ProbabilisticModel::new(spec, &config, &mut rng);
+        let rows_of = |n: usize, d: usize, rng: &mut StdRng| -> Vec<f32> {
+            (0..n * d).map(|_| rng.random_range(-1.5..1.5)).collect()
+        };
+        model.set_normalizers(
+            Normalizer::fit(&rows_of(50, f + a, &mut rng), f + a),
+            Normalizer::fit(&rows_of(50, o, &mut rng), o),
+        );
+        let rows = 3;
+        let obs = rows_of(rows, o, &mut rng);
+        let act = rows_of(rows, a, &mut rng);
+        let c = rows_of(rows, o, &mut rng);
+        let mut tape = model.mean_tape(rows);
+        let mut next = vec![0.0; rows * o];
+        model.predict_mean_recorded(&obs, &act, rows, &mut tape, &mut next);
+        // The recorded prediction is the planner's mean prediction.
+        let mut scratch = model.scratch(rows);
+        let mut inferred = vec![0.0; rows * o];
+        model.predict_next(&obs, &act, rows, &mut scratch, None, &mut inferred);
+        for (x, y) in next.iter().zip(&inferred) {
+            assert!(
+                (x - y).abs() <= 1e-4 * (1.0 + y.abs()),
+                "{task}: {x} vs {y}"
+            );
+        }
+        let (mut d_obs, mut d_act) = (vec![f32::NAN; rows * o], vec![f32::NAN; rows * a]);
+        model.mean_backward(&obs, rows, &mut tape, &c, &mut d_obs, &mut d_act);
+
+        let loss = |obs: &[f32], act: &[f32]| -> f64 {
+            let mut tape = model.mean_tape(rows);
+            let mut next = vec![0.0; rows * o];
+            model.predict_mean_recorded(obs, act, rows, &mut tape, &mut next);
+            next.iter().zip(&c).map(|(x, c)| (x * c) as f64).sum()
+        };
+        let h = 1e-2f32;
+        let central = |x: &[f32], i: usize, eval: &dyn Fn(&[f32]) -> f64| -> f32 {
+            let (mut up, mut down) = (x.to_vec(), x.to_vec());
+            up[i] += h;
+            down[i] -= h;
+            ((eval(&up) - eval(&down)) / (2.0 * h as f64)) as f32
+        };
+        for (i, &g) in d_obs.iter().enumerate() {
+            let fd = central(&obs, i, &|x| loss(x, &act));
+            assert!(
+                (g - fd).abs() <= 2e-2 * (1.0 + fd.abs()),
+                "{task} ∂/∂s[{i}]: {g} vs {fd}"
+            );
+        }
+        for (i, &g) in d_act.iter().enumerate() {
+            let fd = central(&act, i, &|x| loss(&obs, x));
+            assert!(
+                (g - fd).abs() <= 2e-2 * (1.0 + fd.abs()),
+                "{task} ∂/∂a[{i}]: {g} vs {fd}"
+            );
+        }
+    }
+}

@@ -31,7 +31,7 @@ pub use deen::{Deen, DeenWorkspace};
 pub use denoiser::{Denoiser, DenoisingLoss};
 
 use crate::data::Transitions;
-use crate::nn::{FitReport, ForwardScratch, Normalizer, ShapeError};
+use crate::nn::{FitReport, ForwardScratch, Normalizer, ShapeError, Tape};
 use rand::rngs::StdRng;
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -137,6 +137,29 @@ impl EnergyScratch {
                 (Regularizer::None, _) => true,
                 (Regularizer::Dae(m), Some(f)) => f.fits(m.mlp(), rows),
                 (Regularizer::Deen(m), Some(f)) => f.fits(m.mlp(), rows),
+                _ => false,
+            }
+    }
+}
+
+/// Preallocated buffers for [`Regularizer::energy_and_gradient`] on up to `capacity` rows.
+#[derive(Clone, Debug)]
+pub struct EnergyGradScratch {
+    capacity: usize,
+    /// The DAE's forward pass (its output is held fixed: a stopped gradient).
+    forward: Option<ForwardScratch>,
+    /// DEEN's training tape: its energy is back-propagated to the input.
+    tape: Option<Tape>,
+}
+
+impl EnergyGradScratch {
+    /// Whether these buffers serve `regularizer` on `rows` rows.
+    pub fn fits(&self, regularizer: &Regularizer, rows: usize) -> bool {
+        rows <= self.capacity
+            && match (regularizer, &self.forward, &self.tape) {
+                (Regularizer::None, _, _) => true,
+                (Regularizer::Dae(m), Some(f), _) => f.fits(m.mlp(), rows),
+                (Regularizer::Deen(m), _, Some(t)) => t.fits(m.mlp(), rows),
                 _ => false,
             }
     }
@@ -304,6 +327,108 @@ impl Regularizer {
     }
 }
 
+impl Regularizer {
+    /// Buffers for [`Regularizer::energy_and_gradient`] on up to `max_rows` rows.
+    pub fn grad_scratch(&self, max_rows: usize) -> EnergyGradScratch {
+        let (forward, tape) = match self {
+            Regularizer::None => (None, None),
+            Regularizer::Dae(m) => (Some(m.scratch(max_rows)), None),
+            Regularizer::Deen(m) => (None, Some(Tape::new(m.mlp(), max_rows))),
+        };
+        EnergyGradScratch {
+            capacity: max_rows,
+            forward,
+            tape,
+        }
+    }
+
+    /// The energy of each of `rows` transitions into `out[..rows]` (as [`Regularizer::energy`])
+    /// and the gradient gradient-based planning follows, `∂E/∂s`, `∂E/∂a`, `∂E/∂s'` into
+    /// `d_obs`, `d_act`, `d_next` (sample-major, overwritten):
+    /// - DAE: the penalty `‖g(x̃) − x̃‖²` (`x̃` standardised) with the gradient *stopped at the
+    ///   autoencoder*, `∂E/∂x̃ = −2 (g(x̃) − x̃)`, as Boney et al. (2019) use it and the paper
+    ///   describes it (§3: "stopping the gradient propagation through the denoising
+    ///   autoencoder"): `g(x̃) − x̃ ≈ σ² ∇ log p` is their estimate of the score, so descending
+    ///   the penalty moves `x` up the data density;
+    /// - DEEN: the exact input gradient of its energy (a plain back-propagation);
+    /// - none: zeros.
+    ///
+    /// The chain rule through the normaliser divides by each dimension's standard deviation.
+    /// Never allocates.
+    #[allow(clippy::too_many_arguments)]
+    pub fn energy_and_gradient(
+        &self,
+        obs: &[f32],
+        act: &[f32],
+        next_obs: &[f32],
+        rows: usize,
+        scratch: &mut EnergyGradScratch,
+        out: &mut [f32],
+        d_obs: &mut [f32],
+        d_act: &mut [f32],
+        d_next: &mut [f32],
+    ) {
+        assert!(
+            scratch.fits(self, rows),
+            "energy gradient scratch of {} rows does not fit {rows} rows",
+            scratch.capacity
+        );
+        let (o, a) = (obs.len() / rows.max(1), act.len() / rows.max(1));
+        let parts = [(d_obs, o, 0), (d_act, a, o), (d_next, o, o + a)];
+        match (self, scratch.forward.as_mut(), scratch.tape.as_mut()) {
+            (Regularizer::None, _, _) => {
+                out[..rows].fill(0.0);
+                for (part, width, _) in parts {
+                    part[..rows * width].fill(0.0);
+                }
+            }
+            (Regularizer::Dae(m), Some(forward), _) => {
+                let normalizer = m.normalizer();
+                fill_transitions(normalizer, obs, act, next_obs, rows, forward);
+                let ld = forward.ld();
+                let (x, g) = m.mlp().forward_io(rows, forward);
+                out[..rows].fill(0.0);
+                for f in 0..m.dim() {
+                    for (i, e) in out[..rows].iter_mut().enumerate() {
+                        let r = g[f * ld + i] - x[f * ld + i];
+                        *e += r * r;
+                    }
+                }
+                for (part, width, offset) in parts {
+                    for k in 0..width {
+                        let f = offset + k;
+                        let scale = -2.0 / normalizer.std()[f];
+                        for i in 0..rows {
+                            part[i * width + k] = scale * (g[f * ld + i] - x[f * ld + i]);
+                        }
+                    }
+                }
+            }
+            (Regularizer::Deen(m), _, Some(tape)) => {
+                let normalizer = m.normalizer();
+                let ld = tape.ld();
+                fill_standardised(normalizer, obs, act, next_obs, rows, tape.input_mut(), ld);
+                let energy = m.mlp().forward_train(tape, rows);
+                out[..rows].copy_from_slice(&energy[..rows]);
+                let (_, out_grad) = tape.output_and_grad_mut();
+                out_grad[..rows].fill(1.0);
+                m.mlp().backward_input(tape);
+                let grad = tape.input_grad();
+                for (part, width, offset) in parts {
+                    for k in 0..width {
+                        let f = offset + k;
+                        let inv = 1.0 / normalizer.std()[f];
+                        for i in 0..rows {
+                            part[i * width + k] = inv * grad[f * ld + i];
+                        }
+                    }
+                }
+            }
+            _ => unreachable!("checked by fits"),
+        }
+    }
+}
+
 /// Writes the standardised vectors `[s, a, s']` of `rows` transitions feature-major into the
 /// scratch's input.
 fn fill_transitions(
@@ -313,6 +438,29 @@ fn fill_transitions(
     next_obs: &[f32],
     rows: usize,
     forward: &mut ForwardScratch,
+) {
+    let ld = forward.ld();
+    fill_standardised(
+        normalizer,
+        obs,
+        act,
+        next_obs,
+        rows,
+        forward.input_mut(),
+        ld,
+    );
+}
+
+/// Writes the standardised vectors `[s, a, s']` of `rows` transitions feature-major (row
+/// stride `ld`) into `input`.
+fn fill_standardised(
+    normalizer: &Normalizer,
+    obs: &[f32],
+    act: &[f32],
+    next_obs: &[f32],
+    rows: usize,
+    input: &mut [f32],
+    ld: usize,
 ) {
     let (o, a) = (obs.len() / rows, act.len() / rows);
     assert!(
@@ -326,8 +474,6 @@ fn fill_transitions(
         act.len(),
         next_obs.len()
     );
-    let ld = forward.ld();
-    let input = forward.input_mut();
     for (part, width, offset) in [(obs, o, 0), (act, a, o), (next_obs, o, o + a)] {
         for k in 0..width {
             let f = offset + k;

@@ -385,3 +385,147 @@ fn kinds_parse_and_serialise_lowercase() {
     assert_traits::<Regularizer>();
     assert_traits::<EnergyScratch>();
 }
+
+/// The gradient planning follows, against central differences: DEEN's exact input gradient,
+/// and the DAE penalty's with the autoencoder's output held at its value (the stopped
+/// gradient); the energies are those [`Regularizer::energy`] reports.
+#[test]
+fn planning_gradients_match_finite_differences() {
+    let (o, a, rows) = (3, 2, 4);
+    let mut rng = StdRng::seed_from_u64(41);
+    let data_rows: Vec<f32> = (0..60 * (2 * o + a))
+        .map(|_| rng.random_range(-2.0..2.0))
+        .collect();
+    let mut data = Transitions::new(o, a);
+    for r in data_rows.chunks_exact(2 * o + a) {
+        data.push(&r[..o], &r[o..o + a], &r[o + a..]);
+    }
+    let config = EnergyConfig {
+        hidden_layers: 2,
+        hidden_size: 16,
+        noise_sigma: 0.3,
+        ..Default::default()
+    };
+    let random = |n: usize, rng: &mut StdRng| -> Vec<f32> {
+        (0..n).map(|_| rng.random_range(-1.5..1.5)).collect()
+    };
+    let (obs, act, next) = (
+        random(rows * o, &mut rng),
+        random(rows * a, &mut rng),
+        random(rows * o, &mut rng),
+    );
+    for kind in [RegularizerKind::Dae, RegularizerKind::Deen] {
+        let mut model = Regularizer::new(kind, &config, o, a, &mut rng);
+        model.fit(&data, 2, &mut rng);
+        let mut scratch = model.grad_scratch(rows);
+        let mut energy = vec![0.0; rows];
+        let (mut d_obs, mut d_act, mut d_next) = (
+            vec![0.0; rows * o],
+            vec![0.0; rows * a],
+            vec![0.0; rows * o],
+        );
+        model.energy_and_gradient(
+            &obs,
+            &act,
+            &next,
+            rows,
+            &mut scratch,
+            &mut energy,
+            &mut d_obs,
+            &mut d_act,
+            &mut d_next,
+        );
+        let mut plain = vec![0.0; rows];
+        model.energy(
+            &obs,
+            &act,
+            &next,
+            rows,
+            &mut model.scratch(rows),
+            &mut plain,
+        );
+        for (e, p) in energy.iter().zip(&plain) {
+            assert!(
+                (e - p).abs() <= 1e-4 * (1.0 + p.abs()),
+                "{kind}: {e} vs {p}"
+            );
+        }
+        // The energy of row `i` as a function of its raw vector `[s, a, s']`.
+        let rows_of = |i: usize| -> Vec<f32> {
+            [
+                &obs[i * o..(i + 1) * o],
+                &act[i * a..(i + 1) * a],
+                &next[i * o..(i + 1) * o],
+            ]
+            .concat()
+        };
+        for i in 0..rows {
+            let x0 = rows_of(i);
+            let energy_of = |x: &[f32]| -> f64 {
+                match &model {
+                    Regularizer::Deen(m) => m.energy_rows(x)[0] as f64,
+                    Regularizer::Dae(m) => {
+                        // ‖g(x̃₀) − x̃‖² with the output frozen at x₀.
+                        let n = m.normalizer();
+                        let g0: Vec<f32> = m
+                            .displacement_rows(&x0)
+                            .iter()
+                            .enumerate()
+                            .map(|(f, d)| d + n.normalize(f, x0[f]))
+                            .collect();
+                        x.iter()
+                            .enumerate()
+                            .map(|(f, &v)| ((g0[f] - n.normalize(f, v)) as f64).powi(2))
+                            .sum()
+                    }
+                    Regularizer::None => unreachable!(),
+                }
+            };
+            let got = [
+                &d_obs[i * o..(i + 1) * o],
+                &d_act[i * a..(i + 1) * a],
+                &d_next[i * o..(i + 1) * o],
+            ]
+            .concat();
+            let h = 1e-2f32;
+            for f in 0..x0.len() {
+                let (mut up, mut down) = (x0.clone(), x0.clone());
+                up[f] += h;
+                down[f] -= h;
+                let fd = ((energy_of(&up) - energy_of(&down)) / (2.0 * h as f64)) as f32;
+                assert!(
+                    (got[f] - fd).abs() <= 2e-2 * (1.0 + fd.abs()),
+                    "{kind} row {i} coordinate {f}: {} vs {fd}",
+                    got[f]
+                );
+            }
+        }
+    }
+    // Without a regulariser: zero energy and zero gradient.
+    let none = Regularizer::None;
+    let mut energy = vec![1.0; rows];
+    let (mut d_obs, mut d_act, mut d_next) = (
+        vec![1.0; rows * o],
+        vec![1.0; rows * a],
+        vec![1.0; rows * o],
+    );
+    none.energy_and_gradient(
+        &obs,
+        &act,
+        &next,
+        rows,
+        &mut none.grad_scratch(rows),
+        &mut energy,
+        &mut d_obs,
+        &mut d_act,
+        &mut d_next,
+    );
+    assert!(
+        energy
+            .iter()
+            .chain(&d_obs)
+            .chain(&d_act)
+            .chain(&d_next)
+            .all(|&v| v == 0.0)
+    );
+}

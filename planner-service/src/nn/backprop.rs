@@ -49,6 +49,11 @@ impl Tape {
         }
     }
 
+    /// Whether this tape serves `mlp` on batches of `samples`.
+    pub fn fits(&self, mlp: &Mlp, samples: usize) -> bool {
+        self.sizes == mlp.sizes() && samples <= self.ld
+    }
+
     /// Row stride of every feature-major buffer (and the batch capacity).
     pub fn ld(&self) -> usize {
         self.ld
@@ -130,6 +135,16 @@ impl Mlp {
     /// (read it with [`Tape::input_grad`]).
     pub fn backward(&self, tape: &mut Tape, grads: &mut [f32], input_grad: bool) {
         assert_eq!(grads.len(), self.params().len(), "gradient length");
+        self.backward_through(tape, Some(grads), input_grad);
+    }
+
+    /// `∂L/∂input` alone (read it with [`Tape::input_grad`]), skipping the parameter gradient:
+    /// what gradient-based planning needs, at about half the cost of [`Mlp::backward`].
+    pub fn backward_input(&self, tape: &mut Tape) {
+        self.backward_through(tape, None, true);
+    }
+
+    fn backward_through(&self, tape: &mut Tape, mut grads: Option<&mut [f32]>, input_grad: bool) {
         let (samples, ld) = (tape.samples, tape.ld);
         let layers = self.layers();
         // `None`: Gₗ is the output gradient; `Some(s)`: it is in `g[s]`.
@@ -145,7 +160,9 @@ impl Mlp {
             };
             let h = MatRef::with_stride(tape.h[l].as_slice(), n_in, samples, ld);
             let g_view = MatRef::with_stride(g, n_out, samples, ld);
-            weight_and_bias_grad(self, l, h, g_view, tape.gt.as_mut_slice(), grads);
+            if let Some(grads) = grads.as_deref_mut() {
+                weight_and_bias_grad(self, l, h, g_view, tape.gt.as_mut_slice(), grads);
+            }
             if l == 0 && !input_grad {
                 break;
             }
@@ -254,6 +271,13 @@ mod tests {
                 1e-4,
                 &format!("{act:?} input gradient"),
             );
+            // The input gradient alone is the same numbers.
+            let (_, out_grad) = tape.output_and_grad_mut();
+            transpose(&c, samples, 3, 3, out_grad, ld);
+            mlp.backward_input(&mut tape);
+            let mut alone = vec![0.0; samples * 4];
+            transpose(tape.input_grad(), 4, samples, ld, &mut alone, 4);
+            assert_eq!(alone, input_grad, "{act:?} input gradient alone");
         }
     }
 

@@ -17,6 +17,7 @@
 //!
 //! All buffers are allocated in [`Cem::new`]; [`Cem::optimize`] allocates nothing.
 
+use super::adam::AdamConfig;
 use super::icem::IcemConfig;
 pub use proto::Optimizer;
 use rand::rngs::StdRng;
@@ -60,6 +61,9 @@ pub struct CemConfig {
     /// iCEM's own parameters (unused by CEM).
     #[serde(default)]
     pub icem: IcemConfig,
+    /// Adam planning's own parameters (unused by CEM and iCEM).
+    #[serde(default)]
+    pub adam: AdamConfig,
 }
 
 impl CemConfig {
@@ -109,6 +113,8 @@ pub enum ConfigError {
     EnergyWeight(f32),
     #[error("iCEM `{0}` is out of its range, got {1}")]
     Icem(&'static str, f32),
+    #[error("Adam planning `{0}` is out of its range, got {1}")]
+    Adam(&'static str, f32),
 }
 
 /// What one solve did.
@@ -383,6 +389,7 @@ mod tests {
             particles: 1,
             optimizer: Optimizer::Cem,
             icem: IcemConfig::default(),
+            adam: crate::plan::AdamConfig::default(),
         }
     }
 

@@ -398,6 +398,7 @@ mod tests {
             particles: 1,
             optimizer: Optimizer::Icem,
             icem: IcemConfig::default(),
+            adam: crate::plan::AdamConfig::default(),
         }
     }
 

@@ -379,7 +379,7 @@ impl Chunk {
 
 /// How many of `particles` particles follow ensemble member `member` of `members`
 /// (particle `p` follows member `p mod members`).
-fn particles_of_member(particles: usize, members: usize, member: usize) -> usize {
+pub(super) fn particles_of_member(particles: usize, members: usize, member: usize) -> usize {
     if member >= particles {
         0
     } else {
@@ -406,6 +406,7 @@ mod tests {
             particles,
             optimizer: crate::plan::Optimizer::Cem,
             icem: crate::plan::IcemConfig::default(),
+            adam: crate::plan::AdamConfig::default(),
         }
     }
 

@@ -7,12 +7,14 @@
 //!   a whole population at once (particles, ensembles, energy, termination), in parallel chunks.
 //! - [`mpc`]: [`MpcPlanner`], one agent's model-predictive controller tying the two together.
 
+pub mod adam;
 pub mod cem;
 pub mod icem;
 pub mod imagine;
 pub mod mpc;
 mod search;
 
+pub use adam::{AdamConfig, AdamPlanner};
 pub use cem::{Cem, CemConfig, CemOutcome, ConfigError, Optimizer, PopulationObjective};
 pub use icem::{Icem, IcemConfig};
 pub use imagine::Imagination;

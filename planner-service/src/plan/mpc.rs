@@ -3,16 +3,16 @@
 
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use crate::plan::cem::{CemConfig, ConfigError, PopulationObjective};
+use crate::plan::cem::{CemConfig, ConfigError};
 use crate::plan::imagine::Imagination;
-use crate::plan::search::Search;
+use crate::plan::search::{Imagined, Search};
 use proto::TaskSpec;
 
 /// One agent's planner. Owns the optimiser's distribution (the warm start), the imagination's
 /// buffers and the random state, so planning allocates nothing.
 pub struct MpcPlanner {
     task: &'static TaskSpec,
-    /// CEM or iCEM, as the configuration says.
+    /// CEM, iCEM or Adam, as the configuration says.
     search: Search,
     imagination: Imagination,
     /// The action chosen by the last [`MpcPlanner::plan`] (the warm start has moved on since).
@@ -29,7 +29,7 @@ pub struct PlanOutcome<'a> {
     pub predicted_return: f32,
     /// Mean energy per imagined transition of those elites (0 without a regulariser).
     pub mean_energy: f32,
-    /// CEM iterations run (fewer than configured after an early stop).
+    /// Optimiser iterations run (fewer than configured after an early CEM stop).
     pub iterations: u32,
 }
 
@@ -47,21 +47,6 @@ pub struct ImaginedPlan {
     pub predicted_return: f32,
     /// CEM iterations run.
     pub iterations: u32,
-}
-
-/// The planning objective CEM sees: imagination from one observation with fixed models.
-struct Imagined<'a> {
-    imagination: &'a mut Imagination,
-    obs: &'a [f32],
-    dynamics: &'a Ensemble,
-    regularizer: &'a Regularizer,
-}
-
-impl PopulationObjective for Imagined<'_> {
-    fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]) {
-        self.imagination
-            .evaluate(self.obs, actions, self.dynamics, self.regularizer, returns);
-    }
 }
 
 impl MpcPlanner {
@@ -98,7 +83,7 @@ impl MpcPlanner {
         if !(energy_weight.is_finite() && energy_weight >= 0.0) {
             return Err(ConfigError::EnergyWeight(energy_weight));
         }
-        let search = Search::new(config, task.action_low, task.action_high, seed)?;
+        let search = Search::new(task, config, energy_weight, seed)?;
         let imagination = Imagination::new(
             task,
             search.config(),
@@ -142,13 +127,7 @@ impl MpcPlanner {
             dynamics,
             regularizer,
         };
-        let outcome = self.search.optimize(&mut objective);
-        let elites = self.search.elites();
-        let mean_energy = elites
-            .iter()
-            .map(|&e| self.imagination.candidate_energy(e))
-            .sum::<f32>()
-            / elites.len() as f32;
+        let (outcome, mean_energy) = self.search.optimize(&mut objective);
         self.action.copy_from_slice(self.search.first_action());
         self.search.shift();
         PlanOutcome {
@@ -176,7 +155,7 @@ impl MpcPlanner {
             dynamics,
             regularizer,
         };
-        let outcome = self.search.optimize(&mut objective);
+        let (outcome, _) = self.search.optimize(&mut objective);
         let actions = self.search.plan().to_vec();
         self.search.set_mean(&warm_start);
         let horizon = self.search.config().horizon;
@@ -254,6 +233,7 @@ mod tests {
             particles: 1,
             optimizer: Optimizer::Cem,
             icem: IcemConfig::default(),
+            adam: crate::plan::AdamConfig::default(),
         }
     }
 

@@ -1,26 +1,56 @@
 //! The planner's choice of optimiser ([`CemConfig::optimizer`]): one type that the MPC loop
 //! drives the same way whichever search runs underneath.
 
+use super::adam::AdamPlanner;
 use super::cem::{Cem, CemConfig, CemOutcome, ConfigError, Optimizer, PopulationObjective};
 use super::icem::Icem;
+use super::imagine::Imagination;
+use crate::dynamics::Ensemble;
+use crate::energy::Regularizer;
+use proto::TaskSpec;
 
-/// CEM (the paper's) or iCEM, built from one [`CemConfig`].
+/// The planning problem of one step: imagination from one observation with fixed models.
+/// CEM and iCEM see it as a [`PopulationObjective`]; Adam differentiates the same objective.
+pub(super) struct Imagined<'a> {
+    pub imagination: &'a mut Imagination,
+    pub obs: &'a [f32],
+    pub dynamics: &'a Ensemble,
+    pub regularizer: &'a Regularizer,
+}
+
+impl PopulationObjective for Imagined<'_> {
+    fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]) {
+        self.imagination
+            .evaluate(self.obs, actions, self.dynamics, self.regularizer, returns);
+    }
+}
+
+/// CEM (the paper's), iCEM or Adam, built from one [`CemConfig`].
 #[derive(Debug)]
 pub(super) enum Search {
     Cem(Cem),
     Icem(Icem),
+    /// Boxed: its rollout memory and Adam state make it twice the size of the others.
+    Adam(Box<AdamPlanner>),
 }
 
 impl Search {
     pub fn new(
+        task: &'static TaskSpec,
         config: CemConfig,
-        lower: &[f32],
-        upper: &[f32],
+        energy_weight: f32,
         seed: u64,
     ) -> Result<Self, ConfigError> {
+        let (lower, upper) = (task.action_low, task.action_high);
         Ok(match config.optimizer {
             Optimizer::Cem => Search::Cem(Cem::new(config, lower, upper, seed)?),
             Optimizer::Icem => Search::Icem(Icem::new(config, lower, upper, seed)?),
+            Optimizer::Adam => Search::Adam(Box::new(AdamPlanner::new(
+                task,
+                config,
+                energy_weight,
+                seed,
+            )?)),
         })
     }
 
@@ -28,6 +58,7 @@ impl Search {
         match self {
             Search::Cem(s) => s.config(),
             Search::Icem(s) => s.config(),
+            Search::Adam(s) => s.config(),
         }
     }
 
@@ -35,6 +66,7 @@ impl Search {
         match self {
             Search::Cem(s) => s.reset(),
             Search::Icem(s) => s.reset(),
+            Search::Adam(s) => s.reset(),
         }
     }
 
@@ -42,29 +74,40 @@ impl Search {
         match self {
             Search::Cem(s) => s.shift(),
             Search::Icem(s) => s.shift(),
+            Search::Adam(s) => s.shift(),
         }
     }
 
-    pub fn optimize<O: PopulationObjective + ?Sized>(&mut self, objective: &mut O) -> CemOutcome {
-        match self {
-            Search::Cem(s) => s.optimize(objective),
-            Search::Icem(s) => s.optimize(objective),
-        }
-    }
-
-    /// Indices of the last iteration's elites in the population it scored.
-    pub fn elites(&self) -> &[usize] {
-        match self {
+    /// One solve, and the mean energy per imagined step of what it settled on (CEM and iCEM:
+    /// their last elites; Adam: its best sequence).
+    pub fn optimize(&mut self, problem: &mut Imagined<'_>) -> (CemOutcome, f32) {
+        let outcome = match self {
+            Search::Cem(s) => s.optimize(problem),
+            Search::Icem(s) => s.optimize(problem),
+            Search::Adam(s) => {
+                let outcome = s.optimize(problem.obs, problem.dynamics, problem.regularizer);
+                return (outcome, s.best_energy());
+            }
+        };
+        let elites = match self {
             Search::Cem(s) => s.elites(),
             Search::Icem(s) => s.elites(),
-        }
+            Search::Adam(_) => unreachable!("returned above"),
+        };
+        let energy = elites
+            .iter()
+            .map(|&e| problem.imagination.candidate_energy(e))
+            .sum::<f32>()
+            / elites.len() as f32;
+        (outcome, energy)
     }
 
-    /// The plan of the last solve: CEM's mean, iCEM's best sequence.
+    /// The plan of the last solve: CEM's mean, iCEM's and Adam's best sequence.
     pub fn plan(&self) -> &[f32] {
         match self {
             Search::Cem(s) => s.mean(),
             Search::Icem(s) => s.best(),
+            Search::Adam(s) => s.best(),
         }
     }
 
@@ -73,14 +116,16 @@ impl Search {
         match self {
             Search::Cem(s) => s.first_action(),
             Search::Icem(s) => s.first_action(),
+            Search::Adam(s) => s.first_action(),
         }
     }
 
-    /// The distribution's mean: the warm start of the next solve.
+    /// The warm start of the next solve (CEM's and iCEM's distribution mean).
     pub fn mean(&self) -> &[f32] {
         match self {
             Search::Cem(s) => s.mean(),
             Search::Icem(s) => s.mean(),
+            Search::Adam(s) => s.mean(),
         }
     }
 
@@ -88,6 +133,7 @@ impl Search {
         match self {
             Search::Cem(s) => s.set_mean(mean),
             Search::Icem(s) => s.set_mean(mean),
+            Search::Adam(s) => s.set_mean(mean),
         }
     }
 }

@@ -4,7 +4,10 @@
 //! 8 joints), then qvel (14, starting with the root's x velocity). Actions ±1, 1000 steps of
 //! 0.05 s. The episode terminates when the torso height leaves [0.2, 1.0].
 
-use super::{Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, squared_norm};
+use super::{
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, apply_delta_backward, delta_target,
+    identity_features, identity_features_backward, squared_norm, squared_norm_gradient,
+};
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
     id: TaskId::Ant,
@@ -18,10 +21,13 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
+        reward_gradient,
         is_terminal,
         state_features: identity_features,
+        state_features_backward: identity_features_backward,
         target: delta_target,
         next_obs_from_target: apply_delta,
+        next_obs_from_target_backward: apply_delta_backward,
     },
 };
 
@@ -38,13 +44,23 @@ fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
 }
 
 /// The torso left the healthy height range: the ant fell (or jumped off).
+/// [`reward`] and its gradient: 1 for the forward velocity, `−a` for the action.
+fn reward_gradient(
+    obs: &[f32],
+    act: &[f32],
+    next_obs: &[f32],
+    d_act: &mut [f32],
+    d_next: &mut [f32],
+) -> f32 {
+    d_next.fill(0.0);
+    d_next[FORWARD_VELOCITY] = 1.0;
+    squared_norm_gradient(act, 0.5, d_act);
+    reward(obs, act, next_obs)
+}
+
 fn is_terminal(next_obs: &[f32]) -> bool {
     let z = next_obs[TORSO_HEIGHT];
     !(HEALTHY_HEIGHT.0..=HEALTHY_HEIGHT.1).contains(&z)
-}
-
-fn identity_features(obs: &[f32], out: &mut [f32]) {
-    out.copy_from_slice(obs);
 }
 
 #[cfg(test)]

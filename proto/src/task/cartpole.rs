@@ -3,8 +3,8 @@
 //! Observation `[x, θ, ẋ, θ̇]`; action: the force on the cart, ±3. 200 steps of 0.04 s.
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
-    squared_norm,
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, apply_delta_backward, delta_target,
+    never_terminal, squared_norm, squared_norm_gradient,
 };
 
 /// Pole length in metres (the reward's target is the tip straight above the rail's origin).
@@ -22,10 +22,13 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
+        reward_gradient,
         is_terminal: never_terminal,
         state_features,
+        state_features_backward,
         target: delta_target,
         next_obs_from_target: apply_delta,
+        next_obs_from_target_backward: apply_delta_backward,
     },
 };
 
@@ -43,6 +46,38 @@ fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
 }
 
 /// `[sin θ, cos θ, x, ẋ, θ̇]`: the angle wraps, so the model sees it on the circle.
+/// [`reward`] and its gradient: with `e = exp(−d²/L²)`, `∂r/∂d² = −e/L²`, and
+/// `d² = tx² + (ty − L)²` with `tx = x − L sin θ`, `ty = −L cos θ`.
+fn reward_gradient(
+    obs: &[f32],
+    act: &[f32],
+    next_obs: &[f32],
+    d_act: &mut [f32],
+    d_next: &mut [f32],
+) -> f32 {
+    let (tx, ty) = tip(next_obs);
+    let (sin, cos) = next_obs[1].sin_cos();
+    let l2 = POLE_LENGTH * POLE_LENGTH;
+    let d2 = tx * tx + (ty - POLE_LENGTH) * (ty - POLE_LENGTH);
+    let e = (-d2 / l2).exp();
+    let dr_dd2 = -e / l2;
+    d_next.fill(0.0);
+    d_next[0] = dr_dd2 * 2.0 * tx;
+    d_next[1] =
+        dr_dd2 * (2.0 * tx * (-POLE_LENGTH * cos) + 2.0 * (ty - POLE_LENGTH) * POLE_LENGTH * sin);
+    squared_norm_gradient(act, 0.01, d_act);
+    reward(obs, act, next_obs)
+}
+
+/// Back-propagation through [`state_features`].
+fn state_features_backward(obs: &[f32], d: &[f32], d_obs: &mut [f32]) {
+    let (sin, cos) = obs[1].sin_cos();
+    d_obs[1] += d[0] * cos - d[1] * sin;
+    d_obs[0] += d[2];
+    d_obs[2] += d[3];
+    d_obs[3] += d[4];
+}
+
 fn state_features(obs: &[f32], out: &mut [f32]) {
     let theta = obs[1];
     out[0] = theta.sin();

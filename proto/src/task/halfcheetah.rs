@@ -3,7 +3,10 @@
 //! Observation (18): forward velocity of the root `Δx/dt`, then qpos without the root x (8:
 //! root z, root pitch, 6 joints), then qvel (9). Actions ±1, 1000 steps of 0.05 s.
 
-use super::{Magnitudes, TaskFunctions, TaskId, TaskSpec, never_terminal, squared_norm};
+use super::{
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, never_terminal, squared_norm,
+    squared_norm_gradient,
+};
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
     id: TaskId::HalfCheetah,
@@ -17,10 +20,13 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
+        reward_gradient,
         is_terminal: never_terminal,
         state_features,
+        state_features_backward,
         target,
         next_obs_from_target,
+        next_obs_from_target_backward,
     },
 };
 
@@ -34,6 +40,42 @@ fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
 
 /// `[obs[1], sin obs[2], cos obs[2], obs[3..]]`: the velocity is a target, not an input, and the
 /// pitch wraps, so the model sees it on the circle.
+/// [`reward`] and its gradient: 1 for the forward velocity, `−0.2a` for the action.
+fn reward_gradient(
+    obs: &[f32],
+    act: &[f32],
+    next_obs: &[f32],
+    d_act: &mut [f32],
+    d_next: &mut [f32],
+) -> f32 {
+    d_next.fill(0.0);
+    d_next[0] = 1.0;
+    squared_norm_gradient(act, 0.1, d_act);
+    reward(obs, act, next_obs)
+}
+
+/// Back-propagation through [`state_features`] (the velocity `obs[0]` is not a feature).
+fn state_features_backward(obs: &[f32], d: &[f32], d_obs: &mut [f32]) {
+    let (sin, cos) = obs[PITCH].sin_cos();
+    d_obs[1] += d[0];
+    d_obs[PITCH] += d[1] * cos - d[2] * sin;
+    for (o, g) in d_obs[3..].iter_mut().zip(&d[3..]) {
+        *o += g;
+    }
+}
+
+/// Back-propagation through [`next_obs_from_target`]: the velocity is the target itself, the
+/// rest are deltas.
+fn next_obs_from_target_backward(
+    obs: &[f32],
+    d_next: &[f32],
+    d_obs: &mut [f32],
+    d_target: &mut [f32],
+) {
+    d_target[0] = d_next[0];
+    super::apply_delta_backward(&obs[1..], &d_next[1..], &mut d_obs[1..], &mut d_target[1..]);
+}
+
 fn state_features(obs: &[f32], out: &mut [f32]) {
     out[0] = obs[1];
     out[1] = obs[PITCH].sin();

@@ -137,16 +137,45 @@ impl Magnitudes {
 #[derive(Debug)]
 pub(crate) struct TaskFunctions {
     pub reward: fn(obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32,
+    pub reward_gradient: RewardGradient,
     pub is_terminal: fn(next_obs: &[f32]) -> bool,
     pub state_features: fn(obs: &[f32], out: &mut [f32]),
+    pub state_features_backward: fn(obs: &[f32], d_features: &[f32], d_obs: &mut [f32]),
     pub target: fn(obs: &[f32], next_obs: &[f32], out: &mut [f32]),
     pub next_obs_from_target: fn(obs: &[f32], target: &[f32], next_obs: &mut [f32]),
+    pub next_obs_from_target_backward: TargetBackward,
 }
+
+/// A reward with its gradient: `(obs, act, next_obs, ∂r/∂act, ∂r/∂next_obs) → r`.
+pub(crate) type RewardGradient =
+    fn(obs: &[f32], act: &[f32], next_obs: &[f32], d_act: &mut [f32], d_next: &mut [f32]) -> f32;
+
+/// Back-propagation through `next_obs_from_target`: `(obs, ∂L/∂next_obs, ∂L/∂obs (added to),
+/// ∂L/∂target)`.
+pub(crate) type TargetBackward =
+    fn(obs: &[f32], d_next_obs: &[f32], d_obs: &mut [f32], d_target: &mut [f32]);
 
 impl TaskSpec {
     /// Reward of the transition `obs --act--> next_obs`. The simulator reports exactly this.
     pub fn reward(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
         (self.functions.reward)(obs, act, next_obs)
+    }
+
+    /// The reward of `obs --act--> next_obs` (exactly [`TaskSpec::reward`]) and its gradient:
+    /// `∂r/∂act` into `d_act` and `∂r/∂next_obs` into `d_next_obs` (both overwritten). Every
+    /// catalog reward reads only the action and the new observation, so there is no `∂r/∂obs`
+    /// (the finite-difference tests check that too). Where a reward has a kink (pusher's L1
+    /// distances) the gradient is the one-sided one of `signum`, 0 exactly at the kink.
+    /// Gradient-based planning (Adam + DAE) back-propagates through it.
+    pub fn reward_gradient(
+        &self,
+        obs: &[f32],
+        act: &[f32],
+        next_obs: &[f32],
+        d_act: &mut [f32],
+        d_next_obs: &mut [f32],
+    ) -> f32 {
+        (self.functions.reward_gradient)(obs, act, next_obs, d_act, d_next_obs)
     }
 
     /// Whether `next_obs` ends the episode (no reward accrues after it, in reality or imagination).
@@ -160,6 +189,12 @@ impl TaskSpec {
         (self.functions.state_features)(obs, out)
     }
 
+    /// The transpose of [`TaskSpec::state_features`]' Jacobian at `obs` applied to
+    /// `d_features`, *added* to `d_obs`: back-propagation from the model's input to `obs`.
+    pub fn state_features_backward(&self, obs: &[f32], d_features: &[f32], d_obs: &mut [f32]) {
+        (self.functions.state_features_backward)(obs, d_features, d_obs)
+    }
+
     /// What the dynamics model learns to predict for a transition (`obs_dim` numbers):
     /// usually the delta `next_obs − obs`.
     pub fn target(&self, obs: &[f32], next_obs: &[f32], out: &mut [f32]) {
@@ -169,6 +204,18 @@ impl TaskSpec {
     /// The inverse of [`TaskSpec::target`]: the next observation from `obs` and a predicted target.
     pub fn next_obs_from_target(&self, obs: &[f32], target: &[f32], next_obs: &mut [f32]) {
         (self.functions.next_obs_from_target)(obs, target, next_obs)
+    }
+
+    /// Back-propagation through [`TaskSpec::next_obs_from_target`]: given `∂L/∂next_obs`, adds
+    /// `∂L/∂obs` to `d_obs` and writes `∂L/∂target` into `d_target`.
+    pub fn next_obs_from_target_backward(
+        &self,
+        obs: &[f32],
+        d_next_obs: &[f32],
+        d_obs: &mut [f32],
+        d_target: &mut [f32],
+    ) {
+        (self.functions.next_obs_from_target_backward)(obs, d_next_obs, d_obs, d_target)
     }
 
     /// Clamps an action into the task's bounds, in place.
@@ -190,6 +237,38 @@ pub(crate) fn delta_target(obs: &[f32], next_obs: &[f32], out: &mut [f32]) {
 pub(crate) fn apply_delta(obs: &[f32], delta: &[f32], next_obs: &mut [f32]) {
     for ((o, s), d) in next_obs.iter_mut().zip(obs).zip(delta) {
         *o = s + d;
+    }
+}
+
+/// Back-propagation through [`apply_delta`]: `next = obs + delta` passes its gradient to both.
+pub(crate) fn apply_delta_backward(
+    _obs: &[f32],
+    d_next_obs: &[f32],
+    d_obs: &mut [f32],
+    d_target: &mut [f32],
+) {
+    d_target.copy_from_slice(d_next_obs);
+    for (o, d) in d_obs.iter_mut().zip(d_next_obs) {
+        *o += d;
+    }
+}
+
+/// Features that are the observation itself.
+pub(crate) fn identity_features(obs: &[f32], out: &mut [f32]) {
+    out.copy_from_slice(obs);
+}
+
+/// Back-propagation through [`identity_features`].
+pub(crate) fn identity_features_backward(_obs: &[f32], d_features: &[f32], d_obs: &mut [f32]) {
+    for (o, d) in d_obs.iter_mut().zip(d_features) {
+        *o += d;
+    }
+}
+
+/// `∂(−w‖a‖²)/∂a = −2w·a` into `d_act`.
+pub(crate) fn squared_norm_gradient(act: &[f32], weight: f32, d_act: &mut [f32]) {
+    for (d, a) in d_act.iter_mut().zip(act) {
+        *d = -2.0 * weight * a;
     }
 }
 
@@ -233,6 +312,111 @@ mod tests {
         .map(|t| postcard::to_stdvec(t).unwrap())
         .collect();
         assert_eq!(indices, [[0], [1], [2], [3], [4]]);
+    }
+
+    /// A deterministic pseudo-random number in [-1, 1) for test inputs.
+    fn wiggle(i: usize, salt: u32) -> f32 {
+        let x = ((i as u32).wrapping_mul(2_654_435_761) ^ salt.wrapping_mul(40_503)) % 10_007;
+        x as f32 / 5003.5 - 1.0
+    }
+
+    /// Central differences in f64 of `f` around `x` (f32 inputs), one coordinate at a time.
+    fn finite_difference(x: &[f32], f: impl Fn(&[f32]) -> f32) -> Vec<f32> {
+        let h = 1e-3f32;
+        (0..x.len())
+            .map(|i| {
+                let (mut up, mut down) = (x.to_vec(), x.to_vec());
+                up[i] += h;
+                down[i] -= h;
+                ((f(&up) as f64 - f(&down) as f64) / (2.0 * h as f64)) as f32
+            })
+            .collect()
+    }
+
+    fn assert_close(got: &[f32], want: &[f32], what: &str) {
+        for (i, (g, w)) in got.iter().zip(want).enumerate() {
+            let tol = 2e-2 * (1.0 + w.abs());
+            assert!(
+                (g - w).abs() <= tol,
+                "{what}[{i}]: {g} vs {w}\n{got:?}\n{want:?}"
+            );
+        }
+    }
+
+    /// A transition for `spec` with every coordinate away from zero (pusher's L1 kinks lie at
+    /// equal coordinates, which these never are).
+    fn transition(spec: &TaskSpec, salt: u32) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let obs: Vec<f32> = (0..spec.obs_dim).map(|i| 0.7 * wiggle(i, salt)).collect();
+        let next: Vec<f32> = (0..spec.obs_dim)
+            .map(|i| 0.7 * wiggle(i + 100, salt))
+            .collect();
+        let act: Vec<f32> = (0..spec.act_dim)
+            .map(|i| 0.5 * spec.action_high[i] * wiggle(i + 200, salt))
+            .collect();
+        (obs, act, next)
+    }
+
+    #[test]
+    fn reward_gradients_match_finite_differences() {
+        for &t in TaskId::ALL {
+            let spec = t.spec();
+            for salt in 1..4 {
+                let (obs, act, next) = transition(spec, salt);
+                let (mut d_act, mut d_next) =
+                    (vec![f32::NAN; spec.act_dim], vec![0.0; spec.obs_dim]);
+                let r = spec.reward_gradient(&obs, &act, &next, &mut d_act, &mut d_next);
+                assert_eq!(r, spec.reward(&obs, &act, &next), "{t}: the same reward");
+                let fd_act = finite_difference(&act, |a| spec.reward(&obs, a, &next));
+                assert_close(&d_act, &fd_act, &format!("{t} ∂r/∂a"));
+                let fd_next = finite_difference(&next, |n| spec.reward(&obs, &act, n));
+                assert_close(&d_next, &fd_next, &format!("{t} ∂r/∂s'"));
+                let fd_obs = finite_difference(&obs, |o| spec.reward(o, &act, &next));
+                assert!(fd_obs.iter().all(|&g| g == 0.0), "{t}: the reward reads s");
+                assert!(d_next.iter().any(|&g| g != 0.0), "{t}: a reward of s'");
+            }
+        }
+    }
+
+    #[test]
+    fn feature_and_target_backward_match_finite_differences() {
+        for &t in TaskId::ALL {
+            let spec = t.spec();
+            let (obs, _, next) = transition(spec, 7);
+            let f = spec.state_feature_dim;
+            // L = c · features(obs): its gradient is the Jacobian's transpose applied to c.
+            let c: Vec<f32> = (0..f).map(|i| wiggle(i + 300, 7)).collect();
+            let mut d_obs = vec![0.5; spec.obs_dim];
+            spec.state_features_backward(&obs, &c, &mut d_obs);
+            let fd = finite_difference(&obs, |o| {
+                let mut out = vec![0.0; f];
+                spec.state_features(o, &mut out);
+                out.iter().zip(&c).map(|(x, c)| x * c).sum()
+            });
+            let added: Vec<f32> = fd.iter().map(|g| g + 0.5).collect();
+            assert_close(&d_obs, &added, &format!("{t} features"));
+
+            // L = c · next_obs_from_target(obs, target).
+            let mut target = vec![0.0; spec.obs_dim];
+            spec.target(&obs, &next, &mut target);
+            let c: Vec<f32> = (0..spec.obs_dim).map(|i| wiggle(i + 400, 7)).collect();
+            let loss = |o: &[f32], tg: &[f32]| {
+                let mut n = vec![0.0; spec.obs_dim];
+                spec.next_obs_from_target(o, tg, &mut n);
+                n.iter().zip(&c).map(|(x, c)| x * c).sum::<f32>()
+            };
+            let (mut d_obs, mut d_target) = (vec![0.0; spec.obs_dim], vec![f32::NAN; spec.obs_dim]);
+            spec.next_obs_from_target_backward(&obs, &c, &mut d_obs, &mut d_target);
+            assert_close(
+                &d_obs,
+                &finite_difference(&obs, |o| loss(o, &target)),
+                &format!("{t} ∂s'/∂s"),
+            );
+            assert_close(
+                &d_target,
+                &finite_difference(&target, |tg| loss(&obs, tg)),
+                &format!("{t} ∂s'/∂target"),
+            );
+        }
     }
 
     #[test]

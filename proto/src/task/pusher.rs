@@ -8,7 +8,8 @@
 //! the two agree).
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, apply_delta_backward, delta_target,
+    identity_features, identity_features_backward, never_terminal, squared_norm_gradient,
 };
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
@@ -23,10 +24,13 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
+        reward_gradient,
         is_terminal: never_terminal,
         state_features: identity_features,
+        state_features_backward: identity_features_backward,
         target: delta_target,
         next_obs_from_target: apply_delta,
+        next_obs_from_target_backward: apply_delta_backward,
     },
 };
 
@@ -59,13 +63,29 @@ fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
     -(GOAL_WEIGHT * to_goal + TIP_WEIGHT * to_tip + ACTION_WEIGHT * super::squared_norm(act))
 }
 
+/// [`reward`] and its gradient: the L1 distances give signs (0 exactly at a kink).
+fn reward_gradient(
+    obs: &[f32],
+    act: &[f32],
+    next_obs: &[f32],
+    d_act: &mut [f32],
+    d_next: &mut [f32],
+) -> f32 {
+    let sign = |x: f32| if x == 0.0 { 0.0 } else { x.signum() };
+    d_next.fill(0.0);
+    for k in 0..3 {
+        let (object, tip) = (next_obs[OBJECT + k], next_obs[TIP + k]);
+        let to_tip = sign(object - tip);
+        d_next[OBJECT + k] = -(GOAL_WEIGHT * sign(object - GOAL[k]) + TIP_WEIGHT * to_tip);
+        d_next[TIP + k] = TIP_WEIGHT * to_tip;
+    }
+    squared_norm_gradient(act, ACTION_WEIGHT, d_act);
+    reward(obs, act, next_obs)
+}
+
 /// `‖a − b‖₁`.
 fn l1(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y).abs()).sum()
-}
-
-fn identity_features(obs: &[f32], out: &mut [f32]) {
-    out.copy_from_slice(obs);
 }
 
 #[cfg(test)]

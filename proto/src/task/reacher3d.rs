@@ -7,7 +7,8 @@
 //! tests check the two agree), so the simulator and the planner share one definition.
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, delta_target, never_terminal,
+    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, apply_delta_backward, delta_target,
+    identity_features, identity_features_backward, never_terminal, squared_norm_gradient,
 };
 
 pub(crate) static SPEC: TaskSpec = TaskSpec {
@@ -22,10 +23,13 @@ pub(crate) static SPEC: TaskSpec = TaskSpec {
     magnitudes: Magnitudes::GENEROUS,
     functions: TaskFunctions {
         reward,
+        reward_gradient,
         is_terminal: never_terminal,
         state_features: identity_features,
+        state_features_backward: identity_features_backward,
         target: delta_target,
         next_obs_from_target: apply_delta,
+        next_obs_from_target_backward: apply_delta_backward,
     },
 };
 
@@ -90,8 +94,53 @@ fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
     -distance - 0.01 * super::squared_norm(act)
 }
 
-fn identity_features(obs: &[f32], out: &mut [f32]) {
-    out.copy_from_slice(obs);
+/// [`reward`] and its gradient. With `e = tip − goal`, `∂r/∂goal = 2e` and, since joint `j`
+/// turns the tip about its world axis `w_j` through its position `p_j`,
+/// `∂tip/∂q_j = w_j × (tip − p_j)` and `∂r/∂q_j = −2 e · (w_j × (tip − p_j))`.
+fn reward_gradient(
+    obs: &[f32],
+    act: &[f32],
+    next_obs: &[f32],
+    d_act: &mut [f32],
+    d_next: &mut [f32],
+) -> f32 {
+    // The forward kinematics again, keeping each joint's world axis and position.
+    let mut rot = [[1.0f32, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let mut pos = [0.0f32; 3];
+    let mut joints = [([0.0f32; 3], [0.0f32; 3]); JOINTS];
+    for (j, ((&angle, &axis), &offset)) in next_obs[..JOINTS]
+        .iter()
+        .zip(&AXES)
+        .zip(&OFFSETS)
+        .enumerate()
+    {
+        rot = mul(&rot, &rotation(axis, angle));
+        let k = match axis {
+            Axis::X => 0,
+            Axis::Y => 1,
+            Axis::Z => 2,
+        };
+        joints[j] = ([rot[0][k], rot[1][k], rot[2][k]], pos);
+        for (p, row) in pos.iter_mut().zip(&rot) {
+            *p += row[0] * offset;
+        }
+    }
+    let e: [f32; 3] = std::array::from_fn(|i| pos[i] - next_obs[GOAL + i]);
+    d_next.fill(0.0);
+    for (d, (w, p)) in d_next[..JOINTS].iter_mut().zip(&joints) {
+        let arm = [pos[0] - p[0], pos[1] - p[1], pos[2] - p[2]];
+        let dtip = [
+            w[1] * arm[2] - w[2] * arm[1],
+            w[2] * arm[0] - w[0] * arm[2],
+            w[0] * arm[1] - w[1] * arm[0],
+        ];
+        *d = -2.0 * (e[0] * dtip[0] + e[1] * dtip[1] + e[2] * dtip[2]);
+    }
+    for (d, e) in d_next[GOAL..GOAL + 3].iter_mut().zip(&e) {
+        *d = 2.0 * e;
+    }
+    squared_norm_gradient(act, 0.01, d_act);
+    reward(obs, act, next_obs)
 }
 
 fn rotation(axis: Axis, angle: f32) -> [[f32; 3]; 3] {
