@@ -699,6 +699,7 @@ agents:
             uptime_seconds: 59.9,
             runs: Vec::new(),
             fleet: FleetReport::default(),
+            failed_runs: Vec::new(),
         };
         let text = render(&[idle.clone(), fixture()]);
         assert!(

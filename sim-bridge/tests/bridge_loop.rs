@@ -45,7 +45,7 @@ fn free_endpoint() -> String {
 const EPOCH: u64 = 4;
 
 /// The session token the scripted planner hands out.
-const SESSION: u64 = 0x5eed_0f_ba5e;
+const SESSION: u64 = 0x5eed_f00d_ba5e;
 
 /// The step at which an action of an older epoch arrives before the real one (the bridge must
 /// ignore it: the replay check below would see its effect otherwise).
