@@ -150,7 +150,7 @@ mod tests {
         for bad in [
             &bytes[..bytes.len() - 3],
             &[][..],
-            &[2, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
+            &[3, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
         ] {
             assert!(
                 matches!(
