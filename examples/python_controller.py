@@ -13,8 +13,10 @@ episodes against a running planner:
     last step        observation + reward + "end"               -> no action; episode stored
     status (query)   {prefix}/planners/{planner}/status         -> JSON; confirms what is stored
 
-Anything the planner reports on ``.../error`` ends the program with exit status 1, as do a
-refused attach, a missing planner and a missing action.
+Anything the planner reports on ``.../error`` about our session ends the program with exit
+status 1, as do a refused attach, a missing planner and a missing action; except a ``storage``
+error (the planner could not store the step and kept nothing of it), after which the same
+observation is sent again. Every observation carries the session token of our attach.
 
 Requires the ``eclipse-zenoh`` package of the same minor version as the planner's zenoh (1.10):
 ``pip install 'eclipse-zenoh~=1.10.0'``. Example, against ``planner-service serve --listen
@@ -41,13 +43,15 @@ except ImportError:  # pragma: no cover - exercised by hand
         "error: the `eclipse-zenoh` Python package is missing: pip install 'eclipse-zenoh~=1.10.0'"
     )
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 TASK = "cartpole"
 OBS_DIM = 4
 ACT_DIM = 1
 ACTION_BOUND = 3.0
 #: The catalog's episode length for cartpole: the planner refuses longer episodes' steps.
 MAX_STEPS = 200
+# Pause before sending again an observation the planner could not store (its disk is full).
+STORAGE_RETRY_PAUSE = 1.0
 
 
 class ControllerError(Exception):
@@ -151,6 +155,12 @@ class Link:
         # The run's ownership epoch at attach: actions of older epochs come from a planner that
         # lost the run (in a fleet of planners) and are ignored.
         self.epoch = 0
+        # The session token of our attach (0: none yet): stamped on every observation, sent
+        # again when re-attaching (so the planner knows it is us), and used to ignore reports
+        # about someone else's observations under our agent name.
+        self.session_token = 0
+        # The last observation sent, to send again when the planner could not store it.
+        self.last_sent: dict | None = None
         self.inbox: queue.Queue[tuple[str, dict]] = queue.Queue()
         self.token = session.liveliness().declare_token(keys.agent_alive(run, agent))
         self.subscribers = [
@@ -174,6 +184,8 @@ class Link:
                 channel_seen = "error"
             else:
                 channel_seen = channel
+            if channel_seen == "error" and message.get("session") not in (None, self.session_token):
+                return  # a refusal of another process's observation under our name
             self.inbox.put((channel_seen, message))
 
         return receive
@@ -182,6 +194,8 @@ class Link:
         """Queries the attach key until a planner answers; returns the accepted run."""
         key = self.keys.attach(self.run)
         request = {"version": PROTOCOL_VERSION, "agent": self.agent, "spec": spec}
+        if self.session_token:
+            request["session"] = self.session_token
         payload = json.dumps(request).encode()
         deadline = time.monotonic() + patience
         while True:
@@ -200,6 +214,7 @@ class Link:
                     raise ControllerError(f"attach refused: {describe(outcome['Rejected'])}")
                 accepted = outcome["Accepted"]
                 self.epoch = accepted.get("epoch", 0)
+                self.session_token = accepted["session"]
                 self._wait_until_planner_listens(deadline)
                 return accepted
             if time.monotonic() + 0.5 >= deadline:
@@ -214,7 +229,20 @@ class Link:
             time.sleep(0.05)
 
     def send(self, observation: dict) -> None:
+        observation = dict(observation, session=self.session_token)
+        self.last_sent = observation
         self.publisher.put(json.dumps(observation).encode())
+
+    def _resend_unstored(self, report: dict) -> bool:
+        """A `storage` error means the planner kept nothing of our last observation and our
+        session did not move on: send it again after a pause (as sim-bridge does). True if so."""
+        if report.get("code") != "storage" or self.last_sent is None:
+            return False
+        print(f"the planner could not store a step, sending it again: {describe(report)}",
+              file=sys.stderr)
+        time.sleep(STORAGE_RETRY_PAUSE)
+        self.publisher.put(json.dumps(self.last_sent).encode())
+        return True
 
     def action(self, episode: int, step: int, timeout: float) -> dict:
         """Waits for the action answering (episode, step); any error report is fatal."""
@@ -228,6 +256,8 @@ class Link:
                     f"no action for episode {episode} step {step} within {timeout:.0f} s"
                 ) from None
             if channel == "error":
+                if self._resend_unstored(message):
+                    continue
                 raise ControllerError(f"the planner reported: {describe(message)}")
             if message.get("epoch", 0) < self.epoch:
                 print(f"ignoring an action of stale epoch {message.get('epoch')}", file=sys.stderr)
@@ -253,7 +283,7 @@ class Link:
                 channel, message = self.inbox.get_nowait()
             except queue.Empty:
                 return
-            if channel == "error":
+            if channel == "error" and not self._resend_unstored(message):
                 raise ControllerError(f"the planner reported: {describe(message)}")
 
 

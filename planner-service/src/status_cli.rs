@@ -60,6 +60,16 @@ pub struct PlannerReport {
     pub uptime_seconds: f64,
     pub runs: Vec<RunReport>,
     pub fleet: FleetReport,
+    /// Stored runs the planner set aside (they could not be opened), with the reason.
+    pub failed_runs: Vec<FailedRunReport>,
+}
+
+/// A stored run set aside (a lenient mirror of `service::status::FailedRun`).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct FailedRunReport {
+    pub name: String,
+    pub reason: String,
 }
 
 /// The fleet as a planner sees it (a lenient mirror of `fleet::FleetStatus`).
@@ -313,6 +323,7 @@ pub fn render(reports: &[PlannerReport]) -> String {
             if report.runs.len() == 1 { "" } else { "s" },
         );
         render_fleet(&mut out, &report.fleet);
+        render_failed(&mut out, &report.failed_runs);
         if report.runs.is_empty() {
             continue;
         }
@@ -329,6 +340,41 @@ pub fn render(reports: &[PlannerReport]) -> String {
         }
     }
     out
+}
+
+/// Characters of a failed run's name and reason the table shows: both come from the disk and
+/// from error messages, and one line per run keeps the table readable.
+const FAILED_NAME_CHARS: usize = 40;
+const FAILED_REASON_CHARS: usize = 160;
+
+/// The stored runs the planner set aside, one line each, with the reason cut short safely
+/// (at a character boundary, control characters shown as spaces).
+fn render_failed(out: &mut String, failed: &[FailedRunReport]) {
+    if failed.is_empty() {
+        return;
+    }
+    let _ = writeln!(out, "failed runs (stored, set aside, not served):");
+    for run in failed {
+        let _ = writeln!(
+            out,
+            "  {}: {}",
+            one_line(&run.name, FAILED_NAME_CHARS),
+            one_line(&run.reason, FAILED_REASON_CHARS)
+        );
+    }
+}
+
+/// `text` on one line (control characters as spaces), cut to `max` characters with a `…`.
+fn one_line(text: &str, max: usize) -> String {
+    let mut shown: String = text
+        .chars()
+        .take(max)
+        .map(|c| if c.is_control() { ' ' } else { c })
+        .collect();
+    if text.chars().count() > max {
+        shown.push('…');
+    }
+    shown
 }
 
 /// How many of a planner's most recent ownership events the table shows.
@@ -609,6 +655,43 @@ agents:
     }
 
     #[test]
+    fn failed_runs_are_listed_with_their_reason_cut_short() {
+        let long = format!("cannot open: {}\nsecond line", "x".repeat(500));
+        let report = PlannerReport {
+            planner_id: "p".into(),
+            protocol_version: 3,
+            failed_runs: vec![
+                FailedRunReport {
+                    name: "old-run".into(),
+                    reason: "dynamics_hidden_size = 4000000000 is over the limit".into(),
+                },
+                FailedRunReport {
+                    name: "é".repeat(100),
+                    reason: long,
+                },
+            ],
+            ..PlannerReport::default()
+        };
+        let text = render(&[report]);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[1], "failed runs (stored, set aside, not served):");
+        assert_eq!(
+            lines[2],
+            "  old-run: dynamics_hidden_size = 4000000000 is over the limit"
+        );
+        let expected_reason = format!("cannot open: {}…", "x".repeat(FAILED_REASON_CHARS - 13));
+        assert_eq!(
+            lines[3],
+            format!("  {}…: {expected_reason}", "é".repeat(FAILED_NAME_CHARS))
+        );
+        assert_eq!(lines.len(), 4, "{text}");
+        // The daemon's JSON field is read.
+        let json = r#"{"planner_id":"p","failed_runs":[{"name":"r","reason":"why"}]}"#;
+        let read: PlannerReport = serde_json::from_str(json).unwrap();
+        assert_eq!(read.failed_runs[0].reason, "why");
+    }
+
+    #[test]
     fn planners_without_runs_and_several_planners() {
         let idle = PlannerReport {
             planner_id: "idle".into(),
@@ -616,6 +699,7 @@ agents:
             uptime_seconds: 59.9,
             runs: Vec::new(),
             fleet: FleetReport::default(),
+            failed_runs: Vec::new(),
         };
         let text = render(&[idle.clone(), fixture()]);
         assert!(

@@ -8,8 +8,10 @@ use crate::task::TaskId;
 use serde::{Deserialize, Serialize};
 
 /// The protocol version this build speaks. Version 2 added the ownership epoch to
-/// [`AttachAccepted`] and [`Action`], and the applied action to [`Observation`].
-pub const PROTOCOL_VERSION: u16 = 2;
+/// [`AttachAccepted`] and [`Action`], and the applied action to [`Observation`]; version 3
+/// the agent's session token ([`AttachAccepted::session`], [`Observation::session`],
+/// [`AttachRequest::session`], [`ErrorReport::session`]).
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// How the trainer interacts with acting agents (design.md).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -218,6 +220,11 @@ pub struct AttachRequest {
     pub version: u16,
     pub agent: String,
     pub spec: RunSpec,
+    /// The session token of this agent's current session, when it has one and attaches again
+    /// (it reconnects): the planner then replaces that session even while it is live. Without
+    /// it, a name whose session is live is refused, so no one can take an agent's place.
+    #[serde(default)]
+    pub session: Option<u64>,
 }
 
 /// The planner's answer to an [`AttachRequest`].
@@ -251,6 +258,10 @@ pub struct AttachAccepted {
     /// it yet).
     #[serde(default)]
     pub epoch: u64,
+    /// The agent's session token: random (from the OS), never 0. Every [`Observation`] of
+    /// this session carries it; the planner refuses observations that carry another.
+    #[serde(default)]
+    pub session: u64,
 }
 
 /// Why an episode ended.
@@ -285,6 +296,11 @@ pub struct Observation {
     /// must have the task's action dimension, be finite and lie within the action bounds.
     #[serde(default)]
     pub applied: Option<Vec<f32>>,
+    /// The session token of the agent's attach ([`AttachAccepted::session`]). An observation
+    /// whose token is not the agent's current session's is refused with
+    /// [`ErrorCode::Session`] and touches nothing (0, the default, is never a session).
+    #[serde(default)]
+    pub session: u64,
 }
 
 impl Observation {
@@ -304,7 +320,14 @@ impl Observation {
             reward,
             end,
             applied: None,
+            session: 0,
         }
+    }
+
+    /// The same observation, in session `token` (see [`AttachAccepted::session`]).
+    pub fn in_session(mut self, token: u64) -> Self {
+        self.session = token;
+        self
     }
 
     /// The same observation, saying that `action` was applied at the previous step.
@@ -389,6 +412,10 @@ pub enum ErrorCode {
     /// The planner could not store the message (e.g. its disk is full). Nothing of it was
     /// kept and the agent's session did not move on: send the same message again later.
     Storage,
+    /// The observation's session token is not the agent's current session's (another
+    /// process attached under this name, or the agent attached again since): nothing of it
+    /// was used. Attach to get a session of your own.
+    Session,
 }
 
 /// An error reported to the sender of a bad message, on its error key.
@@ -402,6 +429,11 @@ pub struct ErrorReport {
     pub episode: Option<u32>,
     #[serde(default)]
     pub step: Option<u32>,
+    /// The session token the offending message carried, when known. Reports travel on the
+    /// agent name's error key, which any process using that name hears: an agent ignores
+    /// reports about a session that is not its own (an impostor's refused observations).
+    #[serde(default)]
+    pub session: Option<u64>,
 }
 
 impl ErrorReport {
@@ -412,7 +444,20 @@ impl ErrorReport {
             message: message.into(),
             episode: None,
             step: None,
+            session: None,
         }
+    }
+
+    /// Says which session token the offending message carried.
+    pub fn for_session(mut self, token: u64) -> Self {
+        self.session = Some(token);
+        self
+    }
+
+    /// Whether this report concerns the session `token` (reports not tied to a session, such
+    /// as a refused attach, concern every holder of the name).
+    pub fn concerns(&self, token: u64) -> bool {
+        self.session.is_none_or(|s| s == token)
     }
 
     /// Attaches the position of the offending message.

@@ -54,7 +54,8 @@ fn observation(rng: &mut StdRng) -> Observation {
         _ => None,
     };
     let reward = rng.random_bool(0.5).then(|| float(rng));
-    let obs = Observation::new(rng.random(), rng.random(), floats(rng, 40), reward, end);
+    let obs = Observation::new(rng.random(), rng.random(), floats(rng, 40), reward, end)
+        .in_session(rng.random());
     if rng.random_bool(0.5) {
         obs.with_applied(floats(rng, 12))
     } else {
@@ -83,6 +84,7 @@ fn attach_request(rng: &mut StdRng) -> AttachRequest {
             },
             seed: rng.random(),
         },
+        session: rng.random_bool(0.5).then(|| rng.random()),
     }
 }
 

@@ -60,6 +60,9 @@ pub(crate) struct PlannerLink {
     planner_alive: Option<Subscriber<FifoChannelHandler<Sample>>>,
     /// Whether the planner's token went away since the last attach.
     planner_gone: bool,
+    /// The session token of the last accepted attach (0: none yet): stamped on every
+    /// observation, and sent when attaching again so the planner knows it is us reconnecting.
+    session_token: u64,
     _token: LivelinessToken,
 }
 
@@ -130,6 +133,7 @@ impl PlannerLink {
             events,
             planner_alive: None,
             planner_gone: false,
+            session_token: 0,
             _token: token,
         })
     }
@@ -150,6 +154,7 @@ impl PlannerLink {
             version: PROTOCOL_VERSION,
             agent: self.agent.clone(),
             spec: spec.clone(),
+            session: Some(self.session_token).filter(|&t| t != 0),
         };
         let payload = proto::encode(&request, ENCODING).map_err(BridgeError::Encode)?;
         let started = Instant::now();
@@ -190,6 +195,7 @@ impl PlannerLink {
             .map_err(zenoh_err(format!("watching {alive_key}")))?;
         self.planner_alive = Some(alive);
         self.planner_gone = false;
+        self.session_token = accepted.session;
 
         while !self.planner_listens().await? {
             if Instant::now() >= deadline {
@@ -263,9 +269,10 @@ impl PlannerLink {
         Ok(status.matching())
     }
 
-    /// Publishes an observation on the agent's obs key.
+    /// Publishes an observation on the agent's obs key, in this agent's session.
     pub async fn send(&self, obs: &Observation) -> Result<(), BridgeError> {
-        let bytes = proto::encode(obs, ENCODING).map_err(BridgeError::Encode)?;
+        let obs = obs.clone().in_session(self.session_token);
+        let bytes = proto::encode(&obs, ENCODING).map_err(BridgeError::Encode)?;
         self.observations
             .put(bytes)
             .await
@@ -293,7 +300,12 @@ impl PlannerLink {
                 }
                 sample = self.errors.recv_async() => {
                     let sample = sample.map_err(|e| closed("errors", e))?;
-                    return decode(&sample).map(Inbound::Error);
+                    let report: ErrorReport = decode(&sample)?;
+                    // Another process using our name (its refused observations) is not us.
+                    if report.concerns(self.session_token) {
+                        return Ok(Inbound::Error(report));
+                    }
+                    tracing::warn!(%report, "ignoring an error report about another session under this agent's name");
                 }
                 sample = self.events.recv_async() => {
                     let sample = sample.map_err(|e| closed("events", e))?;

@@ -44,6 +44,9 @@ fn free_endpoint() -> String {
 /// The run's ownership epoch the scripted planner attaches agents at.
 const EPOCH: u64 = 4;
 
+/// The session token the scripted planner hands out.
+const SESSION: u64 = 0x5eed_f00d_ba5e;
+
 /// The step at which an action of an older epoch arrives before the real one (the bridge must
 /// ignore it: the replay check below would see its effect otherwise).
 const STALE_AT: u32 = 7;
@@ -94,6 +97,7 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                             models_version: 0,
                             next_episode: 5,
                             epoch: EPOCH,
+                            session: SESSION,
                         }),
                     };
                     seen2.lock().unwrap().attach.push(request);
@@ -154,6 +158,12 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                         epoch: EPOCH,
                     };
                     if obs.step == STALE_AT {
+                        // Someone else using the agent's name had an observation refused: the
+                        // report names their session, and the bridge must not take it as its own.
+                        let alien = ErrorReport::new(ErrorCode::Session, "not your session: scripted")
+                            .at(obs.episode, obs.step)
+                            .for_session(SESSION + 1);
+                        s.put(k.error(&run, &agent), publish_bytes(&alien)).await.unwrap();
                         // A planner that lost the run answers first, with another action.
                         let stale = Action { epoch: EPOCH - 1, action: vec![-2.5], ..action.clone() };
                         s.put(k.act(&run, &agent), publish_bytes(&stale)).await.unwrap();
@@ -220,6 +230,10 @@ async fn episodes_run_step_by_step_and_report_the_simulators_rewards() {
         [5, 6]
     );
     assert_eq!(seen.observations.len(), 2 * 201);
+    assert!(
+        seen.observations.iter().all(|o| o.session == SESSION),
+        "every observation carries the session token of the attach"
+    );
     for record in &records {
         assert_eq!((record.steps, record.end), (200, EpisodeEnd::TimeLimit));
         let (planned, random) = if record.episode == 5 {

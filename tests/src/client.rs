@@ -38,6 +38,9 @@ pub struct Client {
     pub events: Inbox,
     /// The run's ownership epoch at the last attach; actions of older epochs are ignored.
     epoch: AtomicU64,
+    /// The session token of the last accepted attach (0: none yet); [`Client::send`] stamps it
+    /// on every observation.
+    session_token: AtomicU64,
     _token: zenoh::liveliness::LivelinessToken,
 }
 
@@ -72,6 +75,7 @@ impl Client {
             errors,
             events,
             epoch: AtomicU64::new(0),
+            session_token: AtomicU64::new(0),
             _token: token,
         })
     }
@@ -82,6 +86,7 @@ impl Client {
             version: PROTOCOL_VERSION,
             agent: self.agent.clone(),
             spec: spec.clone(),
+            session: Some(self.session_token()).filter(|&t| t != 0),
         };
         let payload = proto::encode(&request, Encoding::Postcard)?;
         match self
@@ -91,6 +96,7 @@ impl Client {
         {
             AttachOutcome::Accepted(accepted) => {
                 self.epoch.store(accepted.epoch, Ordering::SeqCst);
+                self.session_token.store(accepted.session, Ordering::SeqCst);
                 // Give the planner's subscriber a moment to match our publications.
                 tokio::time::sleep(Duration::from_millis(300)).await;
                 Ok(accepted)
@@ -134,11 +140,17 @@ impl Client {
             .map_err(|e| anyhow!("put: {e}"))
     }
 
-    /// Publishes an observation (postcard).
+    /// Publishes an observation (postcard) in this client's session (its token stamped on).
     pub async fn send(&self, obs: &Observation) -> Result<()> {
-        let bytes = proto::encode(obs, Encoding::Postcard)?;
+        let obs = obs.clone().in_session(self.session_token());
+        let bytes = proto::encode(&obs, Encoding::Postcard)?;
         self.send_raw(&self.run.clone(), bytes, Encoding::Postcard.mime())
             .await
+    }
+
+    /// The session token of the last accepted attach (0 before any).
+    pub fn session_token(&self) -> u64 {
+        self.session_token.load(Ordering::SeqCst)
     }
 
     /// The ownership epoch of the run at the last attach.
@@ -147,7 +159,8 @@ impl Client {
     }
 
     /// The next action or error for this agent (actions of an epoch older than the one
-    /// attached to come from a planner that lost the run, and are skipped).
+    /// attached to come from a planner that lost the run, and error reports about another
+    /// session using this agent's name, are skipped).
     pub async fn answer(&self, timeout: Duration) -> Result<Answer> {
         let deadline = tokio::time::Instant::now() + timeout;
         loop {
@@ -161,7 +174,10 @@ impl Client {
                 }
                 sample = self.errors.recv_async() => {
                     let sample = sample.map_err(|e| anyhow!("errors: {e}"))?;
-                    return Ok(Answer::Error(decode(&sample)?));
+                    let report: ErrorReport = decode(&sample)?;
+                    if report.concerns(self.session_token()) {
+                        return Ok(Answer::Error(report));
+                    }
                 }
                 () = tokio::time::sleep_until(deadline) => bail!("no answer for `{}` within {timeout:?}", self.agent),
             }
@@ -186,8 +202,23 @@ impl Client {
         }
     }
 
-    /// The next error report (for tests that provoke one).
+    /// The next error report about this client's session (for tests that provoke one).
     pub async fn next_error(&self) -> Result<ErrorReport> {
+        loop {
+            let sample = tokio::time::timeout(ANSWER_TIMEOUT, self.errors.recv_async())
+                .await
+                .context("no error report")?
+                .map_err(|e| anyhow!("errors: {e}"))?;
+            let report: ErrorReport = decode(&sample)?;
+            if report.concerns(self.session_token()) {
+                return Ok(report);
+            }
+        }
+    }
+
+    /// The next error report on this agent name's error key, whichever session it concerns
+    /// (for tests that play someone else using the name).
+    pub async fn next_error_any(&self) -> Result<ErrorReport> {
         let sample = tokio::time::timeout(ANSWER_TIMEOUT, self.errors.recv_async())
             .await
             .context("no error report")?

@@ -6,7 +6,7 @@ use ebmpc_e2e::bridge::run_episodes;
 use ebmpc_e2e::client::{Answer, Client, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{Encoding, ErrorCode, ErrorReport, Observation, RunSpec, TaskId};
+use proto::{Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION, RunSpec, TaskId};
 use std::time::Duration;
 
 fn config() -> String {
@@ -69,6 +69,9 @@ fn bad_input_is_refused(endpoint: &str) {
     runtime().block_on(async {
         let client = Client::connect(endpoint, "bad", "b").await.unwrap();
         client.attach(&cartpole_spec()).await.unwrap();
+        // This client's observations, in its session (else they are refused for the token).
+        let token = client.session_token();
+        let obs = |episode, step, values, reward| obs(episode, step, values, reward).in_session(token);
         let cases: Vec<(Vec<u8>, &str, ErrorCode)> = vec![
             (
                 vec![0xde, 0xad, 0xbe, 0xef, 0x01],
@@ -159,7 +162,7 @@ fn bad_input_is_refused(endpoint: &str) {
         client
             .send_raw(
                 "bad",
-                br#"{"version":2,"episode":0,"step":1,"obs":[1,2],"reward":0.5}"#.to_vec(),
+                format!(r#"{{"version":{PROTOCOL_VERSION},"episode":0,"step":1,"obs":[1,2],"reward":0.5,"session":{token}}}"#).into_bytes(),
                 "application/json",
             )
             .await

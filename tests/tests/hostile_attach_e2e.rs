@@ -248,6 +248,7 @@ async fn hostile_attaches(endpoint: &str) {
             version: PROTOCOL_VERSION,
             agent: "h".into(),
             spec: spec(overrides.clone()),
+            session: None,
         };
         let bytes = proto::encode(&request, Encoding::Postcard).unwrap();
         let message = refusal(&hostile, &run, bytes, Encoding::Postcard.mime()).await;
@@ -276,6 +277,7 @@ async fn hostile_attaches(endpoint: &str) {
         version: PROTOCOL_VERSION,
         agent: long.clone(),
         spec: spec(PlannerOverrides::default()),
+        session: None,
     };
     let bytes = proto::encode(&request, Encoding::Postcard).unwrap();
     let message = refusal(&hostile, "named", bytes, Encoding::Postcard.mime()).await;
@@ -290,6 +292,7 @@ async fn hostile_attaches(endpoint: &str) {
         version: PROTOCOL_VERSION,
         agent: "intruder".into(),
         spec: other,
+        session: None,
     };
     let bytes = proto::encode(&request, Encoding::Postcard).unwrap();
     let message = refusal(&hostile, "good", bytes, Encoding::Postcard.mime()).await;
@@ -301,6 +304,7 @@ async fn hostile_attaches(endpoint: &str) {
             population: Some(30),
             ..Default::default()
         }),
+        session: None,
     };
     let bytes = proto::encode(&request, Encoding::Postcard).unwrap();
     let message = refusal(&hostile, "good", bytes, Encoding::Postcard.mime()).await;

@@ -36,6 +36,7 @@ fn an_idle_agent_without_a_token_frees_its_slot() {
             version: PROTOCOL_VERSION,
             agent: "ghost".into(),
             spec: spec(),
+            session: None,
         };
         let bytes = proto::encode(&request, Encoding::Postcard).unwrap();
         let reply = carrier

@@ -76,6 +76,7 @@ fn wildcard_keys_reach_no_bystander() {
             version: PROTOCOL_VERSION,
             agent: "b".into(),
             spec: spec(),
+            session: None,
         };
         for key in WILD_ATTACH {
             let replies = hostile

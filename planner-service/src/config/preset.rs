@@ -1080,6 +1080,7 @@ mod tests {
             version: proto::PROTOCOL_VERSION,
             agent: "a".into(),
             spec,
+            session: None,
         };
         let mut bytes = proto::encode(&request, proto::Encoding::Postcard).unwrap();
         bytes.push(1);

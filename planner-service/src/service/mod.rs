@@ -15,6 +15,7 @@
 
 mod log_limit;
 pub mod metrics;
+mod session_token;
 pub mod status;
 mod worker;
 
@@ -82,6 +83,20 @@ const CONCURRENT_ATTACHES: usize = 8;
 struct AgentHandle {
     tx: mpsc::Sender<Incoming>,
     task: JoinHandle<()>,
+    /// The session token handed to the agent at attach; its observations must carry it.
+    session: u64,
+    /// The agent's liveliness token went away (it is lingering for [`AGENT_LINGER`]): it
+    /// counts as vanished, and its name may be attached again by anyone.
+    token_gone: bool,
+}
+
+impl AgentHandle {
+    /// Whether the agent's session is still live: its worker runs and its liveliness token
+    /// was not seen going away. (A worker ends when its agent goes idle past
+    /// `[limits] agent_idle_seconds` without a liveliness token.)
+    fn is_live(&self) -> bool {
+        !self.task.is_finished() && !self.token_gone
+    }
 }
 
 struct RunHandle {
@@ -565,9 +580,28 @@ impl Service {
         }
         // Sessions that ended (idle without a liveliness token) free their slots.
         handle.agents.retain(|_, a| !a.task.is_finished());
+        if let Some(current) = handle.agents.get(&request.agent) {
+            // A live session is replaced only by the agent that holds its token (reconnecting);
+            // anyone else using the name is refused, and the live agent never notices.
+            let reconnecting = request.session == Some(current.session);
+            if current.is_live() && !reconnecting {
+                let idle = self.config.limits.agent_idle_seconds;
+                return Err(refuse(format!(
+                    "agent `{}` is attached to run `{run_name}` and live: attach under another name, attach again with its session token, or wait until it vanished (its liveliness token gone, or {idle} s idle without one)",
+                    truncated(&request.agent)
+                )));
+            }
+        }
+        let session = session_token::new_token().map_err(|e| {
+            ErrorReport::new(
+                ErrorCode::Internal,
+                format!("cannot draw a session token: {e}"),
+            )
+        })?;
         if let Some(old) = handle.agents.remove(&request.agent) {
-            // The same agent attaching again (it restarted): its old worker ends, and any
-            // episode it left open is recorded as interrupted by the new worker's first step.
+            // The agent reconnecting, or its name reclaimed after it vanished: the old worker
+            // ends, and any episode it left open is recorded as interrupted by the new
+            // worker's first step.
             old.task.abort();
         } else if handle.agents.len() >= self.config.max_agents_per_run {
             return Err(refuse(format!(
@@ -582,14 +616,21 @@ impl Service {
             self.fleet.clone(),
             self.config.limits.magnitudes(run.task()),
             self.plans.clone(),
+            session,
         )?;
         let idle = std::time::Duration::from_secs(self.config.limits.agent_idle_seconds);
         let worker = worker.idle_after(idle);
         let (tx, rx) = mpsc::channel(AGENT_QUEUE);
         let task = self.runtime.spawn(worker.run(rx));
-        handle
-            .agents
-            .insert(request.agent.clone(), AgentHandle { tx, task });
+        handle.agents.insert(
+            request.agent.clone(),
+            AgentHandle {
+                tx,
+                task,
+                session,
+                token_gone: false,
+            },
+        );
         let models = run.models();
         tracing::info!(run = %run_name, agent = %request.agent, task = %run.spec().task, method = %run.preset().method, "agent attached");
         Ok(AttachAccepted {
@@ -600,6 +641,7 @@ impl Service {
             models_version: models.version,
             next_episode: run.next_episode(&request.agent),
             epoch: run.epoch(),
+            session,
         })
     }
 
@@ -829,7 +871,8 @@ impl Service {
             let report = ErrorReport::new(
                 ErrorCode::NotAttached,
                 format!("run `{name}` moved to another planner ({reason}): attach again"),
-            );
+            )
+            .for_session(worker.session);
             // JSON: every agent decodes by the sample's declared encoding, and JSON is the one
             // all of them (Python included) speak.
             self.outbox
@@ -932,19 +975,24 @@ impl Service {
     /// worker records an open episode as interrupted), unless it attached again meanwhile.
     /// Agents that come back attach again.
     fn liveliness(self: &Arc<Self>, token: zenoh::sample::Sample) {
-        if token.kind() != zenoh::sample::SampleKind::Delete {
-            return;
-        }
+        let gone = token.kind() == zenoh::sample::SampleKind::Delete;
         let key = token.key_expr().as_str();
         let Some((run, agent)) = self.outbox.keys().parse_agent_alive(key) else {
             return;
         };
         let session = {
-            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-            runs.get(run)
-                .and_then(|handle| handle.agents.get(agent))
-                .map(|a| a.tx.clone())
+            let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            runs.get_mut(run)
+                .and_then(|handle| handle.agents.get_mut(agent))
+                .map(|a| {
+                    // A token that comes back (the link recovered) makes the agent live again.
+                    a.token_gone = gone;
+                    a.tx.clone()
+                })
         };
+        if !gone {
+            return;
+        }
         let Some(session) = session else { return };
         let (service, run, agent) = (self.clone(), run.to_string(), agent.to_string());
         self.runtime.spawn(async move {
@@ -1003,28 +1051,10 @@ impl Service {
         if !self.fleet.is_mine(run) {
             return; // its owner answers
         }
-        let tx = {
-            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-            match runs.get(run) {
-                None => Err(ErrorReport::new(
-                    ErrorCode::UnknownRun,
-                    format!("run `{run}` is not hosted here: attach first"),
-                )),
-                Some(handle) => match handle.agents.get(agent) {
-                    None => Err(ErrorReport::new(
-                        ErrorCode::NotAttached,
-                        format!("agent `{agent}` is not attached to run `{run}`: attach first"),
-                    )),
-                    Some(a) => Ok(a.tx.clone()),
-                },
-            }
-        };
-        let result = match tx.and_then(|tx| self.check_payload(sample.payload().len()).map(|()| tx))
-        {
-            Err(report) => Err(report),
-            Ok(tx) => {
+        let result = self.decode_for_session(run, agent, &sample, encoding).and_then(
+            |(msg, tx)| {
                 let incoming = Incoming {
-                    bytes: sample.payload().to_bytes().into_owned(),
+                    msg,
                     encoding,
                     received,
                 };
@@ -1037,11 +1067,58 @@ impl Service {
                         ErrorReport::new(ErrorCode::NotAttached, "the agent's session has ended: attach again")
                     }
                 })
-            }
-        };
+            },
+        );
         if let Err(report) = result {
             self.outbox.report(run, agent, report, encoding).await;
         }
+    }
+}
+
+impl Service {
+    /// Checks an observation sample's size (before anything copies or decodes it), decodes it
+    /// (a message of at most `[limits] max_payload_bytes`, so this is short work for the
+    /// event loop) and checks that it carries the session token of `agent`'s live session:
+    /// only then does it reach that session's worker, so a stranger's messages under the
+    /// agent's name neither queue before the agent's own nor touch its episode.
+    fn decode_for_session(
+        &self,
+        run: &str,
+        agent: &str,
+        sample: &zenoh::sample::Sample,
+        encoding: Encoding,
+    ) -> Result<(proto::Observation, mpsc::Sender<Incoming>), ErrorReport> {
+        let (tx, session) = {
+            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
+            match runs.get(run) {
+                None => Err(ErrorReport::new(
+                    ErrorCode::UnknownRun,
+                    format!("run `{run}` is not hosted here: attach first"),
+                )),
+                Some(handle) => match handle.agents.get(agent) {
+                    None => Err(ErrorReport::new(
+                        ErrorCode::NotAttached,
+                        format!("agent `{agent}` is not attached to run `{run}`: attach first"),
+                    )),
+                    Some(a) => Ok((a.tx.clone(), a.session)),
+                },
+            }
+        }?;
+        self.check_payload(sample.payload().len())?;
+        let msg: proto::Observation =
+            proto::decode(&sample.payload().to_bytes(), encoding).map_err(|e| codec_report(&e))?;
+        if msg.session != session {
+            return Err(ErrorReport::new(
+                ErrorCode::Session,
+                format!(
+                    "session token {} is not the current session of agent `{agent}` of run `{run}`: attach to get a session of your own (a reconnecting agent attaches with its token)",
+                    msg.session
+                ),
+            )
+            .at(msg.episode, msg.step)
+            .for_session(msg.session));
+        }
+        Ok((msg, tx))
     }
 }
 

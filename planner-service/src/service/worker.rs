@@ -1,7 +1,7 @@
 //! One agent's worker: takes its observations in order, stores what they complete, and
 //! answers each with an action — uniformly random while the run explores, planned otherwise.
 
-use super::{Outbox, codec_report};
+use super::Outbox;
 use crate::agent::AgentSession;
 use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
@@ -18,9 +18,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 
-/// A received observation, still encoded.
+/// A received observation of the worker's session, decoded, with the encoding the answer
+/// goes back in.
 pub(crate) struct Incoming {
-    pub bytes: Vec<u8>,
+    pub msg: Observation,
     pub encoding: Encoding,
     /// When the service took it off the transport: the run's deadline counts from here, so
     /// time spent queued behind the agent's earlier messages counts against it too.
@@ -49,6 +50,8 @@ pub(crate) struct AgentWorker {
     /// The daemon's plans in flight: this worker's plans count there while they run, so that
     /// retraining yields to them.
     plans: Arc<PlanGate>,
+    /// The session token this worker serves; every report it sends names it.
+    token: u64,
 }
 
 /// A stable seed per (run seed, agent name), so runs are reproducible.
@@ -91,6 +94,7 @@ impl AgentWorker {
         fleet: Arc<Fleet>,
         magnitudes: Magnitudes,
         plans: Arc<PlanGate>,
+        token: u64,
     ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
         Ok(Self {
@@ -105,6 +109,7 @@ impl AgentWorker {
             fleet,
             magnitudes,
             plans,
+            token,
         })
     }
 
@@ -136,6 +141,7 @@ impl AgentWorker {
         while let Some(incoming) = self.next(&mut rx).await {
             let encoding = incoming.encoding;
             if let Err(report) = self.handle(incoming).await {
+                let report = report.for_session(self.token);
                 self.outbox
                     .report(self.run.name(), &self.name, report, encoding)
                     .await;
@@ -155,8 +161,7 @@ impl AgentWorker {
     }
 
     async fn handle(&mut self, incoming: Incoming) -> Result<(), ErrorReport> {
-        let msg: Observation =
-            proto::decode(&incoming.bytes, incoming.encoding).map_err(|e| codec_report(&e))?;
+        let msg = incoming.msg;
         let position = |r: ErrorReport| r.at(msg.episode, msg.step);
         proto::validate::validate_observation(&msg, self.run.task(), &self.magnitudes)
             .map_err(|e| e.report(msg.episode, msg.step))?;
