@@ -202,10 +202,8 @@ impl AdamPlanner {
     /// Moves the warm start one step forward: the best plan without its first action, the
     /// neutral action appended.
     pub fn shift(&mut self) {
-        let a = self.task.act_dim;
-        let dim = self.warm.len();
-        self.warm[..dim - a].copy_from_slice(&self.best[a..]);
-        self.warm[dim - a..].copy_from_slice(&self.neutral[dim - a..]);
+        self.warm.copy_from_slice(&self.best);
+        SequenceBox::shift_plan(&mut self.warm, self.task.act_dim, &self.neutral);
     }
 
     /// The warm start of the next solve.

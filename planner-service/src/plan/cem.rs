@@ -164,6 +164,15 @@ impl SequenceBox {
     pub fn per_coordinate(lower: &[f32], upper: &[f32], f: impl Fn(f32, f32) -> f32) -> Vec<f32> {
         lower.iter().zip(upper).map(|(&l, &u)| f(l, u)).collect()
     }
+
+    /// The warm start of the next time step, in place: `plan` (`horizon × act_dim`) drops its
+    /// first action, moves the rest one step forward and ends with `initial`'s last action.
+    /// The one MPC shift that CEM, iCEM and Adam share.
+    pub fn shift_plan(plan: &mut [f32], act_dim: usize, initial: &[f32]) {
+        let dim = plan.len();
+        plan.copy_within(act_dim.., 0);
+        plan[dim - act_dim..].copy_from_slice(&initial[dim - act_dim..]);
+    }
 }
 
 /// A CEM optimiser for sequences of `horizon` actions within fixed bounds.
@@ -239,10 +248,7 @@ impl Cem {
     /// Warm start for the next time step: drops the first action of the current mean, moves the
     /// rest one step forward and appends the initial mean's action at the end.
     pub fn shift(&mut self) {
-        let a = self.act_dim;
-        let dim = self.mean.len();
-        self.mean.copy_within(a.., 0);
-        self.mean[dim - a..].copy_from_slice(&self.init_mean[dim - a..]);
+        SequenceBox::shift_plan(&mut self.mean, self.act_dim, &self.init_mean);
     }
 
     /// The current mean sequence (`horizon × act_dim`): after a solve, the plan.

@@ -219,10 +219,8 @@ impl Icem {
     /// Warm start for the next time step: the mean and the kept elites move one step forward
     /// (the mean's last action is the initial mean's; the elites' is sampled when they rejoin).
     pub fn shift(&mut self) {
-        let a = self.act_dim;
-        let dim = self.mean.len();
-        self.mean.copy_within(a.., 0);
-        self.mean[dim - a..].copy_from_slice(&self.init_mean[dim - a..]);
+        let (a, dim) = (self.act_dim, self.mean.len());
+        SequenceBox::shift_plan(&mut self.mean, a, &self.init_mean);
         for elite in self.kept[..self.kept_count * dim].chunks_exact_mut(dim) {
             elite.copy_within(a.., 0);
         }

@@ -87,9 +87,9 @@ impl Search {
         problem: &mut Imagined<'_>,
         clock: &mut IterationClock,
     ) -> (CemOutcome, f32) {
-        let outcome = match self {
-            Search::Cem(s) => s.optimize(problem, clock),
-            Search::Icem(s) => s.optimize(problem, clock),
+        let (outcome, elites) = match self {
+            Search::Cem(s) => (s.optimize(problem, clock), s.elites()),
+            Search::Icem(s) => (s.optimize(problem, clock), s.elites()),
             Search::Adam(s) => {
                 let outcome = s.optimize(problem.obs, problem.dynamics, problem.regularizer, clock);
                 let energy = if outcome.iterations == 0 {
@@ -103,11 +103,6 @@ impl Search {
         if outcome.iterations == 0 {
             return (outcome, 0.0);
         }
-        let elites = match self {
-            Search::Cem(s) => s.elites(),
-            Search::Icem(s) => s.elites(),
-            Search::Adam(_) => unreachable!("returned above"),
-        };
         let energy = elites
             .iter()
             .map(|&e| problem.imagination.candidate_energy(e))
