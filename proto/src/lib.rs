@@ -13,4 +13,4 @@ pub mod validate;
 pub use codec::{CodecError, Encoding, decode, encode};
 pub use keys::{AgentChannel, Keys, validate_name};
 pub use messages::*;
-pub use task::{TaskId, TaskSpec, UnknownTask};
+pub use task::{Builtin, Task, TaskCatalog, TaskSpec, UnknownTask};

@@ -4,14 +4,16 @@
 //! first, so a peer speaking another version gets a clear "wrong protocol version" error instead
 //! of a garbled decode.
 
-use crate::task::TaskId;
+use crate::task::TaskSpec;
 use serde::{Deserialize, Serialize};
 
 /// The protocol version this build speaks. Version 2 added the ownership epoch to
 /// [`AttachAccepted`] and [`Action`], and the applied action to [`Observation`]; version 3
 /// the agent's session token ([`AttachAccepted::session`], [`Observation::session`],
-/// [`AttachRequest::session`], [`ErrorReport::session`]).
-pub const PROTOCOL_VERSION: u16 = 3;
+/// [`AttachRequest::session`], [`ErrorReport::session`]); version 4 names tasks by their name
+/// string instead of a catalog index ([`RunSpec::task`], [`AttachAccepted::task`]) and appends
+/// [`RunSpec::task_spec`], a whole task for a system the planner's catalog does not know.
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// How the trainer interacts with acting agents (design.md).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -199,9 +201,11 @@ pub struct PlannerOverrides {
 /// What an agent asks for when it attaches: which task it is and how its run should plan.
 ///
 /// The first agent to attach creates the run with this spec; later agents must agree on the task.
+/// Fields are only ever appended: postcard is positional.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RunSpec {
-    pub task: TaskId,
+    /// The task's name: a planner's catalog entry, or the name of `task_spec`.
+    pub task: String,
     /// Named preset; `None` is the task's default preset.
     #[serde(default)]
     pub preset: Option<String>,
@@ -212,6 +216,10 @@ pub struct RunSpec {
     /// Seed of the run's models and planner.
     #[serde(default)]
     pub seed: u64,
+    /// The whole task, for a system the planner's catalog does not know (its `name` must be
+    /// `task`). Validated against the planner's `[limits]` and stored with the run.
+    #[serde(default)]
+    pub task_spec: Option<TaskSpec>,
 }
 
 /// Sent as the payload of a query on the run's attach key.
@@ -244,7 +252,8 @@ pub enum AttachOutcome {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct AttachAccepted {
     pub planner_id: String,
-    pub task: TaskId,
+    /// The run's task name.
+    pub task: String,
     pub mode: TrainMode,
     /// Episodes this run has already finished (across all its agents).
     pub episodes_done: u32,

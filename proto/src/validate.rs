@@ -12,7 +12,7 @@ pub enum ValidationError {
     #[error("{what} has {found} numbers, task {task} needs {expected}")]
     Dimension {
         what: &'static str,
-        task: &'static str,
+        task: String,
         expected: usize,
         found: usize,
     },
@@ -30,6 +30,13 @@ pub enum ValidationError {
         index: usize,
         value: f32,
         bound: f32,
+    },
+    #[error("observation[{index}] is {value}, outside the task's observation bounds [{low}, {high}]")]
+    ObservationOutOfBounds {
+        index: usize,
+        value: f32,
+        low: f32,
+        high: f32,
     },
     #[error("step 0 starts an episode and carries no reward")]
     RewardAtReset,
@@ -54,9 +61,9 @@ impl ValidationError {
             ValidationError::NonFinite { .. } | ValidationError::NonFiniteReward(_) => {
                 ErrorCode::NonFinite
             }
-            ValidationError::OutOfRange { .. } | ValidationError::AppliedOutOfRange { .. } => {
-                ErrorCode::OutOfRange
-            }
+            ValidationError::OutOfRange { .. }
+            | ValidationError::AppliedOutOfRange { .. }
+            | ValidationError::ObservationOutOfBounds { .. } => ErrorCode::OutOfRange,
             ValidationError::RewardAtReset
             | ValidationError::MissingReward(_)
             | ValidationError::AppliedAtReset => ErrorCode::OutOfOrder,
@@ -79,7 +86,7 @@ pub fn check_vector(
     if values.len() != expected {
         return Err(ValidationError::Dimension {
             what,
-            task: task.id.name(),
+            task: task.name.clone(),
             expected,
             found: values.len(),
         });
@@ -108,8 +115,9 @@ fn check_magnitude(what: &'static str, values: &[f32], bound: f32) -> Result<(),
 }
 
 /// Checks an observation's content against its task and the magnitudes the receiver accepts
-/// for it (usually `task.magnitudes`; a planner's operator may configure others). Not its
-/// place in the episode: the planner's agent session checks ordering.
+/// for it (usually `task.magnitudes`; a planner's operator may configure others), and the task's
+/// observation bounds where its spec declares them. Not its place in the episode: the
+/// planner's agent session checks ordering.
 pub fn validate_observation(
     msg: &Observation,
     task: &TaskSpec,
@@ -117,6 +125,21 @@ pub fn validate_observation(
 ) -> Result<(), ValidationError> {
     check_vector("observation", task, &msg.obs, task.obs_dim)?;
     check_magnitude("observation", &msg.obs, magnitudes.observation)?;
+    if let Some(bounds) = &task.observation_bounds {
+        let outside = msg
+            .obs
+            .iter()
+            .zip(bounds.low.iter().zip(&bounds.high))
+            .position(|(v, (lo, hi))| v < lo || v > hi);
+        if let Some(index) = outside {
+            return Err(ValidationError::ObservationOutOfBounds {
+                index,
+                value: msg.obs[index],
+                low: bounds.low[index],
+                high: bounds.high[index],
+            });
+        }
+    }
     if let Some(applied) = &msg.applied {
         if msg.step == 0 {
             return Err(ValidationError::AppliedAtReset);
@@ -137,7 +160,7 @@ pub fn validate_observation(
 /// a broken sender, and storing it would teach the models transitions no agent can make).
 fn check_applied(applied: &[f32], task: &TaskSpec) -> Result<(), ValidationError> {
     check_vector("applied action", task, applied, task.act_dim)?;
-    let bounds = task.action_low.iter().zip(task.action_high);
+    let bounds = task.action_low.iter().zip(&task.action_high);
     match applied
         .iter()
         .zip(bounds)
@@ -162,7 +185,7 @@ pub fn validate_action(msg: &Action, task: &TaskSpec) -> Result<(), ValidationEr
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::task::TaskId;
+    use crate::task::{Builtin, ObservationBounds};
 
     fn obs(step: u32, values: Vec<f32>, reward: Option<f32>) -> Observation {
         Observation::new(0, step, values, reward, None)
@@ -170,7 +193,7 @@ mod tests {
 
     #[test]
     fn accepts_well_formed_observations() {
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let m = &task.magnitudes;
         validate_observation(&obs(0, vec![0.0; 4], None), task, m).unwrap();
         validate_observation(&obs(5, vec![0.0; 4], Some(0.3)), task, m).unwrap();
@@ -184,7 +207,7 @@ mod tests {
 
     #[test]
     fn rejects_bad_observations_with_codes() {
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let cases = [
             (obs(0, vec![0.0; 3], None), ErrorCode::Dimension),
             (
@@ -268,5 +291,26 @@ mod tests {
             reward: 1e4,
         };
         validate_observation(&obs(0, vec![0.0, 0.0, 5e5, 0.0], None), task, &wide).unwrap();
+    }
+
+    /// A spec's observation bounds refuse what lies outside them, on top of the magnitudes.
+    #[test]
+    fn declared_observation_bounds_are_enforced() {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "bounded-cartpole".into();
+        spec.observation_bounds = Some(ObservationBounds {
+            low: vec![-2.4, -1e3, -10.0, -10.0],
+            high: vec![2.4, 1e3, 10.0, 10.0],
+        });
+        let task = crate::task::Task::intern(spec, &Default::default()).unwrap();
+        let m = &task.magnitudes;
+        validate_observation(&obs(0, vec![2.4, 0.0, 0.0, -10.0], None), task, m).unwrap();
+        let err = validate_observation(&obs(0, vec![2.5, 0.0, 0.0, 0.0], None), task, m)
+            .unwrap_err();
+        assert_eq!(err.code(), ErrorCode::OutOfRange);
+        assert_eq!(
+            err.to_string(),
+            "observation[0] is 2.5, outside the task's observation bounds [-2.4, 2.4]"
+        );
     }
 }

@@ -9,7 +9,7 @@
 //! --nocapture` (it prints the count, seed and wall time). The generator is plain `rand` (no
 //! nightly toolchain for cargo-fuzz, and no second build of the dependency tree).
 
-use proto::task::TaskId;
+use proto::task::{Builtin, SpecBounds};
 use proto::validate::{validate_action, validate_observation};
 use proto::{
     Action, ActionSource, AttachReply, AttachRequest, Encoding, EpisodeEnd, ErrorReport,
@@ -63,13 +63,29 @@ fn observation(rng: &mut StdRng) -> Observation {
     }
 }
 
+fn builtin(rng: &mut StdRng) -> Builtin {
+    Builtin::ALL[rng.random_range(0..Builtin::ALL.len())]
+}
+
+/// A catalog spec with some of its numbers replaced by extreme ones.
+fn task_spec(rng: &mut StdRng) -> proto::TaskSpec {
+    let mut spec = builtin(rng).spec();
+    if rng.random_bool(0.5) {
+        spec.action_low = floats(rng, 12);
+        spec.control_dt = float(rng).into();
+        spec.obs_dim = rng.random::<u64>() as usize;
+        spec.magnitudes.observation = float(rng);
+    }
+    spec
+}
+
 fn attach_request(rng: &mut StdRng) -> AttachRequest {
     let size = rng.random_bool(0.5).then(|| rng.random());
     AttachRequest {
         version: PROTOCOL_VERSION,
         agent: text(rng),
         spec: RunSpec {
-            task: TaskId::ALL[rng.random_range(0..TaskId::ALL.len())],
+            task: builtin(rng).name().to_string(),
             preset: rng.random_bool(0.5).then(|| text(rng)),
             overrides: PlannerOverrides {
                 dynamics_hidden_size: size,
@@ -83,6 +99,7 @@ fn attach_request(rng: &mut StdRng) -> AttachRequest {
                 TrainMode::Async
             },
             seed: rng.random(),
+            task_spec: rng.random_bool(0.3).then(|| task_spec(rng)),
         },
         session: rng.random_bool(0.5).then(|| rng.random()),
     }
@@ -153,16 +170,20 @@ fn mutate(rng: &mut StdRng, mut bytes: Vec<u8>) -> Vec<u8> {
 /// panic; the results are dropped (an error is the expected outcome of most inputs).
 fn decode_everything(bytes: &[u8], encoding: Encoding) {
     if let Ok(obs) = proto::decode::<Observation>(bytes, encoding) {
-        for task in TaskId::ALL {
-            let _ = validate_observation(&obs, task.spec(), &task.spec().magnitudes);
+        for task in Builtin::ALL.iter().map(|b| b.task()) {
+            let _ = validate_observation(&obs, task, &task.magnitudes);
         }
     }
     if let Ok(action) = proto::decode::<Action>(bytes, encoding) {
-        for task in TaskId::ALL {
-            let _ = validate_action(&action, task.spec());
+        for task in Builtin::ALL.iter().map(|b| b.task()) {
+            let _ = validate_action(&action, task);
         }
     }
-    let _ = proto::decode::<AttachRequest>(bytes, encoding);
+    if let Ok(attach) = proto::decode::<AttachRequest>(bytes, encoding)
+        && let Some(spec) = attach.spec.task_spec
+    {
+        let _ = spec.validate(&SpecBounds::default());
+    }
     let _ = proto::decode::<AttachReply>(bytes, encoding);
     let _ = proto::decode::<ErrorReport>(bytes, encoding);
     let _ = proto::decode::<RunEvent>(bytes, encoding);

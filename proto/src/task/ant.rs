@@ -5,31 +5,35 @@
 //! 0.05 s. The episode terminates when the torso height leaves [0.2, 1.0].
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, apply_delta_backward, delta_target,
+    Builtin, BuiltinCode, TaskSpec, TerminationKind, catalog_entry, apply_delta, apply_delta_backward, delta_target,
     identity_features, identity_features_backward, squared_norm, squared_norm_gradient,
 };
 
-pub(crate) static SPEC: TaskSpec = TaskSpec {
-    id: TaskId::Ant,
+pub(crate) const CODE: BuiltinCode = BuiltinCode {
     obs_dim: 27,
     act_dim: 8,
-    action_low: &[-1.0; 8],
-    action_high: &[1.0; 8],
-    episode_len: 1000,
-    control_dt: 0.05,
     state_feature_dim: 27,
-    magnitudes: Magnitudes::GENEROUS,
-    functions: TaskFunctions {
-        reward,
-        reward_gradient,
-        is_terminal,
-        state_features: identity_features,
-        state_features_backward: identity_features_backward,
-        target: delta_target,
-        next_obs_from_target: apply_delta,
-        next_obs_from_target_backward: apply_delta_backward,
-    },
+    reward,
+    reward_gradient,
+    is_terminal,
+    state_features: identity_features,
+    state_features_backward: identity_features_backward,
+    target: delta_target,
+    next_obs_from_target: apply_delta,
+    next_obs_from_target_backward: apply_delta_backward,
 };
+
+/// The catalog entry.
+pub(crate) fn spec() -> TaskSpec {
+    catalog_entry(
+        Builtin::Ant,
+        vec![-1.0; 8],
+        vec![1.0; 8],
+        1000,
+        0.05,
+        TerminationKind::Builtin(Builtin::Ant),
+    )
+}
 
 /// Index of the torso height in the observation.
 pub const TORSO_HEIGHT: usize = 0;
@@ -69,7 +73,7 @@ mod tests {
 
     #[test]
     fn falling_terminates_and_walking_pays() {
-        let spec = TaskId::Ant.spec();
+        let spec = Builtin::Ant.task();
         let mut standing = [0.0f32; 27];
         standing[TORSO_HEIGHT] = 0.55;
         assert!(!spec.is_terminal(&standing));

@@ -3,34 +3,38 @@
 //! Observation `[x, θ, ẋ, θ̇]`; action: the force on the cart, ±3. 200 steps of 0.04 s.
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, apply_delta_backward, delta_target,
+    Builtin, BuiltinCode, TaskSpec, TerminationKind, catalog_entry, apply_delta, apply_delta_backward, delta_target,
     never_terminal, squared_norm, squared_norm_gradient,
 };
 
 /// Pole length in metres (the reward's target is the tip straight above the rail's origin).
 pub const POLE_LENGTH: f32 = 0.6;
 
-pub(crate) static SPEC: TaskSpec = TaskSpec {
-    id: TaskId::Cartpole,
+pub(crate) const CODE: BuiltinCode = BuiltinCode {
     obs_dim: 4,
     act_dim: 1,
-    action_low: &[-3.0],
-    action_high: &[3.0],
-    episode_len: 200,
-    control_dt: 0.04,
     state_feature_dim: 5,
-    magnitudes: Magnitudes::GENEROUS,
-    functions: TaskFunctions {
-        reward,
-        reward_gradient,
-        is_terminal: never_terminal,
-        state_features,
-        state_features_backward,
-        target: delta_target,
-        next_obs_from_target: apply_delta,
-        next_obs_from_target_backward: apply_delta_backward,
-    },
+    reward,
+    reward_gradient,
+    is_terminal: never_terminal,
+    state_features,
+    state_features_backward,
+    target: delta_target,
+    next_obs_from_target: apply_delta,
+    next_obs_from_target_backward: apply_delta_backward,
 };
+
+/// The catalog entry.
+pub(crate) fn spec() -> TaskSpec {
+    catalog_entry(
+        Builtin::Cartpole,
+        vec![-3.0],
+        vec![3.0],
+        200,
+        0.04,
+        TerminationKind::Never,
+    )
+}
 
 /// Position of the pole's tip for observation `[x, θ, …]`.
 pub fn tip(obs: &[f32]) -> (f32, f32) {
@@ -94,7 +98,7 @@ mod tests {
 
     #[test]
     fn reward_peaks_upright_at_the_origin() {
-        let spec = TaskId::Cartpole.spec();
+        let spec = Builtin::Cartpole.task();
         let upright = spec.reward(&[0.0; 4], &[0.0], &[0.0, PI, 0.0, 0.0]);
         assert!((upright - 1.0).abs() < 1e-6, "{upright}");
         let hanging = spec.reward(&[0.0; 4], &[0.0], &[0.0, 0.0, 0.0, 0.0]);

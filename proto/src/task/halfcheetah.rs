@@ -4,31 +4,35 @@
 //! root z, root pitch, 6 joints), then qvel (9). Actions ±1, 1000 steps of 0.05 s.
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, never_terminal, squared_norm,
+    Builtin, BuiltinCode, TaskSpec, TerminationKind, catalog_entry, never_terminal, squared_norm,
     squared_norm_gradient,
 };
 
-pub(crate) static SPEC: TaskSpec = TaskSpec {
-    id: TaskId::HalfCheetah,
+pub(crate) const CODE: BuiltinCode = BuiltinCode {
     obs_dim: 18,
     act_dim: 6,
-    action_low: &[-1.0; 6],
-    action_high: &[1.0; 6],
-    episode_len: 1000,
-    control_dt: 0.05,
     state_feature_dim: 18,
-    magnitudes: Magnitudes::GENEROUS,
-    functions: TaskFunctions {
-        reward,
-        reward_gradient,
-        is_terminal: never_terminal,
-        state_features,
-        state_features_backward,
-        target,
-        next_obs_from_target,
-        next_obs_from_target_backward,
-    },
+    reward,
+    reward_gradient,
+    is_terminal: never_terminal,
+    state_features,
+    state_features_backward,
+    target,
+    next_obs_from_target,
+    next_obs_from_target_backward,
 };
+
+/// The catalog entry.
+pub(crate) fn spec() -> TaskSpec {
+    catalog_entry(
+        Builtin::HalfCheetah,
+        vec![-1.0; 6],
+        vec![1.0; 6],
+        1000,
+        0.05,
+        TerminationKind::Never,
+    )
+}
 
 /// Index of the root pitch in the observation.
 const PITCH: usize = 2;
@@ -100,7 +104,7 @@ mod tests {
 
     #[test]
     fn running_forward_pays() {
-        let spec = TaskId::HalfCheetah.spec();
+        let spec = Builtin::HalfCheetah.task();
         let still = [0.0; 18];
         let mut running = [0.0; 18];
         running[0] = 3.0;

@@ -1,26 +1,41 @@
 //! The task catalog: everything both processes must agree on about a task.
 //!
-//! A task's reward, termination and model transforms live here, once, so the simulator computes
-//! the real reward with the very function the planner uses on imagined transitions.
+//! A task is data ([`TaskSpec`], `spec.rs`): a TOML/JSON file on the daemon or a spec in an
+//! agent's attach. [`Task`] (`compiled.rs`) is a spec with its code: the reward, termination and
+//! model transforms its kinds name. The five tasks of the paper are catalog entries of the same
+//! type whose reward, termination and transforms are Rust code ([`Builtin`], one module each),
+//! so the simulator computes the real reward with the very function the planner uses on
+//! imagined transitions. [`TaskCatalog`] (`catalog.rs`) answers lookups by name.
 
 pub mod ant;
 pub mod cartpole;
+mod catalog;
+mod compiled;
 pub mod halfcheetah;
 pub mod pusher;
 pub mod reacher3d;
+mod spec;
+mod transforms;
+
+pub use catalog::{CatalogError, TaskCatalog, UnknownTask};
+pub use compiled::{CompiledExpression, MAX_DISTINCT_TASKS, Task, TaskError, compile_expression};
+pub use spec::{
+    DeclaredTransforms, MAX_ACTION_BOUND, MAX_CONTROL_DT, MAX_EXPRESSION_BYTES, MAX_MAGNITUDE,
+    MIN_CONTROL_DT, Magnitudes, ModelTransforms, ObservationBounds, RewardKind, SpecBounds,
+    SpecError, TaskSpec, TerminationKind,
+};
 
 use serde::{Deserialize, Serialize};
 use std::fmt;
-use std::str::FromStr;
 
-/// The tasks ebmpc knows. The wire name is the lowercase identifier (`"cartpole"`).
+/// The tasks whose reward, termination and model transforms are Rust code: the paper's five.
 ///
-/// New variants go at the end: postcard encodes a variant by its index, and replay logs and run
-/// records store it, so reordering would make stored runs name the wrong task.
-/// [`TaskId::ALL`] gives the paper's order.
+/// This names code, not a task: tasks are named by their name string on the wire and on disk.
+/// A spec names a builtin kind by its lowercase name (`reward = { builtin = "cartpole" }`);
+/// postcard (a spec in an attach) by the variant's index, so new variants go at the end.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
-pub enum TaskId {
+pub enum Builtin {
     Cartpole,
     Reacher3d,
     HalfCheetah,
@@ -28,114 +43,115 @@ pub enum TaskId {
     Pusher,
 }
 
-impl TaskId {
-    /// Every task in the catalog, in the paper's order.
-    pub const ALL: &'static [TaskId] = &[
-        TaskId::Cartpole,
-        TaskId::Reacher3d,
-        TaskId::Pusher,
-        TaskId::HalfCheetah,
-        TaskId::Ant,
+impl Builtin {
+    /// Every builtin task, in the paper's order.
+    pub const ALL: &'static [Builtin] = &[
+        Builtin::Cartpole,
+        Builtin::Reacher3d,
+        Builtin::Pusher,
+        Builtin::HalfCheetah,
+        Builtin::Ant,
     ];
 
-    /// The lowercase wire and command-line name.
+    /// The lowercase name: of the catalog entry and of the kind in a spec.
     pub fn name(self) -> &'static str {
         match self {
-            TaskId::Cartpole => "cartpole",
-            TaskId::Reacher3d => "reacher3d",
-            TaskId::HalfCheetah => "halfcheetah",
-            TaskId::Ant => "ant",
-            TaskId::Pusher => "pusher",
+            Builtin::Cartpole => "cartpole",
+            Builtin::Reacher3d => "reacher3d",
+            Builtin::HalfCheetah => "halfcheetah",
+            Builtin::Ant => "ant",
+            Builtin::Pusher => "pusher",
         }
     }
 
-    /// The task's static description.
-    pub fn spec(self) -> &'static TaskSpec {
+    /// The builtin of that name (ASCII case ignored), if there is one.
+    pub fn from_name(name: &str) -> Option<Builtin> {
+        Builtin::ALL
+            .iter()
+            .copied()
+            .find(|b| b.name().eq_ignore_ascii_case(name))
+    }
+
+    /// The catalog entry: this builtin's dimensions, bounds, timing and its code as every kind.
+    pub fn spec(self) -> TaskSpec {
         match self {
-            TaskId::Cartpole => &cartpole::SPEC,
-            TaskId::Reacher3d => &reacher3d::SPEC,
-            TaskId::HalfCheetah => &halfcheetah::SPEC,
-            TaskId::Ant => &ant::SPEC,
-            TaskId::Pusher => &pusher::SPEC,
+            Builtin::Cartpole => cartpole::spec(),
+            Builtin::Reacher3d => reacher3d::spec(),
+            Builtin::HalfCheetah => halfcheetah::spec(),
+            Builtin::Ant => ant::spec(),
+            Builtin::Pusher => pusher::spec(),
         }
+    }
+
+    /// The catalog entry as a task (compiled once per process).
+    pub fn task(self) -> &'static Task {
+        Task::intern(self.spec(), &SpecBounds::default())
+            .expect("every catalog entry is a valid task (tested)")
+    }
+
+    /// The observation and action dimensions the code indexes.
+    pub fn dims(self) -> (usize, usize) {
+        let code = self.code();
+        (code.obs_dim, code.act_dim)
+    }
+
+    pub(crate) fn code(self) -> &'static BuiltinCode {
+        match self {
+            Builtin::Cartpole => &cartpole::CODE,
+            Builtin::Reacher3d => &reacher3d::CODE,
+            Builtin::HalfCheetah => &halfcheetah::CODE,
+            Builtin::Ant => &ant::CODE,
+            Builtin::Pusher => &pusher::CODE,
+        }
+    }
+
+    /// The base preset of a spec that names none: the smallest task's sizes.
+    pub(crate) fn default_base() -> Builtin {
+        Builtin::Cartpole
     }
 }
 
-impl fmt::Display for TaskId {
+impl fmt::Display for Builtin {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
     }
 }
 
-/// A task name that is not in the catalog.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown task `{0}` (known: {known})", known = TaskId::ALL.iter().map(|t| t.name()).collect::<Vec<_>>().join(", "))]
-pub struct UnknownTask(pub String);
-
-impl FromStr for TaskId {
-    type Err = UnknownTask;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        TaskId::ALL
-            .iter()
-            .copied()
-            .find(|t| t.name().eq_ignore_ascii_case(s))
-            .ok_or_else(|| UnknownTask(s.to_string()))
+/// A builtin's catalog entry: every kind is its own code.
+fn catalog_entry(
+    builtin: Builtin,
+    action_low: Vec<f32>,
+    action_high: Vec<f32>,
+    episode_len: u32,
+    control_dt: f64,
+    termination: TerminationKind,
+) -> TaskSpec {
+    let (obs_dim, act_dim) = builtin.dims();
+    TaskSpec {
+        name: builtin.name().to_string(),
+        obs_dim,
+        act_dim,
+        action_low,
+        action_high,
+        episode_len,
+        control_dt,
+        observation_bounds: None,
+        magnitudes: Magnitudes::GENEROUS,
+        model: ModelTransforms::Builtin(builtin),
+        termination,
+        reward: RewardKind::Builtin(builtin),
+        base_preset: builtin,
     }
 }
 
-/// Dimensions, bounds, timing, and the functions of one task.
-///
-/// All functions take one transition as slices; the planner calls them row by row over its
-/// population (they are cheap next to the networks). Slices must have the task's dimensions.
+/// The Rust code of one builtin task. All functions take one transition as slices of the
+/// builtin's dimensions.
 #[derive(Debug)]
-pub struct TaskSpec {
-    pub id: TaskId,
-    /// Observation length.
+pub(crate) struct BuiltinCode {
     pub obs_dim: usize,
-    /// Action length.
     pub act_dim: usize,
-    /// Lower action bound per dimension.
-    pub action_low: &'static [f32],
-    /// Upper action bound per dimension.
-    pub action_high: &'static [f32],
-    /// Steps per episode (time limit).
-    pub episode_len: u32,
-    /// Seconds of simulated time between two actions.
-    pub control_dt: f64,
-    /// Length of [`TaskSpec::state_features`]: the observation as the dynamics model sees it.
+    /// Length of the model's state input ([`BuiltinCode::state_features`]).
     pub state_feature_dim: usize,
-    /// The largest observation and reward magnitudes an agent may send for this task.
-    pub magnitudes: Magnitudes,
-    pub(crate) functions: TaskFunctions,
-}
-
-/// The largest magnitudes a task's observations and rewards may take. Finite is not enough: a
-/// value like 3.4e38 is finite, but the difference of two of them (the dynamics model's
-/// target) overflows to infinity and poisons training. A planner refuses larger values, and
-/// its operator can change them per task (`[limits.magnitudes.<task>]`) for a custom robot.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Magnitudes {
-    /// Largest `|x|` of any observation coordinate.
-    pub observation: f32,
-    /// Largest `|r|` of one step's reward.
-    pub reward: f32,
-}
-
-impl Magnitudes {
-    /// The catalog's bound for every task: 10⁴ for both, far above the positions, velocities
-    /// and per-step rewards of the catalog's tasks, and far below where a difference or a
-    /// square leaves f32's range (10⁸ ≪ 3.4·10³⁸).
-    pub const GENEROUS: Magnitudes = Magnitudes {
-        observation: 1e4,
-        reward: 1e4,
-    };
-}
-
-/// The per-task functions behind [`TaskSpec`]'s methods.
-#[derive(Debug)]
-pub(crate) struct TaskFunctions {
     pub reward: fn(obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32,
     pub reward_gradient: RewardGradient,
     pub is_terminal: fn(next_obs: &[f32]) -> bool,
@@ -154,77 +170,6 @@ pub(crate) type RewardGradient =
 /// ∂L/∂target)`.
 pub(crate) type TargetBackward =
     fn(obs: &[f32], d_next_obs: &[f32], d_obs: &mut [f32], d_target: &mut [f32]);
-
-impl TaskSpec {
-    /// Reward of the transition `obs --act--> next_obs`. The simulator reports exactly this.
-    pub fn reward(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
-        (self.functions.reward)(obs, act, next_obs)
-    }
-
-    /// The reward of `obs --act--> next_obs` (exactly [`TaskSpec::reward`]) and its gradient:
-    /// `∂r/∂act` into `d_act` and `∂r/∂next_obs` into `d_next_obs` (both overwritten). Every
-    /// catalog reward reads only the action and the new observation, so there is no `∂r/∂obs`
-    /// (the finite-difference tests check that too). Where a reward has a kink (pusher's L1
-    /// distances) the gradient is the one-sided one of `signum`, 0 exactly at the kink.
-    /// Gradient-based planning (Adam + DAE) back-propagates through it.
-    pub fn reward_gradient(
-        &self,
-        obs: &[f32],
-        act: &[f32],
-        next_obs: &[f32],
-        d_act: &mut [f32],
-        d_next_obs: &mut [f32],
-    ) -> f32 {
-        (self.functions.reward_gradient)(obs, act, next_obs, d_act, d_next_obs)
-    }
-
-    /// Whether `next_obs` ends the episode (no reward accrues after it, in reality or imagination).
-    pub fn is_terminal(&self, next_obs: &[f32]) -> bool {
-        (self.functions.is_terminal)(next_obs)
-    }
-
-    /// The observation as the dynamics model's input sees it (e.g. angles as sin/cos),
-    /// `state_feature_dim` numbers written to `out`. The action is appended by the model.
-    pub fn state_features(&self, obs: &[f32], out: &mut [f32]) {
-        (self.functions.state_features)(obs, out)
-    }
-
-    /// The transpose of [`TaskSpec::state_features`]' Jacobian at `obs` applied to
-    /// `d_features`, *added* to `d_obs`: back-propagation from the model's input to `obs`.
-    pub fn state_features_backward(&self, obs: &[f32], d_features: &[f32], d_obs: &mut [f32]) {
-        (self.functions.state_features_backward)(obs, d_features, d_obs)
-    }
-
-    /// What the dynamics model learns to predict for a transition (`obs_dim` numbers):
-    /// usually the delta `next_obs − obs`.
-    pub fn target(&self, obs: &[f32], next_obs: &[f32], out: &mut [f32]) {
-        (self.functions.target)(obs, next_obs, out)
-    }
-
-    /// The inverse of [`TaskSpec::target`]: the next observation from `obs` and a predicted target.
-    pub fn next_obs_from_target(&self, obs: &[f32], target: &[f32], next_obs: &mut [f32]) {
-        (self.functions.next_obs_from_target)(obs, target, next_obs)
-    }
-
-    /// Back-propagation through [`TaskSpec::next_obs_from_target`]: given `∂L/∂next_obs`, adds
-    /// `∂L/∂obs` to `d_obs` and writes `∂L/∂target` into `d_target`.
-    pub fn next_obs_from_target_backward(
-        &self,
-        obs: &[f32],
-        d_next_obs: &[f32],
-        d_obs: &mut [f32],
-        d_target: &mut [f32],
-    ) {
-        (self.functions.next_obs_from_target_backward)(obs, d_next_obs, d_obs, d_target)
-    }
-
-    /// Clamps an action into the task's bounds, in place.
-    pub fn clamp_action(&self, act: &mut [f32]) {
-        for ((a, lo), hi) in act.iter_mut().zip(self.action_low).zip(self.action_high) {
-            *a = a.clamp(*lo, *hi);
-        }
-    }
-}
 
 /// Targets that are plain deltas: `next_obs − obs`.
 pub(crate) fn delta_target(obs: &[f32], next_obs: &[f32], out: &mut [f32]) {
@@ -287,26 +232,27 @@ mod tests {
     use super::*;
 
     #[test]
-    fn names_round_trip() {
-        for &t in TaskId::ALL {
-            assert_eq!(t.name().parse::<TaskId>().unwrap(), t);
-            assert_eq!(t.spec().id, t);
-            assert_eq!(t.spec().action_low.len(), t.spec().act_dim);
-            assert_eq!(t.spec().action_high.len(), t.spec().act_dim);
+    fn builtin_names_round_trip_and_entries_name_their_code() {
+        for &b in Builtin::ALL {
+            assert_eq!(Builtin::from_name(b.name()), Some(b));
+            let task = b.task();
+            assert_eq!(task.name, b.name());
+            assert_eq!(task.reward, RewardKind::Builtin(b));
+            assert_eq!(task.action_low.len(), task.act_dim);
+            assert_eq!(task.action_high.len(), task.act_dim);
         }
-        let err = "walker".parse::<TaskId>().unwrap_err();
-        assert!(err.to_string().contains("cartpole"), "{err}");
+        assert_eq!(Builtin::from_name("walker"), None);
     }
 
-    /// Stored replay logs and run records name their task by postcard's variant index.
+    /// A spec in an attach names a builtin kind by postcard's variant index.
     #[test]
     fn variant_indices_are_stable() {
         let indices: Vec<Vec<u8>> = [
-            TaskId::Cartpole,
-            TaskId::Reacher3d,
-            TaskId::HalfCheetah,
-            TaskId::Ant,
-            TaskId::Pusher,
+            Builtin::Cartpole,
+            Builtin::Reacher3d,
+            Builtin::HalfCheetah,
+            Builtin::Ant,
+            Builtin::Pusher,
         ]
         .iter()
         .map(|t| postcard::to_stdvec(t).unwrap())
@@ -345,7 +291,7 @@ mod tests {
 
     /// A transition for `spec` with every coordinate away from zero (pusher's L1 kinks lie at
     /// equal coordinates, which these never are).
-    fn transition(spec: &TaskSpec, salt: u32) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    fn transition(spec: &Task, salt: u32) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let obs: Vec<f32> = (0..spec.obs_dim).map(|i| 0.7 * wiggle(i, salt)).collect();
         let next: Vec<f32> = (0..spec.obs_dim)
             .map(|i| 0.7 * wiggle(i + 100, salt))
@@ -358,8 +304,8 @@ mod tests {
 
     #[test]
     fn reward_gradients_match_finite_differences() {
-        for &t in TaskId::ALL {
-            let spec = t.spec();
+        for &t in Builtin::ALL {
+            let spec = t.task();
             for salt in 1..4 {
                 let (obs, act, next) = transition(spec, salt);
                 let (mut d_act, mut d_next) =
@@ -379,8 +325,8 @@ mod tests {
 
     #[test]
     fn feature_and_target_backward_match_finite_differences() {
-        for &t in TaskId::ALL {
-            let spec = t.spec();
+        for &t in Builtin::ALL {
+            let spec = t.task();
             let (obs, _, next) = transition(spec, 7);
             let f = spec.state_feature_dim;
             // L = c · features(obs): its gradient is the Jacobian's transpose applied to c.
@@ -421,8 +367,8 @@ mod tests {
 
     #[test]
     fn targets_invert() {
-        for &t in TaskId::ALL {
-            let spec = t.spec();
+        for &t in Builtin::ALL {
+            let spec = t.task();
             let obs: Vec<f32> = (0..spec.obs_dim).map(|i| 0.1 * i as f32 - 0.3).collect();
             let next: Vec<f32> = (0..spec.obs_dim).map(|i| 0.05 * i as f32 + 0.2).collect();
             let mut target = vec![0.0; spec.obs_dim];

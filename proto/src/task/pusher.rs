@@ -8,31 +8,35 @@
 //! the two agree).
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, apply_delta_backward, delta_target,
+    Builtin, BuiltinCode, TaskSpec, TerminationKind, catalog_entry, apply_delta, apply_delta_backward, delta_target,
     identity_features, identity_features_backward, never_terminal, squared_norm_gradient,
 };
 
-pub(crate) static SPEC: TaskSpec = TaskSpec {
-    id: TaskId::Pusher,
+pub(crate) const CODE: BuiltinCode = BuiltinCode {
     obs_dim: 20,
     act_dim: 7,
-    action_low: &[-2.0; 7],
-    action_high: &[2.0; 7],
-    episode_len: 150,
-    control_dt: 0.04,
     state_feature_dim: 20,
-    magnitudes: Magnitudes::GENEROUS,
-    functions: TaskFunctions {
-        reward,
-        reward_gradient,
-        is_terminal: never_terminal,
-        state_features: identity_features,
-        state_features_backward: identity_features_backward,
-        target: delta_target,
-        next_obs_from_target: apply_delta,
-        next_obs_from_target_backward: apply_delta_backward,
-    },
+    reward,
+    reward_gradient,
+    is_terminal: never_terminal,
+    state_features: identity_features,
+    state_features_backward: identity_features_backward,
+    target: delta_target,
+    next_obs_from_target: apply_delta,
+    next_obs_from_target_backward: apply_delta_backward,
 };
+
+/// The catalog entry.
+pub(crate) fn spec() -> TaskSpec {
+    catalog_entry(
+        Builtin::Pusher,
+        vec![-2.0; 7],
+        vec![2.0; 7],
+        150,
+        0.04,
+        TerminationKind::Never,
+    )
+}
 
 /// Joints of the arm.
 pub const JOINTS: usize = 7;
@@ -102,7 +106,7 @@ mod tests {
 
     #[test]
     fn reward_is_the_weighted_l1_cost() {
-        let spec = TaskId::Pusher.spec();
+        let spec = Builtin::Pusher.task();
         let on_goal = state(GOAL, GOAL);
         assert_eq!(spec.reward(&on_goal, &[0.0; 7], &on_goal), 0.0);
 
@@ -121,7 +125,7 @@ mod tests {
 
     #[test]
     fn reward_rises_as_the_object_nears_the_goal() {
-        let spec = TaskId::Pusher.spec();
+        let spec = Builtin::Pusher.task();
         let rewards: Vec<f32> = [0.4f32, 0.2, 0.1, 0.05, 0.0]
             .iter()
             .map(|d| {

@@ -7,31 +7,35 @@
 //! tests check the two agree), so the simulator and the planner share one definition.
 
 use super::{
-    Magnitudes, TaskFunctions, TaskId, TaskSpec, apply_delta, apply_delta_backward, delta_target,
+    Builtin, BuiltinCode, TaskSpec, TerminationKind, catalog_entry, apply_delta, apply_delta_backward, delta_target,
     identity_features, identity_features_backward, never_terminal, squared_norm_gradient,
 };
 
-pub(crate) static SPEC: TaskSpec = TaskSpec {
-    id: TaskId::Reacher3d,
+pub(crate) const CODE: BuiltinCode = BuiltinCode {
     obs_dim: 17,
     act_dim: 7,
-    action_low: &[-20.0; 7],
-    action_high: &[20.0; 7],
-    episode_len: 150,
-    control_dt: 0.02,
     state_feature_dim: 17,
-    magnitudes: Magnitudes::GENEROUS,
-    functions: TaskFunctions {
-        reward,
-        reward_gradient,
-        is_terminal: never_terminal,
-        state_features: identity_features,
-        state_features_backward: identity_features_backward,
-        target: delta_target,
-        next_obs_from_target: apply_delta,
-        next_obs_from_target_backward: apply_delta_backward,
-    },
+    reward,
+    reward_gradient,
+    is_terminal: never_terminal,
+    state_features: identity_features,
+    state_features_backward: identity_features_backward,
+    target: delta_target,
+    next_obs_from_target: apply_delta,
+    next_obs_from_target_backward: apply_delta_backward,
 };
+
+/// The catalog entry.
+pub(crate) fn spec() -> TaskSpec {
+    catalog_entry(
+        Builtin::Reacher3d,
+        vec![-20.0; 7],
+        vec![20.0; 7],
+        150,
+        0.02,
+        TerminationKind::Never,
+    )
+}
 
 /// Joints of the arm.
 pub const JOINTS: usize = 7;
@@ -198,7 +202,7 @@ mod tests {
 
     #[test]
     fn reward_peaks_at_the_goal() {
-        let spec = TaskId::Reacher3d.spec();
+        let spec = Builtin::Reacher3d.task();
         let mut obs = [0.0f32; 17];
         obs[..7].copy_from_slice(&[0.3, 0.4, 0.1, -1.0, 0.2, -0.5, 0.0]);
         let t = tip(&obs);
