@@ -37,7 +37,7 @@ use crate::progress::Progress;
 use crate::results::{self, EpisodeRow};
 use crate::scale::{self, Scale};
 use anyhow::{Context, Result, bail};
-use proto::TaskId;
+use proto::Builtin;
 use std::collections::VecDeque;
 use std::io::Read;
 use std::net::TcpListener;
@@ -49,7 +49,7 @@ use std::time::{Duration, Instant};
 /// What to run.
 #[derive(Clone, Debug)]
 pub struct Experiment {
-    pub task: TaskId,
+    pub task: Builtin,
     pub methods: Vec<String>,
     pub seeds: Vec<u64>,
     pub episodes: u32,
@@ -94,7 +94,7 @@ impl RunId {
 
     /// The run's name in the daemon: the same for every attempt, so that a resumed attempt
     /// continues the stored run.
-    pub fn daemon_run(&self, task: TaskId) -> String {
+    pub fn daemon_run(&self, task: Builtin) -> String {
         format!("{}-{}", task.name(), self.stem())
     }
 }
@@ -503,10 +503,10 @@ mod tests {
 
     fn manifest(methods: &[&str], seeds: &[u64], episodes: u32) -> Manifest {
         Manifest {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             scale: Scale::Small,
             episodes,
-            overrides: Scale::Small.overrides(TaskId::Cartpole),
+            overrides: Scale::Small.overrides(Builtin::Cartpole),
             methods: methods.iter().map(|m| m.to_string()).collect(),
             seeds: seeds.to_vec(),
         }
@@ -563,7 +563,7 @@ mod tests {
             std::env::temp_dir().join(format!("ebmpc-launcher-prepare-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let mut exp = Experiment {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             methods: vec!["cem".into()],
             seeds: vec![0],
             episodes: 2,

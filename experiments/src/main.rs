@@ -10,7 +10,7 @@ use ebmpc_experiments::launcher::{self, Experiment};
 use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
 use ebmpc_experiments::results;
 use ebmpc_experiments::scale::Scale;
-use proto::TaskId;
+use proto::Builtin;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
@@ -45,7 +45,7 @@ enum Command {
 struct ExperimentArgs {
     /// Task to learn.
     #[arg(long)]
-    task: TaskId,
+    task: Builtin,
     /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen, adam+dae.
     #[arg(long, value_delimiter = ',', default_value = "cem,cem+dae,cem+deen")]
     methods: Vec<String>,
@@ -81,7 +81,7 @@ struct PlotArgs {
 #[derive(Args, Debug)]
 struct ImaginationArgs {
     #[arg(long, default_value = "halfcheetah")]
-    task: TaskId,
+    task: Builtin,
     /// Sizes of the models and of the MPC that collects the training data.
     #[arg(long, value_enum, default_value_t = Scale::Paper)]
     scale: Scale,

@@ -2,7 +2,7 @@
 //! same folder resumes the same experiment rather than mixing two different ones.
 
 use crate::scale::Scale;
-use proto::{PlannerOverrides, TaskId};
+use proto::{PlannerOverrides, Builtin};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -12,7 +12,7 @@ pub const FILE: &str = "experiment.json";
 /// The settings every run of an experiment shares.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
-    pub task: TaskId,
+    pub task: Builtin,
     pub scale: Scale,
     pub episodes: u32,
     /// The preset overrides every run sent (the scale's).
@@ -131,10 +131,10 @@ mod tests {
 
     fn manifest(episodes: u32, methods: &[&str], seeds: &[u64]) -> Manifest {
         Manifest {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             scale: Scale::Small,
             episodes,
-            overrides: Scale::Small.overrides(TaskId::Cartpole),
+            overrides: Scale::Small.overrides(Builtin::Cartpole),
             methods: methods.iter().map(|m| m.to_string()).collect(),
             seeds: seeds.to_vec(),
         }

@@ -6,7 +6,7 @@
 //! apply them to a [`planner_service::config::Preset`]) cannot disagree about what "small" means.
 
 use planner_service::config::Preset;
-use proto::{PlannerOverrides, TaskId};
+use proto::{PlannerOverrides, Builtin};
 use serde::{Deserialize, Serialize};
 
 /// How large an experiment is.
@@ -38,23 +38,23 @@ impl Scale {
 
     /// Episodes per run when the command line names no number: the paper's Figure 4 reports
     /// about 15 cartpole/reacher episodes and 20,000 half-cheetah and ant steps.
-    pub fn default_episodes(self, task: TaskId) -> u32 {
+    pub fn default_episodes(self, task: Builtin) -> u32 {
         match (self, task) {
-            (Scale::Paper, TaskId::HalfCheetah | TaskId::Ant) => 20,
+            (Scale::Paper, Builtin::HalfCheetah | Builtin::Ant) => 20,
             (Scale::Paper, _) => 15,
-            (Scale::Small, TaskId::HalfCheetah | TaskId::Ant) => 5,
+            (Scale::Small, Builtin::HalfCheetah | Builtin::Ant) => 5,
             (Scale::Small, _) => 8,
         }
     }
 
     /// The preset overrides of this scale for `task` (none at the paper's scale).
-    pub fn overrides(self, task: TaskId) -> PlannerOverrides {
+    pub fn overrides(self, task: Builtin) -> PlannerOverrides {
         match (self, task) {
             (Scale::Paper, _) => PlannerOverrides::default(),
             // 1000-step episodes: a quarter of the population, a shorter horizon, three CEM
             // iterations and one exploration episode make a planned step ~10× cheaper; the
             // networks keep their depth but train for fewer epochs on a smaller energy model.
-            (Scale::Small, TaskId::HalfCheetah | TaskId::Ant) => PlannerOverrides {
+            (Scale::Small, Builtin::HalfCheetah | Builtin::Ant) => PlannerOverrides {
                 population: Some(100),
                 elites: Some(10),
                 cem_iterations: Some(3),
@@ -123,7 +123,7 @@ mod tests {
 
     #[test]
     fn paper_scale_changes_nothing() {
-        for &task in TaskId::ALL {
+        for &task in Builtin::ALL {
             assert_eq!(Scale::Paper.overrides(task), PlannerOverrides::default());
             assert!(bridge_flags(&Scale::Paper.overrides(task)).is_empty());
         }
@@ -131,7 +131,7 @@ mod tests {
 
     #[test]
     fn small_scale_is_a_valid_smaller_preset_for_every_method() {
-        for &task in TaskId::ALL {
+        for &task in Builtin::ALL {
             for method in crate::METHODS {
                 let paper = Preset::new(task, Some(method)).unwrap();
                 let mut small = paper.clone();
@@ -151,7 +151,7 @@ mod tests {
 
     #[test]
     fn flags_spell_every_override() {
-        let flags = bridge_flags(&Scale::Small.overrides(TaskId::HalfCheetah));
+        let flags = bridge_flags(&Scale::Small.overrides(Builtin::HalfCheetah));
         let pairs: Vec<(&str, &str)> = flags
             .chunks(2)
             .map(|p| (p[0].as_str(), p[1].as_str()))

@@ -12,7 +12,7 @@ use planner_service::models::Models;
 use planner_service::nn::simd::bf16_dot_available;
 use planner_service::plan::{CemConfig, Imagination};
 use planner_service::trainer::{TrainLimits, retrain};
-use proto::{InferencePrecision, TaskId};
+use proto::{InferencePrecision, Builtin};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use sim_bridge::Env;
@@ -20,7 +20,7 @@ use sim_bridge::Env;
 const HORIZON: usize = 30;
 const SEQUENCES: usize = 16;
 
-fn random_action(spec: &proto::TaskSpec, rng: &mut StdRng) -> Vec<f32> {
+fn random_action(spec: &proto::Task, rng: &mut StdRng) -> Vec<f32> {
     (0..spec.act_dim)
         .map(|d| rng.random_range(spec.action_low[d]..spec.action_high[d]))
         .collect()
@@ -28,8 +28,8 @@ fn random_action(spec: &proto::TaskSpec, rng: &mut StdRng) -> Vec<f32> {
 
 #[test]
 fn bf16_moves_imagined_returns_far_less_than_the_model_errs() {
-    let task = TaskId::HalfCheetah;
-    let spec = task.spec();
+    let task = Builtin::HalfCheetah;
+    let spec = task.task();
     let mut preset = Preset::new(task, Some("cem+deen")).unwrap();
     preset.apply(&Scale::Small.overrides(task)).unwrap();
     let mut env = Env::new(task).unwrap();

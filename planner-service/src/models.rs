@@ -6,7 +6,7 @@
 use crate::config::Preset;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use proto::TaskSpec;
+use proto::Task;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -23,7 +23,7 @@ pub struct Models {
 
 impl Models {
     /// Freshly initialised, untrained models of the preset's sizes.
-    pub fn untrained(task: &'static TaskSpec, preset: &Preset, seed: u64) -> Self {
+    pub fn untrained(task: &'static Task, preset: &Preset, seed: u64) -> Self {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut dynamics = Ensemble::new(task, &preset.dynamics, &mut rng);
         let mut regularizer = Regularizer::new(

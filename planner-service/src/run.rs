@@ -9,7 +9,7 @@ use crate::replay::{EpisodeSummary, LogSyncer, Record, ReplayBuffer, ReplayError
 use crate::service::status::{Latency, LatencyWindow, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
-    EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, TaskSpec, TrainMode,
+    EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, Task, TrainMode,
 };
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
@@ -33,7 +33,7 @@ pub struct Run {
     name: String,
     spec: RunSpec,
     preset: Preset,
-    task: &'static TaskSpec,
+    task: &'static Task,
     buffer: Mutex<ReplayBuffer>,
     models: RwLock<Arc<Models>>,
     /// Finished (not interrupted) episodes stored.
@@ -147,7 +147,7 @@ impl std::fmt::Debug for Run {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Run")
             .field("name", &self.name)
-            .field("task", &self.task.id)
+            .field("task", &self.task.name())
             .finish_non_exhaustive()
     }
 }
@@ -167,7 +167,7 @@ impl Run {
         hosting: Hosting,
         (epoch, planner): (u64, &str),
     ) -> Result<Arc<Self>, OpenError> {
-        let task = spec.task.spec();
+        let task = preset.task;
         let mut buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
         buffer.claim(epoch, planner)?;
         buffer.set_capacity(hosting.replay_capacity)?;
@@ -209,7 +209,7 @@ impl Run {
         dir: Option<RunDir>,
         hosting: Hosting,
     ) -> Arc<Self> {
-        let task = spec.task.spec();
+        let task = preset.task;
         let stored = buffer
             .episodes()
             .iter()
@@ -262,7 +262,7 @@ impl Run {
         &self.preset
     }
 
-    pub fn task(&self) -> &'static TaskSpec {
+    pub fn task(&self) -> &'static Task {
         self.task
     }
 
@@ -592,11 +592,11 @@ impl Run {
 mod tests {
     use super::*;
     use crate::replay::log_tests::FillingDisk;
-    use proto::{PlannerOverrides, TaskId};
+    use proto::{PlannerOverrides, Builtin};
     use std::sync::atomic::AtomicBool;
 
     fn small_preset() -> Preset {
-        let mut preset = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
+        let mut preset = Preset::new(Builtin::Cartpole.task(), Some("cem")).unwrap();
         preset.dynamics.hidden_size = 8;
         preset
     }
@@ -604,13 +604,14 @@ mod tests {
     /// A run whose replay log writes through a disk that fills up while `full` is set.
     fn run_on_a_filling_disk(path: &std::path::Path, full: Arc<AtomicBool>) -> Arc<Run> {
         let spec = RunSpec {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             preset: Some("cem".into()),
             overrides: PlannerOverrides::default(),
             mode: TrainMode::Async,
             seed: 1,
+            task_spec: None,
         };
-        let task = spec.task.spec();
+        let task = Builtin::Cartpole.task();
         let buffer =
             ReplayBuffer::open_with(path, task, |file| Box::new(FillingDisk { file, full }))
                 .unwrap();
@@ -675,7 +676,7 @@ mod tests {
         stored.sync.expect("a log on disk").sync().unwrap();
         drop(run);
         // Every transition is on disk exactly once, and the episode ended once.
-        let reopened = ReplayBuffer::open(&path, TaskId::Cartpole.spec()).unwrap();
+        let reopened = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
         assert_eq!(reopened.len(), 4);
         let states: Vec<f32> = (0..4).map(|i| reopened.transitions().row(i).0[0]).collect();
         assert_eq!(states, vec![0.0, 1.0, 2.0, 3.0]);
@@ -703,11 +704,12 @@ mod tests {
 
     fn open(dir: &RunDir, planner: &str) -> Arc<Run> {
         let spec = RunSpec {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             preset: Some("cem".into()),
             overrides: Default::default(),
             mode: TrainMode::Async,
             seed: 1,
+            task_spec: None,
         };
         let preset = small_preset();
         let epoch = dir

@@ -139,11 +139,11 @@ pub fn retrain(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::{PlannerOverrides, TaskId};
+    use proto::{PlannerOverrides, Builtin};
     use std::sync::atomic::Ordering;
 
     fn small_preset() -> Preset {
-        let mut preset = Preset::new(TaskId::Cartpole, Some("cem+deen")).unwrap();
+        let mut preset = Preset::new(Builtin::Cartpole.task(), Some("cem+deen")).unwrap();
         preset
             .apply(&PlannerOverrides {
                 dynamics_hidden_layers: Some(1),
@@ -171,7 +171,7 @@ mod tests {
     }
 
     fn untrained(preset: &Preset) -> Models {
-        Models::untrained(TaskId::Cartpole.spec(), preset, 7)
+        Models::untrained(Builtin::Cartpole.task(), preset, 7)
     }
 
     #[test]
@@ -217,7 +217,7 @@ mod tests {
     #[test]
     fn large_but_allowed_data_trains_finite_models() {
         let preset = small_preset();
-        let bound = TaskId::Cartpole.spec().magnitudes.observation;
+        let bound = Builtin::Cartpole.task().magnitudes.observation;
         let (models, _) = retrain(
             &untrained(&preset),
             &data(64, bound),

@@ -18,7 +18,7 @@ use planner_service::data::Transitions;
 use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
 use planner_service::plan::{CemConfig, IcemConfig, MpcPlanner, Optimizer};
-use proto::{InferencePrecision, TaskId};
+use proto::{InferencePrecision, Builtin};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -66,8 +66,8 @@ unsafe impl GlobalAlloc for CountingAllocator {
 static GLOBAL: CountingAllocator = CountingAllocator;
 
 /// Random transitions of the task: enough for the models' normalisers and a brief fit.
-fn random_transitions(task: TaskId, n: usize, rng: &mut StdRng) -> Transitions {
-    let spec = task.spec();
+fn random_transitions(task: Builtin, n: usize, rng: &mut StdRng) -> Transitions {
+    let spec = task.task();
     let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
     for _ in 0..n {
         let obs: Vec<f32> = (0..spec.obs_dim)
@@ -109,8 +109,8 @@ fn planning_allocates_nothing_after_warm_up() {
 }
 
 fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: InferencePrecision) {
-    let task = TaskId::Ant; // the task with termination, so that path is exercised too
-    let spec = task.spec();
+    let task = Builtin::Ant; // the task with termination, so that path is exercised too
+    let spec = task.task();
     let mut rng = StdRng::seed_from_u64(0);
     let data = random_transitions(task, 256, &mut rng);
     let dynamics_config = DynamicsConfig {

@@ -6,13 +6,13 @@
 
 use crate::env::Env;
 use crate::error::SimError;
-use proto::TaskId;
+use proto::Builtin;
 use std::time::{Duration, Instant};
 
 /// One measurement of a task's simulation speed.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepRate {
-    pub task: TaskId,
+    pub task: Builtin,
     /// Control steps taken (whole episodes, each ending by termination or time limit).
     pub steps: u64,
     /// Episodes those steps made up.
@@ -40,7 +40,7 @@ impl StepRate {
 ///
 /// # Errors
 /// The task has no simulator, or its simulation failed (which a benchmark must not hide).
-pub fn step_rate(task: TaskId, min_steps: u64) -> Result<StepRate, SimError> {
+pub fn step_rate(task: Builtin, min_steps: u64) -> Result<StepRate, SimError> {
     let mut env = Env::new(task)?;
     let spec = env.spec();
     let mut action = vec![0.0; spec.act_dim];
@@ -82,7 +82,7 @@ mod tests {
 
     #[test]
     fn counts_whole_episodes_of_the_task() {
-        let rate = step_rate(TaskId::Cartpole, 250).unwrap();
+        let rate = step_rate(Builtin::Cartpole, 250).unwrap();
         // Cartpole never terminates: two episodes of 200 steps cover 250.
         assert_eq!((rate.episodes, rate.steps), (2, 400));
         assert!(rate.steps_per_second() > 0.0 && rate.steps_per_second().is_finite());

@@ -21,7 +21,7 @@ use crate::link::{Inbound, PlannerLink};
 use proto::session::Endpoints;
 use proto::{
     Action, ActionSource, AttachAccepted, CodecError, EpisodeEnd, ErrorCode, ErrorReport, Keys,
-    Observation, PlanStats, RunEvent, RunEventKind, RunSpec, TaskSpec, TrainMode,
+    Observation, PlanStats, RunEvent, RunEventKind, RunSpec, Task, TrainMode,
 };
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -159,8 +159,8 @@ pub enum BridgeError {
     AttachRejected { key: String, report: ErrorReport },
     #[error("the planner attached us to a {found} run, but this bridge simulates {expected}")]
     TaskMismatch {
-        expected: proto::TaskId,
-        found: proto::TaskId,
+        expected: proto::Builtin,
+        found: proto::Builtin,
     },
     #[error("cannot encode a message: {0}")]
     Encode(#[source] CodecError),
@@ -405,7 +405,7 @@ const STORAGE_RETRY: Duration = Duration::from_secs(1);
 
 /// What [`wait_for_action`] waits for, and for how long.
 struct Wait {
-    task: &'static TaskSpec,
+    task: &'static Task,
     episode: u32,
     step: u32,
     /// The run's ownership epoch at attach: actions of older epochs come from a planner that

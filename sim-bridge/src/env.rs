@@ -7,7 +7,7 @@
 
 use crate::error::SimError;
 use crate::tasks::{self, TaskSim};
-use proto::{TaskId, TaskSpec};
+use proto::{Builtin, Task};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -16,7 +16,7 @@ use rand::rngs::StdRng;
 pub struct StepOutcome {
     /// The observation the action led to.
     pub obs: Vec<f32>,
-    /// `TaskSpec::reward(obs_before, clamped_action, obs)`.
+    /// `Task::reward(obs_before, clamped_action, obs)`.
     pub reward: f32,
     /// The task's terminal condition holds for `obs` (no reward accrues after it).
     pub terminated: bool,
@@ -36,7 +36,7 @@ impl StepOutcome {
 
 /// A simulated task: reset to a seeded initial state, step with actions, read observations.
 pub struct Env {
-    spec: &'static TaskSpec,
+    spec: &'static Task,
     sim: Box<dyn TaskSim>,
     obs: Vec<f32>,
     /// The observation before the last step (the reward's `obs` argument); reused buffer.
@@ -69,8 +69,8 @@ impl Env {
     /// # Errors
     /// [`SimError::NoSimulator`] for a catalog task sim-bridge cannot simulate yet, or a
     /// model error if the task's MJCF does not load or disagrees with the catalog.
-    pub fn new(task: TaskId) -> Result<Self, SimError> {
-        let spec = task.spec();
+    pub fn new(task: Builtin) -> Result<Self, SimError> {
+        let spec = task.task();
         let sim = tasks::simulator(task)?;
         let mut env = Self {
             spec,
@@ -89,12 +89,12 @@ impl Env {
     }
 
     /// The task this environment simulates.
-    pub fn task(&self) -> TaskId {
+    pub fn task(&self) -> Builtin {
         self.spec.id
     }
 
     /// The task's catalog entry (dimensions, bounds, episode length, control rate).
-    pub fn spec(&self) -> &'static TaskSpec {
+    pub fn spec(&self) -> &'static Task {
         self.spec
     }
 
@@ -241,17 +241,17 @@ mod tests {
     use std::f32::consts::PI;
 
     fn cartpole() -> Env {
-        Env::new(TaskId::Cartpole).unwrap()
+        Env::new(Builtin::Cartpole).unwrap()
     }
 
     #[test]
     fn every_catalog_task_builds_or_says_it_has_no_simulator() {
-        for &task in TaskId::ALL {
+        for &task in Builtin::ALL {
             match Env::new(task) {
                 Ok(env) => {
                     assert!(tasks::SIMULATED.contains(&task));
                     assert_eq!(env.task(), task);
-                    assert_eq!(env.observation().len(), task.spec().obs_dim);
+                    assert_eq!(env.observation().len(), task.task().obs_dim);
                 }
                 Err(SimError::NoSimulator { task: t, known }) => {
                     assert_eq!(t, task);
@@ -334,7 +334,7 @@ mod tests {
     /// replays the same start, and another seed gives another one.
     #[test]
     fn a_seed_determines_the_episode() {
-        for &task in TaskId::ALL {
+        for &task in Builtin::ALL {
             let (mut a, mut b) = (Env::new(task).unwrap(), Env::new(task).unwrap());
             let spec = a.spec();
             assert_eq!(a.reset(42), b.reset(42), "{task}");

@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use proto::session::Endpoints;
-use proto::{InferencePrecision, PlannerOverrides, RegularizerChoice, RunSpec, TaskId, TrainMode};
+use proto::{InferencePrecision, PlannerOverrides, RegularizerChoice, RunSpec, Builtin, TrainMode};
 use sim_bridge::bridge::{self, BridgeConfig};
 use sim_bridge::csv::EpisodeCsv;
 use std::path::PathBuf;
@@ -34,7 +34,7 @@ enum Command {
 struct BenchArgs {
     /// Only this task (default: every simulated task).
     #[arg(long)]
-    task: Option<TaskId>,
+    task: Option<Builtin>,
     /// Control steps to time per task, at least (whole episodes are run).
     #[arg(long, default_value_t = 20_000)]
     steps: u64,
@@ -44,7 +44,7 @@ struct BenchArgs {
 struct RunArgs {
     /// Task to simulate (see `sim-bridge tasks`).
     #[arg(long, env = "EBMPC_TASK")]
-    task: TaskId,
+    task: Builtin,
     /// Run to attach to: the planner creates it on first attach; other agents may join it.
     #[arg(long, env = "EBMPC_RUN")]
     run: String,
@@ -203,7 +203,7 @@ enum Regularizer {
 }
 
 impl SpecArgs {
-    fn into_spec(self, task: TaskId, seed: u64) -> RunSpec {
+    fn into_spec(self, task: Builtin, seed: u64) -> RunSpec {
         RunSpec {
             task,
             preset: self.preset,
@@ -243,6 +243,7 @@ impl SpecArgs {
                 Mode::Async => TrainMode::Async,
             },
             seed: self.planner_seed.unwrap_or(seed),
+            task_spec: None,
         }
     }
 }
@@ -338,8 +339,8 @@ fn list_tasks() {
         "{:<12} {:>4} {:>4}  {:<16} {:>8} {:>10} {:>8}  simulator",
         "task", "obs", "act", "action bounds", "episode", "control dt", "rate"
     );
-    for &task in TaskId::ALL {
-        let spec = task.spec();
+    for &task in Builtin::ALL {
+        let spec = task.task();
         let bounds = bounds_text(spec.action_low, spec.action_high);
         let simulated = if sim_bridge::SIMULATED.contains(&task) {
             "yes"

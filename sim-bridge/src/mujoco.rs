@@ -10,7 +10,7 @@ use crate::error::SimError;
 use mujoco_rs::prelude::{
     MjData, MjLogMessage, MjModel, MjtIntegrator, MjtLogLevel, MjtWarning, set_log_handler,
 };
-use proto::TaskSpec;
+use proto::Task;
 use std::sync::Once;
 
 /// How a task's MJCF is meant to be run.
@@ -41,7 +41,7 @@ pub(crate) struct MjSim {
 impl MjSim {
     /// Loads `config.xml` and checks it against `spec`: actuator count, control ranges equal to
     /// the action bounds, `timestep × substeps = control_dt`, and the integrator.
-    pub fn load(spec: &TaskSpec, config: ModelConfig) -> Result<Self, SimError> {
+    pub fn load(spec: &Task, config: ModelConfig) -> Result<Self, SimError> {
         route_mujoco_messages();
         let task = spec.id;
         let model = MjModel::from_xml_string(config.xml)

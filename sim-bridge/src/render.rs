@@ -230,7 +230,7 @@ fn chain(error: &dyn Error) -> String {
 mod tests {
     use crate::Env;
     use crate::render::RenderError;
-    use proto::TaskId;
+    use proto::Builtin;
 
     /// On a machine with an offscreen context, an episode's states come out as PNG files, one
     /// folder per episode; without one, recording is refused with the reason and the
@@ -238,7 +238,7 @@ mod tests {
     #[test]
     fn frames_of_an_episode_or_a_clear_reason() {
         let dir = std::env::temp_dir().join(format!("sim-bridge-render-{}", std::process::id()));
-        let mut env = Env::new(TaskId::Pusher).unwrap();
+        let mut env = Env::new(Builtin::Pusher).unwrap();
         let recording = env.record_frames(&dir);
         env.reset(1);
         for _ in 0..3 {

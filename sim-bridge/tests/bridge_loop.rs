@@ -9,7 +9,7 @@ use proto::session::{Endpoints, zenoh_config};
 use proto::{
     Action, ActionSource, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding,
     EpisodeEnd, ErrorCode, ErrorReport, Keys, Observation, PROTOCOL_VERSION, PlanStats, RunEvent,
-    RunEventKind, RunSpec, TaskId, TrainMode,
+    RunEventKind, RunSpec, Builtin, TrainMode,
 };
 use sim_bridge::{BridgeConfig, BridgeError, Env};
 use std::sync::{Arc, Mutex};
@@ -188,11 +188,12 @@ fn config(endpoint: &str, episodes: u32) -> BridgeConfig {
         run: "test-run".into(),
         agent: "bridge-0".into(),
         spec: RunSpec {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             preset: Some("cem+deen".into()),
             overrides: Default::default(),
             mode: TrainMode::Sync,
             seed: 9,
+            task_spec: None,
         },
         episodes,
         seed: 100,
@@ -249,7 +250,7 @@ async fn episodes_run_step_by_step_and_report_the_simulators_rewards() {
 
     // Replaying the same seeds and actions locally gives exactly what was sent, and the
     // returns are the sums of the sent rewards.
-    let mut env = Env::new(TaskId::Cartpole).unwrap();
+    let mut env = Env::new(Builtin::Cartpole).unwrap();
     for (record, sent) in records.iter().zip(seen.observations.chunks(201)) {
         let start = env.reset(config.seed + u64::from(record.episode)).to_vec();
         assert_eq!(sent[0].obs, start);

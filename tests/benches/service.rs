@@ -19,7 +19,7 @@
 use anyhow::{Context, Result};
 use ebmpc_e2e::client::{Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::{Guarded, Planner, TempDir, free_endpoint, router, serve_data};
-use proto::{EpisodeEnd, Observation, RunSpec, TaskId, TrainMode};
+use proto::{EpisodeEnd, Observation, RunSpec, Builtin, TrainMode};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
@@ -138,11 +138,12 @@ async fn round(
     for i in 0..agents {
         let client = Client::connect(endpoint, &format!("{prefix}-{i}"), "a").await?;
         let spec = RunSpec {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             preset: Some("cem".into()),
             overrides: Default::default(),
             mode: TrainMode::Async,
             seed: 0,
+            task_spec: None,
         };
         client.attach(&spec).await?;
         clients.push(client);

@@ -10,7 +10,7 @@ use crate::client::{Answer, Client, ToySystem};
 use crate::config::{PlannerConfig, Sizes};
 use crate::{Planner, free_endpoint};
 use anyhow::{Context, Result, bail};
-use proto::{EpisodeEnd, Observation, RunSpec, TaskId, TrainMode};
+use proto::{EpisodeEnd, Observation, RunSpec, Builtin, TrainMode};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::collections::{BTreeMap, HashSet};
@@ -49,11 +49,12 @@ pub struct KillLoopReport {
 
 fn spec() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: Some("cem".into()),
         overrides: Default::default(),
         mode: TrainMode::Async,
         seed: 11,
+        task_spec: None,
     }
 }
 
@@ -132,7 +133,7 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
     // The last restart: the daemon recovers the log, then stops cleanly.
     let mut planner = Planner::start_on(dir, &config(), &endpoint)?;
     planner.stop()?;
-    let buffer = planner.replay(RUN, TaskId::Cartpole)?;
+    let buffer = planner.replay(RUN, Builtin::Cartpole)?;
     let stored = buffer.transitions();
     let in_log: HashSet<Vec<u32>> = (0..stored.len())
         .map(|r| {

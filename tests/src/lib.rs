@@ -13,7 +13,7 @@ pub mod python;
 
 use anyhow::{Context, Result, bail};
 use planner_service::replay::ReplayBuffer;
-use proto::TaskId;
+use proto::Builtin;
 use std::io::Read;
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
@@ -261,9 +261,9 @@ impl Planner {
     }
 
     /// The replay buffer the daemon keeps for `run` of `task` (open it once the daemon stopped).
-    pub fn replay(&self, run: &str, task: TaskId) -> Result<ReplayBuffer> {
+    pub fn replay(&self, run: &str, task: Builtin) -> Result<ReplayBuffer> {
         let path = self.data_dir.join("runs").join(run).join("replay.log");
-        ReplayBuffer::open(&path, task.spec()).with_context(|| format!("open {}", path.display()))
+        ReplayBuffer::open(&path, task.task()).with_context(|| format!("open {}", path.display()))
     }
 }
 

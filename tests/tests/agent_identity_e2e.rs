@@ -9,7 +9,7 @@ use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
 use proto::{
     AttachOutcome, AttachRequest, Encoding, EpisodeEnd, ErrorCode, Observation, PROTOCOL_VERSION,
-    RunSpec, TaskId,
+    RunSpec, Builtin,
 };
 use std::time::Duration;
 
@@ -19,11 +19,12 @@ const STEPS: u32 = 12;
 
 fn spec() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: None,
         overrides: Default::default(),
         mode: Default::default(),
         seed: 11,
+        task_spec: None,
     }
 }
 

@@ -8,7 +8,7 @@
 use ebmpc_e2e::bridge::{check_random_then_planned, run_episodes};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::TaskId;
+use proto::Builtin;
 use std::sync::Mutex;
 use std::time::Duration;
 
@@ -29,9 +29,9 @@ static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
 
 /// Runs two capped episodes of `task` through a fresh planner and checks that the first was
 /// random, the second planned with trained models, and that the planner stored both.
-fn random_then_planned(task: TaskId) {
+fn random_then_planned(task: Builtin) {
     let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    let spec = task.spec();
+    let spec = task.task();
     let dir = TempDir::new(task.name());
     let mut planner = Planner::start(dir.path(), &config()).expect("planner starts");
     let steps = STEPS.to_string();
@@ -54,7 +54,7 @@ fn random_then_planned(task: TaskId) {
     let mut stored = 0;
     for row in &bridge.episodes {
         // Only the ant can end early: by falling.
-        if task == TaskId::Ant {
+        if task == Builtin::Ant {
             assert!((1..=STEPS).contains(&row.steps), "{task}: {row:?}");
         } else {
             assert_eq!(row.steps, STEPS, "{task}: {row:?}");
@@ -98,25 +98,25 @@ fn random_then_planned(task: TaskId) {
 
 #[test]
 fn cartpole() {
-    random_then_planned(TaskId::Cartpole);
+    random_then_planned(Builtin::Cartpole);
 }
 
 #[test]
 fn reacher3d() {
-    random_then_planned(TaskId::Reacher3d);
+    random_then_planned(Builtin::Reacher3d);
 }
 
 #[test]
 fn pusher() {
-    random_then_planned(TaskId::Pusher);
+    random_then_planned(Builtin::Pusher);
 }
 
 #[test]
 fn halfcheetah() {
-    random_then_planned(TaskId::HalfCheetah);
+    random_then_planned(Builtin::HalfCheetah);
 }
 
 #[test]
 fn ant() {
-    random_then_planned(TaskId::Ant);
+    random_then_planned(Builtin::Ant);
 }

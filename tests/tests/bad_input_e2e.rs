@@ -6,7 +6,7 @@ use ebmpc_e2e::bridge::run_episodes;
 use ebmpc_e2e::client::{Answer, Client, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION, RunSpec, TaskId};
+use proto::{Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION, RunSpec, Builtin};
 use std::time::Duration;
 
 fn config() -> String {
@@ -22,11 +22,12 @@ fn config() -> String {
 
 fn cartpole_spec() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: None,
         overrides: Default::default(),
         mode: Default::default(),
         seed: 1,
+        task_spec: None,
     }
 }
 
@@ -58,9 +59,9 @@ fn bad_input_is_reported_and_never_stored() {
     );
 
     planner.stop().unwrap();
-    let bad = planner.replay("bad", TaskId::Cartpole).unwrap();
+    let bad = planner.replay("bad", Builtin::Cartpole).unwrap();
     assert_eq!(bad.len(), 0, "no bad observation was stored");
-    let good = planner.replay("good", TaskId::Cartpole).unwrap();
+    let good = planner.replay("good", Builtin::Cartpole).unwrap();
     assert_eq!(good.len(), 200);
 }
 

@@ -5,7 +5,7 @@
 use ebmpc_e2e::bridge::{check_random_then_planned, read_episodes, run_episodes, spawn_bridge};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir, free_endpoint};
-use proto::{EpisodeEnd, TaskId};
+use proto::{EpisodeEnd, Builtin};
 use std::time::Duration;
 
 /// Tiny networks and a small population: this test checks the plumbing, not the learning.
@@ -77,7 +77,7 @@ fn two_cartpole_episodes_random_then_planned() {
 
     // A clean shutdown, then the replay buffer holds every transition of both episodes.
     planner.stop().unwrap();
-    let buffer = planner.replay("skeleton", TaskId::Cartpole).unwrap();
+    let buffer = planner.replay("skeleton", Builtin::Cartpole).unwrap();
     assert_eq!(buffer.len(), 400);
     assert_eq!(buffer.episodes().len(), 2);
     for (i, transition) in (0..buffer.len())
@@ -160,7 +160,7 @@ fn the_bridge_rides_out_a_planner_killed_and_restarted() {
         "the bridge noticed the planner leave:\n{log}"
     );
     planner.stop().unwrap();
-    let buffer = planner.replay("restart", TaskId::Cartpole).unwrap();
+    let buffer = planner.replay("restart", Builtin::Cartpole).unwrap();
     let finished = buffer
         .episodes()
         .iter()
@@ -209,7 +209,7 @@ fn adam_dae_plans_a_cartpole_episode_through_the_service() {
     // The run was stored with Adam and the DAE, and its actions stayed in bounds.
     let spec = std::fs::read_to_string(planner.data_dir.join("runs/adam/run.json")).unwrap();
     assert!(spec.contains("\"adam+dae\""), "{spec}");
-    let buffer = planner.replay("adam", TaskId::Cartpole).unwrap();
+    let buffer = planner.replay("adam", Builtin::Cartpole).unwrap();
     assert_eq!(buffer.len(), 60);
     for i in 0..buffer.len() {
         let (s, a, s2) = buffer.transitions().row(i);

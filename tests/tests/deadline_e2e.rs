@@ -7,7 +7,7 @@
 use ebmpc_e2e::client::{Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{Action, ActionSource, EpisodeEnd, Observation, PlannerOverrides, RunSpec, TaskId};
+use proto::{Action, ActionSource, EpisodeEnd, Observation, PlannerOverrides, RunSpec, Builtin};
 
 const PLANNER: &str = "deadlines";
 /// Configured iterations: far more than fit in 5 ms at this population and horizon.
@@ -17,7 +17,7 @@ const PLANNED_STEPS: u32 = 8;
 
 fn spec(deadline_ms: u32) -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: None,
         overrides: PlannerOverrides {
             population: Some(400),
@@ -31,6 +31,7 @@ fn spec(deadline_ms: u32) -> RunSpec {
         },
         mode: Default::default(),
         seed: 5,
+        task_spec: None,
     }
 }
 

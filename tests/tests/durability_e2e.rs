@@ -6,7 +6,7 @@
 use ebmpc_e2e::client::{Answer, Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir, free_endpoint};
-use proto::{Action, ActionSource, EpisodeEnd, Observation, RunSpec, TaskId, TrainMode};
+use proto::{Action, ActionSource, EpisodeEnd, Observation, RunSpec, Builtin, TrainMode};
 use std::time::{Duration, Instant};
 
 fn config() -> String {
@@ -22,11 +22,12 @@ type Acked = (Vec<f32>, Vec<f32>, Vec<f32>);
 
 fn spec() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: Some("cem+deen".into()),
         overrides: Default::default(),
         mode: TrainMode::Sync,
         seed: 5,
+        task_spec: None,
     }
 }
 
@@ -159,7 +160,7 @@ fn sigkill_mid_episode_loses_no_acknowledged_transition() {
         .stop()
         .unwrap_or_else(|e| panic!("SIGTERM shuts down cleanly: {e:?}"));
 
-    let buffer = planner.replay("durable", TaskId::Cartpole).unwrap();
+    let buffer = planner.replay("durable", Builtin::Cartpole).unwrap();
     let stored = buffer.transitions();
     for (i, (obs, act, next)) in acked.iter().enumerate() {
         let found = (0..stored.len()).any(|r| {

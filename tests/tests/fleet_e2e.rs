@@ -6,7 +6,7 @@
 use ebmpc_e2e::client::{Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec, TaskId, TrainMode};
+use proto::{EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec, Builtin, TrainMode};
 use std::time::{Duration, Instant};
 
 fn config() -> String {
@@ -33,11 +33,12 @@ fn spec(mode: TrainMode) -> RunSpec {
         },
     };
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: Some("cem+deen".into()),
         overrides,
         mode,
         seed: 2,
+        task_spec: None,
     }
 }
 
@@ -216,7 +217,7 @@ fn four_agents_on_two_runs_are_served_at_once() {
     });
 
     planner.stop().unwrap();
-    let sync = planner.replay("sync", TaskId::Cartpole).unwrap();
+    let sync = planner.replay("sync", Builtin::Cartpole).unwrap();
     let ghost = sync
         .episodes()
         .iter()

@@ -14,7 +14,7 @@ use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data, status_cli};
 use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, ReplayLog};
-use proto::{EpisodeEnd, Observation, RunSpec, TaskId, TrainMode};
+use proto::{EpisodeEnd, Observation, RunSpec, Builtin, TrainMode};
 use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -40,11 +40,12 @@ fn start(dir: &Path, data: &Path, id: &str, router: &str) -> Guarded {
 
 fn spec() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: Some("cem+deen".into()),
         overrides: Default::default(),
         mode: TrainMode::Sync,
         seed: 3,
+        task_spec: None,
     }
 }
 
@@ -335,7 +336,7 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         for r in 0..RUNS {
             let run = format!("run-{r}");
             let path = data.join("runs").join(&run).join("replay.log");
-            let buffer = ReplayBuffer::open(&path, TaskId::Cartpole.spec()).unwrap();
+            let buffer = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
             let stored: HashSet<Vec<u32>> = (0..buffer.len())
                 .map(|i| {
                     let (o, a, n) = buffer.transitions().row(i);

@@ -10,7 +10,7 @@ use ebmpc_e2e::{Planner, TempDir};
 use planner_service::persist::RunDir;
 use proto::{
     AttachOutcome, AttachRequest, Encoding, EpisodeEnd, EpochSchedule, Observation,
-    PROTOCOL_VERSION, PlannerOverrides, RunSpec, TaskId,
+    PROTOCOL_VERSION, PlannerOverrides, RunSpec, Builtin,
 };
 use std::time::Duration;
 
@@ -24,11 +24,12 @@ fn config() -> String {
 
 fn spec(overrides: PlannerOverrides) -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: None,
         overrides,
         mode: Default::default(),
         seed: 1,
+        task_spec: None,
     }
 }
 
@@ -333,7 +334,7 @@ fn hostile_attaches_are_refused_and_the_daemon_keeps_serving() {
         .map(|e| e.unwrap().file_name().into_string().unwrap())
         .collect::<Vec<_>>();
     assert_eq!(runs, ["good"], "no refused run reached the disk");
-    assert_eq!(planner.replay("good", TaskId::Cartpole).unwrap().len(), 60);
+    assert_eq!(planner.replay("good", Builtin::Cartpole).unwrap().len(), 60);
 
     // A run stored by an older daemon with a size over today's limits: set aside, not fatal.
     let poisoned = RunDir::new(&planner.data_dir, "poisoned");

@@ -5,16 +5,17 @@
 use ebmpc_e2e::client::{Client, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{AttachOutcome, AttachRequest, Encoding, PROTOCOL_VERSION, RunSpec, TaskId};
+use proto::{AttachOutcome, AttachRequest, Encoding, PROTOCOL_VERSION, RunSpec, Builtin};
 use std::time::Duration;
 
 fn spec() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: None,
         overrides: Default::default(),
         mode: Default::default(),
         seed: 6,
+        task_spec: None,
     }
 }
 

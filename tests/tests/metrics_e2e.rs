@@ -5,7 +5,7 @@
 use ebmpc_e2e::client::{Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir, free_port};
-use proto::{EpisodeEnd, Observation, RunSpec, TaskId};
+use proto::{EpisodeEnd, Observation, RunSpec, Builtin};
 
 const PLANNER: &str = "metrics";
 
@@ -49,11 +49,12 @@ fn the_metrics_endpoint_serves_every_metric_and_its_counters_move() {
     let url = format!("http://127.0.0.1:{port}/metrics");
     runtime().block_on(async {
         let spec = RunSpec {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             preset: None,
             overrides: Default::default(),
             mode: Default::default(),
             seed: 2,
+            task_spec: None,
         };
         let agent = Client::connect(&planner.endpoint, "watched", "a")
             .await

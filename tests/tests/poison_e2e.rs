@@ -7,7 +7,7 @@ use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
 use proto::{
     ActionSource, EpisodeEnd, ErrorCode, Observation, PlannerOverrides, RunEventKind, RunSpec,
-    TaskId,
+    Builtin,
 };
 use std::time::Duration;
 
@@ -15,11 +15,12 @@ const STEPS: u32 = 30;
 
 fn spec() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: None,
         overrides: PlannerOverrides::default(),
         mode: Default::default(),
         seed: 4,
+        task_spec: None,
     }
 }
 
@@ -36,7 +37,7 @@ fn extreme_values_are_refused_and_large_ones_train_finite_models() {
         .exploration_episodes(1)
         .toml();
     let mut planner = Planner::start(dir.path(), &config).expect("planner starts");
-    let bound = TaskId::Cartpole.spec().magnitudes;
+    let bound = Builtin::Cartpole.task().magnitudes;
     runtime().block_on(async {
         let client = Client::connect(&planner.endpoint, "poison", "p")
             .await

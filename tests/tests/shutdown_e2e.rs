@@ -5,7 +5,7 @@
 use ebmpc_e2e::client::{Client, ToySystem, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec, TaskId};
+use proto::{EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec, Builtin};
 use std::time::{Duration, Instant};
 
 /// The daemon's promise: it exits within this long after SIGTERM.
@@ -15,7 +15,7 @@ const STOP_CONTRACT: Duration = Duration::from_secs(10);
 /// largest epochs the default limits allow.
 fn long_training() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: Some("cem+deen".into()),
         overrides: PlannerOverrides {
             dynamics_epochs: Some(5_000),
@@ -27,6 +27,7 @@ fn long_training() -> RunSpec {
         },
         mode: Default::default(),
         seed: 5,
+        task_spec: None,
     }
 }
 

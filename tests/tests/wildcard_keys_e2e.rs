@@ -7,18 +7,19 @@
 use ebmpc_e2e::client::{Client, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{AttachRequest, Encoding, Observation, PROTOCOL_VERSION, RunSpec, TaskId};
+use proto::{AttachRequest, Encoding, Observation, PROTOCOL_VERSION, RunSpec, Builtin};
 use std::time::Duration;
 
 const PLANNER: &str = "wildcards";
 
 fn spec() -> RunSpec {
     RunSpec {
-        task: TaskId::Cartpole,
+        task: Builtin::Cartpole.name().into(),
         preset: None,
         overrides: Default::default(),
         mode: Default::default(),
         seed: 4,
+        task_spec: None,
     }
 }
 

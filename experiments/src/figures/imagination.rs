@@ -28,7 +28,7 @@ use planner_service::plan::MpcPlanner;
 use planner_service::trainer::{TrainLimits, retrain};
 use plotters::coord::Shift;
 use plotters::prelude::*;
-use proto::{InferencePrecision, TaskId};
+use proto::{InferencePrecision, Builtin};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use sim_bridge::Env;
@@ -37,7 +37,7 @@ use std::fmt::Write as _;
 /// Settings of the imagination-vs-reality experiment.
 #[derive(Clone, Debug)]
 pub struct ImaginationConfig {
-    pub task: TaskId,
+    pub task: Builtin,
     /// Sizes of the models and of the MPC that collects the data.
     pub scale: Scale,
     /// CEM sizes of the three compared plans. Exploiting a model takes a strong optimiser, so
@@ -85,7 +85,7 @@ pub struct PlanTrace {
 /// Everything the figure shows.
 #[derive(Clone, Debug)]
 pub struct ImaginationResult {
-    pub task: TaskId,
+    pub task: Builtin,
     pub train_episodes: u32,
     pub mpc_steps: u32,
     /// Returns of the training episodes.
@@ -144,7 +144,7 @@ pub fn run(
     mut on_episode: impl FnMut(u32, f32),
 ) -> Result<ImaginationResult> {
     let task = config.task;
-    let spec = task.spec();
+    let spec = task.task();
     let mut preset = Preset::new(task, Some(&config.method))?;
     preset.apply(&config.scale.overrides(task))?;
     preset.inference_precision = config.inference_precision;
@@ -599,7 +599,7 @@ impl Figure for ImaginationResult {
 }
 
 /// Checks that a task can be simulated before training for minutes.
-pub fn check_task(task: TaskId) -> Result<()> {
+pub fn check_task(task: Builtin) -> Result<()> {
     Env::new(task)
         .map(|_| ())
         .with_context(|| format!("{task} has no simulator"))

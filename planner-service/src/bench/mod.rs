@@ -24,7 +24,7 @@ use crate::config::{Preset, PresetError};
 use crate::data::Transitions;
 use crate::energy::RegularizerKind;
 use crate::plan::ConfigError;
-use proto::{InferencePrecision, TaskId};
+use proto::{InferencePrecision, Builtin};
 use rand::RngExt;
 use rand::rngs::StdRng;
 use std::fmt;
@@ -37,7 +37,7 @@ pub enum BenchCommand {
     Plan {
         /// Task whose preset sizes the networks and the CEM search.
         #[arg(long, default_value = "cartpole")]
-        task: TaskId,
+        task: Builtin,
         /// Regulariser in the objective: none, dae or deen (sizes from the preset).
         #[arg(long, default_value = "none")]
         regularizer: RegularizerKind,
@@ -82,7 +82,7 @@ pub enum BenchCommand {
     Train {
         /// Task whose preset sizes the networks and the minibatches.
         #[arg(long, default_value = "cartpole")]
-        task: TaskId,
+        task: Builtin,
         /// Training steps to time for each model, after the warm-up.
         #[arg(long, default_value_t = 50)]
         steps: usize,
@@ -194,14 +194,14 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
 }
 
 /// The preset of `task` for the paper's method with `regularizer` (PETS' ensemble if `pets`).
-fn preset(task: TaskId, regularizer: RegularizerKind, pets: bool) -> Result<Preset, PresetError> {
+fn preset(task: Builtin, regularizer: RegularizerKind, pets: bool) -> Result<Preset, PresetError> {
     let method = match (pets, regularizer) {
         (false, RegularizerKind::None) => "cem",
         (false, RegularizerKind::Dae) => "cem+dae",
         (false, RegularizerKind::Deen) => "cem+deen",
         (true, _) => "pets",
     };
-    let mut preset = Preset::new(task, Some(method))?;
+    let mut preset = Preset::new(task.task(), Some(method))?;
     preset.regularizer = regularizer;
     Ok(preset)
 }
@@ -209,8 +209,8 @@ fn preset(task: TaskId, regularizer: RegularizerKind, pets: bool) -> Result<Pres
 /// `n` transitions with observations and next observations drawn around the origin and
 /// uniformly random actions: enough to give the networks' normalisers and weights
 /// realistic values.
-fn random_transitions(task: TaskId, n: usize, rng: &mut StdRng) -> Transitions {
-    let spec = task.spec();
+fn random_transitions(task: Builtin, n: usize, rng: &mut StdRng) -> Transitions {
+    let spec = task.task();
     let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
     let mut obs = vec![0.0; spec.obs_dim];
     let mut act = vec![0.0; spec.act_dim];
@@ -301,7 +301,7 @@ mod tests {
         assert_eq!(
             cli.bench,
             BenchCommand::Plan {
-                task: TaskId::HalfCheetah,
+                task: Builtin::HalfCheetah,
                 regularizer: RegularizerKind::Deen,
                 iterations_to_time: 7,
                 warmup: 3,
@@ -321,7 +321,7 @@ mod tests {
         assert!(matches!(
             train.bench,
             BenchCommand::Train {
-                task: TaskId::Ant,
+                task: Builtin::Ant,
                 steps: 50,
                 ..
             }

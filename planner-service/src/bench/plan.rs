@@ -6,7 +6,7 @@ use super::{BenchError, describe, flops_per_row, median_ms, preset, random_trans
 use crate::dynamics::Ensemble;
 use crate::energy::{Regularizer, RegularizerKind};
 use crate::plan::MpcPlanner;
-use proto::{InferencePrecision, TaskId};
+use proto::{InferencePrecision, Builtin};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use std::fmt;
@@ -14,7 +14,7 @@ use std::time::Instant;
 
 /// What `bench plan` was asked to do.
 pub(super) struct Settings {
-    pub task: TaskId,
+    pub task: Builtin,
     pub regularizer: RegularizerKind,
     pub timed: usize,
     pub warmup: usize,
@@ -32,7 +32,7 @@ pub(super) struct Settings {
 /// Timing of full planning calls.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlanReport {
-    pub task: TaskId,
+    pub task: Builtin,
     pub regularizer: RegularizerKind,
     /// Dynamics layer sizes and ensemble members.
     pub dynamics_sizes: Vec<usize>,
@@ -82,7 +82,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     cem.population = s.population.unwrap_or(cem.population);
     cem.elites = s.elites.unwrap_or(cem.elites);
     cem.iterations = s.iterations.unwrap_or(cem.iterations);
-    let spec = s.task.spec();
+    let spec = s.task.task();
     let mut rng = StdRng::seed_from_u64(s.seed);
     let data = random_transitions(s.task, 512, &mut rng);
     let mut dynamics = Ensemble::new(spec, &preset.dynamics, &mut rng);
@@ -290,7 +290,7 @@ mod tests {
     #[test]
     fn times_real_planning_calls() {
         let settings = Settings {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole,
             regularizer: RegularizerKind::Deen,
             timed: 2,
             warmup: 1,

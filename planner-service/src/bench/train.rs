@@ -13,7 +13,7 @@ use super::{BenchError, describe, preset, random_transitions};
 use crate::dynamics::{Ensemble, TrainWorkspace, TrainingSet};
 use crate::energy::{Deen, DeenWorkspace, RegularizerKind, transition_rows};
 use crate::nn::{Adam, FlushDenormals, InputGradTape, Mlp, Normalizer};
-use proto::TaskId;
+use proto::Builtin;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::fmt;
@@ -71,7 +71,7 @@ fn layer_flops(sizes: &[usize]) -> impl Iterator<Item = f64> + '_ {
 /// Timing of training steps of both models of a task's preset.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrainReport {
-    pub task: TaskId,
+    pub task: Builtin,
     pub steps: usize,
     /// One ensemble member (members train in parallel, each with steps like this one).
     pub dynamics: StepTiming,
@@ -101,7 +101,7 @@ pub struct DeenPhases {
 const SAMPLES: usize = 2048;
 
 pub(super) fn run(
-    task: TaskId,
+    task: Builtin,
     steps: usize,
     warmup: usize,
     seed: u64,
@@ -112,7 +112,7 @@ pub(super) fn run(
     let _flush = FlushDenormals::new(); // as the trainers run
     let peak = Peak::measure();
     let preset = preset(task, RegularizerKind::Deen, false)?;
-    let spec = task.spec();
+    let spec = task.task();
     let mut rng = StdRng::seed_from_u64(seed);
     let data = random_transitions(task, SAMPLES, &mut rng);
     let batches = |batch: usize, rng: &mut StdRng| -> Vec<Vec<usize>> {
@@ -253,7 +253,7 @@ mod tests {
 
     #[test]
     fn times_real_training_steps() {
-        let report = run(TaskId::Cartpole, 3, 1, 0).unwrap();
+        let report = run(Builtin::Cartpole, 3, 1, 0).unwrap();
         assert_eq!((report.dynamics.batch, report.deen.batch), (32, 32));
         assert_eq!(report.dynamics.sizes, vec![6, 200, 200, 200, 8]);
         assert_eq!(report.deen.sizes, vec![9, 200, 200, 200, 1]);
@@ -286,7 +286,7 @@ mod tests {
             "{text}"
         );
         assert!(matches!(
-            run(TaskId::Cartpole, 0, 0, 0),
+            run(Builtin::Cartpole, 0, 0, 0),
             Err(BenchError::Zero("steps"))
         ));
     }

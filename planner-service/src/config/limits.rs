@@ -9,8 +9,8 @@
 //! to a fraction of a 24 GiB, 2-core machine.
 
 use super::Preset;
-use proto::task::Magnitudes;
-use proto::{TaskId, TaskSpec};
+use proto::Task;
+use proto::task::{MAX_MAGNITUDE, Magnitudes, SpecBounds};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -58,6 +58,12 @@ pub struct Limits {
     /// agent has no liveliness token (it vanished without its token's deletion reaching us);
     /// its open episode is recorded as interrupted and its slot freed.
     pub agent_idle_seconds: u64,
+    /// Longest observation of a task (a client's spec or a declared one).
+    pub max_obs_dim: u64,
+    /// Longest action of a task.
+    pub max_act_dim: u64,
+    /// Longest episode of a task, in steps.
+    pub max_episode_len: u64,
     /// Per task (by name), the largest observation and reward magnitudes accepted instead of
     /// the catalog's (`[limits.magnitudes.cartpole] observation = 1e5, reward = 1e3`).
     pub magnitudes: BTreeMap<String, Magnitudes>,
@@ -82,14 +88,13 @@ impl Default for Limits {
             max_payload_bytes: 64 << 10,
             max_deadline_ms: 60_000,
             agent_idle_seconds: 3_600,
+            max_obs_dim: SpecBounds::default().max_obs_dim as u64,
+            max_act_dim: SpecBounds::default().max_act_dim as u64,
+            max_episode_len: SpecBounds::default().max_episode_len.into(),
             magnitudes: BTreeMap::new(),
         }
     }
 }
-
-/// The largest magnitude bound an operator may configure: differences and squares of values
-/// up to it stay within f32's range (10³⁶ < 3.4·10³⁸).
-pub const MAX_MAGNITUDE: f32 = 1e18;
 
 /// A request over one of the limits.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -115,7 +120,8 @@ pub enum InvalidLimits {
 }
 
 impl Limits {
-    /// Checks the configuration itself: every limit positive, every magnitude a known task's.
+    /// Checks the configuration itself: every limit positive, every magnitude in range (that
+    /// each names a task of the catalog is the service configuration's check).
     pub fn validate(&self) -> Result<(), InvalidLimits> {
         let counts = [
             ("max_ensemble_size", self.max_ensemble_size),
@@ -132,6 +138,9 @@ impl Limits {
             ("max_payload_bytes", self.max_payload_bytes),
             ("max_deadline_ms", self.max_deadline_ms),
             ("agent_idle_seconds", self.agent_idle_seconds),
+            ("max_obs_dim", self.max_obs_dim),
+            ("max_act_dim", self.max_act_dim),
+            ("max_episode_len", self.max_episode_len),
         ];
         if let Some((name, _)) = counts.iter().find(|(_, v)| *v == 0) {
             return Err(InvalidLimits::NotPositive(name));
@@ -140,9 +149,7 @@ impl Limits {
             return Err(InvalidLimits::NotPositive("max_retrain_seconds"));
         }
         for (task, m) in &self.magnitudes {
-            task.parse::<TaskId>()?;
-            let ok = |v: f32| v > 0.0 && v <= MAX_MAGNITUDE;
-            if !(ok(m.observation) && ok(m.reward)) {
+            if !m.is_valid() {
                 return Err(InvalidLimits::Magnitude { task: task.clone() });
             }
         }
@@ -150,11 +157,21 @@ impl Limits {
     }
 
     /// The observation and reward bounds of `task`: the configured ones, or the catalog's.
-    pub fn magnitudes(&self, task: &TaskSpec) -> Magnitudes {
+    pub fn magnitudes(&self, task: &Task) -> Magnitudes {
         self.magnitudes
-            .get(task.id.name())
+            .get(task.name())
             .copied()
             .unwrap_or(task.magnitudes)
+    }
+
+    /// The bounds of a task spec: its dimensions and episode length.
+    pub fn spec_bounds(&self) -> SpecBounds {
+        let clamp = |v: u64| usize::try_from(v).unwrap_or(usize::MAX);
+        SpecBounds {
+            max_obs_dim: clamp(self.max_obs_dim),
+            max_act_dim: clamp(self.max_act_dim),
+            max_episode_len: u32::try_from(self.max_episode_len).unwrap_or(u32::MAX),
+        }
     }
 
     /// Checks every size of `preset` and then its budgets. Sizes come first, so an absurd
@@ -323,7 +340,7 @@ const BYTES_PER_PARAMETER: u64 = 5 * 4;
 impl Cost {
     /// The cost of `preset`'s networks (saturating: an absurd preset costs `u64::MAX`).
     pub fn of(preset: &Preset) -> Self {
-        let task = preset.task.spec();
+        let task = preset.task;
         let dynamics = crate::dynamics::config::layer_sizes(task, &preset.dynamics);
         let energy = preset
             .regularizer
@@ -378,16 +395,16 @@ fn multiply_adds(sizes: &[usize]) -> u64 {
 mod tests {
     use super::*;
     use crate::config::METHODS;
-    use proto::PlannerOverrides;
+    use proto::{Builtin, PlannerOverrides};
 
     /// The defaults admit every preset of the paper at full size, with room to spare.
     #[test]
     fn every_paper_preset_fits_the_default_limits() {
         let limits = Limits::default();
         limits.validate().unwrap();
-        for &task in TaskId::ALL {
+        for &task in Builtin::ALL {
             for method in METHODS {
-                let preset = Preset::new(task, Some(method)).unwrap();
+                let preset = Preset::new(task.task(), Some(method)).unwrap();
                 limits
                     .check(&preset)
                     .unwrap_or_else(|e| panic!("{task} {method}: {e}"));
@@ -405,7 +422,7 @@ mod tests {
     fn the_cost_counts_every_layer() {
         // Cartpole, cem+deen, 3 × 200 both; dynamics [5 + 1, 200, 200, 200, 8], energy
         // [4 + 1 + 4, 200, 200, 200, 1].
-        let p = Preset::new(TaskId::Cartpole, Some("cem+deen")).unwrap();
+        let p = Preset::new(Builtin::Cartpole.task(), Some("cem+deen")).unwrap();
         let dyn_macs = 6 * 200 + 2 * 200 * 200 + 200 * 8;
         let energy_macs = 9 * 200 + 2 * 200 * 200 + 200;
         let dyn_params = dyn_macs + 3 * 200 + 8;
@@ -566,7 +583,7 @@ mod tests {
             ),
         ];
         for (overrides, expected) in cases {
-            let mut preset = Preset::new(TaskId::HalfCheetah, None).unwrap();
+            let mut preset = Preset::new(Builtin::HalfCheetah.task(), None).unwrap();
             preset.apply(&overrides).unwrap();
             let err = limits.check(&preset).unwrap_err().to_string();
             assert!(err.starts_with(expected), "{overrides:?}: {err}");
@@ -581,11 +598,11 @@ mod tests {
         .unwrap();
         limits.validate().unwrap();
         assert_eq!(limits.max_hidden_size, 64);
-        let cartpole = TaskId::Cartpole.spec();
+        let cartpole = Builtin::Cartpole.task();
         assert_eq!(limits.magnitudes(cartpole).observation, 1e6);
         assert_eq!(
-            limits.magnitudes(TaskId::Ant.spec()),
-            TaskId::Ant.spec().magnitudes
+            limits.magnitudes(Builtin::Ant.task()),
+            Builtin::Ant.task().magnitudes
         );
         assert!(toml::from_str::<Limits>("max_hidden_sizes = 64").is_err());
         for bad in [
@@ -593,7 +610,6 @@ mod tests {
             "agent_idle_seconds = 0",
             "max_retrain_seconds = -1.0",
             "max_retrain_seconds = nan",
-            "[magnitudes.walker]\nobservation = 1.0\nreward = 1.0",
             "[magnitudes.ant]\nobservation = inf\nreward = 1.0",
             "[magnitudes.ant]\nobservation = 0.0\nreward = 1.0",
             "[magnitudes.ant]\nobservation = 3e38\nreward = 1.0",

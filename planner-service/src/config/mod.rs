@@ -8,7 +8,9 @@ pub use limits::{Cost, InvalidLimits, LimitExceeded, Limits};
 pub use preset::{DEFAULT_METHOD, METHODS, Preset, PresetError};
 pub use proto::EpochSchedule;
 
+use proto::{TaskCatalog, TaskSpec};
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// The daemon's configuration file (`planner-service serve --config FILE`).
@@ -47,6 +49,11 @@ pub struct ServiceConfig {
     pub storage: StorageConfig,
     /// The Prometheus endpoint (`[metrics]`).
     pub metrics: MetricsConfig,
+    /// Tasks this daemon knows besides the built-in five (`[tasks.NAME]`, a task spec each;
+    /// the table's key is the name).
+    pub tasks: BTreeMap<String, TaskSpec>,
+    /// A folder of task specs, one `NAME.toml` or `NAME.json` file each, read at start.
+    pub tasks_dir: Option<PathBuf>,
 }
 
 /// `[metrics]`: where the Prometheus text endpoint listens.
@@ -85,6 +92,8 @@ impl Default for ServiceConfig {
             limits: Limits::default(),
             storage: StorageConfig::default(),
             metrics: MetricsConfig::default(),
+            tasks: BTreeMap::new(),
+            tasks_dir: None,
         }
     }
 }
@@ -108,6 +117,8 @@ pub enum ConfigError {
     Pins(#[from] crate::fleet::PinsError),
     #[error(transparent)]
     Limits(#[from] InvalidLimits),
+    #[error(transparent)]
+    Tasks(#[from] proto::task::CatalogError),
 }
 
 impl ServiceConfig {
@@ -125,12 +136,30 @@ impl ServiceConfig {
         Ok(config)
     }
 
-    /// Checks what serde cannot.
+    /// Checks what serde cannot, the declared tasks included.
     pub fn validate(&self) -> Result<(), ConfigError> {
         proto::validate_name(&self.planner_id)?;
         self.fleet.validate()?;
         self.limits.validate()?;
+        self.catalog()?;
         Ok(())
+    }
+
+    /// The tasks this daemon knows: the built-ins, `[tasks.NAME]` and the tasks folder, each
+    /// declared task checked against `[limits]`; every `[limits.magnitudes.NAME]` must name one.
+    pub fn catalog(&self) -> Result<TaskCatalog, ConfigError> {
+        let bounds = self.limits.spec_bounds();
+        let mut catalog = TaskCatalog::builtin();
+        for (name, spec) in &self.tasks {
+            catalog.declare(name, spec.clone(), &bounds)?;
+        }
+        if let Some(dir) = &self.tasks_dir {
+            catalog.declare_folder(dir, &bounds)?;
+        }
+        for task in self.limits.magnitudes.keys() {
+            catalog.get(task).map_err(InvalidLimits::from)?;
+        }
+        Ok(catalog)
     }
 }
 
@@ -202,6 +231,43 @@ mod tests {
         let config = ServiceConfig::load(&path).unwrap();
         assert_eq!(config.listen, ["tcp/127.0.0.1:7447"]);
         assert_eq!(config.limits, Limits::default());
+    }
+
+    /// `[tasks.NAME]` declares a task by name; a bad one is refused at load, naming it.
+    #[test]
+    fn declared_tasks_join_the_catalog() {
+        let config: ServiceConfig = toml::from_str(
+            r#"
+            [tasks.short-cartpole]
+            obs_dim = 4
+            act_dim = 1
+            action_low = [-3.0]
+            action_high = [3.0]
+            episode_len = 50
+            control_dt = 0.04
+            reward = { builtin = "cartpole" }
+            model = { declared = { angles = [1] } }
+            [limits.magnitudes.short-cartpole]
+            observation = 1e5
+            reward = 10.0
+            "#,
+        )
+        .unwrap();
+        config.validate().unwrap();
+        let catalog = config.catalog().unwrap();
+        let task = catalog.get("short-cartpole").unwrap();
+        assert_eq!((task.episode_len, task.state_feature_dim), (50, 5));
+        assert_eq!(config.limits.magnitudes(task).observation, 1e5);
+        assert!(catalog.get("ant").is_ok());
+
+        let unknown: ServiceConfig =
+            toml::from_str("[limits.magnitudes.walker]\nobservation = 1.0\nreward = 1.0").unwrap();
+        let err = unknown.validate().unwrap_err().to_string();
+        assert!(err.contains("unknown task `walker`"), "{err}");
+        let mut too_big = config.clone();
+        too_big.limits.max_obs_dim = 3;
+        let err = too_big.validate().unwrap_err().to_string();
+        assert!(err.contains("task short-cartpole: obs_dim = 4"), "{err}");
     }
 
     #[test]

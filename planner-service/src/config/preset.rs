@@ -25,8 +25,7 @@
 use crate::dynamics::DynamicsConfig;
 use crate::energy::{EnergyConfig, RegularizerKind};
 use crate::plan::{AdamConfig, CemConfig, IcemConfig, Optimizer};
-use proto::{EpochSchedule, InferencePrecision, PlannerOverrides, RegularizerChoice, TaskId};
-use serde::{Deserialize, Serialize};
+use proto::{Builtin, EpochSchedule, InferencePrecision, PlannerOverrides, RegularizerChoice, Task};
 
 /// The methods a preset can be built for (see the module docs).
 pub const METHODS: &[&str] = &[
@@ -47,11 +46,12 @@ pub const ADAM_ITERATIONS: usize = 30;
 pub const DEFAULT_METHOD: &str = "cem+deen";
 
 /// Everything a run needs to know to learn and plan.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Preset {
     /// The method name (one of [`METHODS`]).
     pub method: String,
-    pub task: TaskId,
+    /// The task the run learns.
+    pub task: &'static Task,
     pub dynamics: DynamicsConfig,
     pub regularizer: RegularizerKind,
     pub energy: EnergyConfig,
@@ -66,15 +66,12 @@ pub struct Preset {
     pub schedule: EpochSchedule,
     /// Most gradient steps per model in one retraining; `None` (the paper's presets) trains
     /// the schedule's full epochs however large the buffer has grown.
-    #[serde(default)]
     pub max_gradient_steps: Option<u64>,
     /// Number format of planning-time inference: bf16 by default, which doubles the
     /// multiply-add rate on CPUs with AVX-512 BF16 (f32 is used where the CPU lacks it).
-    #[serde(default = "default_precision")]
     pub inference_precision: InferencePrecision,
     /// Milliseconds from an observation's arrival to its action (`None`: no deadline). The
     /// task's control period unless overridden: a robot needs its action within it.
-    #[serde(default)]
     pub deadline_ms: Option<u32>,
 }
 
@@ -83,8 +80,8 @@ pub struct Preset {
 pub const MIN_DEADLINE_MS: u32 = 5;
 
 /// A task's control period in whole milliseconds (at least 1): its default deadline.
-fn control_period_ms(task: TaskId) -> u32 {
-    ((task.spec().control_dt * 1e3).round() as u32).max(1)
+fn control_period_ms(task: &Task) -> u32 {
+    ((task.control_dt * 1e3).round() as u32).max(1)
 }
 
 fn default_precision() -> InferencePrecision {
@@ -151,9 +148,9 @@ struct TaskTable {
     schedule: EpochSchedule,
 }
 
-fn table(task: TaskId) -> TaskTable {
+fn table(task: Builtin) -> TaskTable {
     match task {
-        TaskId::Cartpole => TaskTable {
+        Builtin::Cartpole => TaskTable {
             model_layers: 3,
             model_size: 200,
             model_epochs: 500,
@@ -171,7 +168,7 @@ fn table(task: TaskId) -> TaskTable {
             exploration_episodes: 1,
             schedule: EpochSchedule::Constant,
         },
-        TaskId::Reacher3d => TaskTable {
+        Builtin::Reacher3d => TaskTable {
             model_layers: 3,
             model_size: 200,
             model_epochs: 500,
@@ -189,7 +186,7 @@ fn table(task: TaskId) -> TaskTable {
             exploration_episodes: 1,
             schedule: EpochSchedule::Constant,
         },
-        TaskId::Pusher => TaskTable {
+        Builtin::Pusher => TaskTable {
             model_layers: 3,
             model_size: 200,
             model_epochs: 100,
@@ -207,7 +204,7 @@ fn table(task: TaskId) -> TaskTable {
             exploration_episodes: 1,
             schedule: EpochSchedule::Constant,
         },
-        TaskId::HalfCheetah => TaskTable {
+        Builtin::HalfCheetah => TaskTable {
             model_layers: 4,
             model_size: 200,
             model_epochs: 300,
@@ -228,7 +225,7 @@ fn table(task: TaskId) -> TaskTable {
                 epochs: 8,
             },
         },
-        TaskId::Ant => TaskTable {
+        Builtin::Ant => TaskTable {
             model_layers: 4,
             model_size: 400,
             model_epochs: 600,
@@ -254,8 +251,10 @@ fn table(task: TaskId) -> TaskTable {
 }
 
 impl Preset {
-    /// The preset for `task` and `method` (`None`: [`DEFAULT_METHOD`]).
-    pub fn new(task: TaskId, method: Option<&str>) -> Result<Self, PresetError> {
+    /// The preset for `task` and `method` (`None`: [`DEFAULT_METHOD`]): the sizes of the task's
+    /// base preset (a catalog task's own Table 2 row; a custom task names the row it starts
+    /// from, its `base_preset`), the deadline of its control period.
+    pub fn new(task: &'static Task, method: Option<&str>) -> Result<Self, PresetError> {
         let method = method.unwrap_or(DEFAULT_METHOD);
         let adam = method == "adam+dae";
         let (pets, regularizer) = match method {
@@ -267,7 +266,7 @@ impl Preset {
             "pets+deen" => (true, RegularizerKind::Deen),
             other => return Err(PresetError::UnknownMethod(other.to_string())),
         };
-        let t = table(task);
+        let t = table(task.base_preset);
         Ok(Preset {
             method: method.to_string(),
             task,
@@ -564,10 +563,10 @@ mod tests {
     fn every_preset_carries_all_of_table_two() {
         // model (layers, size, epochs, batch), DEEN (layers, size, epochs, batch, σ, α),
         // CEM iterations — the paper's columns Cartpole, Reacher, Pusher, Half-cheetah, Ant.
-        type Row = (TaskId, [usize; 4], [usize; 4], f32, f32, usize);
+        type Row = (Builtin, [usize; 4], [usize; 4], f32, f32, usize);
         let table: [Row; 5] = [
             (
-                TaskId::Cartpole,
+                Builtin::Cartpole,
                 [3, 200, 500, 32],
                 [3, 200, 500, 32],
                 0.1,
@@ -575,7 +574,7 @@ mod tests {
                 5,
             ),
             (
-                TaskId::Reacher3d,
+                Builtin::Reacher3d,
                 [3, 200, 500, 32],
                 [3, 200, 500, 32],
                 0.1,
@@ -583,7 +582,7 @@ mod tests {
                 5,
             ),
             (
-                TaskId::Pusher,
+                Builtin::Pusher,
                 [3, 200, 100, 32],
                 [3, 200, 100, 32],
                 0.1,
@@ -591,7 +590,7 @@ mod tests {
                 5,
             ),
             (
-                TaskId::HalfCheetah,
+                Builtin::HalfCheetah,
                 [4, 200, 300, 128],
                 [5, 500, 100, 32],
                 0.37,
@@ -599,7 +598,7 @@ mod tests {
                 5,
             ),
             (
-                TaskId::Ant,
+                Builtin::Ant,
                 [4, 400, 600, 400],
                 [3, 300, 800, 64],
                 0.9,
@@ -609,7 +608,7 @@ mod tests {
         ];
         for (task, model, deen, sigma, alpha, iterations) in table {
             for method in METHODS {
-                let p = Preset::new(task, Some(method)).unwrap();
+                let p = Preset::new(task.task(), Some(method)).unwrap();
                 let d = &p.dynamics;
                 let e = &p.energy;
                 assert_eq!(
@@ -645,14 +644,14 @@ mod tests {
 
     #[test]
     fn table_two_numbers() {
-        let hc = Preset::new(TaskId::HalfCheetah, None).unwrap();
+        let hc = Preset::new(Builtin::HalfCheetah.task(), None).unwrap();
         assert_eq!(hc.method, "cem+deen");
         assert_eq!((hc.energy.hidden_layers, hc.energy.hidden_size), (5, 500));
         assert_eq!(hc.energy_weight, 0.05);
         assert_eq!(hc.exploration_episodes, 3);
         assert_eq!(hc.epochs(5), (300, 100));
         assert_eq!(hc.epochs(10), (8, 8));
-        let ant = Preset::new(TaskId::Ant, Some("pets")).unwrap();
+        let ant = Preset::new(Builtin::Ant.task(), Some("pets")).unwrap();
         assert_eq!(
             (
                 ant.dynamics.ensemble_size,
@@ -664,7 +663,7 @@ mod tests {
         assert_eq!(ant.regularizer, RegularizerKind::None);
         assert_eq!(ant.epochs(1), (600, 800));
         assert_eq!(ant.epochs(2), (360, 560));
-        let pusher = Preset::new(TaskId::Pusher, None).unwrap();
+        let pusher = Preset::new(Builtin::Pusher.task(), None).unwrap();
         assert_eq!(
             (
                 pusher.dynamics.epochs,
@@ -677,12 +676,12 @@ mod tests {
             (pusher.cem.population, pusher.cem.elites, pusher.cem.horizon),
             (500, 50, 25)
         );
-        assert!(Preset::new(TaskId::Cartpole, Some("sac")).is_err());
+        assert!(Preset::new(Builtin::Cartpole.task(), Some("sac")).is_err());
     }
 
     #[test]
     fn overrides_apply_and_are_checked() {
-        let mut p = Preset::new(TaskId::Cartpole, None).unwrap();
+        let mut p = Preset::new(Builtin::Cartpole.task(), None).unwrap();
         assert_eq!(p.inference_precision, InferencePrecision::Bf16);
         let o = PlannerOverrides {
             regularizer: Some(RegularizerChoice::Dae),
@@ -723,9 +722,9 @@ mod tests {
     /// with Adam.
     #[test]
     fn adam_dae_preset_and_its_learning_rate_override() {
-        for &task in TaskId::ALL {
-            let p = Preset::new(task, Some("adam+dae")).unwrap();
-            let dae = Preset::new(task, Some("cem+dae")).unwrap();
+        for &task in Builtin::ALL {
+            let p = Preset::new(task.task(), Some("adam+dae")).unwrap();
+            let dae = Preset::new(task.task(), Some("cem+dae")).unwrap();
             assert_eq!(p.cem.optimizer, Optimizer::Adam);
             assert_eq!(p.regularizer, RegularizerKind::Dae);
             assert_eq!(
@@ -743,7 +742,7 @@ mod tests {
             assert!(!p.sample_dynamics);
             p.cem.validate().unwrap();
         }
-        let mut p = Preset::new(TaskId::Cartpole, Some("adam+dae")).unwrap();
+        let mut p = Preset::new(Builtin::Cartpole.task(), Some("adam+dae")).unwrap();
         p.apply(&PlannerOverrides {
             adam_learning_rate: Some(0.3),
             ..Default::default()
@@ -751,7 +750,7 @@ mod tests {
         .unwrap();
         assert_eq!(p.cem.adam.learning_rate, 0.3);
         for hostile in [0.0, -1.0, f32::NAN, f32::INFINITY, 1e30] {
-            let mut p = Preset::new(TaskId::Cartpole, Some("adam+dae")).unwrap();
+            let mut p = Preset::new(Builtin::Cartpole.task(), Some("adam+dae")).unwrap();
             let err = p
                 .apply(&PlannerOverrides {
                     adam_learning_rate: Some(hostile),
@@ -763,7 +762,7 @@ mod tests {
                 "{hostile}: {err}"
             );
         }
-        let mut cem = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
+        let mut cem = Preset::new(Builtin::Cartpole.task(), Some("cem")).unwrap();
         let err = cem
             .apply(&PlannerOverrides {
                 adam_learning_rate: Some(0.3),
@@ -776,7 +775,7 @@ mod tests {
     /// Every preset field can be overridden, each to a value that then lands in the preset.
     #[test]
     fn every_preset_field_can_be_overridden() {
-        let mut p = Preset::new(TaskId::Cartpole, Some("cem")).unwrap();
+        let mut p = Preset::new(Builtin::Cartpole.task(), Some("cem")).unwrap();
         let schedule = EpochSchedule::Geometric {
             dynamics_factor: 0.5,
             energy_factor: 0.25,
@@ -882,11 +881,11 @@ mod tests {
     /// a deadline too short to answer in is refused.
     #[test]
     fn the_deadline_defaults_to_the_control_period() {
-        let period = |task: TaskId| Preset::new(task, None).unwrap().deadline_ms;
-        assert_eq!(period(TaskId::Cartpole), Some(40));
-        assert_eq!(period(TaskId::Reacher3d), Some(20));
-        assert_eq!(period(TaskId::HalfCheetah), Some(50));
-        let mut p = Preset::new(TaskId::Cartpole, None).unwrap();
+        let period = |task: Builtin| Preset::new(task.task(), None).unwrap().deadline_ms;
+        assert_eq!(period(Builtin::Cartpole), Some(40));
+        assert_eq!(period(Builtin::Reacher3d), Some(20));
+        assert_eq!(period(Builtin::HalfCheetah), Some(50));
+        let mut p = Preset::new(Builtin::Cartpole.task(), None).unwrap();
         let deadline = |ms| PlannerOverrides {
             deadline_ms: Some(ms),
             ..Default::default()
@@ -908,7 +907,7 @@ mod tests {
     /// Hostile values of every real-valued and scheduled override are refused, naming the field.
     #[test]
     fn hostile_overrides_are_refused_by_name() {
-        let base = Preset::new(TaskId::Cartpole, None).unwrap();
+        let base = Preset::new(Builtin::Cartpole.task(), None).unwrap();
         let o = PlannerOverrides::default;
         let cases: Vec<(PlannerOverrides, &str)> = vec![
             (
@@ -1070,11 +1069,12 @@ mod tests {
         assert!(err.to_string().contains("populaton"), "{err}");
         assert!(toml::from_str::<PlannerOverrides>("horizn = 3").is_err());
         let spec = proto::RunSpec {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             preset: None,
             overrides: PlannerOverrides::default(),
             mode: Default::default(),
             seed: 0,
+            task_spec: None,
         };
         let request = proto::AttachRequest {
             version: proto::PROTOCOL_VERSION,
@@ -1096,9 +1096,9 @@ mod tests {
 
     #[test]
     fn every_preset_plans_with_cem_unless_icem_is_asked_for() {
-        for task in TaskId::ALL {
+        for task in Builtin::ALL {
             for method in METHODS {
-                let p = Preset::new(*task, Some(method)).unwrap();
+                let p = Preset::new(task.task(), Some(method)).unwrap();
                 let expected = if *method == "adam+dae" {
                     Optimizer::Adam
                 } else {
@@ -1107,7 +1107,7 @@ mod tests {
                 assert_eq!(p.cem.optimizer, expected, "{task} {method}");
             }
         }
-        let mut p = Preset::new(TaskId::HalfCheetah, None).unwrap();
+        let mut p = Preset::new(Builtin::HalfCheetah.task(), None).unwrap();
         let icem = PlannerOverrides {
             optimizer: Some(Optimizer::Icem),
             icem_noise_beta: Some(2.5),
@@ -1160,7 +1160,7 @@ mod tests {
                 ..Default::default()
             },
         ] {
-            let mut p = Preset::new(TaskId::Cartpole, None).unwrap();
+            let mut p = Preset::new(Builtin::Cartpole.task(), None).unwrap();
             let err = p.apply(&bad).unwrap_err();
             assert!(matches!(err, PresetError::InvalidOverride(_)), "{bad:?}");
         }

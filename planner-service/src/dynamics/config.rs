@@ -38,7 +38,7 @@ impl Default for DynamicsConfig {
 
 /// Layer sizes `[state features + action, hidden…, 2 × obs]` of one member's network: it
 /// predicts a mean and a log-variance per observation dimension.
-pub fn layer_sizes(task: &proto::TaskSpec, config: &DynamicsConfig) -> Vec<usize> {
+pub fn layer_sizes(task: &proto::Task, config: &DynamicsConfig) -> Vec<usize> {
     let mut sizes = vec![task.state_feature_dim + task.act_dim];
     sizes.extend(std::iter::repeat_n(
         config.hidden_size,

@@ -5,7 +5,7 @@ use super::model::{DynamicsScratch, ModelParts, ProbabilisticModel, TrainingSet}
 use crate::data::Transitions;
 use crate::nn::train::{FitBudget, Stop};
 use crate::nn::{FitReport, FlushDenormals, Normalizer, ShapeError};
-use proto::TaskSpec;
+use proto::Task;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rayon::prelude::*;
@@ -27,7 +27,7 @@ pub struct Ensemble {
 
 impl Ensemble {
     /// Untrained members of the configured size.
-    pub fn new(task: &'static TaskSpec, config: &DynamicsConfig, rng: &mut StdRng) -> Self {
+    pub fn new(task: &'static Task, config: &DynamicsConfig, rng: &mut StdRng) -> Self {
         assert!(config.ensemble_size > 0, "an ensemble needs a member");
         let members = (0..config.ensemble_size)
             .map(|_| ProbabilisticModel::new(task, config, rng))
@@ -40,7 +40,7 @@ impl Ensemble {
 
     /// An ensemble with stored members (see [`Ensemble::parts`]), one per part.
     pub fn from_parts(
-        task: &'static TaskSpec,
+        task: &'static Task,
         config: &DynamicsConfig,
         parts: Vec<ModelParts>,
     ) -> Result<Self, ShapeError> {
@@ -64,7 +64,7 @@ impl Ensemble {
         &self.config
     }
 
-    pub fn task(&self) -> &'static TaskSpec {
+    pub fn task(&self) -> &'static Task {
         self.members[0].task()
     }
 

@@ -20,7 +20,7 @@ use crate::nn::vecops::scale_shift;
 use crate::nn::{
     Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape, add_weight_decay,
 };
-use proto::TaskSpec;
+use proto::Task;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use serde::{Deserialize, Serialize};
@@ -37,7 +37,7 @@ pub struct TrainingSet {
 impl TrainingSet {
     /// The raw (unstandardised) model inputs `[features(s), a]` and targets of every
     /// transition, sample-major.
-    pub fn raw(task: &TaskSpec, data: &Transitions) -> (Vec<f32>, Vec<f32>) {
+    pub fn raw(task: &Task, data: &Transitions) -> (Vec<f32>, Vec<f32>) {
         let (f, a, o) = (task.state_feature_dim, task.act_dim, task.obs_dim);
         let mut inputs = vec![0.0; data.len() * (f + a)];
         let mut targets = vec![0.0; data.len() * o];
@@ -183,7 +183,7 @@ pub struct ModelParts {
 /// A Gaussian dynamics model `p(target | s, a)` (see the module docs).
 #[derive(Clone, Debug)]
 pub struct ProbabilisticModel {
-    task: &'static TaskSpec,
+    task: &'static Task,
     mlp: Mlp,
     input_norm: Normalizer,
     target_norm: Normalizer,
@@ -197,7 +197,7 @@ pub struct ProbabilisticModel {
 
 impl ProbabilisticModel {
     /// An untrained model of the configured size for `task` (identity normalisers).
-    pub fn new(task: &'static TaskSpec, config: &DynamicsConfig, rng: &mut StdRng) -> Self {
+    pub fn new(task: &'static Task, config: &DynamicsConfig, rng: &mut StdRng) -> Self {
         let sizes = super::config::layer_sizes(task, config);
         let in_dim = sizes[0];
         let mlp = Mlp::new(&sizes, Activation::Swish, rng);
@@ -218,7 +218,7 @@ impl ProbabilisticModel {
 
     /// A model of the configured size with stored parts (see [`ProbabilisticModel::parts`]).
     pub fn from_parts(
-        task: &'static TaskSpec,
+        task: &'static Task,
         config: &DynamicsConfig,
         parts: ModelParts,
     ) -> Result<Self, ShapeError> {
@@ -256,7 +256,7 @@ impl ProbabilisticModel {
         }
     }
 
-    pub fn task(&self) -> &'static TaskSpec {
+    pub fn task(&self) -> &'static Task {
         self.task
     }
 

@@ -4,13 +4,13 @@
 use super::*;
 use crate::data::Transitions;
 use crate::nn::{Activation, Normalizer, reference};
-use proto::{TaskId, TaskSpec};
+use proto::{Builtin, Task};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 
-fn cartpole() -> &'static TaskSpec {
-    TaskId::Cartpole.spec()
+fn cartpole() -> &'static Task {
+    Builtin::Cartpole.task()
 }
 
 const DT: f32 = 0.05;
@@ -347,8 +347,8 @@ fn empty_data_leaves_the_model_untouched() {
 /// transforms are not plain identities and deltas, with non-trivial statistics.
 #[test]
 fn mean_prediction_gradient_matches_finite_differences() {
-    for task in [TaskId::Cartpole, TaskId::HalfCheetah] {
-        let spec = task.spec();
+    for task in [Builtin::Cartpole, Builtin::HalfCheetah] {
+        let spec = task.task();
         let (o, a, f) = (spec.obs_dim, spec.act_dim, spec.state_feature_dim);
         let mut rng = StdRng::seed_from_u64(31);
         let config = DynamicsConfig {

@@ -254,16 +254,17 @@ pub fn archive_run(data_dir: &Path, name: &str) -> Result<PathBuf, AdminError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::{PlannerOverrides, TaskId, TrainMode};
+    use proto::{PlannerOverrides, Builtin, TrainMode};
 
     fn store_run(data: &Path, name: &str) {
         let dir = RunDir::new(data, name);
         dir.write_spec(&RunSpec {
-            task: TaskId::Cartpole,
+            task: Builtin::Cartpole.name().into(),
             preset: None,
             overrides: PlannerOverrides::default(),
             mode: TrainMode::Sync,
             seed: 1,
+            task_spec: None,
         })
         .unwrap();
         fs::write(dir.replay_log(), [0u8; 100]).unwrap();
@@ -279,7 +280,7 @@ mod tests {
         let names: Vec<&str> = listed.iter().map(|r| r.name.as_str()).collect();
         assert_eq!(names, ["gone", "keep", "old"]);
         assert_eq!(listed[0].replay_bytes, 100);
-        assert_eq!(listed[0].spec.as_ref().unwrap().task, TaskId::Cartpole);
+        assert_eq!(listed[0].spec.as_ref().unwrap().task, "cartpole");
 
         // While a daemon holds its locks, listing works and changes are refused.
         let daemon = DaemonLock::acquire(data.path(), "pa").unwrap();

@@ -16,7 +16,7 @@ use crate::dynamics::{Ensemble, ModelParts};
 use crate::energy::{EnergyParts, Regularizer, RegularizerKind};
 use crate::models::Models;
 use crate::nn::Normalizer;
-use proto::{TaskId, TaskSpec};
+use proto::Task;
 use safetensors::tensor::{Dtype, TensorView};
 use safetensors::{SafeTensors, serialize};
 use serde::{Deserialize, Serialize};
@@ -45,7 +45,7 @@ pub enum CheckpointError {
     #[error("checkpoint format {found} is not supported (this build reads {FORMAT_VERSION})")]
     Format { found: u32 },
     #[error("checkpoint is for {found}, the run learns {expected}")]
-    Task { found: TaskId, expected: TaskId },
+    Task { found: String, expected: String },
     #[error("checkpoint tensor `{name}`: {problem}")]
     Tensor { name: String, problem: String },
     #[error("checkpoint does not fit the run's preset: {0}")]
@@ -75,7 +75,8 @@ impl CheckpointError {
 #[derive(Debug, Serialize, Deserialize)]
 struct Header {
     format: u32,
-    task: TaskId,
+    /// The task's name (JSON: earlier builds wrote the catalog entry's name here too).
+    task: String,
     models_version: u64,
     episodes_covered: u32,
     regularizer: RegularizerKind,
@@ -99,12 +100,12 @@ fn dynamics_tensor(member: usize) -> String {
 const ENERGY_TENSOR: &str = "energy";
 
 /// Encodes `models` of `task` as safetensors bytes.
-pub fn encode(models: &Models, task: TaskId) -> Result<Vec<u8>, CheckpointError> {
+pub fn encode(models: &Models, task: &Task) -> Result<Vec<u8>, CheckpointError> {
     let members = models.dynamics.parts();
     let energy = models.regularizer.parts();
     let header = Header {
         format: FORMAT_VERSION,
-        task,
+        task: task.name().to_string(),
         models_version: models.version,
         episodes_covered: models.episodes_covered,
         regularizer: models.regularizer.kind(),
@@ -200,7 +201,7 @@ fn verify(
 /// Decodes a checkpoint into models of the run's `preset` for `task`, checking every shape.
 pub fn decode(
     bytes: &[u8],
-    task: &'static TaskSpec,
+    task: &'static Task,
     preset: &Preset,
 ) -> Result<Models, CheckpointError> {
     let (_, metadata) = SafeTensors::read_metadata(bytes)?;
@@ -219,10 +220,10 @@ pub fn decode(
             found: header.format,
         });
     }
-    if header.task != task.id {
+    if header.task != task.name() {
         return Err(CheckpointError::Task {
             found: header.task,
-            expected: task.id,
+            expected: task.name().to_string(),
         });
     }
     let parts = header
@@ -297,13 +298,14 @@ fn read_f32(tensors: &SafeTensors<'_>, name: &str) -> Result<Vec<f32>, Checkpoin
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proto::Builtin;
     use crate::data::Transitions;
     use rand::SeedableRng;
     use rand::rngs::StdRng;
 
     fn trained(method: &str) -> (Preset, Models) {
-        let task = TaskId::Cartpole.spec();
-        let mut preset = Preset::new(TaskId::Cartpole, Some(method)).unwrap();
+        let task = Builtin::Cartpole.task();
+        let mut preset = Preset::new(Builtin::Cartpole.task(), Some(method)).unwrap();
         preset.dynamics.hidden_size = 8;
         preset.dynamics.ensemble_size = preset.dynamics.ensemble_size.min(2);
         preset.energy.hidden_size = 8;
@@ -325,8 +327,8 @@ mod tests {
     fn a_decoded_checkpoint_predicts_exactly_what_was_saved() {
         for method in ["cem", "cem+dae", "pets+deen"] {
             let (preset, models) = trained(method);
-            let task = TaskId::Cartpole.spec();
-            let bytes = encode(&models, TaskId::Cartpole).unwrap();
+            let task = Builtin::Cartpole.task();
+            let bytes = encode(&models, Builtin::Cartpole.task()).unwrap();
             let restored = decode(&bytes, task, &preset).unwrap();
             assert_eq!(restored.version, 4);
             assert_eq!(restored.episodes_covered, 7);
@@ -347,23 +349,23 @@ mod tests {
     #[test]
     fn a_checkpoint_that_does_not_fit_the_run_is_refused() {
         let (preset, models) = trained("cem+deen");
-        let bytes = encode(&models, TaskId::Cartpole).unwrap();
-        let err = decode(&bytes, TaskId::Ant.spec(), &preset).unwrap_err();
+        let bytes = encode(&models, Builtin::Cartpole.task()).unwrap();
+        let err = decode(&bytes, Builtin::Ant.task(), &preset).unwrap_err();
         assert!(matches!(err, CheckpointError::Task { .. }), "{err}");
         let mut wider = preset.clone();
         wider.dynamics.hidden_size = 16;
-        let err = decode(&bytes, TaskId::Cartpole.spec(), &wider).unwrap_err();
+        let err = decode(&bytes, Builtin::Cartpole.task(), &wider).unwrap_err();
         assert!(matches!(err, CheckpointError::Shape(_)), "{err}");
         let mut other = preset.clone();
         other.regularizer = RegularizerKind::Dae;
-        assert!(decode(&bytes, TaskId::Cartpole.spec(), &other).is_err());
+        assert!(decode(&bytes, Builtin::Cartpole.task(), &other).is_err());
     }
 
     #[test]
     fn damaged_bytes_are_an_error_not_a_panic() {
         let (preset, models) = trained("cem+deen");
-        let bytes = encode(&models, TaskId::Cartpole).unwrap();
-        let task = TaskId::Cartpole.spec();
+        let bytes = encode(&models, Builtin::Cartpole.task()).unwrap();
+        let task = Builtin::Cartpole.task();
         for cut in [0, 7, 8, 100, bytes.len() / 2, bytes.len() - 1] {
             assert!(
                 decode(&bytes[..cut], task, &preset).is_err(),
@@ -387,7 +389,7 @@ mod tests {
     #[test]
     fn a_checkpoint_from_before_checksums_is_unsupported_not_damaged() {
         let (preset, models) = trained("cem");
-        let bytes = encode(&models, TaskId::Cartpole).unwrap();
+        let bytes = encode(&models, Builtin::Cartpole.task()).unwrap();
         let (_, metadata) = SafeTensors::read_metadata(&bytes).unwrap();
         let mut header: serde_json::Value =
             serde_json::from_str(&metadata.metadata().as_ref().unwrap()[HEADER_KEY]).unwrap();
@@ -402,7 +404,7 @@ mod tests {
             )])),
         )
         .unwrap();
-        let err = decode(&old, TaskId::Cartpole.spec(), &preset).unwrap_err();
+        let err = decode(&old, Builtin::Cartpole.task(), &preset).unwrap_err();
         assert!(matches!(err, CheckpointError::Format { found: 1 }), "{err}");
         assert!(!err.is_damage());
     }

@@ -25,7 +25,7 @@ pub mod checkpoint;
 use crate::config::Preset;
 use crate::models::Models;
 use checkpoint::CheckpointError;
-use proto::{RunSpec, TaskSpec};
+use proto::{RunSpec, Task};
 use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -215,10 +215,10 @@ impl RunDir {
     }
 
     /// Writes a checkpoint of `models` and removes all but the newest `CHECKPOINTS_KEPT` (2).
-    pub fn save_models(&self, models: &Models, task: &TaskSpec) -> Result<PathBuf, PersistError> {
+    pub fn save_models(&self, models: &Models, task: &Task) -> Result<PathBuf, PersistError> {
         let path = self.checkpoint_path(models.version);
         let bytes =
-            checkpoint::encode(models, task.id).map_err(|source| PersistError::Checkpoint {
+            checkpoint::encode(models, task).map_err(|source| PersistError::Checkpoint {
                 path: path.display().to_string(),
                 source,
             })?;
@@ -239,7 +239,7 @@ impl RunDir {
     /// The newest stored checkpoint that decodes and fits `preset`; `None` if there is none.
     pub fn load_models(
         &self,
-        task: &'static TaskSpec,
+        task: &'static Task,
         preset: &Preset,
     ) -> Result<Option<Models>, PersistError> {
         for version in self.checkpoint_versions()? {
@@ -324,7 +324,7 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), PersistError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::{PlannerOverrides, TaskId, TrainMode};
+    use proto::{PlannerOverrides, Builtin, TrainMode};
 
     fn temp_dir(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("ebmpc-persist-{name}-{}", std::process::id()));
@@ -333,7 +333,7 @@ mod tests {
     }
 
     fn small_preset() -> Preset {
-        let mut preset = Preset::new(TaskId::Cartpole, Some("cem+deen")).unwrap();
+        let mut preset = Preset::new(Builtin::Cartpole.task(), Some("cem+deen")).unwrap();
         preset.dynamics.hidden_size = 8;
         preset.energy.hidden_size = 8;
         preset
@@ -345,11 +345,12 @@ mod tests {
         let dir = RunDir::new(&data, "r1");
         assert_eq!(dir.read_spec().unwrap(), None);
         let spec = RunSpec {
-            task: TaskId::Ant,
+            task: Builtin::Ant.name().into(),
             preset: Some("pets+deen".into()),
             overrides: PlannerOverrides::default(),
             mode: TrainMode::Async,
             seed: 9,
+            task_spec: None,
         };
         dir.write_spec(&spec).unwrap();
         assert_eq!(dir.read_spec().unwrap(), Some(spec));
@@ -365,7 +366,7 @@ mod tests {
     fn the_newest_usable_checkpoint_is_loaded_and_only_two_are_kept() {
         let data = temp_dir("checkpoints");
         let dir = RunDir::new(&data, "r");
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let preset = small_preset();
         assert!(dir.load_models(task, &preset).unwrap().is_none());
         let mut models = Models::untrained(task, &preset, 1);

@@ -11,7 +11,7 @@
 //! and weighted by its share of the particles. PETS' sampled particles (TS∞) are not used:
 //! Boney et al. plan through the mean of a single model, and a sampled objective would make
 //! every Adam step follow a different function. The reward's gradient is the task's own
-//! ([`proto::TaskSpec::reward_gradient`]); the regulariser's is
+//! ([`proto::Task::reward_gradient`]); the regulariser's is
 //! [`Regularizer::energy_and_gradient`]: for the DAE, the penalty `‖g(x) − x‖²` with the
 //! gradient stopped at the autoencoder, as the paper describes Boney et al.'s method (§3).
 //! Termination (the ant falling) stops a row accruing, as in imagination; its gradient does
@@ -45,7 +45,7 @@ use super::anytime::IterationClock;
 use super::cem::{CemConfig, CemOutcome, ConfigError, SequenceBox};
 use crate::dynamics::{Ensemble, MeanTape};
 use crate::energy::{EnergyGradScratch, Regularizer};
-use proto::TaskSpec;
+use proto::Task;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -89,7 +89,7 @@ const EPSILON: f32 = 1e-8;
 #[derive(Debug)]
 pub struct AdamPlanner {
     config: CemConfig,
-    task: &'static TaskSpec,
+    task: &'static Task,
     /// Bounds, half-ranges and the neutral action per coordinate (`horizon × act_dim`).
     lower: Vec<f32>,
     upper: Vec<f32>,
@@ -152,7 +152,7 @@ impl AdamPlanner {
     /// A planner for actions bounded by `lower`/`upper` (one entry per action dimension),
     /// scoring plans as `Σ reward − energy_weight · energy`, seeded for reproducible solves.
     pub fn new(
-        task: &'static TaskSpec,
+        task: &'static Task,
         config: CemConfig,
         energy_weight: f32,
         seed: u64,
@@ -163,7 +163,7 @@ impl AdamPlanner {
             return Err(ConfigError::EnergyWeight(energy_weight));
         }
         let SequenceBox { lower, upper, .. } =
-            SequenceBox::new(task.action_low, task.action_high, config.horizon)?;
+            SequenceBox::new(&task.action_low, &task.action_high, config.horizon)?;
         let half_range = SequenceBox::per_coordinate(&lower, &upper, |l, u| 0.5 * (u - l));
         let neutral = SequenceBox::per_coordinate(&lower, &upper, |l, u| 0.5 * (l + u));
         let (dim, c) = (lower.len(), config.population);
@@ -487,7 +487,7 @@ impl AdamPlanner {
 
 impl Rollout {
     fn new(
-        task: &'static TaskSpec,
+        task: &'static Task,
         config: &CemConfig,
         members: usize,
         dynamics: &Ensemble,
@@ -544,7 +544,7 @@ mod tests {
     use crate::dynamics::DynamicsConfig;
     use crate::energy::{EnergyConfig, RegularizerKind};
     use crate::plan::{IcemConfig, Optimizer};
-    use proto::TaskId;
+    use proto::Builtin;
 
     fn config(horizon: usize, population: usize, iterations: usize, particles: usize) -> CemConfig {
         CemConfig {
@@ -561,8 +561,8 @@ mod tests {
         }
     }
 
-    fn random_data(task: TaskId, n: usize, rng: &mut StdRng) -> Transitions {
-        let spec = task.spec();
+    fn random_data(task: Builtin, n: usize, rng: &mut StdRng) -> Transitions {
+        let spec = task.task();
         let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
         for _ in 0..n {
             let obs: Vec<f32> = (0..spec.obs_dim)
@@ -586,10 +586,10 @@ mod tests {
     #[test]
     fn whole_horizon_gradient_matches_finite_differences() {
         for (task, kind) in [
-            (TaskId::Cartpole, RegularizerKind::Dae),
-            (TaskId::HalfCheetah, RegularizerKind::Deen),
+            (Builtin::Cartpole, RegularizerKind::Dae),
+            (Builtin::HalfCheetah, RegularizerKind::Deen),
         ] {
-            let spec = task.spec();
+            let spec = task.task();
             let mut rng = StdRng::seed_from_u64(17);
             let data = random_data(task, 200, &mut rng);
             let dynamics_config = DynamicsConfig {
@@ -653,8 +653,8 @@ mod tests {
     /// bounds: Adam must find it, at every step of the horizon, from the neutral start.
     #[test]
     fn finds_the_known_optimum_through_a_learned_model() {
-        let task = TaskId::HalfCheetah;
-        let spec = task.spec();
+        let task = Builtin::HalfCheetah;
+        let spec = task.task();
         let w = [0.1f32, -0.05, 0.02, 0.0, 0.08, -0.1];
         let optimum: Vec<f32> = w.iter().map(|w| w / 0.2).collect();
         let mut rng = StdRng::seed_from_u64(3);
@@ -719,7 +719,7 @@ mod tests {
 
     #[test]
     fn refuses_bad_learning_rates() {
-        let spec = TaskId::Cartpole.spec();
+        let spec = Builtin::Cartpole.task();
         for lr in [0.0, -0.1, f32::NAN, f32::INFINITY, MAX_LEARNING_RATE * 2.0] {
             let mut c = config(3, 2, 2, 1);
             c.adam.learning_rate = lr;

@@ -3,14 +3,14 @@
 //!
 //! `return = Σ_τ [ r(s_τ, a_τ, s_τ₊₁) − α·E(s_τ, a_τ, s_τ₊₁) ]`,
 //!
-//! with `r` the task's own reward ([`proto::TaskSpec::reward`], the function the simulator uses),
+//! with `r` the task's own reward ([`proto::Task::reward`], the function the simulator uses),
 //! `E` the regulariser's energy and `α` the energy weight.
 //!
 //! - **Particles (PETS TS∞).** Each candidate is imagined `P` times; particle `p` follows
 //!   ensemble member `p mod B` for the whole horizon and, when sampling is on, draws its next
 //!   state from the member's predicted Gaussian. The candidate's return is the particles' mean.
 //!   `P = 1`, `B = 1` without sampling is the paper's single-model setting.
-//! - **Termination.** Once a particle reaches a terminal state (`TaskSpec::is_terminal`, e.g. the
+//! - **Termination.** Once a particle reaches a terminal state (`Task::is_terminal`, e.g. the
 //!   ant falling) it stops accruing reward and energy; the transition into the terminal state
 //!   still counts.
 //! - **Non-finite returns** (a diverging model) are reported as `-inf`, so they never win.
@@ -26,7 +26,7 @@
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
 use crate::plan::cem::CemConfig;
-use proto::TaskSpec;
+use proto::Task;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -49,7 +49,7 @@ pub struct Imagination {
 /// What every chunk needs to know, shared read-only across threads.
 #[derive(Clone, Copy)]
 struct Context {
-    task: &'static TaskSpec,
+    task: &'static Task,
     horizon: usize,
     particles: usize,
     energy_weight: f32,
@@ -89,7 +89,7 @@ impl Imagination {
     /// `config.particles` particles each, split into `chunks` parallel chunks (at least 1; the
     /// number of rayon threads is the natural choice). `seed` seeds the sampling noise.
     pub fn new(
-        task: &'static TaskSpec,
+        task: &'static Task,
         config: &CemConfig,
         energy_weight: f32,
         sample: bool,
@@ -239,7 +239,7 @@ fn seed_for_chunk(seed: u64, chunk: usize) -> u64 {
 }
 
 impl Chunk {
-    fn new(task: &TaskSpec, particles: usize, capacity: usize, seed: u64) -> Self {
+    fn new(task: &Task, particles: usize, capacity: usize, seed: u64) -> Self {
         let rows = particles * capacity;
         let (o, a) = (task.obs_dim, task.act_dim);
         Self {
@@ -393,7 +393,7 @@ mod tests {
     use crate::dynamics::DynamicsConfig;
     use crate::energy::{EnergyConfig, RegularizerKind};
     use crate::nn::Normalizer;
-    use proto::TaskId;
+    use proto::Builtin;
 
     fn cem(horizon: usize, population: usize, particles: usize) -> CemConfig {
         CemConfig {
@@ -410,18 +410,18 @@ mod tests {
         }
     }
 
-    fn ensemble(task: TaskId, members: usize, seed: u64) -> Ensemble {
+    fn ensemble(task: Builtin, members: usize, seed: u64) -> Ensemble {
         let config = DynamicsConfig {
             hidden_layers: 2,
             hidden_size: 24,
             ensemble_size: members,
             ..Default::default()
         };
-        Ensemble::new(task.spec(), &config, &mut StdRng::seed_from_u64(seed))
+        Ensemble::new(task.task(), &config, &mut StdRng::seed_from_u64(seed))
     }
 
-    fn deen(task: TaskId, seed: u64) -> Regularizer {
-        let spec = task.spec();
+    fn deen(task: Builtin, seed: u64) -> Regularizer {
+        let spec = task.task();
         let config = EnergyConfig {
             hidden_layers: 2,
             hidden_size: 16,
@@ -436,7 +436,7 @@ mod tests {
         )
     }
 
-    fn random_sequences(task: &TaskSpec, n: usize, horizon: usize, seed: u64) -> Vec<f32> {
+    fn random_sequences(task: &Task, n: usize, horizon: usize, seed: u64) -> Vec<f32> {
         let mut rng = StdRng::seed_from_u64(seed);
         (0..n * horizon)
             .flat_map(|_| {
@@ -450,7 +450,7 @@ mod tests {
     /// One sequence, one member, one row at a time, mean prediction: the plain reading of
     /// eq. 5 with termination. Returns the return and the number of steps that accrued.
     fn reference(
-        task: &'static TaskSpec,
+        task: &'static Task,
         obs: &[f32],
         seq: &[f32],
         dynamics: &Ensemble,
@@ -486,13 +486,13 @@ mod tests {
 
     #[test]
     fn matches_the_sequential_reference_for_any_chunking_and_particle_layout() {
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let (horizon, population, alpha) = (6, 7, 0.3);
         let obs = [0.1, 2.5, -0.2, 0.4];
         let actions = random_sequences(task, population, horizon, 1);
-        let regularizer = deen(TaskId::Cartpole, 2);
+        let regularizer = deen(Builtin::Cartpole, 2);
         for (members, particles) in [(1, 1), (2, 4), (3, 2), (2, 5)] {
-            let dynamics = ensemble(TaskId::Cartpole, members, 3);
+            let dynamics = ensemble(Builtin::Cartpole, members, 3);
             let expected: Vec<f32> = actions
                 .chunks_exact(horizon * task.act_dim)
                 .map(|seq| {
@@ -527,11 +527,11 @@ mod tests {
 
     #[test]
     fn energy_is_subtracted_with_its_weight() {
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let obs = [0.0, 0.3, 0.0, 0.0];
         let actions = random_sequences(task, 4, 5, 9);
-        let dynamics = ensemble(TaskId::Cartpole, 1, 4);
-        let regularizer = deen(TaskId::Cartpole, 5);
+        let dynamics = ensemble(Builtin::Cartpole, 1, 4);
+        let regularizer = deen(Builtin::Cartpole, 5);
         let score = |alpha: f32, reg: &Regularizer| {
             let mut imagination = Imagination::new(task, &cem(5, 4, 1), alpha, false, 2, 0);
             let mut returns = vec![0.0; 4];
@@ -557,8 +557,8 @@ mod tests {
     /// An ant model that predicts the delta `delta` (to within ~1e-4) whatever the input: the
     /// target normaliser has a tiny spread around it, scaling the network's output away.
     fn constant_delta_ant(delta: &[f32]) -> Ensemble {
-        let spec = TaskId::Ant.spec();
-        let mut dynamics = ensemble(TaskId::Ant, 1, 6);
+        let spec = Builtin::Ant.task();
+        let mut dynamics = ensemble(Builtin::Ant, 1, 6);
         let rows: Vec<f32> = [1e-5f32, -1e-5]
             .iter()
             .flat_map(|&jitter| delta.iter().map(move |d| d + jitter))
@@ -572,7 +572,7 @@ mod tests {
 
     #[test]
     fn terminal_states_stop_reward_accrual() {
-        let task = TaskId::Ant.spec();
+        let task = Builtin::Ant.task();
         let mut delta = vec![0.0; task.obs_dim];
         delta[0] = -0.1; // the torso sinks 0.1 per step: 0.45, 0.35, 0.25, 0.15 (fallen)
         delta[13] = 0.5; // forward velocity grows, so every step's reward is positive
@@ -606,7 +606,7 @@ mod tests {
 
     #[test]
     fn diverging_models_score_minus_infinity() {
-        let task = TaskId::Ant.spec();
+        let task = Builtin::Ant.task();
         let mut delta = vec![0.0; task.obs_dim];
         delta[13] = f32::MAX; // the forward velocity overflows to +inf after two steps
         let dynamics = constant_delta_ant(&delta);
@@ -626,12 +626,12 @@ mod tests {
     fn a_smaller_population_is_spread_over_every_chunk_and_scored_the_same() {
         // iCEM's population decays: 10 candidates in 3 chunks (4, 4, 2), then the first 9
         // (3, 3, 3: more than the last chunk held at full size), then 4 (2, 2).
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let obs = [0.1, 2.0, 0.0, 0.3];
         let (horizon, population) = (5, 10);
         let actions = random_sequences(task, population, horizon, 7);
-        let dynamics = ensemble(TaskId::Cartpole, 1, 3);
-        let energy = deen(TaskId::Cartpole, 4);
+        let dynamics = ensemble(Builtin::Cartpole, 1, 3);
+        let energy = deen(Builtin::Cartpole, 4);
         let mut imagination =
             Imagination::new(task, &cem(horizon, population, 1), 0.01, false, 3, 0);
         let mut full = vec![0.0; population];
@@ -660,11 +660,11 @@ mod tests {
 
     #[test]
     fn sampling_is_reproducible_and_differs_from_the_mean() {
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let obs = [0.0, 1.0, 0.0, 0.0];
         let (horizon, population) = (8, 6);
         let actions = random_sequences(task, population, horizon, 4);
-        let dynamics = ensemble(TaskId::Cartpole, 2, 8);
+        let dynamics = ensemble(Builtin::Cartpole, 2, 8);
         let run = |sample: bool, seed: u64| {
             let mut imagination =
                 Imagination::new(task, &cem(horizon, population, 4), 0.0, sample, 2, seed);
@@ -681,12 +681,12 @@ mod tests {
 
     #[test]
     fn rollout_records_the_steps_of_one_sequence() {
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let obs = [0.2, 0.5, 0.0, 0.1];
         let horizon = 5;
         let seq = random_sequences(task, 1, horizon, 3);
-        let dynamics = ensemble(TaskId::Cartpole, 1, 1);
-        let regularizer = deen(TaskId::Cartpole, 7);
+        let dynamics = ensemble(Builtin::Cartpole, 1, 1);
+        let regularizer = deen(Builtin::Cartpole, 7);
         let mut imagination = Imagination::new(task, &cem(horizon, 9, 1), 0.5, false, 2, 0);
         let (mut rewards, mut energies) = (vec![0.0; horizon], vec![0.0; horizon]);
         let ret = imagination.rollout(

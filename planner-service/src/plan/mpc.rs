@@ -7,13 +7,13 @@ use crate::plan::anytime::IterationClock;
 use crate::plan::cem::{CemConfig, ConfigError};
 use crate::plan::imagine::Imagination;
 use crate::plan::search::{Imagined, Search};
-use proto::TaskSpec;
+use proto::Task;
 use std::time::Instant;
 
 /// One agent's planner. Owns the optimiser's distribution (the warm start), the imagination's
 /// buffers and the random state, so planning allocates nothing.
 pub struct MpcPlanner {
-    task: &'static TaskSpec,
+    task: &'static Task,
     /// CEM, iCEM or Adam, as the configuration says.
     search: Search,
     imagination: Imagination,
@@ -61,7 +61,7 @@ impl MpcPlanner {
     /// the dynamics' predicted Gaussian when `sample` is set (PETS TS∞), else using its mean.
     /// The population is split across all rayon threads; `seed` fixes every random choice.
     pub fn new(
-        task: &'static TaskSpec,
+        task: &'static Task,
         config: CemConfig,
         energy_weight: f32,
         sample: bool,
@@ -80,7 +80,7 @@ impl MpcPlanner {
     /// As [`MpcPlanner::new`], with the population split into `chunks` parallel chunks.
     /// Results depend on the seed and the chunk count, not on the thread that runs a chunk.
     pub fn with_chunks(
-        task: &'static TaskSpec,
+        task: &'static Task,
         config: CemConfig,
         energy_weight: f32,
         sample: bool,
@@ -108,7 +108,7 @@ impl MpcPlanner {
         })
     }
 
-    pub fn task(&self) -> &'static TaskSpec {
+    pub fn task(&self) -> &'static Task {
         self.task
     }
 
@@ -208,7 +208,7 @@ mod tests {
     use crate::dynamics::DynamicsConfig;
     use crate::energy::{EnergyConfig, RegularizerKind};
     use crate::plan::{IcemConfig, Optimizer};
-    use proto::TaskId;
+    use proto::Builtin;
     use rand::rngs::StdRng;
     use rand::{RngExt, SeedableRng};
     use std::f32::consts::PI;
@@ -239,7 +239,7 @@ mod tests {
             ..Default::default()
         };
         let mut rng = StdRng::seed_from_u64(0);
-        let mut dynamics = Ensemble::new(TaskId::Cartpole.spec(), &config, &mut rng);
+        let mut dynamics = Ensemble::new(Builtin::Cartpole.task(), &config, &mut rng);
         let report = dynamics.fit(&pushed_cart(2000, (-3.0, 3.0), 1), 40, &mut rng);
         assert!(report.mse.unwrap() < 0.05, "{report:?}");
         dynamics
@@ -263,7 +263,7 @@ mod tests {
     #[test]
     fn plans_towards_the_reward_through_a_learned_model() {
         let dynamics = learned_cart();
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 3).unwrap();
         let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
         assert!(right.action[0] < -1.0, "{right:?}");
@@ -284,7 +284,7 @@ mod tests {
         // right on average, as the data did. (Over a ∈ [−3, 3] this DEEN's energy varies by
         // ~10 per step, so the weight must be large next to rewards of at most 1 per step.)
         let dynamics = learned_cart();
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let energy_config = EnergyConfig {
             hidden_layers: 2,
             hidden_size: 64,
@@ -318,7 +318,7 @@ mod tests {
     #[test]
     fn warm_starts_reset_and_reproducibility() {
         let dynamics = learned_cart();
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let obs = [0.5, PI, 0.0, 0.0];
         let mut a = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
         let mut b = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
@@ -342,7 +342,7 @@ mod tests {
     #[test]
     fn imagined_plans_report_their_steps_and_leave_the_warm_start_alone() {
         let dynamics = learned_cart();
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 2).unwrap();
         planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
         let warm = planner.search.mean().to_vec();
@@ -367,13 +367,13 @@ mod tests {
         // planner takes, step after step, the actions that `Cem` itself picks with the same
         // seed over the same imagination.
         let dynamics = learned_cart();
-        let task = TaskId::Cartpole.spec();
-        let preset = crate::config::Preset::new(TaskId::Cartpole, None).unwrap();
+        let task = Builtin::Cartpole.task();
+        let preset = crate::config::Preset::new(Builtin::Cartpole.task(), None).unwrap();
         assert_eq!(preset.cem.optimizer, Optimizer::Cem);
         let mut planner =
             MpcPlanner::with_chunks(task, preset.cem.clone(), 0.0, false, 5, 2).unwrap();
         let mut cem =
-            crate::plan::Cem::new(preset.cem.clone(), task.action_low, task.action_high, 5)
+            crate::plan::Cem::new(preset.cem.clone(), &task.action_low, &task.action_high, 5)
                 .unwrap();
         let mut imagination = Imagination::new(task, &preset.cem, 0.0, false, 2, 6);
         let mut obs = [0.5, PI, 0.0, 0.0];
@@ -400,7 +400,7 @@ mod tests {
     #[test]
     fn icem_plans_towards_the_reward_with_a_fraction_of_the_samples() {
         let dynamics = learned_cart();
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut cfg = config();
         cfg.optimizer = Optimizer::Icem;
         cfg.population = 50;
@@ -417,7 +417,7 @@ mod tests {
     fn a_plan_with_no_time_answers_the_previous_plan_shifted() {
         use std::time::{Duration, Instant};
         let dynamics = learned_cart();
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let obs = [0.5, PI, 0.0, 0.0];
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 4).unwrap();
         let first = planner.plan(&obs, &dynamics, &Regularizer::None, None);
@@ -437,7 +437,7 @@ mod tests {
         // Same seed, same observations: no deadline and a deadline an hour away take the same
         // actions, every iteration run, nothing cut.
         let dynamics = learned_cart();
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let later = std::time::Instant::now() + std::time::Duration::from_secs(3600);
         let actions = |deadline| {
             let mut planner = MpcPlanner::new(task, config(), 0.0, false, 8).unwrap();
@@ -456,7 +456,7 @@ mod tests {
 
     #[test]
     fn refuses_a_bad_energy_weight() {
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         assert!(matches!(
             MpcPlanner::new(task, config(), f32::NAN, false, 0),
             Err(ConfigError::EnergyWeight(_))

@@ -8,7 +8,7 @@ use super::icem::Icem;
 use super::imagine::Imagination;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use proto::TaskSpec;
+use proto::Task;
 
 /// The planning problem of one step: imagination from one observation with fixed models.
 /// CEM and iCEM see it as a [`PopulationObjective`]; Adam differentiates the same objective.
@@ -37,12 +37,12 @@ pub(super) enum Search {
 
 impl Search {
     pub fn new(
-        task: &'static TaskSpec,
+        task: &'static Task,
         config: CemConfig,
         energy_weight: f32,
         seed: u64,
     ) -> Result<Self, ConfigError> {
-        let (lower, upper) = (task.action_low, task.action_high);
+        let (lower, upper) = (&task.action_low[..], &task.action_high[..]);
         Ok(match config.optimizer {
             Optimizer::Cem => Search::Cem(Cem::new(config, lower, upper, seed)?),
             Optimizer::Icem => Search::Icem(Icem::new(config, lower, upper, seed)?),

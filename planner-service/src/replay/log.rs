@@ -28,6 +28,10 @@
 //! by rewriting it whole under the new version (new file, fsync, rename): from then on a build
 //! that reads only format 2 refuses the file rather than taking the new records for damage and
 //! cutting them off.
+//!
+//! Format 4 names the task in the header by its name string (tasks became data: any name a
+//! catalog or an agent's spec gives). A header of formats 1–3 (the task as an index of the old
+//! closed enum) is read as that task's name; such a log is upgraded like a format-2 one.
 
 use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
@@ -41,8 +45,9 @@ const MAX_RECORD: u32 = 16 << 20;
 /// The first bytes of a log file in this format.
 const MAGIC: &[u8; 8] = b"EBMPCRL\0";
 
-/// The format version written after [`MAGIC`] (3: ownership epochs and applied actions).
-const FORMAT_VERSION: u32 = 3;
+/// The format version written after [`MAGIC`] (3: ownership epochs and applied actions; 4: the
+/// header names its task by name).
+const FORMAT_VERSION: u32 = 4;
 
 /// Bytes of the file header: magic and version.
 const FILE_HEADER_LEN: usize = MAGIC.len() + 4;
@@ -61,9 +66,9 @@ const RECORD_HEADER_LEN: usize = SYNC.len() + 8;
 /// stale and skipped when the log is read.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Record {
-    /// First record of every file: what the buffer holds.
+    /// First record of every file: what the buffer holds (the task by name).
     Header {
-        task: proto::TaskId,
+        task: String,
         obs_dim: u32,
         act_dim: u32,
     },
@@ -124,10 +129,12 @@ pub enum ActionOrigin {
 /// The records as postcard writes them: the variant index is the on-disk tag, so variants are
 /// only ever added at the end. Logs written before ownership epochs hold `TransitionV1` and
 /// `EpisodeEndV1`; they are read as epoch 0 with the planned action and never written again.
+/// Logs of formats 1–3 name their task in `HeaderV3` by the index of the closed task enum of
+/// those builds; it is read as that task's name and never written again (`Header` names it).
 #[derive(Serialize, Deserialize)]
 enum OnDisk {
-    Header {
-        task: proto::TaskId,
+    HeaderV3 {
+        task: CatalogIndexV3,
         obs_dim: u32,
         act_dim: u32,
     },
@@ -170,11 +177,48 @@ enum OnDisk {
         episode_return: f32,
         end: proto::EpisodeEnd,
     },
+    Header {
+        task: String,
+        obs_dim: u32,
+        act_dim: u32,
+    },
+}
+
+/// How logs of formats 1–3 named their task: postcard's index of the task enum of those
+/// builds, in its declaration order (not the paper's).
+#[derive(Clone, Copy, Serialize, Deserialize)]
+enum CatalogIndexV3 {
+    Cartpole,
+    Reacher3d,
+    HalfCheetah,
+    Ant,
+    Pusher,
+}
+
+impl CatalogIndexV3 {
+    fn name(self) -> &'static str {
+        match self {
+            Self::Cartpole => "cartpole",
+            Self::Reacher3d => "reacher3d",
+            Self::HalfCheetah => "halfcheetah",
+            Self::Ant => "ant",
+            Self::Pusher => "pusher",
+        }
+    }
 }
 
 impl From<OnDisk> for Record {
     fn from(stored: OnDisk) -> Self {
         match stored {
+            OnDisk::HeaderV3 {
+                task,
+                obs_dim,
+                act_dim,
+            } => Record::Header {
+                task: task.name().to_string(),
+                obs_dim,
+                act_dim,
+            },
             OnDisk::Header {
                 task,
                 obs_dim,
@@ -968,6 +1012,42 @@ pub(crate) mod tests {
         assert_eq!(std::fs::read(&path).unwrap(), bytes);
     }
 
+    /// A format-3 log names its task by the old closed enum's index: it reads as the task's
+    /// name, the log is upgraded to format 4, and headers written from now on carry the name.
+    #[test]
+    fn a_format_3_log_reads_its_task_index_as_a_name() {
+        let old_header = OnDisk::HeaderV3 {
+            task: CatalogIndexV3::HalfCheetah,
+            obs_dim: 18,
+            act_dim: 6,
+        };
+        let encoded = postcard::to_stdvec(&old_header).unwrap();
+        assert_eq!(encoded[..2], [0, 2], "format 3's tag and the task's index");
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&3u32.to_le_bytes());
+        frame(&encoded, &mut bytes);
+        frame(
+            &postcard::to_stdvec(&OnDisk::from(transition(0))).unwrap(),
+            &mut bytes,
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        std::fs::write(&path, &bytes).unwrap();
+        let header = Record::Header {
+            task: "halfcheetah".into(),
+            obs_dim: 18,
+            act_dim: 6,
+        };
+        let (_, rec) = ReplayLog::open(&path).unwrap();
+        assert!(rec.migrated);
+        assert_eq!(rec.records, [header.clone(), transition(0)]);
+        let (_, again) = ReplayLog::open(&path).unwrap();
+        assert!(!again.migrated);
+        assert_eq!(again.records, [header.clone(), transition(0)]);
+        let written = postcard::to_stdvec(&OnDisk::from(header)).unwrap();
+        assert_eq!(written[0], 6, "a new header is the appended variant");
+    }
+
     /// A format-2 log (written before ownership epochs, its records encoded as that release
     /// did) is upgraded to the current format on opening: every record reads as epoch 0 with
     /// the planned action, a damaged record in it is still skipped, and new records append
@@ -978,7 +1058,7 @@ pub(crate) mod tests {
         #[derive(Serialize)]
         enum OldRecord {
             Header {
-                task: proto::TaskId,
+                task: CatalogIndexV3,
                 obs_dim: u32,
                 act_dim: u32,
             },
@@ -1001,7 +1081,7 @@ pub(crate) mod tests {
         }
         let old = [
             OldRecord::Header {
-                task: proto::TaskId::Cartpole,
+                task: CatalogIndexV3::Cartpole,
                 obs_dim: 4,
                 act_dim: 1,
             },
@@ -1045,6 +1125,15 @@ pub(crate) mod tests {
         assert_eq!(
             upgraded[MAGIC.len()..FILE_HEADER_LEN],
             FORMAT_VERSION.to_le_bytes()
+        );
+        assert_eq!(
+            rec.records[0],
+            Record::Header {
+                task: "cartpole".into(),
+                obs_dim: 4,
+                act_dim: 1,
+            },
+            "the old header's task index reads as the task's name"
         );
         assert_eq!(
             rec.records[1],

@@ -8,7 +8,7 @@ pub(crate) use log::tests as log_tests;
 pub use log::{ActionOrigin, LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog};
 
 use crate::data::Transitions;
-use proto::{EpisodeEnd, TaskSpec};
+use proto::{EpisodeEnd, Task};
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;
 
@@ -49,7 +49,7 @@ pub enum ReplayError {
 /// and numbering depend on them.
 #[derive(Debug)]
 pub struct ReplayBuffer {
-    task: &'static TaskSpec,
+    task: &'static Task,
     transitions: Transitions,
     /// Which action each transition holds, in the order of `transitions`.
     origins: Vec<ActionOrigin>,
@@ -96,7 +96,7 @@ impl From<EpisodeSummary> for Record {
 
 impl ReplayBuffer {
     /// A buffer that lives in memory only (tests, benchmarks).
-    pub fn in_memory(task: &'static TaskSpec) -> Self {
+    pub fn in_memory(task: &'static Task) -> Self {
         Self {
             task,
             transitions: Transitions::new(task.obs_dim, task.act_dim),
@@ -120,14 +120,14 @@ impl ReplayBuffer {
     /// Episodes the log holds transitions of but no end (the daemon stopped in their middle)
     /// are recorded as interrupted here: their transitions stay (they were acknowledged), and
     /// their agents continue with the next episode number rather than resuming a stale one.
-    pub fn open(path: &Path, task: &'static TaskSpec) -> Result<Self, ReplayError> {
+    pub fn open(path: &Path, task: &'static Task) -> Result<Self, ReplayError> {
         Self::from_log(ReplayLog::open(path)?, task)
     }
 
     /// As [`ReplayBuffer::open`], writing through `wrap(file)` (tests inject a failing disk).
     pub fn open_with(
         path: &Path,
-        task: &'static TaskSpec,
+        task: &'static Task,
         wrap: impl FnOnce(std::fs::File) -> Box<dyn LogFile>,
     ) -> Result<Self, ReplayError> {
         Self::from_log(ReplayLog::open_with(path, wrap)?, task)
@@ -135,7 +135,7 @@ impl ReplayBuffer {
 
     fn from_log(
         (mut log, recovered): (ReplayLog, Recovered),
-        task: &'static TaskSpec,
+        task: &'static Task,
     ) -> Result<Self, ReplayError> {
         let path = log.path().to_path_buf();
         if recovered.truncated_bytes > 0 {
@@ -148,16 +148,16 @@ impl ReplayBuffer {
         let mut records = recovered.records.into_iter();
         match records.next() {
             None => log.append(&[Record::Header {
-                task: task.id,
+                task: task.name().to_string(),
                 obs_dim: task.obs_dim as u32,
                 act_dim: task.act_dim as u32,
             }])?,
-            Some(Record::Header { task: found, .. }) if found == task.id => {}
+            Some(Record::Header { task: found, .. }) if found == task.name() => {}
             Some(Record::Header { task: found, .. }) => {
                 return Err(ReplayError::TaskMismatch {
                     path: path.display().to_string(),
-                    found: found.to_string(),
-                    expected: task.id.to_string(),
+                    found,
+                    expected: task.name().to_string(),
                 });
             }
             Some(_) => {
@@ -450,7 +450,7 @@ impl ReplayBuffer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::TaskId;
+    use proto::Builtin;
 
     const PLANNED: ActionOrigin = ActionOrigin::Planned;
 
@@ -473,7 +473,7 @@ mod tests {
     fn a_reopened_buffer_holds_everything_stored() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         for step in 0..10 {
             buffer.append(vec![transition("a", 0, step, 0.5)]).unwrap();
@@ -492,7 +492,7 @@ mod tests {
         let reopened = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(reopened.transitions(), &snapshot);
         assert_eq!(reopened.episodes(), &[summary]);
-        let err = ReplayBuffer::open(&path, TaskId::Ant.spec()).unwrap_err();
+        let err = ReplayBuffer::open(&path, Builtin::Ant.task()).unwrap_err();
         assert!(err.to_string().contains("holds task cartpole"), "{err}");
     }
 
@@ -500,7 +500,7 @@ mod tests {
     fn an_episode_left_open_is_recorded_as_interrupted_on_reopening() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         for step in 0..3 {
             buffer
@@ -545,7 +545,7 @@ mod tests {
     fn an_intact_record_of_the_wrong_dimension_is_skipped_on_reopening() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         drop(ReplayBuffer::open(&path, task).unwrap());
         // Written straight to the log (as a buggy older build or a hand edit could): the
         // buffer itself refuses such a record.
@@ -572,7 +572,7 @@ mod tests {
     fn an_episode_numbered_u32_max_resumes_without_overflow() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         buffer
             .append(vec![transition("a", u32::MAX, u32::MAX, 1.0)])
@@ -610,7 +610,7 @@ mod tests {
     fn a_capacity_evicts_the_oldest_whole_episodes_and_keeps_the_log_bounded() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut buffer = ReplayBuffer::open(&path, task).unwrap();
         buffer.set_capacity(Some(10)).unwrap();
         // An episode of agent b stays open the whole time: it is never evicted.
@@ -646,7 +646,7 @@ mod tests {
     fn records_of_a_fenced_owner_are_skipped_and_origins_kept() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
         old_owner.claim(1, "pa").unwrap();
         old_owner.append(vec![transition("a", 0, 0, 1.0)]).unwrap();
@@ -677,7 +677,7 @@ mod tests {
     fn eviction_keeps_origins_aligned_and_a_fenced_owner_never_compacts() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
-        let task = TaskId::Cartpole.spec();
+        let task = Builtin::Cartpole.task();
         let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
         old_owner.claim(1, "pa").unwrap();
         old_owner.set_capacity(Some(4)).unwrap();

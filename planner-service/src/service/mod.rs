@@ -50,6 +50,8 @@ pub enum ServiceError {
     DataDir(#[from] persist::admin::AdminError),
     #[error("metrics endpoint: {0}")]
     Metrics(String),
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigError),
 }
 
 fn zenoh_err(e: impl std::fmt::Display) -> ServiceError {
@@ -205,6 +207,8 @@ enum Taking {
 /// The planner daemon.
 pub struct Service {
     config: ServiceConfig,
+    /// The tasks an agent may name: the built-ins and the configuration's declared tasks.
+    catalog: proto::TaskCatalog,
     outbox: Outbox,
     fleet: Arc<Fleet>,
     runs: Mutex<HashMap<String, RunHandle>>,
@@ -229,6 +233,7 @@ impl Service {
         config: ServiceConfig,
         shutdown: impl Future<Output = ()>,
     ) -> Result<(), ServiceError> {
+        let catalog = config.catalog()?;
         // Held until serving ends: `planner-service runs delete|archive` refuse meanwhile.
         let _daemon_lock =
             persist::admin::DaemonLock::acquire(&config.data_dir, &config.planner_id)?;
@@ -282,6 +287,7 @@ impl Service {
             },
             fleet,
             config,
+            catalog,
             runs: Mutex::new(HashMap::new()),
             failed: Mutex::new(BTreeMap::new()),
             opening: tokio::sync::Mutex::new(()),
@@ -635,7 +641,7 @@ impl Service {
         tracing::info!(run = %run_name, agent = %request.agent, task = %run.spec().task, method = %run.preset().method, "agent attached");
         Ok(AttachAccepted {
             planner_id: self.config.planner_id.clone(),
-            task: run.spec().task,
+            task: run.spec().task.clone(),
             mode: run.mode(),
             episodes_done: run.episodes_stored(),
             models_version: models.version,
@@ -645,9 +651,41 @@ impl Service {
         })
     }
 
+    /// The task a run spec names: its own spec (validated against `[limits]`), or the
+    /// catalog's entry of that name. A spec may not redefine a catalog task.
+    fn task_for(&self, spec: &RunSpec) -> Result<&'static proto::Task, ErrorReport> {
+        let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
+        let Some(task_spec) = &spec.task_spec else {
+            return self
+                .catalog
+                .get(&spec.task)
+                .map_err(|e| ErrorReport::new(ErrorCode::UnknownTask, e.to_string()));
+        };
+        if task_spec.name != spec.task {
+            return Err(refuse(format!(
+                "the task spec is named `{}`, the run spec's task `{}`: they must agree",
+                truncated(&task_spec.name),
+                truncated(&spec.task)
+            )));
+        }
+        if let Ok(known) = self.catalog.get(&spec.task) {
+            return if known.spec() == task_spec {
+                Ok(known)
+            } else {
+                Err(refuse(format!(
+                    "task `{}` is in this planner's catalog with another spec: attach by name, or name your task otherwise",
+                    spec.task
+                )))
+            };
+        }
+        proto::Task::intern(task_spec.clone(), &self.config.limits.spec_bounds())
+            .map_err(|e| refuse(e.to_string()))
+    }
+
     /// The preset a run spec asks for, with the daemon's and the spec's overrides applied.
     fn preset_for(&self, spec: &RunSpec) -> Result<Preset, ErrorReport> {
         let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
+        let task = self.task_for(spec)?;
         let method = spec.preset.as_deref();
         if let Some(m) = method
             && !self.config.allowed_presets.is_empty()
@@ -658,7 +696,7 @@ impl Service {
                 self.config.allowed_presets.join(", ")
             )));
         }
-        let mut preset = Preset::new(spec.task, method).map_err(|e| refuse(e.to_string()))?;
+        let mut preset = Preset::new(task, method).map_err(|e| refuse(e.to_string()))?;
         preset
             .apply(&self.config.overrides)
             .map_err(|e| refuse(format!("planner config: {e}")))?;
@@ -1167,7 +1205,15 @@ async fn reply_attach(query: &zenoh::query::Query, outcome: AttachOutcome, encod
 /// ask for without knowing.
 fn spec_difference(run: &RunSpec, asked: &RunSpec) -> Option<String> {
     if run.task != asked.task {
-        return Some(format!("task {}, not {}", run.task, asked.task));
+        return Some(format!(
+            "task {}, not {}",
+            run.task,
+            truncated(&asked.task)
+        ));
+    }
+    // An agent joining may leave the run's task spec out: the run knows it.
+    if asked.task_spec.is_some() && asked.task_spec != run.task_spec {
+        return Some(format!("another spec of task {}", run.task));
     }
     let preset = |p: &Option<String>| p.clone().unwrap_or_else(|| "(the default)".into());
     if run.preset != asked.preset {

@@ -226,7 +226,7 @@ impl AgentWorker {
                 let action: Vec<f32> = task
                     .action_low
                     .iter()
-                    .zip(task.action_high)
+                    .zip(&task.action_high)
                     .map(|(&lo, &hi)| self.explore_rng.random_range(lo..=hi))
                     .collect();
                 (action, ActionSource::Random, 0.0, 0.0, 0, false)

@@ -95,6 +95,13 @@ enum Termination {
     Expression(Box<dyn CompiledExpression>),
 }
 
+/// Two tasks are the same task when their specs are equal (interning makes them one object).
+impl PartialEq for Task {
+    fn eq(&self, other: &Self) -> bool {
+        self.spec == other.spec
+    }
+}
+
 impl Deref for Task {
     type Target = TaskSpec;
 

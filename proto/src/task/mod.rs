@@ -111,6 +111,18 @@ impl Builtin {
     }
 }
 
+/// Command lines (benchmarks, sim-bridge) name a builtin by its name.
+impl std::str::FromStr for Builtin {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        Builtin::from_name(s).ok_or_else(|| {
+            let known: Vec<&str> = Builtin::ALL.iter().map(|b| b.name()).collect();
+            format!("unknown built-in task `{s}` (known: {})", known.join(", "))
+        })
+    }
+}
+
 impl fmt::Display for Builtin {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())

@@ -25,7 +25,7 @@ use super::TaskSim;
 use crate::error::SimError;
 use crate::mujoco::{MjSim, ModelConfig, Unstable};
 use mujoco_rs::prelude::MjtIntegrator;
-use proto::TaskId;
+use proto::Builtin;
 use rand::RngExt;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
@@ -57,10 +57,10 @@ pub(crate) struct Ant {
 
 impl Ant {
     pub fn new() -> Result<Self, SimError> {
-        let sim = MjSim::load(TaskId::Ant.spec(), MODEL)?;
+        let sim = MjSim::load(Builtin::Ant.task(), MODEL)?;
         if sim.qpos().len() != NQ || sim.qvel().len() != NV {
             return Err(SimError::ModelMismatch {
-                task: TaskId::Ant,
+                task: Builtin::Ant.name().into(),
                 detail: format!(
                     "expected a free torso and eight joints (nq = {NQ}, nv = {NV}), found nq = {}, nv = {}",
                     sim.qpos().len(),
@@ -160,7 +160,7 @@ mod tests {
 
     #[test]
     fn dimensions_follow_the_catalog() {
-        let mut env = Env::new(TaskId::Ant).unwrap();
+        let mut env = Env::new(Builtin::Ant).unwrap();
         let spec = env.spec();
         assert_eq!((spec.obs_dim, spec.act_dim), (OBS, 8));
         assert_eq!(env.reset(1).len(), OBS);
@@ -169,7 +169,7 @@ mod tests {
 
     #[test]
     fn it_lands_on_its_legs_and_stands() {
-        let mut env = Env::new(TaskId::Ant).unwrap();
+        let mut env = Env::new(Builtin::Ant).unwrap();
         let start = env.reset(0).to_vec();
         assert!((start[TORSO_HEIGHT] - 0.75).abs() < 0.11, "{start:?}");
         for _ in 0..100 {
@@ -213,7 +213,7 @@ mod tests {
     /// time limit.
     #[test]
     fn random_episodes_end_by_termination_or_time_limit() {
-        let mut env = Env::new(TaskId::Ant).unwrap();
+        let mut env = Env::new(Builtin::Ant).unwrap();
         let spec = env.spec();
         for seed in 0..3 {
             env.reset(seed);
@@ -240,7 +240,7 @@ mod tests {
 
     #[test]
     fn falling_or_flying_off_terminates() {
-        let mut env = Env::new(TaskId::Ant).unwrap();
+        let mut env = Env::new(Builtin::Ant).unwrap();
         let standing = settled(&mut env);
         env.set_state(&standing).unwrap();
         for _ in 0..20 {
@@ -277,7 +277,7 @@ mod tests {
 
     #[test]
     fn walking_forward_pays_more_than_standing_still() {
-        let mut env = Env::new(TaskId::Ant).unwrap();
+        let mut env = Env::new(Builtin::Ant).unwrap();
         let standing = settled(&mut env);
         env.set_state(&standing).unwrap();
         let still = env.step(&[0.0; 8]).unwrap();

@@ -16,7 +16,7 @@ use super::TaskSim;
 use crate::error::SimError;
 use crate::mujoco::{MjSim, ModelConfig, Unstable};
 use mujoco_rs::prelude::MjtIntegrator;
-use proto::TaskId;
+use proto::Builtin;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
 
@@ -37,10 +37,10 @@ pub(crate) struct Cartpole {
 
 impl Cartpole {
     pub fn new() -> Result<Self, SimError> {
-        let sim = MjSim::load(TaskId::Cartpole.spec(), MODEL)?;
+        let sim = MjSim::load(Builtin::Cartpole.task(), MODEL)?;
         if sim.qpos().len() != 2 || sim.qvel().len() != 2 {
             return Err(SimError::ModelMismatch {
-                task: TaskId::Cartpole,
+                task: Builtin::Cartpole.name().into(),
                 detail: format!(
                     "expected a slider and a hinge, found nq = {}",
                     sim.qpos().len()
@@ -201,7 +201,7 @@ mod tests {
     /// Without this, a planner failing to swing up would say nothing about the planner.
     #[test]
     fn a_hand_written_controller_swings_up_within_the_episode() {
-        let spec = TaskId::Cartpole.spec();
+        let spec = Builtin::Cartpole.task();
         let mut c = Cartpole::new().unwrap();
         c.set_state(&[0.0, 0.05, 0.0, 0.0]).unwrap();
         let mut total = 0.0;

@@ -22,7 +22,7 @@ use super::TaskSim;
 use crate::error::SimError;
 use crate::mujoco::{MjSim, ModelConfig, Unstable};
 use mujoco_rs::prelude::MjtIntegrator;
-use proto::TaskId;
+use proto::Builtin;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
 
@@ -49,11 +49,11 @@ pub(crate) struct HalfCheetah {
 
 impl HalfCheetah {
     pub fn new() -> Result<Self, SimError> {
-        let spec = TaskId::HalfCheetah.spec();
+        let spec = Builtin::HalfCheetah.task();
         let sim = MjSim::load(spec, MODEL)?;
         if sim.qpos().len() != NQ || sim.qvel().len() != NQ {
             return Err(SimError::ModelMismatch {
-                task: TaskId::HalfCheetah,
+                task: Builtin::HalfCheetah.name().into(),
                 detail: format!(
                     "expected nq = nv = {NQ} (root x, z, pitch and six joints), found nq = {}, nv = {}",
                     sim.qpos().len(),
@@ -136,7 +136,7 @@ mod tests {
 
     #[test]
     fn dimensions_follow_the_catalog() {
-        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        let mut env = Env::new(Builtin::HalfCheetah).unwrap();
         let spec = env.spec();
         assert_eq!((spec.obs_dim, spec.act_dim), (OBS, 6));
         assert_eq!(env.reset(1).len(), OBS);
@@ -177,7 +177,7 @@ mod tests {
 
     #[test]
     fn it_stands_on_its_feet_without_control() {
-        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        let mut env = Env::new(Builtin::HalfCheetah).unwrap();
         env.reset(0);
         let mut last = Vec::new();
         for _ in 0..60 {
@@ -196,7 +196,7 @@ mod tests {
 
     #[test]
     fn a_random_episode_runs_its_full_length() {
-        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        let mut env = Env::new(Builtin::HalfCheetah).unwrap();
         let spec = env.spec();
         env.reset(5);
         let mut rng = StdRng::seed_from_u64(5);
@@ -216,7 +216,7 @@ mod tests {
     /// the forward displacement per second minus the control cost.
     #[test]
     fn moving_forward_pays_more_than_standing_still() {
-        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        let mut env = Env::new(Builtin::HalfCheetah).unwrap();
         env.reset(0);
         for _ in 0..40 {
             env.step(&[0.0; 6]).unwrap();
@@ -254,7 +254,7 @@ mod tests {
     #[test]
     fn an_open_loop_gait_runs_forward() {
         use std::f32::consts::{FRAC_PI_2, FRAC_PI_4, PI};
-        let mut env = Env::new(TaskId::HalfCheetah).unwrap();
+        let mut env = Env::new(Builtin::HalfCheetah).unwrap();
         env.reset(2);
         let (mut distance, mut total) = (0.0, 0.0);
         for step in 0..200 {

@@ -2,7 +2,7 @@
 //!
 //! A task module owns its MJCF (in `assets/`), the mapping from physics state to the catalog's
 //! observation, and its initial-state distribution. Rewards and termination are *not* here: they
-//! come from proto's [`proto::TaskSpec`], the one definition the planner uses as well. Adding a
+//! come from proto's [`proto::Task`], the one definition the planner uses as well. Adding a
 //! task means adding a module, an arm in `simulator` and its name in [`SIMULATED`].
 
 mod ant;
@@ -13,7 +13,7 @@ mod reacher3d;
 
 use crate::error::SimError;
 use crate::mujoco::Unstable;
-use proto::TaskId;
+use proto::Builtin;
 use rand::rngs::StdRng;
 
 /// The physics of one task, driven by [`crate::Env`].
@@ -40,25 +40,25 @@ pub(crate) trait TaskSim: Send {
 }
 
 /// The tasks that have a simulator, in catalog order.
-pub const SIMULATED: &[TaskId] = &[
-    TaskId::Cartpole,
-    TaskId::Reacher3d,
-    TaskId::Pusher,
-    TaskId::HalfCheetah,
-    TaskId::Ant,
+pub const SIMULATED: &[Builtin] = &[
+    Builtin::Cartpole,
+    Builtin::Reacher3d,
+    Builtin::Pusher,
+    Builtin::HalfCheetah,
+    Builtin::Ant,
 ];
 
 /// Builds the simulator for `task`, or says clearly that it has none yet.
-pub(crate) fn simulator(task: TaskId) -> Result<Box<dyn TaskSim>, SimError> {
+pub(crate) fn simulator(task: Builtin) -> Result<Box<dyn TaskSim>, SimError> {
     // The wildcard keeps sim-bridge compiling when proto's catalog grows before the
     // simulator for a new task is written: such a task gets `NoSimulator` at run time.
     #[allow(unreachable_patterns)]
     match task {
-        TaskId::Cartpole => Ok(Box::new(cartpole::Cartpole::new()?)),
-        TaskId::Reacher3d => Ok(Box::new(reacher3d::Reacher3d::new()?)),
-        TaskId::HalfCheetah => Ok(Box::new(halfcheetah::HalfCheetah::new()?)),
-        TaskId::Ant => Ok(Box::new(ant::Ant::new()?)),
-        TaskId::Pusher => Ok(Box::new(pusher::Pusher::new()?)),
+        Builtin::Cartpole => Ok(Box::new(cartpole::Cartpole::new()?)),
+        Builtin::Reacher3d => Ok(Box::new(reacher3d::Reacher3d::new()?)),
+        Builtin::HalfCheetah => Ok(Box::new(halfcheetah::HalfCheetah::new()?)),
+        Builtin::Ant => Ok(Box::new(ant::Ant::new()?)),
+        Builtin::Pusher => Ok(Box::new(pusher::Pusher::new()?)),
         _ => Err(SimError::NoSimulator {
             task,
             known: SIMULATED

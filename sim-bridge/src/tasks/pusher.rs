@@ -25,7 +25,7 @@ use super::TaskSim;
 use crate::error::SimError;
 use crate::mujoco::{MjSim, ModelConfig, Unstable};
 use mujoco_rs::prelude::MjtIntegrator;
-use proto::TaskId;
+use proto::Builtin;
 use proto::task::pusher::{JOINTS, OBJECT, QVEL, TIP};
 use rand::RngExt;
 use rand::rngs::StdRng;
@@ -59,9 +59,9 @@ pub(crate) struct Pusher {
 
 impl Pusher {
     pub fn new() -> Result<Self, SimError> {
-        let mut sim = MjSim::load(TaskId::Pusher.spec(), MODEL)?;
+        let mut sim = MjSim::load(Builtin::Pusher.task(), MODEL)?;
         let mismatch = |detail: String| SimError::ModelMismatch {
-            task: TaskId::Pusher,
+            task: Builtin::Pusher.name().into(),
             detail,
         };
         if sim.qpos().len() != NQ || sim.qvel().len() != NQ {
@@ -188,7 +188,7 @@ mod tests {
         assert!(close(&goal, &GOAL, 1e-6), "{goal:?}");
         assert!(close(&p.home.map(|v| v as f32), &GOAL, 1e-6));
 
-        let mut env = Env::new(TaskId::Pusher).unwrap();
+        let mut env = Env::new(Builtin::Pusher).unwrap();
         let obs = env.set_state(&state([0.0; JOINTS], GOAL)).unwrap();
         let reach = 0.4 + 0.321 + 0.2;
         let tip = [SHOULDER[0] + reach, SHOULDER[1], SHOULDER[2]];
@@ -209,7 +209,7 @@ mod tests {
 
     #[test]
     fn dimensions_and_start_distribution() {
-        let mut env = Env::new(TaskId::Pusher).unwrap();
+        let mut env = Env::new(Builtin::Pusher).unwrap();
         assert_eq!((env.spec().obs_dim, env.spec().act_dim), (OBS, JOINTS));
         let mut offsets = [Vec::new(), Vec::new()];
         for seed in 0..400 {
@@ -243,7 +243,7 @@ mod tests {
 
     #[test]
     fn a_random_episode_runs_its_full_length() {
-        let mut env = Env::new(TaskId::Pusher).unwrap();
+        let mut env = Env::new(Builtin::Pusher).unwrap();
         let spec = env.spec();
         env.reset(2);
         let mut rng = StdRng::seed_from_u64(2);
@@ -268,7 +268,7 @@ mod tests {
     /// The observed tip is where the arm is after the step, not one substep before it.
     #[test]
     fn the_tip_is_observed_after_the_step() {
-        let mut env = Env::new(TaskId::Pusher).unwrap();
+        let mut env = Env::new(Builtin::Pusher).unwrap();
         let mut p = Pusher::new().unwrap();
         env.reset(3);
         let mut rng = StdRng::seed_from_u64(3);
@@ -284,7 +284,7 @@ mod tests {
     /// reward rises as the object is placed nearer the goal.
     #[test]
     fn reward_rises_as_the_object_nears_the_goal() {
-        let mut env = Env::new(TaskId::Pusher).unwrap();
+        let mut env = Env::new(Builtin::Pusher).unwrap();
         let q = [1.0, 0.6, 0.0, -1.0, 0.0, -0.4, 0.0];
         let mut rewards = Vec::new();
         for d in [0.4f32, 0.3, 0.2, 0.1, 0.0] {
@@ -317,7 +317,7 @@ mod tests {
     /// pushes it along, swinging away leaves it where it is; and the table stops the hand.
     #[test]
     fn the_fingertip_pushes_the_object_and_the_table_holds_the_hand() {
-        let mut env = Env::new(TaskId::Pusher).unwrap();
+        let mut env = Env::new(Builtin::Pusher).unwrap();
         let (q, tip) = pose_at_object_height(&mut env);
         // A positive pan torque swings the tip about the shoulder's vertical axis.
         let radial = [tip[0] - SHOULDER[0], tip[1] - SHOULDER[1]];

@@ -17,7 +17,7 @@ use super::TaskSim;
 use crate::error::SimError;
 use crate::mujoco::{MjSim, ModelConfig, Unstable};
 use mujoco_rs::prelude::MjtIntegrator;
-use proto::TaskId;
+use proto::Builtin;
 use proto::task::reacher3d::{GOAL, JOINTS, tip};
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
@@ -44,10 +44,10 @@ pub(crate) struct Reacher3d {
 
 impl Reacher3d {
     pub fn new() -> Result<Self, SimError> {
-        let sim = MjSim::load(TaskId::Reacher3d.spec(), MODEL)?;
+        let sim = MjSim::load(Builtin::Reacher3d.task(), MODEL)?;
         if sim.qpos().len() != JOINTS || sim.qvel().len() != JOINTS {
             return Err(SimError::ModelMismatch {
-                task: TaskId::Reacher3d,
+                task: Builtin::Reacher3d.name().into(),
                 detail: format!("expected {JOINTS} hinges, found nq = {}", sim.qpos().len()),
             });
         }
@@ -133,7 +133,7 @@ mod tests {
 
     #[test]
     fn dimensions_and_goal_sampling() {
-        let mut env = Env::new(TaskId::Reacher3d).unwrap();
+        let mut env = Env::new(Builtin::Reacher3d).unwrap();
         assert_eq!((env.spec().obs_dim, env.spec().act_dim), (OBS, 7));
         let start = tip(&REST_POSE);
         let mut offsets = Vec::new();
@@ -153,7 +153,7 @@ mod tests {
 
     #[test]
     fn a_random_episode_runs_its_full_length() {
-        let mut env = Env::new(TaskId::Reacher3d).unwrap();
+        let mut env = Env::new(Builtin::Reacher3d).unwrap();
         let spec = env.spec();
         env.reset(2);
         let goal = env.observation()[GOAL..GOAL + 3].to_vec();
@@ -175,7 +175,7 @@ mod tests {
     /// on the shoulder moves the tip (the arm is actuated as the FK says).
     #[test]
     fn reward_peaks_at_the_goal() {
-        let mut env = Env::new(TaskId::Reacher3d).unwrap();
+        let mut env = Env::new(Builtin::Reacher3d).unwrap();
         let mut obs = [0.0; OBS];
         obs[..JOINTS].copy_from_slice(&REST_POSE);
         obs[GOAL..GOAL + 3].copy_from_slice(&tip(&REST_POSE));
