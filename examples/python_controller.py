@@ -43,7 +43,7 @@ except ImportError:  # pragma: no cover - exercised by hand
         "error: the `eclipse-zenoh` Python package is missing: pip install 'eclipse-zenoh~=1.10.0'"
     )
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 TASK = "cartpole"
 OBS_DIM = 4
 ACT_DIM = 1

@@ -54,8 +54,8 @@ pub fn step_rate(task: Builtin, min_steps: u64) -> Result<StepRate, SimError> {
             // without a random number generator in the timed loop.
             for (i, ((a, lo), hi)) in action
                 .iter_mut()
-                .zip(spec.action_low)
-                .zip(spec.action_high)
+                .zip(&spec.action_low)
+                .zip(&spec.action_high)
                 .enumerate()
             {
                 let phase = (steps as f32 * (0.1 + 0.03 * i as f32)).sin();

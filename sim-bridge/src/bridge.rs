@@ -157,10 +157,12 @@ pub enum BridgeError {
     },
     #[error("the planner refused to attach this agent on `{key}`: {report}")]
     AttachRejected { key: String, report: ErrorReport },
+    #[error("sim-bridge simulates the built-in tasks only, not `{0}`")]
+    NotSimulated(String),
     #[error("the planner attached us to a {found} run, but this bridge simulates {expected}")]
     TaskMismatch {
-        expected: proto::Builtin,
-        found: proto::Builtin,
+        expected: String,
+        found: String,
     },
     #[error("cannot encode a message: {0}")]
     Encode(#[source] CodecError),
@@ -208,7 +210,8 @@ pub async fn run(
     for (what, name) in [("run name", &config.run), ("agent name", &config.agent)] {
         proto::validate_name(name).map_err(|source| BridgeError::InvalidName { what, source })?;
     }
-    let task = config.spec.task;
+    let task = proto::Builtin::from_name(&config.spec.task)
+        .ok_or_else(|| BridgeError::NotSimulated(config.spec.task.clone()))?;
     let mut env = Env::new(task)?;
     env.cap_episode_length(config.max_steps);
     #[cfg(feature = "render")]
@@ -292,7 +295,7 @@ async fn attach(
     let accepted = link.attach(&config.spec, config.attach_timeout).await?;
     if accepted.task != config.spec.task {
         return Err(BridgeError::TaskMismatch {
-            expected: config.spec.task,
+            expected: config.spec.task.clone(),
             found: accepted.task,
         });
     }

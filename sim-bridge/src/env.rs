@@ -36,6 +36,7 @@ impl StepOutcome {
 
 /// A simulated task: reset to a seeded initial state, step with actions, read observations.
 pub struct Env {
+    builtin: Builtin,
     spec: &'static Task,
     sim: Box<dyn TaskSim>,
     obs: Vec<f32>,
@@ -54,7 +55,7 @@ pub struct Env {
 impl std::fmt::Debug for Env {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Env")
-            .field("task", &self.spec.id)
+            .field("task", &self.builtin)
             .field("obs", &self.obs)
             .field("steps", &self.steps)
             .field("done", &self.done)
@@ -73,6 +74,7 @@ impl Env {
         let spec = task.task();
         let sim = tasks::simulator(task)?;
         let mut env = Self {
+            builtin: task,
             spec,
             sim,
             obs: vec![0.0; spec.obs_dim],
@@ -90,7 +92,7 @@ impl Env {
 
     /// The task this environment simulates.
     pub fn task(&self) -> Builtin {
-        self.spec.id
+        self.builtin
     }
 
     /// The task's catalog entry (dimensions, bounds, episode length, control rate).
@@ -204,7 +206,7 @@ impl Env {
     pub fn set_state(&mut self, obs: &[f32]) -> Result<&[f32], SimError> {
         if obs.len() != self.spec.obs_dim {
             return Err(SimError::StateDimension {
-                task: self.spec.id,
+                task: self.builtin,
                 expected: self.spec.obs_dim,
                 got: obs.len(),
             });
@@ -219,7 +221,7 @@ impl Env {
     fn check_action(&self, action: &[f32]) -> Result<(), SimError> {
         if action.len() != self.spec.act_dim {
             return Err(SimError::ActionDimension {
-                task: self.spec.id,
+                task: self.builtin,
                 expected: self.spec.act_dim,
                 got: action.len(),
             });

@@ -205,7 +205,7 @@ enum Regularizer {
 impl SpecArgs {
     fn into_spec(self, task: Builtin, seed: u64) -> RunSpec {
         RunSpec {
-            task,
+            task: task.name().to_string(),
             preset: self.preset,
             overrides: PlannerOverrides {
                 regularizer: self.regularizer.map(|r| match r {
@@ -341,7 +341,7 @@ fn list_tasks() {
     );
     for &task in Builtin::ALL {
         let spec = task.task();
-        let bounds = bounds_text(spec.action_low, spec.action_high);
+        let bounds = bounds_text(&spec.action_low, &spec.action_high);
         let simulated = if sim_bridge::SIMULATED.contains(&task) {
             "yes"
         } else {

@@ -43,7 +43,9 @@ impl MjSim {
     /// the action bounds, `timestep × substeps = control_dt`, and the integrator.
     pub fn load(spec: &Task, config: ModelConfig) -> Result<Self, SimError> {
         route_mujoco_messages();
-        let task = spec.id;
+        let task = spec
+            .builtin()
+            .expect("sim-bridge's simulators load their own catalog entry");
         let model = MjModel::from_xml_string(config.xml)
             .map_err(|source| SimError::ModelLoad { task, source })?;
         let mismatch = |detail: String| SimError::ModelMismatch { task, detail };

@@ -91,7 +91,7 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                         Some(why) => AttachOutcome::Rejected(ErrorReport::new(ErrorCode::Refused, why.clone())),
                         None => AttachOutcome::Accepted(AttachAccepted {
                             planner_id: "fake".into(),
-                            task: request.spec.task,
+                            task: request.spec.task.clone(),
                             mode: request.spec.mode,
                             episodes_done: 5,
                             models_version: 0,

@@ -90,7 +90,7 @@ fn random_then_planned(task: Builtin) {
         );
         let within = a
             .iter()
-            .zip(spec.action_low.iter().zip(spec.action_high))
+            .zip(spec.action_low.iter().zip(&spec.action_high))
             .all(|(v, (lo, hi))| (lo..=hi).contains(&v));
         assert!(within, "{task}: transition {i} action out of bounds: {a:?}");
     }

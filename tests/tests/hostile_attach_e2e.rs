@@ -3,6 +3,9 @@
 //! is wrong, while a well-behaved agent on another run is served throughout; nothing refused
 //! reaches the disk, and a restart on the same data dir comes up clean. A run stored with an
 //! override over today's limits is set aside (listed as failed) instead of stopping the daemon.
+//! A task given in full in the attach is validated field by field (hostile values refused, each
+//! naming its field), runs as any other, and is stored with its run so that the restarted
+//! daemon resumes it for an agent that names the task only.
 
 use ebmpc_e2e::client::{Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
@@ -10,8 +13,9 @@ use ebmpc_e2e::{Planner, TempDir};
 use planner_service::persist::RunDir;
 use proto::{
     AttachOutcome, AttachRequest, Encoding, EpisodeEnd, EpochSchedule, Observation,
-    PROTOCOL_VERSION, PlannerOverrides, RunSpec, Builtin,
+    PROTOCOL_VERSION, PlannerOverrides, RunSpec, Builtin, TaskSpec,
 };
+use proto::task::{DeclaredTransforms, ModelTransforms, RewardKind};
 use std::time::Duration;
 
 const PLANNER: &str = "hostile";
@@ -31,6 +35,74 @@ fn spec(overrides: PlannerOverrides) -> RunSpec {
         seed: 1,
         task_spec: None,
     }
+}
+
+/// A system the planner's catalog does not know, given in full: cartpole's shape, its angle
+/// declared, short episodes.
+fn custom_task() -> TaskSpec {
+    let mut task = Builtin::Cartpole.spec();
+    task.name = "my-cartpole".into();
+    task.episode_len = 10;
+    task.model = ModelTransforms::Declared(DeclaredTransforms {
+        angles: vec![1],
+        absolute: vec![],
+    });
+    task
+}
+
+fn custom_spec(task_spec: Option<TaskSpec>) -> RunSpec {
+    RunSpec {
+        task: "my-cartpole".into(),
+        task_spec,
+        ..spec(PlannerOverrides::default())
+    }
+}
+
+/// Hostile task specs, with what the refusal must say.
+fn hostile_tasks() -> Vec<(RunSpec, &'static str)> {
+    let with = |change: &dyn Fn(&mut TaskSpec)| {
+        let mut task = custom_task();
+        change(&mut task);
+        custom_spec(Some(task))
+    };
+    vec![
+        (
+            RunSpec {
+                task: "walker".into(),
+                ..spec(PlannerOverrides::default())
+            },
+            "unknown task `walker`",
+        ),
+        (with(&|t| t.obs_dim = 4_000_000_000), "obs_dim = 4000000000"),
+        (with(&|t| t.act_dim = 0), "act_dim = 0"),
+        (with(&|t| t.episode_len = u32::MAX), "episode_len"),
+        (with(&|t| t.action_low = vec![f32::NAN]), "action[0]"),
+        (with(&|t| t.action_high = vec![-5.0]), "low < high"),
+        (with(&|t| t.action_low = vec![0.0; 100_000]), "action_low has"),
+        (with(&|t| t.control_dt = f64::INFINITY), "control_dt"),
+        (with(&|t| t.magnitudes.observation = 3e38), "magnitudes"),
+        (
+            with(&|t| t.reward = RewardKind::Builtin(Builtin::Ant)),
+            "builtin reward `ant` needs obs_dim = 27",
+        ),
+        (
+            with(&|t| t.reward = RewardKind::Expression("-s_next[1]^2".into())),
+            "expression rewards are not available in this build",
+        ),
+        (with(&|t| t.name = "other".into()), "must agree"),
+        (with(&|t| t.name = "a/b".into()), "invalid name"),
+        (
+            RunSpec {
+                task: "cartpole".into(),
+                task_spec: Some(Builtin::Cartpole.spec()).map(|mut t| {
+                    t.episode_len = 5;
+                    t
+                }),
+                ..spec(PlannerOverrides::default())
+            },
+            "in this planner's catalog with another spec",
+        ),
+    ]
 }
 
 /// Every client-chosen size, oversized, with the field the refusal must name.
@@ -258,6 +330,23 @@ async fn hostile_attaches(endpoint: &str) {
             assert!(message.contains("limit"), "{overrides:?}: {message}");
         }
     }
+    for (i, (asked, expected)) in hostile_tasks().into_iter().enumerate() {
+        let run = format!("hostile-task-{i}");
+        let request = AttachRequest {
+            version: PROTOCOL_VERSION,
+            agent: "h".into(),
+            spec: asked,
+            session: None,
+        };
+        let bytes = proto::encode(&request, Encoding::Postcard).unwrap();
+        let message = refusal(&hostile, &run, bytes, Encoding::Postcard.mime()).await;
+        assert!(message.contains(expected), "{expected}: {message}");
+    }
+    let json = format!(
+        r#"{{"version":{PROTOCOL_VERSION},"agent":"h","spec":{{"task":"j","task_spec":{{"name":"j","obs_dim":2,"act_dim":1,"action_low":[-1],"action_high":[1],"episode_len":10,"control_dt":0.1,"reward":"learned","gravity":9.8}}}}}}"#
+    );
+    let message = refusal(&hostile, "json-task", json.into_bytes(), "application/json").await;
+    assert!(message.contains("unknown field `gravity`"), "{message}");
     // The issue's own reproduction, in JSON, and a mistyped field.
     let json = format!(
         r#"{{"version":{PROTOCOL_VERSION},"agent":"h","spec":{{"task":"cartpole","overrides":{{"dynamics_hidden_size":4000000000}}}}}}"#
@@ -327,13 +416,25 @@ fn hostile_attaches_are_refused_and_the_daemon_keeps_serving() {
         // The good agent plays (through a retraining) while the hostile attaches arrive.
         tokio::join!(play(&good, 2, 30), hostile_attaches(&endpoint));
         good.close().await.unwrap();
+        // A task given in full runs like a catalog task.
+        let custom = Client::connect(&endpoint, "custom", "c").await.unwrap();
+        let accepted = custom.attach(&custom_spec(Some(custom_task()))).await.unwrap();
+        assert_eq!(accepted.task, "my-cartpole");
+        play(&custom, 1, 10).await;
+        custom.close().await.unwrap();
     });
     planner.stop().unwrap();
     let runs = std::fs::read_dir(planner.data_dir.join("runs"))
         .unwrap()
         .map(|e| e.unwrap().file_name().into_string().unwrap())
         .collect::<Vec<_>>();
-    assert_eq!(runs, ["good"], "no refused run reached the disk");
+    let mut runs = runs;
+    runs.sort();
+    assert_eq!(runs, ["custom", "good"], "no refused run reached the disk");
+    let custom_task = proto::Task::intern(custom_task(), &Default::default()).unwrap();
+    let path = planner.data_dir.join("runs/custom/replay.log");
+    let replay = planner_service::replay::ReplayBuffer::open(&path, custom_task).unwrap();
+    assert_eq!(replay.len(), 10);
     assert_eq!(planner.replay("good", Builtin::Cartpole).unwrap().len(), 60);
 
     // A run stored by an older daemon with a size over today's limits: set aside, not fatal.
@@ -351,8 +452,8 @@ fn hostile_attaches_are_refused_and_the_daemon_keeps_serving() {
         let session = open_session(&planner.endpoint).await.unwrap();
         let report = status(&session, PLANNER).await.unwrap();
         let names: Vec<&str> = report.runs.iter().map(|r| r.name.as_str()).collect();
-        assert_eq!(names, ["good"]);
-        assert_eq!(report.runs[0].episodes, 2);
+        assert_eq!(names, ["custom", "good"]);
+        assert_eq!(report.runs[1].episodes, 2);
         assert_eq!(report.failed_runs.len(), 1, "{:?}", report.failed_runs);
         assert_eq!(report.failed_runs[0].name, "poisoned");
         assert!(
@@ -386,6 +487,15 @@ fn hostile_attaches_are_refused_and_the_daemon_keeps_serving() {
             .unwrap()
             .unwrap();
         again.close().await.unwrap();
+        // The restarted daemon rebuilt the custom task from the run's stored spec: an agent
+        // naming the task only joins it.
+        let custom = Client::connect(&planner.endpoint, "custom", "c")
+            .await
+            .unwrap();
+        let accepted = custom.attach(&custom_spec(None)).await.unwrap();
+        assert_eq!((accepted.task.as_str(), accepted.next_episode), ("my-cartpole", 1));
+        assert_eq!(accepted.episodes_done, 1);
+        custom.close().await.unwrap();
         session.close().await.unwrap();
     });
     planner.stop().unwrap();

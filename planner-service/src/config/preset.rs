@@ -877,6 +877,25 @@ mod tests {
         } = p;
     }
 
+    /// A custom task's preset is its base preset's Table 2 row, with the deadline of its own
+    /// control period; overrides apply on top as for any task.
+    #[test]
+    fn a_custom_task_starts_from_its_base_preset() {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "slow-arm".into();
+        spec.control_dt = 0.1;
+        spec.base_preset = Builtin::Reacher3d;
+        spec.model = proto::task::ModelTransforms::default();
+        let task = Task::intern(spec, &Default::default()).unwrap();
+        let custom = Preset::new(task, Some("cem+deen")).unwrap();
+        let reacher = Preset::new(Builtin::Reacher3d.task(), Some("cem+deen")).unwrap();
+        assert_eq!(custom.dynamics, reacher.dynamics);
+        assert_eq!(custom.energy, reacher.energy);
+        assert_eq!(custom.cem, reacher.cem);
+        assert_eq!(custom.deadline_ms, Some(100));
+        assert_eq!(custom.task.name(), "slow-arm");
+    }
+
     /// A run's deadline is its task's control period unless overridden; 0 turns it off, and
     /// a deadline too short to answer in is refused.
     #[test]

@@ -339,6 +339,43 @@ mod tests {
         preset
     }
 
+    /// A run stored by protocol 3 builds (`task` the closed enum's JSON name, no `task_spec`)
+    /// reads as the same task by name.
+    #[test]
+    fn a_run_spec_of_the_previous_format_reads_by_name() {
+        let data = temp_dir("old-spec");
+        let dir = RunDir::new(&data, "old");
+        fs::create_dir_all(dir.root()).unwrap();
+        fs::write(
+            dir.spec_path(),
+            br#"{"task": "halfcheetah", "preset": "cem+deen", "overrides": {}, "mode": "sync", "seed": 3}"#,
+        )
+        .unwrap();
+        let spec = dir.read_spec().unwrap().unwrap();
+        assert_eq!((spec.task.as_str(), spec.seed), ("halfcheetah", 3));
+        assert_eq!(spec.task_spec, None);
+    }
+
+    /// A run of a task given in full stores the whole spec, so a restarted daemon rebuilds it.
+    #[test]
+    fn a_custom_task_spec_is_stored_with_the_run() {
+        let data = temp_dir("custom-spec");
+        let dir = RunDir::new(&data, "custom");
+        let mut task = Builtin::Cartpole.spec();
+        task.name = "my-cartpole".into();
+        task.episode_len = 40;
+        let spec = RunSpec {
+            task: "my-cartpole".into(),
+            preset: None,
+            overrides: PlannerOverrides::default(),
+            mode: TrainMode::Sync,
+            seed: 2,
+            task_spec: Some(task),
+        };
+        dir.write_spec(&spec).unwrap();
+        assert_eq!(dir.read_spec().unwrap(), Some(spec));
+    }
+
     #[test]
     fn the_spec_round_trips_and_a_missing_one_is_none() {
         let data = temp_dir("spec");

@@ -337,8 +337,17 @@ mod tests {
 
     #[test]
     fn feature_and_target_backward_match_finite_differences() {
-        for &t in Builtin::ALL {
-            let spec = t.task();
+        // The builtins' code, and transforms declared per dimension (angles, absolute targets).
+        let mut declared = Builtin::Cartpole.spec();
+        declared.name = "declared-transforms".into();
+        declared.model = ModelTransforms::Declared(DeclaredTransforms {
+            angles: vec![1, 3],
+            absolute: vec![0, 3],
+        });
+        let declared = Task::intern(declared, &SpecBounds::default()).unwrap();
+        let tasks = Builtin::ALL.iter().map(|b| b.task()).chain([declared]);
+        for spec in tasks {
+            let t = spec.name();
             let (obs, _, next) = transition(spec, 7);
             let f = spec.state_feature_dim;
             // L = c · features(obs): its gradient is the Jacobian's transpose applied to c.

@@ -60,7 +60,7 @@ impl Ant {
         let sim = MjSim::load(Builtin::Ant.task(), MODEL)?;
         if sim.qpos().len() != NQ || sim.qvel().len() != NV {
             return Err(SimError::ModelMismatch {
-                task: Builtin::Ant.name().into(),
+                task: Builtin::Ant,
                 detail: format!(
                     "expected a free torso and eight joints (nq = {NQ}, nv = {NV}), found nq = {}, nv = {}",
                     sim.qpos().len(),

@@ -40,7 +40,7 @@ impl Cartpole {
         let sim = MjSim::load(Builtin::Cartpole.task(), MODEL)?;
         if sim.qpos().len() != 2 || sim.qvel().len() != 2 {
             return Err(SimError::ModelMismatch {
-                task: Builtin::Cartpole.name().into(),
+                task: Builtin::Cartpole,
                 detail: format!(
                     "expected a slider and a hinge, found nq = {}",
                     sim.qpos().len()

@@ -53,7 +53,7 @@ impl HalfCheetah {
         let sim = MjSim::load(spec, MODEL)?;
         if sim.qpos().len() != NQ || sim.qvel().len() != NQ {
             return Err(SimError::ModelMismatch {
-                task: Builtin::HalfCheetah.name().into(),
+                task: Builtin::HalfCheetah,
                 detail: format!(
                     "expected nq = nv = {NQ} (root x, z, pitch and six joints), found nq = {}, nv = {}",
                     sim.qpos().len(),

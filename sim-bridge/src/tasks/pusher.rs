@@ -61,7 +61,7 @@ impl Pusher {
     pub fn new() -> Result<Self, SimError> {
         let mut sim = MjSim::load(Builtin::Pusher.task(), MODEL)?;
         let mismatch = |detail: String| SimError::ModelMismatch {
-            task: Builtin::Pusher.name().into(),
+            task: Builtin::Pusher,
             detail,
         };
         if sim.qpos().len() != NQ || sim.qvel().len() != NQ {

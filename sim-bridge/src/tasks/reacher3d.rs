@@ -47,7 +47,7 @@ impl Reacher3d {
         let sim = MjSim::load(Builtin::Reacher3d.task(), MODEL)?;
         if sim.qpos().len() != JOINTS || sim.qvel().len() != JOINTS {
             return Err(SimError::ModelMismatch {
-                task: Builtin::Reacher3d.name().into(),
+                task: Builtin::Reacher3d,
                 detail: format!("expected {JOINTS} hinges, found nq = {}", sim.qpos().len()),
             });
         }
