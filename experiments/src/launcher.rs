@@ -136,7 +136,7 @@ pub fn collect_rows(dir: &Path, manifest: &Manifest) -> Result<Vec<EpisodeRow>> 
 /// one when resuming).
 pub fn prepare(exp: &Experiment) -> Result<Manifest> {
     for method in &exp.methods {
-        planner_service::config::Preset::new(exp.task, Some(method))
+        planner_service::config::Preset::new(exp.task.task(), Some(method))
             .with_context(|| format!("method `{method}`"))?;
     }
     std::fs::create_dir_all(exp.out.join("runs"))

@@ -70,7 +70,7 @@ impl Scale {
             // training epochs.
             (Scale::Small, _) => {
                 // Preset::new fails only for an unknown method, and the default method is known.
-                let paper = Preset::new(task, None).expect("the default method has a preset");
+                let paper = Preset::new(task.task(), None).expect("the default method has a preset");
                 let half = |n: usize| Some((n / 2).max(1) as u32);
                 let fifth = |n: usize| Some((n / 5).max(1) as u32);
                 PlannerOverrides {

@@ -120,7 +120,7 @@ fn episode(
             None => {
                 for (a, (lo, hi)) in action
                     .iter_mut()
-                    .zip(spec.action_low.iter().zip(spec.action_high))
+                    .zip(spec.action_low.iter().zip(&spec.action_high))
                 {
                     *a = rng.random_range(*lo..*hi);
                 }
@@ -145,7 +145,7 @@ pub fn run(
 ) -> Result<ImaginationResult> {
     let task = config.task;
     let spec = task.task();
-    let mut preset = Preset::new(task, Some(&config.method))?;
+    let mut preset = Preset::new(task.task(), Some(&config.method))?;
     preset.apply(&config.scale.overrides(task))?;
     preset.inference_precision = config.inference_precision;
     let mut env = Env::new(task)?;
@@ -179,7 +179,7 @@ pub fn run(
     }
 
     let (_, energy_epochs) = preset.epochs(config.train_episodes);
-    let mut plan_preset = Preset::new(task, Some(&config.method))?;
+    let mut plan_preset = Preset::new(task.task(), Some(&config.method))?;
     plan_preset.apply(&config.plan_scale.overrides(task))?;
     // The three regularisers, trained once on the same data, compared from every state.
     let mut regularizers = Vec::new();
