@@ -50,11 +50,19 @@ fn evaluation_and_gradients_allocate_nothing() {
     )
     .unwrap();
     let rows = 500 * 30 + 7;
-    let s: Vec<f32> = (0..rows * 18).map(|i| (i % 13) as f32 * 0.1 - 0.6).collect();
+    let s: Vec<f32> = (0..rows * 18)
+        .map(|i| (i % 13) as f32 * 0.1 - 0.6)
+        .collect();
     let a: Vec<f32> = (0..rows * 6).map(|i| (i % 7) as f32 * 0.2 - 0.6).collect();
-    let n: Vec<f32> = (0..rows * 18).map(|i| (i % 11) as f32 * 0.1 - 0.5).collect();
+    let n: Vec<f32> = (0..rows * 18)
+        .map(|i| (i % 11) as f32 * 0.1 - 0.5)
+        .collect();
     let mut out = vec![0.0; rows];
-    let (mut ds, mut da, mut dn) = (vec![0.0; rows * 18], vec![0.0; rows * 6], vec![0.0; rows * 18]);
+    let (mut ds, mut da, mut dn) = (
+        vec![0.0; rows * 18],
+        vec![0.0; rows * 6],
+        vec![0.0; rows * 18],
+    );
     let mut scratch = e.scratch();
     let inputs = Inputs {
         s: &s,

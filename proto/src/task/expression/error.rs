@@ -47,7 +47,11 @@ pub enum ErrorKind {
     #[error("index {index} out of range for {of}")]
     IndexOutOfRange { index: usize, of: String },
     #[error("slice {start}:{end} out of range or empty for {of}")]
-    BadSlice { start: usize, end: usize, of: String },
+    BadSlice {
+        start: usize,
+        end: usize,
+        of: String,
+    },
     #[error("only a vector can be indexed")]
     NotAVector,
     #[error("a vector of length {0} where a scalar is needed")]
@@ -98,7 +102,13 @@ impl ExpressionError {
 /// `text` on one line: whitespace and control characters become spaces.
 fn printable(text: &str) -> String {
     text.chars()
-        .map(|c| if c.is_control() || c.is_whitespace() { ' ' } else { c })
+        .map(|c| {
+            if c.is_control() || c.is_whitespace() {
+                ' '
+            } else {
+                c
+            }
+        })
         .collect()
 }
 
@@ -120,7 +130,11 @@ fn excerpt(source: &str, start: usize, end: usize) -> String {
     let marked: String = marked.into_iter().collect();
     let mut out = String::new();
     use fmt::Write;
-    let _ = write!(out, "  {lead}{}", printable(&(before.clone() + &marked + &after)));
+    let _ = write!(
+        out,
+        "  {lead}{}",
+        printable(&(before.clone() + &marked + &after))
+    );
     let _ = write!(
         out,
         "\n  {}{}",
@@ -152,7 +166,10 @@ mod tests {
              exp(-s[0]^2) + s[7]\n                 ^^^^"
         );
         let end = ExpressionError::new("(a", 2, 2, ErrorKind::Expected("`)`"));
-        assert_eq!(end.to_string(), "end of input: expected `)` at 2\n  (a\n    ^");
+        assert_eq!(
+            end.to_string(),
+            "end of input: expected `)` at 2\n  (a\n    ^"
+        );
     }
 
     #[test]
@@ -167,6 +184,10 @@ mod tests {
         let caret = lines[2].chars().position(|c| c == '^').unwrap();
         assert_eq!(lines[1].chars().nth(caret), Some('x'), "{text}");
         let long = "b".repeat(100);
-        assert!(ExpressionError::new(&long, 0, 100, ErrorKind::UnknownName).token.ends_with('…'));
+        assert!(
+            ExpressionError::new(&long, 0, 100, ErrorKind::UnknownName)
+                .token
+                .ends_with('…')
+        );
     }
 }

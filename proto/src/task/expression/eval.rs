@@ -73,7 +73,13 @@ impl Dims {
 
 impl Program {
     /// Writes each row's result into `out` (one per row).
-    pub(super) fn eval_batch(&self, dims: Dims, inputs: &Inputs, out: &mut [f32], scratch: &mut Scratch) {
+    pub(super) fn eval_batch(
+        &self,
+        dims: Dims,
+        inputs: &Inputs,
+        out: &mut [f32],
+        scratch: &mut Scratch,
+    ) {
         scratch.reserve(self.ops.len(), false);
         let values = &mut scratch.values[..self.ops.len() * BLOCK];
         self.fill_constants(values);

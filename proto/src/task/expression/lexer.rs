@@ -25,8 +25,8 @@ pub(super) struct Token<'s> {
 
 /// Operators and punctuation, two-character ones first so that `<=` is not read as `<`, `=`.
 const PUNCTUATION: &[&str] = &[
-    "<=", ">=", "==", "!=", "&&", "||", "+", "-", "*", "/", "^", "(", ")", "[", "]", ",", ":",
-    "<", ">", "!",
+    "<=", ">=", "==", "!=", "&&", "||", "+", "-", "*", "/", "^", "(", ")", "[", "]", ",", ":", "<",
+    ">", "!",
 ];
 
 /// The tokens of `source`, ending with [`Tok::End`].
@@ -41,7 +41,9 @@ pub(super) fn tokens(source: &str) -> Result<Vec<Token<'_>>, ExpressionError> {
             continue;
         }
         let start = i;
-        let tok = if c.is_ascii_digit() || (c == b'.' && bytes.get(i + 1).is_some_and(u8::is_ascii_digit)) {
+        let tok = if c.is_ascii_digit()
+            || (c == b'.' && bytes.get(i + 1).is_some_and(u8::is_ascii_digit))
+        {
             i = number_end(bytes, i);
             let text = &source[start..i];
             match text.parse::<f32>() {
@@ -126,7 +128,10 @@ mod tests {
                 Tok::End,
             ]
         );
-        assert_eq!(kinds(".5 2."), [Tok::Number(0.5), Tok::Number(2.0), Tok::End]);
+        assert_eq!(
+            kinds(".5 2."),
+            [Tok::Number(0.5), Tok::Number(2.0), Tok::End]
+        );
         // `e` without digits is not an exponent: `2e` is the number 2, then the name `e`.
         assert_eq!(kinds("2e"), [Tok::Number(2.0), Tok::Ident("e"), Tok::End]);
         let t = tokens("  a ").unwrap();
@@ -140,7 +145,10 @@ mod tests {
         assert_eq!((err.offset, err.token.as_str()), (4, "é"));
         assert_eq!(err.kind, ErrorKind::UnexpectedCharacter);
         let err = tokens("1 + 1e39").unwrap_err();
-        assert_eq!((err.offset, err.token.as_str(), err.kind), (4, "1e39", ErrorKind::BadNumber));
+        assert_eq!(
+            (err.offset, err.token.as_str(), err.kind),
+            (4, "1e39", ErrorKind::BadNumber)
+        );
         let long = "9".repeat(400);
         assert_eq!(tokens(&long).unwrap_err().kind, ErrorKind::BadNumber);
     }

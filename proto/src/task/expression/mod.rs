@@ -201,7 +201,12 @@ impl Expression {
         let named = [
             (Input::S, "s", inputs.s.len(), grads.map(|g| g.s.len())),
             (Input::A, "a", inputs.a.len(), grads.map(|g| g.a.len())),
-            (Input::SNext, "s_next", inputs.s_next.len(), grads.map(|g| g.s_next.len())),
+            (
+                Input::SNext,
+                "s_next",
+                inputs.s_next.len(),
+                grads.map(|g| g.s_next.len()),
+            ),
         ];
         for (input, name, len, grad_len) in named {
             let want = rows * self.dims.of(input);
@@ -211,7 +216,10 @@ impl Expression {
                 self.dims.of(input)
             );
             if let Some(g) = grad_len {
-                assert!(g == want || g == 0, "gradient of {name}: {g} numbers for {rows} rows");
+                assert!(
+                    g == want || g == 0,
+                    "gradient of {name}: {g} numbers for {rows} rows"
+                );
             }
         }
     }

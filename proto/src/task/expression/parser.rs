@@ -14,8 +14,8 @@ use super::{Dims, Input, MAX_NESTING, MAX_OPERATIONS, MAX_SOURCE_BYTES};
 
 /// The functions a formula may call.
 pub(super) const FUNCTIONS: &[&str] = &[
-    "sin", "cos", "exp", "log", "tanh", "abs", "sqrt", "sum", "norm", "norm1", "dot", "min",
-    "max", "if",
+    "sin", "cos", "exp", "log", "tanh", "abs", "sqrt", "sum", "norm", "norm1", "dot", "min", "max",
+    "if",
 ];
 
 /// Largest `|n|` of an integer power computed by repeated multiplication (`x^2` is `x·x`
@@ -96,7 +96,8 @@ impl<'s> Parser<'s> {
 
     /// Consumes the punctuation `p`, which must come next.
     fn expect(&mut self, p: &str, what: &'static str) -> Result<Token<'s>, ExpressionError> {
-        self.eat(p).ok_or_else(|| self.error_here(ErrorKind::Expected(what)))
+        self.eat(p)
+            .ok_or_else(|| self.error_here(ErrorKind::Expected(what)))
     }
 
     fn error(&self, start: usize, end: usize, kind: ErrorKind) -> ExpressionError {
@@ -250,7 +251,7 @@ impl<'s> Parser<'s> {
         match t.tok {
             Tok::Number(v) => {
                 self.advance();
-                let r = self.op(Op::Const(v.to_bits()), t.start, t.end)?;
+                let r = self.constant(v, t.start, t.end)?;
                 Ok(spanned(Value::Scalar(r), t.start, t.end))
             }
             Tok::Ident(name) => {
@@ -318,7 +319,11 @@ impl<'s> Parser<'s> {
         }
         let (from, to) = (first.unwrap_or(0), second.unwrap_or(len));
         if from >= to || to > len {
-            let kind = ErrorKind::BadSlice { start: from, end: to, of };
+            let kind = ErrorKind::BadSlice {
+                start: from,
+                end: to,
+                of,
+            };
             return Err(self.error(start, end, kind));
         }
         let regs = (from..to)
@@ -364,7 +369,11 @@ impl<'s> Parser<'s> {
                     self.source,
                     start,
                     end,
-                    ErrorKind::Arity { function, expected, got: args.len() },
+                    ErrorKind::Arity {
+                        function,
+                        expected,
+                        got: args.len(),
+                    },
                 ))
             }
         };
@@ -410,7 +419,11 @@ impl<'s> Parser<'s> {
             }
             "min" | "max" => {
                 arity("1 or more", !args.is_empty())?;
-                let op = if function == "min" { Binary::Min } else { Binary::Max };
+                let op = if function == "min" {
+                    Binary::Min
+                } else {
+                    Binary::Max
+                };
                 let result = self.reduce(args, op, start, end)?;
                 Ok(spanned(Value::Scalar(result), start, end))
             }
@@ -425,13 +438,27 @@ impl<'s> Parser<'s> {
     // ---- building ----
 
     fn op(&mut self, op: Op, start: usize, end: usize) -> Result<Reg, ExpressionError> {
-        self.builder
-            .push(op)
-            .map_err(|_| self.error(start, end, ErrorKind::TooLarge { max: MAX_OPERATIONS }))
+        self.builder.push(op).map_err(|_| {
+            self.error(
+                start,
+                end,
+                ErrorKind::TooLarge {
+                    max: MAX_OPERATIONS,
+                },
+            )
+        })
     }
 
     fn constant(&mut self, v: f32, start: usize, end: usize) -> Result<Reg, ExpressionError> {
-        self.op(Op::Const(v.to_bits()), start, end)
+        self.builder.constant(v).map_err(|_| {
+            self.error(
+                start,
+                end,
+                ErrorKind::TooLarge {
+                    max: MAX_OPERATIONS,
+                },
+            )
+        })
     }
 
     /// `(name, dimension name, dimension)` of an input, for messages and bounds.
@@ -444,7 +471,13 @@ impl<'s> Parser<'s> {
     }
 
     /// Element `i` (in range) of a vector or an input.
-    fn element(&mut self, v: &Value, i: usize, start: usize, end: usize) -> Result<Reg, ExpressionError> {
+    fn element(
+        &mut self,
+        v: &Value,
+        i: usize,
+        start: usize,
+        end: usize,
+    ) -> Result<Reg, ExpressionError> {
         match v {
             Value::Vector(regs) => Ok(regs[i]),
             Value::Input(input) => self.op(Op::Load(*input, i as u32), start, end),
@@ -505,7 +538,11 @@ impl<'s> Parser<'s> {
         let mut results = Vec::with_capacity(len.unwrap_or(1));
         for k in 0..len.unwrap_or(1) {
             for (o, column) in operands.iter_mut().zip(&columns) {
-                *o = if column.len() == 1 { column[0] } else { column[k] };
+                *o = if column.len() == 1 {
+                    column[0]
+                } else {
+                    column[k]
+                };
             }
             results.push(self.op(build(&operands), start, end)?);
         }
@@ -537,9 +574,16 @@ impl<'s> Parser<'s> {
     }
 
     /// `left op right`, element by element.
-    fn binary(&mut self, op: Binary, left: Spanned, right: Spanned) -> Result<Spanned, ExpressionError> {
+    fn binary(
+        &mut self,
+        op: Binary,
+        left: Spanned,
+        right: Spanned,
+    ) -> Result<Spanned, ExpressionError> {
         let (start, end) = (left.start, right.end);
-        self.elementwise(vec![left, right], start, end, |r| Op::Binary(op, r[0], r[1]))
+        self.elementwise(vec![left, right], start, end, |r| {
+            Op::Binary(op, r[0], r[1])
+        })
     }
 }
 

@@ -164,10 +164,7 @@ impl Binary {
             Binary::Sub => (1.0, -1.0),
             Binary::Mul => (y, x),
             Binary::Div => (1.0 / y, -z / y),
-            Binary::Pow => (
-                y * x.powf(y - 1.0),
-                if x > 0.0 { z * x.ln() } else { 0.0 },
-            ),
+            Binary::Pow => (y * x.powf(y - 1.0), if x > 0.0 { z * x.ln() } else { 0.0 }),
             Binary::Min | Binary::Max => {
                 if z == x {
                     (1.0, 0.0)
@@ -313,7 +310,11 @@ mod tests {
         let six = b.push(Op::Binary(Binary::Mul, two, three)).unwrap();
         let y = b.push(Op::Binary(Binary::Mul, six, sin1)).unwrap();
         let one = b.constant(1.0).unwrap();
-        assert_eq!(b.push(Op::Select(one, y, x)).unwrap(), y, "a constant condition");
+        assert_eq!(
+            b.push(Op::Select(one, y, x)).unwrap(),
+            y,
+            "a constant condition"
+        );
         let p = b.finish(y);
         assert_eq!(
             p.ops,
@@ -332,7 +333,11 @@ mod tests {
         let mut b = Builder::new(2);
         let x = b.push(Op::Load(Input::A, 0)).unwrap();
         let y = b.push(Op::Unary(Unary::Neg, x)).unwrap();
-        assert_eq!(b.push(Op::Unary(Unary::Neg, x)).unwrap(), y, "shared: no new operation");
+        assert_eq!(
+            b.push(Op::Unary(Unary::Neg, x)).unwrap(),
+            y,
+            "shared: no new operation"
+        );
         assert!(b.push(Op::Unary(Unary::Sin, y)).is_err());
     }
 
@@ -362,10 +367,21 @@ mod tests {
                 let f = |x: f64| u.apply(x as f32) as f64;
                 let fd = (f(x as f64 + h) - f(x as f64 - h)) / (2.0 * h);
                 let d = u.derivative(x, u.apply(x)) as f64;
-                assert!((d - fd).abs() < 1e-2 * (1.0 + fd.abs()), "{u:?} at {x}: {d} vs {fd}");
+                assert!(
+                    (d - fd).abs() < 1e-2 * (1.0 + fd.abs()),
+                    "{u:?} at {x}: {d} vs {fd}"
+                );
             }
         }
-        let binary = [Binary::Add, Binary::Sub, Binary::Mul, Binary::Div, Binary::Pow, Binary::Min, Binary::Max];
+        let binary = [
+            Binary::Add,
+            Binary::Sub,
+            Binary::Mul,
+            Binary::Div,
+            Binary::Pow,
+            Binary::Min,
+            Binary::Max,
+        ];
         for b in binary {
             for (x, y) in [(0.7f32, 1.3f32), (1.9, -0.6), (2.5, 0.4)] {
                 let z = b.apply(x, y);
@@ -374,8 +390,14 @@ mod tests {
                 let (x, y) = (x as f64, y as f64);
                 let fdx = (f(x + h, y) - f(x - h, y)) / (2.0 * h);
                 let fdy = (f(x, y + h) - f(x, y - h)) / (2.0 * h);
-                assert!((dx as f64 - fdx).abs() < 1e-2 * (1.0 + fdx.abs()), "{b:?} ∂x at {x},{y}");
-                assert!((dy as f64 - fdy).abs() < 1e-2 * (1.0 + fdy.abs()), "{b:?} ∂y at {x},{y}");
+                assert!(
+                    (dx as f64 - fdx).abs() < 1e-2 * (1.0 + fdx.abs()),
+                    "{b:?} ∂x at {x},{y}"
+                );
+                assert!(
+                    (dy as f64 - fdy).abs() < 1e-2 * (1.0 + fdy.abs()),
+                    "{b:?} ∂y at {x},{y}"
+                );
             }
         }
     }

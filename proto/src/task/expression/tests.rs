@@ -37,8 +37,13 @@ fn value(source: &str) -> f32 {
 /// `rows` random rows of each input, uniform in `[-range, range)`.
 fn random_batch(dims: Dims, rows: usize, range: f32, seed: u64) -> [Vec<f32>; 3] {
     let mut rng = StdRng::seed_from_u64(seed);
-    let mut draw = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(-range..range)).collect() };
-    [draw(rows * dims.obs_dim), draw(rows * dims.act_dim), draw(rows * dims.obs_dim)]
+    let mut draw =
+        |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(-range..range)).collect() };
+    [
+        draw(rows * dims.obs_dim),
+        draw(rows * dims.act_dim),
+        draw(rows * dims.obs_dim),
+    ]
 }
 
 #[test]
@@ -58,9 +63,18 @@ fn arithmetic_follows_the_documented_precedence() {
     assert!((value("log(e)") - 1.0).abs() < 1e-6);
     assert_eq!(value("min(3, [4, -1], 2) + max([1, 5, 2])"), 4.0);
     assert_eq!(value("sum([1, 2, 3] * 2 + 1)"), 15.0);
-    assert_eq!(value("norm([3, 4]) + norm1([-1, 2]) + dot([1, 2], [3, 4])"), 5.0 + 3.0 + 11.0);
-    assert_eq!(value("[5, 6, 7, 8][1:3][1] + [1, 2, 3][:2][0] + [1, 2, 3][2:][0]"), 11.0);
-    assert_eq!(value("abs(-3) + sqrt(16) + tanh(0) + exp(0) + sin(0) + cos(0)"), 9.0);
+    assert_eq!(
+        value("norm([3, 4]) + norm1([-1, 2]) + dot([1, 2], [3, 4])"),
+        5.0 + 3.0 + 11.0
+    );
+    assert_eq!(
+        value("[5, 6, 7, 8][1:3][1] + [1, 2, 3][:2][0] + [1, 2, 3][2:][0]"),
+        11.0
+    );
+    assert_eq!(
+        value("abs(-3) + sqrt(16) + tanh(0) + exp(0) + sin(0) + cos(0)"),
+        9.0
+    );
     assert_eq!(value("2.5e1 + .5 + 1."), 26.5);
     // NaN is true; `min` ignores a NaN.
     assert_eq!(value("if(0/0, 1, 2)"), 1.0);
@@ -101,10 +115,44 @@ fn errors_name_the_offending_text_and_its_offset() {
     assert_eq!(e.to_string().lines().nth(2).unwrap(), "               ^^^^");
 
     let cases: &[(&str, usize, &str, ErrorKind)] = &[
-        ("a[2]", 0, "a[2]", ErrorKind::IndexOutOfRange { index: 2, of: "a (act_dim 2)".into() }),
-        ("[1, 2][5]", 0, "[1, 2][5]", ErrorKind::IndexOutOfRange { index: 5, of: "a vector of length 2".into() }),
-        ("s[1:9]", 0, "s[1:9]", ErrorKind::BadSlice { start: 1, end: 9, of: "s (obs_dim 4)".into() }),
-        ("s[3:3]", 0, "s[3:3]", ErrorKind::BadSlice { start: 3, end: 3, of: "s (obs_dim 4)".into() }),
+        (
+            "a[2]",
+            0,
+            "a[2]",
+            ErrorKind::IndexOutOfRange {
+                index: 2,
+                of: "a (act_dim 2)".into(),
+            },
+        ),
+        (
+            "[1, 2][5]",
+            0,
+            "[1, 2][5]",
+            ErrorKind::IndexOutOfRange {
+                index: 5,
+                of: "a vector of length 2".into(),
+            },
+        ),
+        (
+            "s[1:9]",
+            0,
+            "s[1:9]",
+            ErrorKind::BadSlice {
+                start: 1,
+                end: 9,
+                of: "s (obs_dim 4)".into(),
+            },
+        ),
+        (
+            "s[3:3]",
+            0,
+            "s[3:3]",
+            ErrorKind::BadSlice {
+                start: 3,
+                end: 3,
+                of: "s (obs_dim 4)".into(),
+            },
+        ),
         ("s[1.5]", 2, "1.5", ErrorKind::BadIndex),
         ("s[-1]", 2, "-", ErrorKind::BadIndex),
         ("s[]", 2, "]", ErrorKind::BadIndex),
@@ -113,9 +161,36 @@ fn errors_name_the_offending_text_and_its_offset() {
         ("sn[0]", 0, "sn", ErrorKind::UnknownName),
         ("2 * sinh(a[0])", 4, "sinh", ErrorKind::UnknownFunction),
         ("s(0)", 0, "s", ErrorKind::UnknownFunction),
-        ("1 + dot(a)", 4, "dot(a)", ErrorKind::Arity { function: "dot", expected: "2", got: 1 }),
-        ("sin(1, 2)", 0, "sin(1, 2)", ErrorKind::Arity { function: "sin", expected: "1", got: 2 }),
-        ("max()", 0, "max()", ErrorKind::Arity { function: "max", expected: "1 or more", got: 0 }),
+        (
+            "1 + dot(a)",
+            4,
+            "dot(a)",
+            ErrorKind::Arity {
+                function: "dot",
+                expected: "2",
+                got: 1,
+            },
+        ),
+        (
+            "sin(1, 2)",
+            0,
+            "sin(1, 2)",
+            ErrorKind::Arity {
+                function: "sin",
+                expected: "1",
+                got: 2,
+            },
+        ),
+        (
+            "max()",
+            0,
+            "max()",
+            ErrorKind::Arity {
+                function: "max",
+                expected: "1 or more",
+                got: 0,
+            },
+        ),
         ("s", 0, "s", ErrorKind::NotAScalar(4)),
         ("1 + a * 2", 0, "1 + a * 2", ErrorKind::NotAScalar(2)),
         ("s_next[0:3]", 0, "s_next[0:3]", ErrorKind::NotAScalar(3)),
@@ -124,16 +199,40 @@ fn errors_name_the_offending_text_and_its_offset() {
         ("norm(s + a)", 5, "s + a", ErrorKind::LengthMismatch(4, 2)),
         ("0 < a[0] < 1", 9, "<", ErrorKind::ChainedComparison),
         ("(a[0] + 1", 9, "end of input", ErrorKind::Expected("`)`")),
-        ("a[0] a[1]", 5, "a", ErrorKind::Expected("an operator or the end of the formula")),
-        ("2x", 1, "x", ErrorKind::Expected("an operator or the end of the formula")),
-        ("", 0, "end of input", ErrorKind::Expected("a number, a name, `(` or `[`")),
-        ("1 + * 2", 4, "*", ErrorKind::Expected("a number, a name, `(` or `[`")),
+        (
+            "a[0] a[1]",
+            5,
+            "a",
+            ErrorKind::Expected("an operator or the end of the formula"),
+        ),
+        (
+            "2x",
+            1,
+            "x",
+            ErrorKind::Expected("an operator or the end of the formula"),
+        ),
+        (
+            "",
+            0,
+            "end of input",
+            ErrorKind::Expected("a number, a name, `(` or `[`"),
+        ),
+        (
+            "1 + * 2",
+            4,
+            "*",
+            ErrorKind::Expected("a number, a name, `(` or `[`"),
+        ),
         ("a[0] # 2", 5, "#", ErrorKind::UnexpectedCharacter),
         ("1e39 * a[0]", 0, "1e39", ErrorKind::BadNumber),
     ];
     for (source, offset, token, kind) in cases {
         let e = error(source, SMALL);
-        assert_eq!((e.offset, e.token.as_str(), &e.kind), (*offset, *token, kind), "{source}: {e}");
+        assert_eq!(
+            (e.offset, e.token.as_str(), &e.kind),
+            (*offset, *token, kind),
+            "{source}: {e}"
+        );
         assert!(e.to_string().contains(&format!("at {offset}")), "{e}");
     }
 }
@@ -142,28 +241,68 @@ fn errors_name_the_offending_text_and_its_offset() {
 fn hostile_sources_get_clear_errors() {
     let megabyte = "a[0]+".repeat(200_000) + "1";
     let e = error(&megabyte, SMALL);
-    assert_eq!(e.kind, ErrorKind::TooLong { len: megabyte.len(), max: MAX_SOURCE_BYTES });
+    assert_eq!(
+        e.kind,
+        ErrorKind::TooLong {
+            len: megabyte.len(),
+            max: MAX_SOURCE_BYTES
+        }
+    );
 
     let parens = "(".repeat(8000) + "a[0]" + &")".repeat(8000);
-    assert_eq!(error(&parens, SMALL).kind, ErrorKind::TooDeep { max: MAX_NESTING });
+    assert_eq!(
+        error(&parens, SMALL).kind,
+        ErrorKind::TooDeep { max: MAX_NESTING }
+    );
     let signs = "-".repeat(10_000) + "a[0]";
-    assert_eq!(error(&signs, SMALL).kind, ErrorKind::TooDeep { max: MAX_NESTING });
+    assert_eq!(
+        error(&signs, SMALL).kind,
+        ErrorKind::TooDeep { max: MAX_NESTING }
+    );
     let calls = "sin(".repeat(3000) + "1" + &")".repeat(3000);
-    assert_eq!(error(&calls, SMALL).kind, ErrorKind::TooDeep { max: MAX_NESTING });
+    assert_eq!(
+        error(&calls, SMALL).kind,
+        ErrorKind::TooDeep { max: MAX_NESTING }
+    );
     let powers = "a[0]^".repeat(3000) + "2";
-    assert_eq!(error(&powers, SMALL).kind, ErrorKind::TooDeep { max: MAX_NESTING });
+    assert_eq!(
+        error(&powers, SMALL).kind,
+        ErrorKind::TooDeep { max: MAX_NESTING }
+    );
     let literals = "[".repeat(3000) + "1" + &"]".repeat(3000);
-    assert_eq!(error(&literals, SMALL).kind, ErrorKind::TooDeep { max: MAX_NESTING });
+    assert_eq!(
+        error(&literals, SMALL).kind,
+        ErrorKind::TooDeep { max: MAX_NESTING }
+    );
     // Nesting just inside the bound is fine.
     let ok = "(".repeat(MAX_NESTING - 1) + "a[0]" + &")".repeat(MAX_NESTING - 1);
     assert_eq!(eval1(&parse(&ok), &[0.0; 4], &[3.0, 0.0], &[0.0; 4]), 3.0);
 
-    let wide = Dims { obs_dim: 5000, act_dim: 1 };
-    assert_eq!(error("norm(s)", wide).kind, ErrorKind::TooLarge { max: MAX_OPERATIONS });
-    assert!(Expression::parse("s[4999] - s_next[0]", wide).is_ok(), "one load, not 5000");
-    let mid = Dims { obs_dim: 100, act_dim: 1 };
+    let wide = Dims {
+        obs_dim: 5000,
+        act_dim: 1,
+    };
+    assert_eq!(
+        error("norm(s)", wide).kind,
+        ErrorKind::TooLarge {
+            max: MAX_OPERATIONS
+        }
+    );
+    assert!(
+        Expression::parse("s[4999] - s_next[0]", wide).is_ok(),
+        "one load, not 5000"
+    );
+    let mid = Dims {
+        obs_dim: 100,
+        act_dim: 1,
+    };
     let products = format!("sum(s{})", "*s".repeat(50));
-    assert_eq!(error(&products, mid).kind, ErrorKind::TooLarge { max: MAX_OPERATIONS });
+    assert_eq!(
+        error(&products, mid).kind,
+        ErrorKind::TooLarge {
+            max: MAX_OPERATIONS
+        }
+    );
     // A long flat chain compiles in a loop: no stack depth, just operations.
     let chain = "a[0]*a[1]+".repeat(1500) + "0";
     assert!(Expression::parse(&chain, SMALL).is_ok());
@@ -171,7 +310,13 @@ fn hostile_sources_get_clear_errors() {
     let digits = "9".repeat(1000);
     assert_eq!(error(&digits, SMALL).kind, ErrorKind::BadNumber);
     assert_eq!(error("s[99999999999]", SMALL).kind, ErrorKind::BadIndex);
-    assert_eq!(error("s[16777216]", SMALL).kind, ErrorKind::IndexOutOfRange { index: 1 << 24, of: "s (obs_dim 4)".into() });
+    assert_eq!(
+        error("s[16777216]", SMALL).kind,
+        ErrorKind::IndexOutOfRange {
+            index: 1 << 24,
+            of: "s (obs_dim 4)".into()
+        }
+    );
 }
 
 proptest::proptest! {
@@ -233,10 +378,27 @@ fn gradients_match_finite_differences() {
         let e = parse(source);
         let [s, a, n] = random_batch(SMALL, rows, 0.9, f as u64);
         let mut out = vec![0.0; rows];
-        let (mut ds, mut da, mut dn) = (vec![f32::NAN; rows * 4], vec![f32::NAN; rows * 2], vec![f32::NAN; rows * 4]);
+        let (mut ds, mut da, mut dn) = (
+            vec![f32::NAN; rows * 4],
+            vec![f32::NAN; rows * 2],
+            vec![f32::NAN; rows * 4],
+        );
         let mut scratch = e.scratch();
-        let grads = Gradients { s: &mut ds, a: &mut da, s_next: &mut dn };
-        e.eval_grad(Inputs { s: &s, a: &a, s_next: &n }, &mut out, grads, &mut scratch);
+        let grads = Gradients {
+            s: &mut ds,
+            a: &mut da,
+            s_next: &mut dn,
+        };
+        e.eval_grad(
+            Inputs {
+                s: &s,
+                a: &a,
+                s_next: &n,
+            },
+            &mut out,
+            grads,
+            &mut scratch,
+        );
 
         let h = 1e-3f32;
         let mut fd_out = vec![0.0; rows];
@@ -244,7 +406,10 @@ fn gradients_match_finite_differences() {
             e.eval_batch(Inputs { s, a, s_next: n }, &mut fd_out, &mut scratch);
             fd_out.clone()
         };
-        for (which, (x, dx, dim)) in [(&s, &ds, 4), (&a, &da, 2), (&n, &dn, 4)].into_iter().enumerate() {
+        for (which, (x, dx, dim)) in [(&s, &ds, 4), (&a, &da, 2), (&n, &dn, 4)]
+            .into_iter()
+            .enumerate()
+        {
             for j in 0..dim {
                 // Move coordinate j of every row at once: rows are independent.
                 let shifted = |delta: f32| -> Vec<f32> {
@@ -275,7 +440,10 @@ fn gradients_match_finite_differences() {
                         "{source}: input {which}, row {r}, coordinate {j}: {got} vs {want}"
                     );
                 }
-                assert!(kinks <= rows / 20, "{source}: input {which}, coordinate {j}: {kinks} kinks");
+                assert!(
+                    kinks <= rows / 20,
+                    "{source}: input {which}, coordinate {j}: {kinks} kinks"
+                );
                 kinks_seen += kinks;
             }
         }
@@ -289,7 +457,15 @@ fn batches_agree_with_single_rows_and_need_no_full_inputs_for_gradients() {
     let rows = 3 * eval::BLOCK + 5;
     let [s, a, n] = random_batch(SMALL, rows, 1.0, 9);
     let mut out = vec![0.0; rows];
-    e.eval_batch(Inputs { s: &s, a: &a, s_next: &n }, &mut out, &mut e.scratch());
+    e.eval_batch(
+        Inputs {
+            s: &s,
+            a: &a,
+            s_next: &n,
+        },
+        &mut out,
+        &mut e.scratch(),
+    );
     for r in 0..rows {
         let one = eval1(&e, &s[r * 4..][..4], &a[r * 2..][..2], &n[r * 4..][..4]);
         assert_eq!(out[r], one, "row {r}");
@@ -297,8 +473,21 @@ fn batches_agree_with_single_rows_and_need_no_full_inputs_for_gradients() {
     // Only the action's gradient asked for.
     let mut da = vec![0.0; rows * 2];
     let mut grad_out = vec![0.0; rows];
-    let grads = Gradients { s: &mut [], a: &mut da, s_next: &mut [] };
-    e.eval_grad(Inputs { s: &s, a: &a, s_next: &n }, &mut grad_out, grads, &mut e.scratch());
+    let grads = Gradients {
+        s: &mut [],
+        a: &mut da,
+        s_next: &mut [],
+    };
+    e.eval_grad(
+        Inputs {
+            s: &s,
+            a: &a,
+            s_next: &n,
+        },
+        &mut grad_out,
+        grads,
+        &mut e.scratch(),
+    );
     assert_eq!(grad_out, out);
     for r in 0..rows {
         assert_eq!(da[r * 2], 0.0);
@@ -311,8 +500,21 @@ fn untaken_branches_pass_no_gradient() {
     // log(a[0]) is -inf with an infinite slope at 0, in the branch not taken.
     let e = parse("if(a[0] > 0, log(a[0]), 2*a[0]) + sqrt(a[1]^2) + norm([a[1], 0])");
     let (mut out, mut da) = ([0.0], [0.0; 2]);
-    let grads = Gradients { s: &mut [], a: &mut da, s_next: &mut [] };
-    e.eval_grad(Inputs { s: &[], a: &[0.0, 0.0], s_next: &[] }, &mut out, grads, &mut e.scratch());
+    let grads = Gradients {
+        s: &mut [],
+        a: &mut da,
+        s_next: &mut [],
+    };
+    e.eval_grad(
+        Inputs {
+            s: &[],
+            a: &[0.0, 0.0],
+            s_next: &[],
+        },
+        &mut out,
+        grads,
+        &mut e.scratch(),
+    );
     assert_eq!((out[0], da), (0.0, [2.0, 0.0]));
 }
 
@@ -320,7 +522,15 @@ fn untaken_branches_pass_no_gradient() {
 #[should_panic(expected = "s: 3 numbers for 1 rows of 4")]
 fn short_inputs_are_refused() {
     let e = parse("s[0]");
-    e.eval_batch(Inputs { s: &[0.0; 3], a: &[], s_next: &[] }, &mut [0.0], &mut e.scratch());
+    e.eval_batch(
+        Inputs {
+            s: &[0.0; 3],
+            a: &[],
+            s_next: &[],
+        },
+        &mut [0.0],
+        &mut e.scratch(),
+    );
 }
 
 /// The catalog's rewards written as formulas, with the functions they must agree with.
@@ -342,7 +552,10 @@ fn catalog_formulas() -> Vec<(TaskId, &'static str)> {
 }
 
 fn dims_of(task: TaskId) -> Dims {
-    Dims { obs_dim: task.spec().obs_dim, act_dim: task.spec().act_dim }
+    Dims {
+        obs_dim: task.spec().obs_dim,
+        act_dim: task.spec().act_dim,
+    }
 }
 
 #[test]
@@ -352,13 +565,29 @@ fn catalog_rewards_written_as_formulas_agree_with_the_rust_ones() {
         let spec = task.spec();
         let dims = dims_of(task);
         let e = Expression::parse(source, dims).unwrap_or_else(|err| panic!("{task}: {err}"));
-        assert!(!e.reads(Input::S), "{task}: the catalog's rewards do not read s");
+        assert!(
+            !e.reads(Input::S),
+            "{task}: the catalog's rewards do not read s"
+        );
         let [s, a, n] = random_batch(dims, rows, 2.0, 17);
         let (o, u) = (dims.obs_dim, dims.act_dim);
         let mut out = vec![0.0; rows];
         let (mut da, mut dn) = (vec![0.0; rows * u], vec![0.0; rows * o]);
-        let grads = Gradients { s: &mut [], a: &mut da, s_next: &mut dn };
-        e.eval_grad(Inputs { s: &s, a: &a, s_next: &n }, &mut out, grads, &mut e.scratch());
+        let grads = Gradients {
+            s: &mut [],
+            a: &mut da,
+            s_next: &mut dn,
+        };
+        e.eval_grad(
+            Inputs {
+                s: &s,
+                a: &a,
+                s_next: &n,
+            },
+            &mut out,
+            grads,
+            &mut e.scratch(),
+        );
         let (mut want_da, mut want_dn) = (vec![0.0; u], vec![0.0; o]);
         for r in 0..rows {
             let (s, a, n) = (&s[r * o..][..o], &a[r * u..][..u], &n[r * o..][..o]);
@@ -378,7 +607,11 @@ fn catalog_rewards_written_as_formulas_agree_with_the_rust_ones() {
 #[test]
 fn ants_termination_written_as_a_formula_agrees_with_the_rust_one() {
     let spec = TaskId::Ant.spec();
-    let e = Expression::parse("!(s_next[0] >= 0.2 && s_next[0] <= 1)", dims_of(TaskId::Ant)).unwrap();
+    let e = Expression::parse(
+        "!(s_next[0] >= 0.2 && s_next[0] <= 1)",
+        dims_of(TaskId::Ant),
+    )
+    .unwrap();
     let rows = 400;
     let [_, _, mut n] = random_batch(dims_of(TaskId::Ant), rows, 1.5, 5);
     // The edges of the healthy range exactly, and a NaN height (not healthy).
@@ -386,12 +619,23 @@ fn ants_termination_written_as_a_formula_agrees_with_the_rust_one() {
     n[27] = 1.0;
     n[54] = f32::NAN;
     let mut out = vec![0.0; rows];
-    e.eval_batch(Inputs { s: &[], a: &[], s_next: &n }, &mut out, &mut e.scratch());
+    e.eval_batch(
+        Inputs {
+            s: &[],
+            a: &[],
+            s_next: &n,
+        },
+        &mut out,
+        &mut e.scratch(),
+    );
     let mut ended = 0;
     for r in 0..rows {
         let want = spec.is_terminal(&n[r * 27..][..27]);
         assert_eq!(out[r] != 0.0, want, "row {r}: height {}", n[r * 27]);
         ended += usize::from(want);
     }
-    assert!(ended > 50 && ended < rows - 50, "both outcomes occur: {ended}");
+    assert!(
+        ended > 50 && ended < rows - 50,
+        "both outcomes occur: {ended}"
+    );
 }
