@@ -119,14 +119,28 @@ impl From<ExpressionError> for BenchError {
 }
 
 impl ExpressionReport {
-    /// The formula's time per plan (iterations × one evaluation) as a share of the plan's,
-    /// at the best and at the median of both.
+    /// The formula's time per plan (iterations × one evaluation, one thread's CPU time) as a
+    /// share of the plan's wall time, at the best and at the median of both.
     pub fn share_of_plan(&self) -> (f64, f64) {
-        let per_plan = |eval_ms: f64| eval_ms * self.plan.mean_iterations;
         (
-            per_plan(self.eval.min_ms) / self.plan.min_ms,
-            per_plan(self.eval.median_ms) / self.plan.median_ms,
+            self.per_plan_ms(self.eval.min_ms) / self.plan.min_ms,
+            self.per_plan_ms(self.eval.median_ms) / self.plan.median_ms,
         )
+    }
+
+    /// The same share of the plan's CPU time (every thread's, mean per call), for the best and
+    /// the median evaluation: the share of the work, whatever the load on the machine.
+    pub fn share_of_plan_cpu(&self) -> Option<(f64, f64)> {
+        self.plan.cpu_ms_per_call.map(|cpu| {
+            (
+                self.per_plan_ms(self.eval.min_ms) / cpu,
+                self.per_plan_ms(self.eval.median_ms) / cpu,
+            )
+        })
+    }
+
+    fn per_plan_ms(&self, eval_ms: f64) -> f64 {
+        eval_ms * self.plan.mean_iterations
     }
 }
 
@@ -145,19 +159,35 @@ impl fmt::Display for ExpressionReport {
             "  + gradient {} per evaluation, one thread",
             self.gradient
         )?;
-        writeln!(
+        write!(
             f,
-            "  plan       {:.2} ms best, {:.2} ms median over {} calls ({} thread(s), {:.1} iterations per call)",
+            "  plan       {:.2} ms best, {:.2} ms median over {} calls, wall clock ({} thread(s), {:.1} iterations per call)",
             p.min_ms, p.median_ms, p.calls, p.threads, p.mean_iterations
         )?;
+        if let (Some(cpu), Some(share)) = (p.cpu_ms_per_call, p.cpu_share) {
+            write!(
+                f,
+                "; {cpu:.2} ms CPU per call, the threads ran {:.0} % of the time",
+                share * 100.0
+            )?;
+        }
         let (best, median) = self.share_of_plan();
         write!(
             f,
-            "  share      the formula's values cost {:.2} % of a plan's time at the best, {:.2} % at the median ({:.1} evaluations per plan)",
+            "\n  share      {:.1} evaluations per plan: the formula's values cost {:.2} % of a plan's wall time at the best, {:.2} % at the median",
+            p.mean_iterations,
             best * 100.0,
             median * 100.0,
-            p.mean_iterations
-        )
+        )?;
+        if let Some((best, median)) = self.share_of_plan_cpu() {
+            write!(
+                f,
+                "; {:.2} % (best evaluation), {:.2} % (median) of its CPU time",
+                best * 100.0,
+                median * 100.0
+            )?;
+        }
+        Ok(())
     }
 }
 
@@ -183,6 +213,9 @@ mod tests {
         assert!(report.eval.min_ms > 0.0 && report.eval.min_ms <= report.eval.median_ms);
         let (best, median) = report.share_of_plan();
         assert!(best > 0.0 && median > 0.0 && best.is_finite() && median.is_finite());
+        if let Some((best, median)) = report.share_of_plan_cpu() {
+            assert!(best > 0.0 && best <= median && median.is_finite());
+        }
         assert!(report.to_string().contains("share"), "{report}");
 
         let bad = run(&Settings {

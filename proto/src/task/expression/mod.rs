@@ -126,6 +126,8 @@ pub struct Expression {
     source: String,
     dims: Dims,
     program: Program,
+    /// Whether the program loads `s`, `a`, `s_next` (in [`Input`] order).
+    reads: [bool; 3],
 }
 
 impl Expression {
@@ -133,10 +135,18 @@ impl Expression {
     /// vector may be, known names and functions with the right number of arguments, a scalar
     /// result, and the bounds on size.
     pub fn parse(source: &str, dims: Dims) -> Result<Self, ExpressionError> {
+        let program = parser::compile(source, dims)?;
+        let reads = [Input::S, Input::A, Input::SNext].map(|input| {
+            program
+                .ops
+                .iter()
+                .any(|op| matches!(op, Op::Load(i, _) if *i == input))
+        });
         Ok(Self {
-            program: parser::compile(source, dims)?,
+            program,
             source: source.to_string(),
             dims,
+            reads,
         })
     }
 
@@ -152,10 +162,7 @@ impl Expression {
 
     /// Whether the formula reads `input` at all (after simplification: `0*s[0]` does not).
     pub fn reads(&self, input: Input) -> bool {
-        self.program
-            .ops
-            .iter()
-            .any(|op| matches!(op, Op::Load(i, _) if *i == input))
+        self.reads[input as usize]
     }
 
     /// Scalar operations per row.
