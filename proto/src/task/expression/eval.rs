@@ -186,13 +186,18 @@ impl Program {
                         *d += chain(g, u.derivative(x, y));
                     }
                 }
-                Op::Binary(b, x, y) => {
+                Op::Binary(b, x, y) if x != y => {
                     let (xs, ys, zs) = (val(x), val(y), val(i as Reg));
-                    let (xo, yo) = (x as usize * BLOCK, y as usize * BLOCK);
-                    for k in 0..rows {
-                        let (px, py) = b.derivatives(xs[k], ys[k], zs[k]);
-                        earlier[xo + k] += chain(g[k], px);
-                        earlier[yo + k] += chain(g[k], py);
+                    let (dx, dy) = two_columns_mut(earlier, x, y);
+                    binary_backward(b, g, xs, ys, zs, &mut dx[..rows], &mut dy[..rows]);
+                }
+                Op::Binary(b, x, _) => {
+                    // `x op x` (a square written `x*x`): both partials go to one column.
+                    let (xs, zs) = (val(x), val(i as Reg));
+                    let dx = &mut column_mut(earlier, x)[..rows];
+                    for (((d, &g), &x), &z) in dx.iter_mut().zip(g).zip(xs).zip(zs) {
+                        let (px, py) = b.derivatives(x, x, z);
+                        *d += chain(g, px) + chain(g, py);
                     }
                 }
                 Op::Select(c, x, y) => {
@@ -221,6 +226,51 @@ fn column(values: &[f32], r: Reg) -> &[f32] {
 
 fn column_mut(values: &mut [f32], r: Reg) -> &mut [f32] {
     &mut values[r as usize * BLOCK..][..BLOCK]
+}
+
+/// The columns of two different operations, both mutable.
+fn two_columns_mut(values: &mut [f32], x: Reg, y: Reg) -> (&mut [f32], &mut [f32]) {
+    let (lo, hi) = (x.min(y) as usize, x.max(y) as usize);
+    let (head, tail) = values.split_at_mut(hi * BLOCK);
+    let (low, high) = (&mut head[lo * BLOCK..][..BLOCK], &mut tail[..BLOCK]);
+    if x < y { (low, high) } else { (high, low) }
+}
+
+/// Adds `g·∂z/∂x` to `dx` and `g·∂z/∂y` to `dy` for `z = b(x, y)`; sums, differences and
+/// products get loops of their own so that they vectorise.
+fn binary_backward(
+    b: Binary,
+    g: &[f32],
+    xs: &[f32],
+    ys: &[f32],
+    zs: &[f32],
+    dx: &mut [f32],
+    dy: &mut [f32],
+) {
+    let pairs = dx.iter_mut().zip(dy.iter_mut()).zip(g);
+    match b {
+        Binary::Add => pairs.for_each(|((dx, dy), &g)| {
+            *dx += g;
+            *dy += g;
+        }),
+        Binary::Sub => pairs.for_each(|((dx, dy), &g)| {
+            *dx += g;
+            *dy -= g;
+        }),
+        Binary::Mul => pairs
+            .zip(xs.iter().zip(ys))
+            .for_each(|(((dx, dy), &g), (&x, &y))| {
+                *dx += chain(g, y);
+                *dy += chain(g, x);
+            }),
+        _ => pairs
+            .zip(xs.iter().zip(ys).zip(zs))
+            .for_each(|(((dx, dy), &g), ((&x, &y), &z))| {
+                let (px, py) = b.derivatives(x, y, z);
+                *dx += chain(g, px);
+                *dy += chain(g, py);
+            }),
+    }
 }
 
 /// `out = u(x)`; the common operations get loops of their own so that they vectorise.
