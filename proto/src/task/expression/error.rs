@@ -60,6 +60,8 @@ pub enum ErrorKind {
     LengthMismatch(usize, usize),
     #[error("comparisons do not chain: join them with && or ||")]
     ChainedComparison,
+    #[error("a reduction of an empty vector (a dimension is 0)")]
+    EmptyVector,
 }
 
 /// Longest offending text quoted in an error.

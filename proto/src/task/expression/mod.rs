@@ -60,9 +60,10 @@
 //!
 //! A formula is at most [`MAX_SOURCE_BYTES`] long, nests at most [`MAX_NESTING`] levels
 //! (parentheses, calls, signs, powers), and compiles to at most [`MAX_OPERATIONS`] scalar
-//! operations once vectors are expanded (`norm(s)` is `2·obs_dim` of them). Beyond any of
-//! these, and for any mistake, [`Expression::parse`] returns an [`ExpressionError`] naming the
-//! offending text and its byte offset; it never panics or overflows the stack.
+//! operations once vectors are expanded (`norm(s)` is `3·obs_dim` of them: loads, squares,
+//! sums and a root). Beyond any of these, and for any mistake, [`Expression::parse`] returns
+//! an [`ExpressionError`] naming the offending text and its byte offset; it never panics or
+//! overflows the stack.
 
 mod error;
 mod eval;

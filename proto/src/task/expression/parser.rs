@@ -570,7 +570,7 @@ impl<'s> Parser<'s> {
                 });
             }
         }
-        Ok(acc.expect("at least one element"))
+        acc.ok_or_else(|| self.error(start, end, ErrorKind::EmptyVector))
     }
 
     /// `left op right`, element by element.

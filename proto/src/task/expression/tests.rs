@@ -307,6 +307,25 @@ fn hostile_sources_get_clear_errors() {
     let chain = "a[0]*a[1]+".repeat(1500) + "0";
     assert!(Expression::parse(&chain, SMALL).is_ok());
 
+    let empty = Dims {
+        obs_dim: 0,
+        act_dim: 0,
+    };
+    for source in ["sum(a)", "norm(s)", "max(s_next)", "dot(a, a)"] {
+        assert_eq!(
+            error(source, empty).kind,
+            ErrorKind::EmptyVector,
+            "{source}"
+        );
+    }
+    assert_eq!(
+        error("s[0]", empty).kind,
+        ErrorKind::IndexOutOfRange {
+            index: 0,
+            of: "s (obs_dim 0)".into()
+        }
+    );
+    assert!(Expression::parse("1 + 2", empty).is_ok());
     let digits = "9".repeat(1000);
     assert_eq!(error(&digits, SMALL).kind, ErrorKind::BadNumber);
     assert_eq!(error("s[99999999999]", SMALL).kind, ErrorKind::BadIndex);
@@ -335,6 +354,8 @@ proptest::proptest! {
         0..40,
     )) {
         let source: String = pieces.concat();
+        // Zero dimensions too: every reduction and index must be refused, never panic.
+        let _ = Expression::parse(&source, Dims { obs_dim: 0, act_dim: 0 });
         match Expression::parse(&source, SMALL) {
             Err(e) => {
                 proptest::prop_assert!(e.offset <= source.len(), "{source}: {e}");
