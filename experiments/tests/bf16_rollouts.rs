@@ -12,7 +12,7 @@ use planner_service::models::Models;
 use planner_service::nn::simd::bf16_dot_available;
 use planner_service::plan::{CemConfig, Imagination};
 use planner_service::trainer::{TrainLimits, retrain};
-use proto::{InferencePrecision, Builtin};
+use proto::{Builtin, InferencePrecision};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use sim_bridge::Env;
@@ -30,8 +30,10 @@ fn random_action(spec: &proto::Task, rng: &mut StdRng) -> Vec<f32> {
 fn bf16_moves_imagined_returns_far_less_than_the_model_errs() {
     let task = Builtin::HalfCheetah;
     let spec = task.task();
-    let mut preset = Preset::new(task, Some("cem+deen")).unwrap();
-    preset.apply(&Scale::Small.overrides(task)).unwrap();
+    let mut preset = Preset::new(task.task(), Some("cem+deen")).unwrap();
+    preset
+        .apply(&Scale::Small.overrides(task, "cem+deen").unwrap())
+        .unwrap();
     let mut env = Env::new(task).unwrap();
     let mut rng = StdRng::seed_from_u64(0);
 

@@ -12,7 +12,7 @@
 use ebmpc_experiments::figures::imagination::{ImaginationConfig, run};
 use ebmpc_experiments::scale::Scale;
 use planner_service::energy::RegularizerKind;
-use proto::{InferencePrecision, Builtin};
+use proto::{Builtin, InferencePrecision};
 
 #[test]
 fn deen_narrows_the_gap_between_imagined_and_real_return() {
@@ -23,7 +23,7 @@ fn deen_narrows_the_gap_between_imagined_and_real_return() {
             // Half-cheetah: a 6-D action space gives an unregularised optimiser room to exploit
             // the model (on cartpole's single action the regulariser changes nothing, as in the
             // paper).
-            task: Builtin::HalfCheetah.name().into(),
+            task: Builtin::HalfCheetah,
             scale: Scale::Small,
             plan_scale: Scale::Paper,
             method: "cem+deen".into(),

@@ -592,7 +592,7 @@ impl Run {
 mod tests {
     use super::*;
     use crate::replay::log_tests::FillingDisk;
-    use proto::{PlannerOverrides, Builtin};
+    use proto::{Builtin, PlannerOverrides};
     use std::sync::atomic::AtomicBool;
 
     fn small_preset() -> Preset {

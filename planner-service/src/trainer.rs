@@ -139,7 +139,7 @@ pub fn retrain(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::{PlannerOverrides, Builtin};
+    use proto::{Builtin, PlannerOverrides};
     use std::sync::atomic::Ordering;
 
     fn small_preset() -> Preset {

@@ -18,7 +18,7 @@ use planner_service::data::Transitions;
 use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
 use planner_service::plan::{CemConfig, IcemConfig, MpcPlanner, Optimizer};
-use proto::{InferencePrecision, Builtin};
+use proto::{Builtin, InferencePrecision};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::alloc::{GlobalAlloc, Layout, System};

@@ -31,7 +31,9 @@ pub enum ValidationError {
         value: f32,
         bound: f32,
     },
-    #[error("observation[{index}] is {value}, outside the task's observation bounds [{low}, {high}]")]
+    #[error(
+        "observation[{index}] is {value}, outside the task's observation bounds [{low}, {high}]"
+    )]
     ObservationOutOfBounds {
         index: usize,
         value: f32,
@@ -305,8 +307,8 @@ mod tests {
         let task = crate::task::Task::intern(spec, &Default::default()).unwrap();
         let m = &task.magnitudes;
         validate_observation(&obs(0, vec![2.4, 0.0, 0.0, -10.0], None), task, m).unwrap();
-        let err = validate_observation(&obs(0, vec![2.5, 0.0, 0.0, 0.0], None), task, m)
-            .unwrap_err();
+        let err =
+            validate_observation(&obs(0, vec![2.5, 0.0, 0.0, 0.0], None), task, m).unwrap_err();
         assert_eq!(err.code(), ErrorCode::OutOfRange);
         assert_eq!(
             err.to_string(),

@@ -160,10 +160,7 @@ pub enum BridgeError {
     #[error("sim-bridge simulates the built-in tasks only, not `{0}`")]
     NotSimulated(String),
     #[error("the planner attached us to a {found} run, but this bridge simulates {expected}")]
-    TaskMismatch {
-        expected: String,
-        found: String,
-    },
+    TaskMismatch { expected: String, found: String },
     #[error("cannot encode a message: {0}")]
     Encode(#[source] CodecError),
     #[error("undecodable message on `{key}`: {source}")]

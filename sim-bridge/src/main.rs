@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use proto::session::Endpoints;
-use proto::{InferencePrecision, PlannerOverrides, RegularizerChoice, RunSpec, Builtin, TrainMode};
+use proto::{Builtin, InferencePrecision, PlannerOverrides, RegularizerChoice, RunSpec, TrainMode};
 use sim_bridge::bridge::{self, BridgeConfig};
 use sim_bridge::csv::EpisodeCsv;
 use std::path::PathBuf;

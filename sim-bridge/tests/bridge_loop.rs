@@ -7,9 +7,9 @@
 
 use proto::session::{Endpoints, zenoh_config};
 use proto::{
-    Action, ActionSource, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding,
-    EpisodeEnd, ErrorCode, ErrorReport, Keys, Observation, PROTOCOL_VERSION, PlanStats, RunEvent,
-    RunEventKind, RunSpec, Builtin, TrainMode,
+    Action, ActionSource, AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Builtin,
+    Encoding, EpisodeEnd, ErrorCode, ErrorReport, Keys, Observation, PROTOCOL_VERSION, PlanStats,
+    RunEvent, RunEventKind, RunSpec, TrainMode,
 };
 use sim_bridge::{BridgeConfig, BridgeError, Env};
 use std::sync::{Arc, Mutex};

@@ -19,7 +19,7 @@
 use anyhow::{Context, Result};
 use ebmpc_e2e::client::{Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::{Guarded, Planner, TempDir, free_endpoint, router, serve_data};
-use proto::{EpisodeEnd, Observation, RunSpec, Builtin, TrainMode};
+use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::path::Path;
 use std::time::{Duration, Instant};
 

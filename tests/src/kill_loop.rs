@@ -10,7 +10,7 @@ use crate::client::{Answer, Client, ToySystem};
 use crate::config::{PlannerConfig, Sizes};
 use crate::{Planner, free_endpoint};
 use anyhow::{Context, Result, bail};
-use proto::{EpisodeEnd, Observation, RunSpec, Builtin, TrainMode};
+use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::collections::{BTreeMap, HashSet};

@@ -8,8 +8,8 @@ use ebmpc_e2e::client::{Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
 use proto::{
-    AttachOutcome, AttachRequest, Encoding, EpisodeEnd, ErrorCode, Observation, PROTOCOL_VERSION,
-    RunSpec, Builtin,
+    AttachOutcome, AttachRequest, Builtin, Encoding, EpisodeEnd, ErrorCode, Observation,
+    PROTOCOL_VERSION, RunSpec,
 };
 use std::time::Duration;
 

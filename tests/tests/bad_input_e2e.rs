@@ -6,7 +6,7 @@ use ebmpc_e2e::bridge::run_episodes;
 use ebmpc_e2e::client::{Answer, Client, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION, RunSpec, Builtin};
+use proto::{Builtin, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION, RunSpec};
 use std::time::Duration;
 
 fn config() -> String {

@@ -5,7 +5,7 @@
 use ebmpc_e2e::bridge::{check_random_then_planned, read_episodes, run_episodes, spawn_bridge};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir, free_endpoint};
-use proto::{EpisodeEnd, Builtin};
+use proto::{Builtin, EpisodeEnd};
 use std::time::Duration;
 
 /// Tiny networks and a small population: this test checks the plumbing, not the learning.

@@ -7,7 +7,7 @@
 use ebmpc_e2e::client::{Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{Action, ActionSource, EpisodeEnd, Observation, PlannerOverrides, RunSpec, Builtin};
+use proto::{Action, ActionSource, Builtin, EpisodeEnd, Observation, PlannerOverrides, RunSpec};
 
 const PLANNER: &str = "deadlines";
 /// Configured iterations: far more than fit in 5 ms at this population and horizon.

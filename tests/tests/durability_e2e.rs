@@ -6,7 +6,7 @@
 use ebmpc_e2e::client::{Answer, Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir, free_endpoint};
-use proto::{Action, ActionSource, EpisodeEnd, Observation, RunSpec, Builtin, TrainMode};
+use proto::{Action, ActionSource, Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::time::{Duration, Instant};
 
 fn config() -> String {

@@ -6,7 +6,7 @@
 use ebmpc_e2e::client::{Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec, Builtin, TrainMode};
+use proto::{Builtin, EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec, TrainMode};
 use std::time::{Duration, Instant};
 
 fn config() -> String {

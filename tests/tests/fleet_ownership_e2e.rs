@@ -14,7 +14,7 @@ use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data, status_cli};
 use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, ReplayLog};
-use proto::{EpisodeEnd, Observation, RunSpec, Builtin, TrainMode};
+use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
 use std::time::{Duration, Instant};

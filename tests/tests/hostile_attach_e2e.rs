@@ -11,11 +11,11 @@ use ebmpc_e2e::client::{Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
 use planner_service::persist::RunDir;
-use proto::{
-    AttachOutcome, AttachRequest, Encoding, EpisodeEnd, EpochSchedule, Observation,
-    PROTOCOL_VERSION, PlannerOverrides, RunSpec, Builtin, TaskSpec,
-};
 use proto::task::{DeclaredTransforms, ModelTransforms, RewardKind};
+use proto::{
+    AttachOutcome, AttachRequest, Builtin, Encoding, EpisodeEnd, EpochSchedule, Observation,
+    PROTOCOL_VERSION, PlannerOverrides, RunSpec, TaskSpec,
+};
 use std::time::Duration;
 
 const PLANNER: &str = "hostile";
@@ -78,7 +78,10 @@ fn hostile_tasks() -> Vec<(RunSpec, &'static str)> {
         (with(&|t| t.episode_len = u32::MAX), "episode_len"),
         (with(&|t| t.action_low = vec![f32::NAN]), "action[0]"),
         (with(&|t| t.action_high = vec![-5.0]), "low < high"),
-        (with(&|t| t.action_low = vec![0.0; 1000]), "action_low has 1000 numbers"),
+        (
+            with(&|t| t.action_low = vec![0.0; 1000]),
+            "action_low has 1000 numbers",
+        ),
         (with(&|t| t.control_dt = f64::INFINITY), "control_dt"),
         (with(&|t| t.magnitudes.observation = 3e38), "magnitudes"),
         (
@@ -424,7 +427,10 @@ fn hostile_attaches_are_refused_and_the_daemon_keeps_serving() {
         good.close().await.unwrap();
         // A task given in full runs like a catalog task.
         let custom = Client::connect(&endpoint, "custom", "c").await.unwrap();
-        let accepted = custom.attach(&custom_spec(Some(custom_task()))).await.unwrap();
+        let accepted = custom
+            .attach(&custom_spec(Some(custom_task())))
+            .await
+            .unwrap();
         assert_eq!(accepted.task, "my-cartpole");
         play(&custom, 1, 10).await;
         custom.close().await.unwrap();
@@ -499,7 +505,10 @@ fn hostile_attaches_are_refused_and_the_daemon_keeps_serving() {
             .await
             .unwrap();
         let accepted = custom.attach(&custom_spec(None)).await.unwrap();
-        assert_eq!((accepted.task.as_str(), accepted.next_episode), ("my-cartpole", 1));
+        assert_eq!(
+            (accepted.task.as_str(), accepted.next_episode),
+            ("my-cartpole", 1)
+        );
         assert_eq!(accepted.episodes_done, 1);
         custom.close().await.unwrap();
         session.close().await.unwrap();

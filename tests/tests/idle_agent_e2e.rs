@@ -5,7 +5,7 @@
 use ebmpc_e2e::client::{Client, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{AttachOutcome, AttachRequest, Encoding, PROTOCOL_VERSION, RunSpec, Builtin};
+use proto::{AttachOutcome, AttachRequest, Builtin, Encoding, PROTOCOL_VERSION, RunSpec};
 use std::time::Duration;
 
 fn spec() -> RunSpec {

@@ -5,7 +5,7 @@
 use ebmpc_e2e::client::{Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir, free_port};
-use proto::{EpisodeEnd, Observation, RunSpec, Builtin};
+use proto::{Builtin, EpisodeEnd, Observation, RunSpec};
 
 const PLANNER: &str = "metrics";
 

@@ -6,8 +6,8 @@ use ebmpc_e2e::client::{Answer, Client, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
 use proto::{
-    ActionSource, EpisodeEnd, ErrorCode, Observation, PlannerOverrides, RunEventKind, RunSpec,
-    Builtin,
+    ActionSource, Builtin, EpisodeEnd, ErrorCode, Observation, PlannerOverrides, RunEventKind,
+    RunSpec,
 };
 use std::time::Duration;
 

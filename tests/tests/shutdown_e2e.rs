@@ -5,7 +5,7 @@
 use ebmpc_e2e::client::{Client, ToySystem, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec, Builtin};
+use proto::{Builtin, EpisodeEnd, Observation, PlannerOverrides, RunEventKind, RunSpec};
 use std::time::{Duration, Instant};
 
 /// The daemon's promise: it exits within this long after SIGTERM.

@@ -7,7 +7,7 @@
 use ebmpc_e2e::client::{Client, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{AttachRequest, Encoding, Observation, PROTOCOL_VERSION, RunSpec, Builtin};
+use proto::{AttachRequest, Builtin, Encoding, Observation, PROTOCOL_VERSION, RunSpec};
 use std::time::Duration;
 
 const PLANNER: &str = "wildcards";

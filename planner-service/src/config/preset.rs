@@ -25,7 +25,9 @@
 use crate::dynamics::DynamicsConfig;
 use crate::energy::{EnergyConfig, RegularizerKind};
 use crate::plan::{AdamConfig, CemConfig, IcemConfig, Optimizer};
-use proto::{Builtin, EpochSchedule, InferencePrecision, PlannerOverrides, RegularizerChoice, Task};
+use proto::{
+    Builtin, EpochSchedule, InferencePrecision, PlannerOverrides, RegularizerChoice, Task,
+};
 
 /// The methods a preset can be built for (see the module docs).
 pub const METHODS: &[&str] = &[

@@ -254,7 +254,7 @@ pub fn archive_run(data_dir: &Path, name: &str) -> Result<PathBuf, AdminError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::{PlannerOverrides, Builtin, TrainMode};
+    use proto::{Builtin, PlannerOverrides, TrainMode};
 
     fn store_run(data: &Path, name: &str) {
         let dir = RunDir::new(data, name);

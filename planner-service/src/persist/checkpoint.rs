@@ -298,8 +298,8 @@ fn read_f32(tensors: &SafeTensors<'_>, name: &str) -> Result<Vec<f32>, Checkpoin
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::Builtin;
     use crate::data::Transitions;
+    use proto::Builtin;
     use rand::SeedableRng;
     use rand::rngs::StdRng;
 

@@ -324,7 +324,7 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), PersistError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use proto::{PlannerOverrides, Builtin, TrainMode};
+    use proto::{Builtin, PlannerOverrides, TrainMode};
 
     fn temp_dir(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("ebmpc-persist-{name}-{}", std::process::id()));

@@ -1205,11 +1205,7 @@ async fn reply_attach(query: &zenoh::query::Query, outcome: AttachOutcome, encod
 /// ask for without knowing.
 fn spec_difference(run: &RunSpec, asked: &RunSpec) -> Option<String> {
     if run.task != asked.task {
-        return Some(format!(
-            "task {}, not {}",
-            run.task,
-            truncated(&asked.task)
-        ));
+        return Some(format!("task {}, not {}", run.task, truncated(&asked.task)));
     }
     // An agent joining may leave the run's task spec out: the run knows it.
     if asked.task_spec.is_some() && asked.task_spec != run.task_spec {

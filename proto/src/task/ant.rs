@@ -5,8 +5,9 @@
 //! 0.05 s. The episode terminates when the torso height leaves [0.2, 1.0].
 
 use super::{
-    Builtin, BuiltinCode, TaskSpec, TerminationKind, catalog_entry, apply_delta, apply_delta_backward, delta_target,
-    identity_features, identity_features_backward, squared_norm, squared_norm_gradient,
+    Builtin, BuiltinCode, TaskSpec, TerminationKind, apply_delta, apply_delta_backward,
+    catalog_entry, delta_target, identity_features, identity_features_backward, squared_norm,
+    squared_norm_gradient,
 };
 
 pub(crate) const CODE: BuiltinCode = BuiltinCode {

@@ -3,8 +3,8 @@
 //! Observation `[x, θ, ẋ, θ̇]`; action: the force on the cart, ±3. 200 steps of 0.04 s.
 
 use super::{
-    Builtin, BuiltinCode, TaskSpec, TerminationKind, catalog_entry, apply_delta, apply_delta_backward, delta_target,
-    never_terminal, squared_norm, squared_norm_gradient,
+    Builtin, BuiltinCode, TaskSpec, TerminationKind, apply_delta, apply_delta_backward,
+    catalog_entry, delta_target, never_terminal, squared_norm, squared_norm_gradient,
 };
 
 /// Pole length in metres (the reward's target is the tip straight above the rail's origin).

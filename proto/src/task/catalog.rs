@@ -1,9 +1,9 @@
 //! The tasks a process knows by name: the five built-ins plus those its operator declared (a
 //! daemon's `[tasks.NAME]` tables and its tasks folder).
 
+use super::Builtin;
 use super::compiled::{Task, TaskError};
 use super::spec::{SpecBounds, TaskSpec};
-use super::Builtin;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -125,10 +125,7 @@ impl TaskCatalog {
     /// The task of that name.
     pub fn get(&self, name: &str) -> Result<&'static Task, UnknownTask> {
         self.tasks.get(name).copied().ok_or_else(|| UnknownTask {
-            name: name
-                .chars()
-                .take(crate::keys::SHOWN_NAME_CHARS)
-                .collect(),
+            name: name.chars().take(crate::keys::SHOWN_NAME_CHARS).collect(),
             known: self.tasks.keys().cloned().collect::<Vec<_>>().join(", "),
         })
     }
@@ -156,7 +153,10 @@ mod tests {
         let mut catalog = TaskCatalog::builtin();
         assert_eq!(catalog.get("ant").unwrap().name(), "ant");
         let err = catalog.get("walker").unwrap_err().to_string();
-        assert!(err.contains("unknown task `walker`") && err.contains("cartpole"), "{err}");
+        assert!(
+            err.contains("unknown task `walker`") && err.contains("cartpole"),
+            "{err}"
+        );
         let mut unnamed = small("");
         unnamed.episode_len = 60;
         let task = catalog

@@ -335,7 +335,10 @@ mod tests {
         let mut spec = custom("learned");
         spec.reward = RewardKind::Learned;
         let err = Task::intern(spec, &SpecBounds::default()).unwrap_err();
-        assert!(err.to_string().contains("learned rewards are not available"));
+        assert!(
+            err.to_string()
+                .contains("learned rewards are not available")
+        );
         let mut spec = custom("bad");
         spec.obs_dim = 0;
         assert!(matches!(

@@ -11,6 +11,7 @@ pub mod ant;
 pub mod cartpole;
 mod catalog;
 mod compiled;
+pub mod expression;
 pub mod halfcheetah;
 pub mod pusher;
 pub mod reacher3d;

@@ -8,8 +8,9 @@
 //! the two agree).
 
 use super::{
-    Builtin, BuiltinCode, TaskSpec, TerminationKind, catalog_entry, apply_delta, apply_delta_backward, delta_target,
-    identity_features, identity_features_backward, never_terminal, squared_norm_gradient,
+    Builtin, BuiltinCode, TaskSpec, TerminationKind, apply_delta, apply_delta_backward,
+    catalog_entry, delta_target, identity_features, identity_features_backward, never_terminal,
+    squared_norm_gradient,
 };
 
 pub(crate) const CODE: BuiltinCode = BuiltinCode {

@@ -224,7 +224,9 @@ pub enum SpecError {
         "task {task}: magnitudes must be positive and at most {MAX_MAGNITUDE:e}, got {found:?}"
     )]
     Magnitudes { task: String, found: Magnitudes },
-    #[error("task {task}: model.{field} index {index} is repeated or not below obs_dim = {obs_dim}")]
+    #[error(
+        "task {task}: model.{field} index {index} is repeated or not below obs_dim = {obs_dim}"
+    )]
     Index {
         task: String,
         field: &'static str,
@@ -451,7 +453,10 @@ mod tests {
         let json = serde_json::to_string(&pendulum()).unwrap();
         assert_eq!(serde_json::from_str::<TaskSpec>(&json).unwrap(), pendulum());
         let bytes = postcard::to_stdvec(&pendulum()).unwrap();
-        assert_eq!(postcard::from_bytes::<TaskSpec>(&bytes).unwrap(), pendulum());
+        assert_eq!(
+            postcard::from_bytes::<TaskSpec>(&bytes).unwrap(),
+            pendulum()
+        );
         let builtin: TaskSpec = serde_json::from_str(
             r#"{"name":"c","obs_dim":4,"act_dim":1,"action_low":[-3],"action_high":[3],
                 "episode_len":200,"control_dt":0.04,"reward":{"builtin":"cartpole"},
@@ -529,17 +534,21 @@ mod tests {
             "observation_bounds[1]",
         );
         refused(
-            &|s| s.model = ModelTransforms::Declared(DeclaredTransforms {
-                angles: vec![2],
-                absolute: vec![],
-            }),
+            &|s| {
+                s.model = ModelTransforms::Declared(DeclaredTransforms {
+                    angles: vec![2],
+                    absolute: vec![],
+                })
+            },
             "model.angles index 2",
         );
         refused(
-            &|s| s.model = ModelTransforms::Declared(DeclaredTransforms {
-                angles: vec![],
-                absolute: vec![1, 1],
-            }),
+            &|s| {
+                s.model = ModelTransforms::Declared(DeclaredTransforms {
+                    angles: vec![],
+                    absolute: vec![1, 1],
+                })
+            },
             "model.absolute index 1 is repeated",
         );
         // Builtin code indexes its own dimensions: another task's must not reach it.

@@ -68,11 +68,8 @@ impl Declared {
     }
 
     pub fn next_obs_from_target(&self, obs: &[f32], target: &[f32], next_obs: &mut [f32]) {
-        for (((n, &s), &t), &absolute) in next_obs
-            .iter_mut()
-            .zip(obs)
-            .zip(target)
-            .zip(&self.absolute)
+        for (((n, &s), &t), &absolute) in
+            next_obs.iter_mut().zip(obs).zip(target).zip(&self.absolute)
         {
             *n = if absolute { t } else { s + t };
         }
