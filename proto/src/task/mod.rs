@@ -18,7 +18,7 @@ use std::str::FromStr;
 /// New variants go at the end: postcard encodes a variant by its index, and replay logs and run
 /// records store it, so reordering would make stored runs name the wrong task.
 /// [`TaskId::ALL`] gives the paper's order.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum TaskId {
     Cartpole,
