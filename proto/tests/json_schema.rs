@@ -27,7 +27,8 @@ fn checked_in_schemas_match_the_rust_types() {
             std::fs::write(dir.join(format!("{name}.json")), file_text(schema)).unwrap();
         }
     }
-    const FIX: &str = "write them again: EBMPC_WRITE_SCHEMA=1 cargo test -p ebmpc-proto --test json_schema";
+    const FIX: &str =
+        "write them again: EBMPC_WRITE_SCHEMA=1 cargo test -p ebmpc-proto --test json_schema";
     for (name, schema) in &generated {
         let path = dir.join(format!("{name}.json"));
         let on_disk = std::fs::read_to_string(&path)
@@ -45,5 +46,10 @@ fn checked_in_schemas_match_the_rust_types() {
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .filter(|n| n.ends_with(".json"))
         .collect();
-    assert_eq!(present, expected, "schema files in {}: {FIX}", dir.display());
+    assert_eq!(
+        present,
+        expected,
+        "schema files in {}: {FIX}",
+        dir.display()
+    );
 }

@@ -434,8 +434,11 @@ impl Service {
                 kind,
             };
             runtime.spawn(async move {
-                let key = outbox.keys().events(&event.run);
-                outbox.publish(&key, &event, Encoding::Postcard).await;
+                // Broadcast: each subscriber reads the encoding of the key it chose.
+                for encoding in [Encoding::Postcard, Encoding::Json] {
+                    let key = outbox.keys().events(&event.run, encoding);
+                    outbox.publish(&key, &event, encoding).await;
+                }
             });
         })
     }
