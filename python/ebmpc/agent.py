@@ -22,6 +22,7 @@ from .errors import (
     ActionTimeout,
     EventTimeout,
     NoPlannerError,
+    PlannerError,
     ProtocolError,
     StorageError,
     from_report,
@@ -201,11 +202,16 @@ class Agent:
                 raise ValueError("every step after the first needs the reward of the last action")
             step = self.step + 1
         self._send(wire.observation(self.episode, step, obs, self.session, reward, None, applied))
-        self.step = step
+        previous, self.step = self.step, step
         wait = timeout if timeout is not None else (
             self.train_timeout if step == 0 else self.action_timeout
         )
-        return self._action(self.episode, step, wait)
+        try:
+            return self._action(self.episode, step, wait)
+        except PlannerError:
+            # The planner used nothing of a refused observation: the step can be sent again.
+            self.step = previous
+            raise
 
     def end(
         self,
