@@ -2,8 +2,9 @@
 //!
 //! Controllers in other languages speak JSON (see [`crate::codec`]); the schemas tell them the
 //! exact shape of each message. They are checked in under `python/ebmpc/schema/` (the Python
-//! package validates what it builds against them), and `proto/tests/json_schema.rs` fails when
-//! the checked-in files differ from what these types generate, so the two cannot drift.
+//! package validates messages against them) with the daemon's status report, which
+//! `planner-service` adds; `planner-service/tests/json_schema.rs` fails when the checked-in files
+//! differ from what the types generate, so the two cannot drift.
 
 use crate::messages::{
     Action, AttachReply, AttachRequest, ErrorReport, Observation, PROTOCOL_VERSION, RunEvent,
@@ -14,31 +15,33 @@ use serde_json::{Value, json};
 /// The file name (without `.json`) of the index that names the protocol version and the files.
 pub const INDEX: &str = "protocol";
 
-fn schema_of<T: JsonSchema>() -> Value {
+/// The JSON schema (draft 2020-12) of `T`.
+pub fn schema_of<T: JsonSchema>() -> Value {
     SchemaSettings::draft2020_12()
         .into_generator()
         .into_root_schema_for::<T>()
         .to_value()
 }
 
-/// Every wire message's schema by message name, and the index ([`INDEX`]): the protocol
-/// version (every message's `version` must equal it) and the message names.
+/// Every wire message's schema, by message name.
 pub fn wire_schemas() -> Vec<(String, Value)> {
-    let mut files: Vec<(String, Value)> = vec![
+    vec![
         ("AttachRequest".into(), schema_of::<AttachRequest>()),
         ("AttachReply".into(), schema_of::<AttachReply>()),
         ("Observation".into(), schema_of::<Observation>()),
         ("Action".into(), schema_of::<Action>()),
         ("ErrorReport".into(), schema_of::<ErrorReport>()),
         ("RunEvent".into(), schema_of::<RunEvent>()),
-    ];
-    let names: Vec<&str> = files.iter().map(|(name, _)| name.as_str()).collect();
-    let index = json!({
+    ]
+}
+
+/// The index file ([`INDEX`]): the protocol version (every message's `version` must equal it)
+/// and the names of the schemas beside it.
+pub fn index<'a>(names: impl IntoIterator<Item = &'a str>) -> Value {
+    json!({
         "protocol_version": PROTOCOL_VERSION,
-        "messages": names,
-    });
-    files.push((INDEX.into(), index));
-    files
+        "messages": names.into_iter().collect::<Vec<_>>(),
+    })
 }
 
 /// The text a schema file holds: pretty JSON with a final newline.
@@ -64,6 +67,6 @@ mod tests {
         assert!(request.contains("\"cartpole\"") && request.contains("\"halfcheetah\""));
         let reply = find("AttachReply").to_string();
         assert!(reply.contains("\"Accepted\"") && reply.contains("\"Rejected\""));
-        assert_eq!(find(INDEX)["protocol_version"], PROTOCOL_VERSION);
+        assert_eq!(index(["Action"])["protocol_version"], PROTOCOL_VERSION);
     }
 }

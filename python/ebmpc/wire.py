@@ -31,8 +31,8 @@ Message = Dict[str, Any]
 
 
 def schema(name: str) -> Message:
-    """The JSON schema of the wire message ``name`` (``"Observation"``, ``"Action"``, ...), or
-    the index ``"protocol"`` (``protocol_version`` and the message names)."""
+    """The JSON schema of the wire message ``name`` (``"Observation"``, ``"Action"``, ...,
+    ``"PlannerStatus"``), or the index ``"protocol"`` (``protocol_version`` and the names)."""
     text = resources.files("ebmpc").joinpath("schema").joinpath(f"{name}.json").read_text("utf-8")
     return cast(Message, json.loads(text))
 

@@ -127,6 +127,7 @@ def test_episodes_events_and_status(daemon: Daemon) -> None:
 
             reports = planner.status()
             assert [r["planner_id"] for r in reports] == ["py-pkg"]
+            validate("PlannerStatus", reports[0])
             (run,) = [r for r in reports[0]["runs"] if r["name"] == "py-pkg"]
             assert (run["task"], run["episodes"], run["transitions"]) == ("cartpole", 2, 2 * STEPS)
             assert run["agents"] == ["py-0"]

@@ -15,6 +15,7 @@
 
 mod log_limit;
 pub mod metrics;
+pub mod schema;
 mod session_token;
 pub mod status;
 mod worker;
