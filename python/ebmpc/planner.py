@@ -64,8 +64,8 @@ class Planner:
     ) -> Agent:
         """Attaches agent ``agent`` to ``run``, creating the run if it is new.
 
-        ``task``: a task of the planner's catalog by name, or a task spec (a mapping, sent as
-        the attach message's task). ``preset``: the planner preset (``cem+deen`` by default on
+        ``task``: a task of the planner's catalog by name, or a whole task spec (a mapping with
+        its ``name``) where the protocol takes one (see :func:`ebmpc.wire.task_fields`). ``preset``: the planner preset (``cem+deen`` by default on
         the planner's side); ``overrides``: preset fields to change (``{"population": 100}``).
         The first agent's spec (task, preset, overrides, mode, seed) is the run's; a later one
         that differs is refused. Raises the planner's refusal as its :class:`PlannerError`

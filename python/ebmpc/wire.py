@@ -64,14 +64,35 @@ class Keys:
         return f"{self.prefix}/alive/runs/{run}/agents/{agent}"
 
 
-def task_field(task: Task) -> Union[str, Message]:
-    """The attach request's ``task`` field: a catalog name as it is, a spec as a JSON object.
+def _takes_task_specs() -> bool:
+    """Whether this protocol's attach carries whole task specs (``RunSpec.task_spec``)."""
+    run_spec = schema("AttachRequest").get("$defs", {}).get("RunSpec", {})
+    return "task_spec" in run_spec.get("properties", {})
 
-    The one place that encodes a task: how planners take task specs changes only this.
+
+#: Whether planners of this protocol version take a task spec in the attach message (read from
+#: the shipped schema, so it follows the planner this package was generated with).
+TAKES_TASK_SPECS: bool = _takes_task_specs()
+
+
+def task_fields(task: Task) -> Message:
+    """The attach request's task fields: ``task``, the task's name; and ``task_spec``, the whole
+    spec, when ``task`` is a mapping (its ``name`` is the task's name).
+
+    The one place that encodes a task. A protocol without task specs gets a :class:`ValueError`
+    for a mapping: its planners would ignore the spec and plan for a catalog task of that name.
     """
     if isinstance(task, str):
-        return task
-    return dict(task)
+        return {"task": task}
+    if not TAKES_TASK_SPECS:
+        raise ValueError(
+            f"planners of protocol {PROTOCOL_VERSION} take catalog task names only, not task specs"
+        )
+    spec = dict(task)
+    name = spec.get("name")
+    if not isinstance(name, str):
+        raise ValueError("a task spec needs its `name`")
+    return {"task": name, "task_spec": spec}
 
 
 def attach_request(
@@ -89,7 +110,7 @@ def attach_request(
         "version": PROTOCOL_VERSION,
         "agent": agent,
         "spec": {
-            "task": task_field(task),
+            **task_fields(task),
             "preset": preset,
             "overrides": dict(overrides or {}),
             "mode": mode,

@@ -79,10 +79,20 @@ def test_events_parse_into_typed_values() -> None:
             events.parse_event(bad)
 
 
-def test_a_task_spec_is_the_task_field_as_it_is() -> None:
+def test_a_task_spec_travels_whole_where_the_protocol_takes_one() -> None:
     spec = {"name": "my-arm", "obs_dim": 3, "act_dim": 1}
-    request = wire.attach_request("a", spec, None, None, "sync", 0, None)
-    assert request["spec"]["task"] == spec and request["spec"]["task"] is not spec
+    run_spec = wire.schema("AttachRequest")["$defs"]["RunSpec"]["properties"]
+    assert wire.TAKES_TASK_SPECS == ("task_spec" in run_spec)
+    if wire.TAKES_TASK_SPECS:
+        request = wire.attach_request("a", spec, None, None, "sync", 0, None)
+        assert request["spec"]["task"] == "my-arm" and request["spec"]["task_spec"] == spec
+        with pytest.raises(ValueError, match="name"):
+            wire.attach_request("a", {"obs_dim": 3}, None, None, "sync", 0, None)
+    else:
+        # Such a planner would ignore the spec and plan for whatever catalog task it names.
+        with pytest.raises(ValueError, match="task names only"):
+            wire.attach_request("a", spec, None, None, "sync", 0, None)
+    assert wire.attach_request("a", "ant", None, None, "sync", 0, None)["spec"]["task"] == "ant"
 
 
 def test_non_finite_numbers_are_refused_before_sending() -> None:
