@@ -41,7 +41,7 @@ class Agent:
 
     Attributes set by the attach: ``planner_id``, ``task``, ``mode``, ``models_version`` (of the
     last action, or of the attach), ``episode`` (the episode in progress, or the next one),
-    ``epoch`` and ``session`` (the session token). ``last_stats`` holds the plan statistics of
+    ``episodes_done``, ``epoch`` and ``session`` (the session token). ``last_stats`` holds the plan statistics of
     the last action (``source``, ``planning_ms``, ``iterations``, ...).
     """
 
@@ -67,6 +67,7 @@ class Agent:
         self.mode = "sync"
         self.models_version = 0
         self.episode = 0
+        self.episodes_done = 0  # finished episodes of the run (all its agents) at the attach
         self.step: Optional[int] = None  # the last step sent in the episode in progress
         self.last_stats: Mapping[str, Any] = {}
         self._last_sent: Optional[bytes] = None
