@@ -22,5 +22,5 @@ pub mod plan;
 pub mod replay;
 pub mod run;
 pub mod service;
-pub mod share;
+pub mod sched;
 pub mod trainer;
