@@ -141,7 +141,10 @@ mod tests {
         let order = Arc::new(Mutex::new(vec![]));
         let mut threads = vec![];
         // Queued one after the other, latest deadline first.
-        for (i, deadline) in [Some(900), None, Some(300), Some(100)].into_iter().enumerate() {
+        for (i, deadline) in [Some(900), None, Some(300), Some(100)]
+            .into_iter()
+            .enumerate()
+        {
             let (queued, order) = (scheduler.clone(), order.clone());
             threads.push(std::thread::spawn(move || {
                 let _turn = queued.turn(deadline.map(|ms| t0 + Duration::from_millis(ms)));
@@ -151,7 +154,10 @@ mod tests {
         }
         drop(holder);
         threads.into_iter().for_each(|t| t.join().unwrap());
-        assert_eq!(*order.lock().unwrap(), [Some(100), Some(300), Some(900), None]);
+        assert_eq!(
+            *order.lock().unwrap(),
+            [Some(100), Some(300), Some(900), None]
+        );
     }
 
     #[test]

@@ -151,7 +151,10 @@ mod tests {
         assert!(queue.outranked());
         queue.preempt();
         assert!(queue.holds(light));
-        assert!(!queue.outranked(), "the heavy plans rank below the light one");
+        assert!(
+            !queue.outranked(),
+            "the heavy plans rank below the light one"
+        );
         queue.leave(light);
         // The preempted plan kept its place ahead of the one that arrived after it.
         assert_eq!(queue.dispatch(), Some(heavy));
