@@ -218,8 +218,9 @@ pub struct Service {
     attach_slots: Arc<Semaphore>,
     /// Raised at shutdown: every run's training stops before its next minibatch.
     cancel_training: Arc<AtomicBool>,
-    /// Plans in flight across all runs: retraining yields to them (see [`crate::share`]).
-    plans: Arc<crate::share::PlanGate>,
+    /// Every run's plans, given the cores by earliest deadline; retraining yields to them
+    /// (see [`crate::sched`]).
+    plans: Arc<crate::sched::Scheduler>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
