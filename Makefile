@@ -26,7 +26,8 @@ demo: toolchain mujoco
 	$(CARGO) build --release --bins
 	TASK=$(TASK) EPISODES=$(EPISODES) SEED=$(SEED) METHOD=$(METHOD) bash deploy/demo.sh
 
-# eclipse-zenoh for examples/python_controller.py, whose end-to-end test uses this interpreter.
+# The ebmpc Python package (python/) with its test dependencies (eclipse-zenoh, pytest, jsonschema,
+# mypy): its tests and the Python example's run through `cargo test` with this interpreter.
 VENV := .venv
 
 python-env:

@@ -1,25 +1,27 @@
 #!/usr/bin/env bash
-# Installs what examples/python_controller.py needs, `eclipse-zenoh` of the planner's zenoh
-# minor version (1.10), into a project-local virtual environment (`make test` runs this: the
-# example's end-to-end test uses that interpreter).
+# Installs the `ebmpc` Python package (python/) with its test dependencies into a project-local
+# virtual environment: `eclipse-zenoh` of the planner's zenoh minor version (1.10), pytest,
+# jsonschema and mypy (`make test` runs this: the package's tests and the example's end-to-end
+# test use that interpreter; the tests import the package from python/ itself, so an installed
+# copy that is older than the working tree does no harm).
 #
 # Works without Debian's python3-venv too: if `python3 -m venv` cannot bootstrap pip, the venv
 # is made without pip and filled by the system's pip; if there is no venv module at all, the
 # package goes into a plain folder and `VENV/bin/python` is a wrapper that puts it on PYTHONPATH.
 #
-# Idempotent: with a matching eclipse-zenoh importable from VENV/bin/python it does nothing.
+# Idempotent: with all of them importable from VENV/bin/python it does nothing.
 # Usage: examples/setup-python.sh [VENV]   (default: <repo>/.venv)
 set -euo pipefail
 
-REQUIREMENT="eclipse-zenoh~=1.10.0"
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+REQUIREMENT="$ROOT/python[test]"
 VENV="${1:-$ROOT/.venv}"
 PY="$VENV/bin/python"
 PYTHON="${PYTHON:-python3}"
-CHECK='import importlib.metadata as m, zenoh; v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
+CHECK='import importlib.metadata as m, zenoh, ebmpc, pytest, jsonschema, mypy; v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
 
 if [[ -x "$PY" ]] && "$PY" -c "$CHECK" 2>/dev/null; then
-    echo "eclipse-zenoh already installed in $VENV"
+    echo "ebmpc and its test dependencies already installed in $VENV"
     exit 0
 fi
 if ! command -v "$PYTHON" >/dev/null 2>&1; then
@@ -46,4 +48,4 @@ WRAPPER
 fi
 
 "$PY" -c "$CHECK"
-echo "eclipse-zenoh installed in $VENV"
+echo "ebmpc and its test dependencies installed in $VENV"

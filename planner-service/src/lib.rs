@@ -21,6 +21,6 @@ pub mod persist;
 pub mod plan;
 pub mod replay;
 pub mod run;
+pub mod sched;
 pub mod service;
-pub mod share;
 pub mod trainer;

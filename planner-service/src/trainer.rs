@@ -41,8 +41,8 @@ pub struct TrainLimits {
     pub max_seconds: f64,
     /// Raised when the daemon stops: training ends before its next minibatch.
     pub cancel: Arc<AtomicBool>,
-    /// The daemon's plans in flight, which retraining yields to between minibatches.
-    pub yield_to: Option<Arc<crate::share::PlanGate>>,
+    /// The daemon's plan queue, which retraining yields to between minibatches.
+    pub yield_to: Option<Arc<crate::sched::Scheduler>>,
 }
 
 impl TrainLimits {

@@ -6,12 +6,15 @@
 //! {prefix}/runs/{run}/agents/{agent}/error   planner → agent   errors about what the agent sent
 //! {prefix}/runs/{run}/attach                 queryable         attach an agent to a run
 //! {prefix}/runs/{run}/events                 planner → all     training, model updates, episodes
+//! {prefix}/runs/{run}/events/json            planner → all     the same events in JSON
 //! {prefix}/planners/{id}/status              queryable         JSON status of a planner
 //! {prefix}/planners/{id}/fleet               queryable         JSON pinning rules of a planner
 //! {prefix}/alive/planners/{id}               liveliness token of a planner
 //! {prefix}/alive/runs/{run}/agents/{agent}   liveliness token of an agent
 //! {prefix}/alive/leases/{run}/{epoch}/{id}   liveliness token: planner `id` owns `run` at `epoch`
 //! ```
+
+use crate::codec::Encoding;
 
 /// The default key prefix.
 pub const DEFAULT_PREFIX: &str = "ebmpc";
@@ -123,8 +126,15 @@ impl Keys {
         format!("{}/runs/{run}/attach", self.prefix)
     }
 
-    pub fn events(&self, run: &str) -> String {
-        format!("{}/runs/{run}/events", self.prefix)
+    /// Where a run's events are published in `encoding`. Events are broadcast, so they cannot
+    /// follow one receiver's encoding: the planner publishes each event in both, postcard on
+    /// `…/events` (what ebmpc's own processes read) and JSON on `…/events/json` (controllers
+    /// in other languages).
+    pub fn events(&self, run: &str, encoding: Encoding) -> String {
+        match encoding {
+            Encoding::Postcard => format!("{}/runs/{run}/events", self.prefix),
+            Encoding::Json => format!("{}/runs/{run}/events/json", self.prefix),
+        }
     }
 
     pub fn planner_status(&self, planner: &str) -> String {
@@ -289,6 +299,11 @@ mod tests {
         assert_eq!(k.all_leases(), "lab/ebmpc/alive/leases/*/*/*");
         assert_eq!(k.planner_fleet("p1"), "lab/ebmpc/planners/p1/fleet");
         assert_eq!(k.all_obs(), "lab/ebmpc/runs/*/agents/*/obs");
+        assert_eq!(k.events("r", Encoding::Postcard), "lab/ebmpc/runs/r/events");
+        assert_eq!(
+            k.events("r", Encoding::Json),
+            "lab/ebmpc/runs/r/events/json"
+        );
     }
 
     #[test]

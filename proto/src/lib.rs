@@ -1,10 +1,11 @@
 //! The contract between ebmpc processes: the task catalog, the messages, the key expressions
 //! they travel on, the codec that turns them into bytes, the validation every received message
-//! goes through, how a process joins the Zenoh session, and how it is asked to stop.
+//! goes through, the JSON schema of the messages, how a process joins the Zenoh session, and how it is asked to stop.
 
 pub mod codec;
 pub mod keys;
 pub mod messages;
+pub mod schema;
 pub mod session;
 pub mod shutdown;
 pub mod task;

@@ -5,6 +5,7 @@
 //! of a garbled decode.
 
 use crate::task::TaskSpec;
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 /// The protocol version this build speaks. Version 2 added the ownership epoch to
@@ -16,7 +17,7 @@ use serde::{Deserialize, Serialize};
 pub const PROTOCOL_VERSION: u16 = 4;
 
 /// How the trainer interacts with acting agents (design.md).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum TrainMode {
     /// The agent's next episode starts once the models retrained on its last episode are in
@@ -28,7 +29,7 @@ pub enum TrainMode {
 }
 
 /// The energy regulariser a run plans with.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum RegularizerChoice {
     /// The unregularised planner (plain PETS-style CEM).
@@ -46,7 +47,7 @@ pub enum RegularizerChoice {
 /// keeps f32 sums: twice the multiply-add rate on CPUs with AVX-512 BF16, a relative rounding
 /// of at most 2⁻⁸ per operand, far below a learned model's own error. Where the CPU lacks
 /// AVX-512 BF16 the planner uses f32 whatever is asked.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum InferencePrecision {
     F32,
@@ -82,7 +83,7 @@ impl std::str::FromStr for InferencePrecision {
 /// executed, several times fewer imagined trajectories for the same plan quality; `adam` is
 /// gradient-based trajectory optimisation through the learned model (Boney et al. 2019, the
 /// paper's Adam + DAE baseline).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Optimizer {
     #[default]
@@ -119,7 +120,7 @@ impl std::str::FromStr for Optimizer {
 
 /// How training epochs decay with the number of finished episodes (the paper trains less as
 /// the buffer grows, to avoid overfitting it). Part of a run's preset, and overridable.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum EpochSchedule {
     /// The configured epochs after every episode.
@@ -139,7 +140,7 @@ pub enum EpochSchedule {
 /// keeps the preset's value. A field this build does not know is refused (JSON names its
 /// fields; postcard has no names, and a message longer than the fields it knows is refused
 /// as trailing bytes), so a mistyped override is never silently ignored.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct PlannerOverrides {
     pub regularizer: Option<RegularizerChoice>,
@@ -202,7 +203,7 @@ pub struct PlannerOverrides {
 ///
 /// The first agent to attach creates the run with this spec; later agents must agree on the task.
 /// Fields are only ever appended: postcard is positional.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct RunSpec {
     /// The task's name: a planner's catalog entry, or the name of `task_spec`.
     pub task: String,
@@ -223,7 +224,7 @@ pub struct RunSpec {
 }
 
 /// Sent as the payload of a query on the run's attach key.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct AttachRequest {
     pub version: u16,
     pub agent: String,
@@ -236,20 +237,20 @@ pub struct AttachRequest {
 }
 
 /// The planner's answer to an [`AttachRequest`].
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct AttachReply {
     pub version: u16,
     pub outcome: AttachOutcome,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub enum AttachOutcome {
     Accepted(AttachAccepted),
     Rejected(ErrorReport),
 }
 
 /// The run as the agent joins it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct AttachAccepted {
     pub planner_id: String,
     /// The run's task name.
@@ -274,7 +275,7 @@ pub struct AttachAccepted {
 }
 
 /// Why an episode ended.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum EpisodeEnd {
     /// The task's termination condition fired (e.g. the ant fell).
@@ -287,7 +288,7 @@ pub enum EpisodeEnd {
 
 /// An agent's observation. `step = 0` starts an episode; step `t > 0` is the result of the
 /// action the planner sent for step `t − 1`, with the reward of that transition.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Observation {
     pub version: u16,
     pub episode: u32,
@@ -347,7 +348,7 @@ impl Observation {
 }
 
 /// Where an action came from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum ActionSource {
     /// Uniformly random (exploration episodes).
@@ -357,7 +358,7 @@ pub enum ActionSource {
 }
 
 /// Statistics of the plan behind an action.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct PlanStats {
     pub source: ActionSource,
     /// Wall time the planner spent on this action.
@@ -378,7 +379,7 @@ pub struct PlanStats {
 }
 
 /// The planner's answer to an observation.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Action {
     pub version: u16,
     pub episode: u32,
@@ -392,7 +393,7 @@ pub struct Action {
 }
 
 /// Machine-readable kind of an [`ErrorReport`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ErrorCode {
     /// The bytes could not be decoded.
@@ -428,7 +429,7 @@ pub enum ErrorCode {
 }
 
 /// An error reported to the sender of a bad message, on its error key.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ErrorReport {
     pub version: u16,
     pub code: ErrorCode,
@@ -488,14 +489,14 @@ impl std::fmt::Display for ErrorReport {
 }
 
 /// Something that happened to a run, published on its events key.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct RunEvent {
     pub version: u16,
     pub run: String,
     pub kind: RunEventKind,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub enum RunEventKind {
     /// An agent finished an episode; its transitions are stored.
     EpisodeFinished {

@@ -113,7 +113,7 @@ impl PlannerLink {
         };
         let actions = subscribe(keys.act(run, agent)).await?;
         let errors = subscribe(keys.error(run, agent)).await?;
-        let events = subscribe(keys.events(run)).await?;
+        let events = subscribe(keys.events(run, ENCODING)).await?;
         let observations = session
             .declare_publisher(keys.obs(run, agent))
             .encoding(ZEncoding::from(ENCODING.mime()))

@@ -120,7 +120,7 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                         ];
                         for kind in events {
                             let event = RunEvent { version: PROTOCOL_VERSION, run: run.clone(), kind };
-                            s.put(k.events(&run), publish_bytes(&event)).await.unwrap();
+                            s.put(k.events(&run, Encoding::Postcard), publish_bytes(&event)).await.unwrap();
                         }
                         continue;
                     }

@@ -60,7 +60,7 @@ impl Client {
         };
         let actions = subscribe(keys.act(run, agent)).await?;
         let errors = subscribe(keys.error(run, agent)).await?;
-        let events = subscribe(keys.events(run)).await?;
+        let events = subscribe(keys.events(run, Encoding::Postcard)).await?;
         let token = session
             .liveliness()
             .declare_token(keys.agent_alive(run, agent))

@@ -1,10 +1,12 @@
-//! The Python example controller (`examples/python_controller.py`, `eclipse-zenoh`, JSON
-//! encoding) as the tests run it.
+//! Python as the tests run it: the `ebmpc` package's own tests (`python/tests`, pytest) and the
+//! example controller (`examples/python_controller.py`, a user of the package).
 //!
 //! The interpreter is `$EBMPC_PYTHON`, or `.venv/bin/python` in the workspace, where `make test`
-//! installs `eclipse-zenoh`. Without it the tests that need it fail: they never skip.
+//! installs the package's dependencies (`examples/setup-python.sh`). The package itself is
+//! imported from `python/` (`PYTHONPATH`), so the tests run the working tree's code, never an
+//! older installed copy. Without the interpreter the tests that need it fail: they never skip.
 
-use crate::{Guarded, free_port, workspace};
+use crate::{Guarded, binaries, free_port, workspace};
 use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitStatus};
@@ -43,9 +45,27 @@ pub fn run_controller(
 ) -> Result<(ExitStatus, String)> {
     let mut cmd = Command::new(interpreter()?);
     cmd.arg(workspace().join("examples/python_controller.py"))
-        .args(args);
+        .args(args)
+        .env("PYTHONPATH", workspace().join("python"));
     let log = dir.join(format!("python-{}.log", free_port()));
     let mut process = Guarded::spawn("python_controller.py", cmd, log)?;
+    let status = process.wait(timeout)?;
+    Ok((status, process.log()))
+}
+
+/// Runs the package's pytest suite (`python/tests`) against this build's `planner-service`,
+/// killed after `timeout` (its daemons die with it: they hold a parent-death signal); its exit
+/// status and everything it printed.
+pub fn run_package_tests(dir: &Path, timeout: Duration) -> Result<(ExitStatus, String)> {
+    let mut cmd = Command::new(interpreter()?);
+    cmd.args(["-m", "pytest", "-q", "-p", "no:cacheprovider", "--basetemp"])
+        .arg(dir.join("pytest"))
+        .arg(workspace().join("python/tests"))
+        .current_dir(workspace().join("python"))
+        .env("PYTHONPATH", workspace().join("python"))
+        .env("EBMPC_PLANNER_BIN", &binaries().planner);
+    let log = dir.join(format!("pytest-{}.log", free_port()));
+    let mut process = Guarded::spawn("pytest", cmd, log)?;
     let status = process.wait(timeout)?;
     Ok((status, process.log()))
 }

@@ -67,7 +67,7 @@ fn zenoh_err(what: &str) -> impl FnOnce(zenoh::Error) -> FleetError + '_ {
 }
 
 /// Something that happened to the fleet or to a run's ownership, shown by `status`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct FleetEvent {
     /// Seconds since the Unix epoch.
     pub at_unix_s: f64,
@@ -75,7 +75,7 @@ pub struct FleetEvent {
     pub kind: FleetEventKind,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(tag = "event", rename_all = "snake_case")]
 pub enum FleetEventKind {
     /// This planner took `run` over at `epoch`; `previous` held the epoch before (if any).
@@ -99,7 +99,7 @@ pub enum FleetEventKind {
 }
 
 /// What `status` shows of the fleet.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct FleetStatus {
     /// The live planners this planner sees, itself included.
     pub planners: Vec<String>,

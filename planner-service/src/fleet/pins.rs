@@ -14,7 +14,7 @@ const MAX_PATTERN: usize = 64;
 const MAX_PATTERNS: usize = 64;
 
 /// A planner's pins.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Pins {
     /// Run-name patterns this planner serves (empty: every run it is not told to refuse).

@@ -20,10 +20,11 @@ pub struct FitBudget {
     pub deadline: Option<Instant>,
     /// Set from outside (the daemon shutting down): no further minibatch starts.
     pub cancel: Option<Arc<AtomicBool>>,
-    /// Plans to yield to: before each minibatch the fit waits while any is in flight (at most
-    /// [`crate::share::MAX_YIELD`]). Only off rayon's worker threads: a fit running on one (an
-    /// ensemble member trained in parallel) would hold the very thread a plan needs.
-    pub yield_to: Option<Arc<crate::share::PlanGate>>,
+    /// Plans to yield to: before each minibatch the fit waits while any holds or waits for the
+    /// cores (at most [`crate::sched::MAX_YIELD`]). Only off rayon's worker threads: a fit
+    /// running on one would hold the very thread a plan needs (so an ensemble that yields
+    /// trains its members on threads of its own).
+    pub yield_to: Option<Arc<crate::sched::Scheduler>>,
 }
 
 impl From<usize> for FitBudget {
@@ -144,7 +145,7 @@ pub fn run_epochs(
             if let Some(plans) = &budget.yield_to
                 && rayon::current_thread_index().is_none()
             {
-                plans.wait_for_plans(crate::share::MAX_YIELD);
+                plans.wait_for_plans(crate::sched::MAX_YIELD);
             }
             total += step(batch, rng) as f64 * batch.len() as f64;
             count += batch.len();

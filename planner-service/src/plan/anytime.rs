@@ -6,8 +6,20 @@
 //! of this solve, or for a solve's first iteration the latest of an earlier solve. Without a
 //! deadline nothing is estimated or cut, so a seeded planner takes exactly the actions it
 //! always did; the only cost is reading the clock once per iteration.
+//!
+//! A solve that shares the cores (the daemon's plans, see [`crate::sched`]) may be paused
+//! before an iteration while a more urgent plan runs; the pause counts against the deadline
+//! but not in the iteration timings, which describe this planner's own work.
 
+use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+/// What may pause a solve between two iterations: the scheduler, when a plan with an earlier
+/// deadline waits for the cores.
+pub trait Preempt: Send + Sync + std::fmt::Debug {
+    /// Blocks while a more urgent plan has the cores.
+    fn between_iterations(&self);
+}
 
 /// The time budget of one solve, and the iteration timings that outlive it. Owned by one
 /// planner (one agent): its timings describe its models and population on this machine.
@@ -19,13 +31,22 @@ pub struct IterationClock {
     per_candidate: Option<f64>,
     /// When the iteration in hand started.
     started: Option<Instant>,
+    /// Who may pause the solve in hand between iterations; `None`: it has the cores alone.
+    preempt: Option<Arc<dyn Preempt>>,
 }
 
 impl IterationClock {
     /// Starts a solve that must end by `deadline` (`None`: runs every configured iteration).
     pub fn start(&mut self, deadline: Option<Instant>) {
+        self.start_shared(deadline, None);
+    }
+
+    /// Starts a solve like [`IterationClock::start`] that `preempt` may pause before each
+    /// iteration (released again by the next start).
+    pub fn start_shared(&mut self, deadline: Option<Instant>, preempt: Option<Arc<dyn Preempt>>) {
         self.deadline = deadline;
         self.started = None;
+        self.preempt = preempt;
     }
 
     /// Whether an iteration scoring `candidates` may start now: always without a deadline,
@@ -33,6 +54,9 @@ impl IterationClock {
     /// first iteration refused halves the estimate, so a planner whose estimate came from a
     /// slow moment (a burst of load) tries again soon instead of answering unplanned for ever.
     pub fn may_start(&mut self, candidates: usize, first: bool) -> bool {
+        if let Some(preempt) = &self.preempt {
+            preempt.between_iterations();
+        }
         let Some(deadline) = self.deadline else {
             return true;
         };
@@ -47,6 +71,11 @@ impl IterationClock {
             *per *= 0.5;
         }
         fits
+    }
+
+    /// Ends the solve in hand: whoever could pause it is let go.
+    pub fn end(&mut self) {
+        self.preempt = None;
     }
 
     /// Records the end of the iteration that [`IterationClock::may_start`] let start.
@@ -107,5 +136,29 @@ mod tests {
         assert!(!clock.may_start(8000, true));
         assert!(!clock.may_start(8000, true));
         assert!(clock.may_start(8000, true));
+    }
+
+    #[derive(Debug, Default)]
+    struct CountingPreempt(std::sync::atomic::AtomicUsize);
+
+    impl Preempt for CountingPreempt {
+        fn between_iterations(&self) {
+            self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        }
+    }
+
+    #[test]
+    fn a_shared_solve_may_be_paused_before_every_iteration_and_lets_go_at_its_end() {
+        let preempt = Arc::new(CountingPreempt::default());
+        let mut clock = IterationClock::default();
+        clock.start_shared(None, Some(preempt.clone()));
+        for _ in 0..3 {
+            assert!(clock.may_start(10, false));
+            clock.finished(10);
+        }
+        assert_eq!(preempt.0.load(std::sync::atomic::Ordering::SeqCst), 3);
+        // The scheduler's turn is released when the solve ends, not when the next one starts.
+        clock.end();
+        assert_eq!(Arc::strong_count(&preempt), 1);
     }
 }

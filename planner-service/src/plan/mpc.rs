@@ -3,11 +3,12 @@
 
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use crate::plan::anytime::IterationClock;
+use crate::plan::anytime::{IterationClock, Preempt};
 use crate::plan::cem::{CemConfig, ConfigError};
 use crate::plan::imagine::Imagination;
 use crate::plan::search::{Imagined, Search};
 use proto::Task;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// One agent's planner. Owns the optimiser's distribution (the warm start), the imagination's
@@ -136,14 +137,28 @@ impl MpcPlanner {
         regularizer: &Regularizer,
         deadline: Option<Instant>,
     ) -> PlanOutcome<'_> {
+        self.plan_shared(obs, dynamics, regularizer, deadline, None)
+    }
+
+    /// [`MpcPlanner::plan`] on cores shared with other plans: `preempt` may pause the solve
+    /// before each iteration while a more urgent plan runs (see [`crate::sched`]).
+    pub fn plan_shared(
+        &mut self,
+        obs: &[f32],
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+        deadline: Option<Instant>,
+        preempt: Option<Arc<dyn Preempt>>,
+    ) -> PlanOutcome<'_> {
         let mut objective = Imagined {
             imagination: &mut self.imagination,
             obs,
             dynamics,
             regularizer,
         };
-        self.clock.start(deadline);
+        self.clock.start_shared(deadline, preempt);
         let (outcome, mean_energy) = self.search.optimize(&mut objective, &mut self.clock);
+        self.clock.end();
         if outcome.iterations == 0 {
             self.action
                 .copy_from_slice(&self.search.mean()[..self.task.act_dim]);

@@ -15,6 +15,7 @@
 
 mod log_limit;
 pub mod metrics;
+pub mod schema;
 mod session_token;
 pub mod status;
 mod worker;
@@ -221,8 +222,9 @@ pub struct Service {
     attach_slots: Arc<Semaphore>,
     /// Raised at shutdown: every run's training stops before its next minibatch.
     cancel_training: Arc<AtomicBool>,
-    /// Plans in flight across all runs: retraining yields to them (see [`crate::share`]).
-    plans: Arc<crate::share::PlanGate>,
+    /// Every run's plans, given the cores by earliest deadline; retraining yields to them
+    /// (see [`crate::sched`]).
+    plans: Arc<crate::sched::Scheduler>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -440,8 +442,11 @@ impl Service {
                 kind,
             };
             runtime.spawn(async move {
-                let key = outbox.keys().events(&event.run);
-                outbox.publish(&key, &event, Encoding::Postcard).await;
+                // Broadcast: each subscriber reads the encoding of the key it chose.
+                for encoding in [Encoding::Postcard, Encoding::Json] {
+                    let key = outbox.keys().events(&event.run, encoding);
+                    outbox.publish(&key, &event, encoding).await;
+                }
             });
         })
     }

@@ -1,5 +1,6 @@
 //! The planner's status report, served as JSON on `{prefix}/planners/{id}/status`.
 
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 /// Planning latencies of the most recent actions, for percentiles.
@@ -39,7 +40,7 @@ impl LatencyWindow {
 }
 
 /// How a run's plans went against its deadline, since the daemon started.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 pub struct PlanTally {
     /// Planned actions answered.
     pub plans: u64,
@@ -60,7 +61,7 @@ impl PlanTally {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Latency {
     pub p50_ms: f32,
     pub p90_ms: f32,
@@ -68,7 +69,7 @@ pub struct Latency {
     pub samples: usize,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
 pub struct PlannerStatus {
     pub planner_id: String,
     pub protocol_version: u16,
@@ -88,13 +89,13 @@ pub struct PlannerStatus {
 }
 
 /// A stored run that could not be opened (it stays on disk untouched).
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
 pub struct FailedRun {
     pub name: String,
     pub reason: String,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
 pub struct RunStatus {
     pub name: String,
     pub task: String,

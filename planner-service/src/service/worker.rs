@@ -6,7 +6,7 @@ use crate::agent::AgentSession;
 use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
 use crate::run::{Refused, Run, StoreError, sync_log};
-use crate::share::PlanGate;
+use crate::sched::Scheduler;
 use proto::task::Magnitudes;
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
@@ -47,9 +47,9 @@ pub(crate) struct AgentWorker {
     /// How long the worker waits for an observation before it checks that the agent still
     /// holds its liveliness token (and closes the session if not).
     idle: std::time::Duration,
-    /// The daemon's plans in flight: this worker's plans count there while they run, so that
-    /// retraining yields to them.
-    plans: Arc<PlanGate>,
+    /// The daemon's plan queue: this worker's plans take the cores in deadline order there,
+    /// and retraining yields to them.
+    plans: Arc<Scheduler>,
     /// The session token this worker serves; every report it sends names it.
     token: u64,
 }
@@ -93,7 +93,7 @@ impl AgentWorker {
         outbox: Outbox,
         fleet: Arc<Fleet>,
         magnitudes: Magnitudes,
-        plans: Arc<PlanGate>,
+        plans: Arc<Scheduler>,
         token: u64,
     ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
@@ -242,12 +242,13 @@ impl AgentWorker {
                 let plan_deadline = deadline.map(|d| d - ANSWER_MARGIN);
                 let plans = self.plans.clone();
                 let joined = tokio::task::spawn_blocking(move || {
-                    let _planning = plans.planning();
-                    let outcome = planner.plan(
+                    let turn = Arc::new(plans.turn(plan_deadline));
+                    let outcome = planner.plan_shared(
                         &obs,
                         &plan_models.dynamics,
                         &plan_models.regularizer,
                         plan_deadline,
+                        Some(turn),
                     );
                     let planned = (
                         outcome.action.to_vec(),

@@ -34,7 +34,7 @@ use std::fmt;
 /// This names code, not a task: tasks are named by their name string on the wire and on disk.
 /// A spec names a builtin kind by its lowercase name (`reward = { builtin = "cartpole" }`);
 /// postcard (a spec in an attach) by the variant's index, so new variants go at the end.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Builtin {
     Cartpole,

@@ -24,7 +24,7 @@ pub const MAX_ACTION_BOUND: f32 = 1e6;
 pub const MAX_EXPRESSION_BYTES: usize = 4096;
 
 /// One task: dimensions, bounds, timing, model transforms, termination and reward.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TaskSpec {
     /// The task's name: 1–64 characters from letters, digits, `-`, `_`, `.`. In a daemon's
@@ -65,7 +65,7 @@ pub struct TaskSpec {
 }
 
 /// Per-coordinate observation range: `low[i] ≤ obs[i] ≤ high[i]`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ObservationBounds {
     pub low: Vec<f32>,
@@ -76,7 +76,7 @@ pub struct ObservationBounds {
 /// value like 3.4e38 is finite, but the difference of two of them (the dynamics model's
 /// target) overflows to infinity and poisons training. A planner refuses larger values, and
 /// its operator can change them per task (`[limits.magnitudes.<task>]`).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Magnitudes {
     /// Largest `|x|` of any observation coordinate.
@@ -106,7 +106,7 @@ impl Magnitudes {
 }
 
 /// How the dynamics model sees a state and what it learns to predict.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ModelTransforms {
     /// A catalog task's own transforms (Rust code).
@@ -122,7 +122,7 @@ impl Default for ModelTransforms {
 }
 
 /// Per-dimension model transforms. Every other dimension is a plain input and a delta target.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct DeclaredTransforms {
     /// Observation dimensions that are angles: the model sees `sin` and `cos` of each (in its
@@ -134,7 +134,7 @@ pub struct DeclaredTransforms {
 }
 
 /// When an episode ends before its time limit.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum TerminationKind {
     /// Never: the episode runs to its time limit.
@@ -147,7 +147,7 @@ pub enum TerminationKind {
 }
 
 /// What a transition earns.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum RewardKind {
     /// A catalog task's own reward and its gradient (Rust code).

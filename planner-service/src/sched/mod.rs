@@ -1,0 +1,212 @@
+//! Sharing the cores between every run's plans and retrainings.
+//!
+//! Every plan spreads its population over the whole rayon pool, so plans take the cores one at
+//! a time, in order of their deadlines (earliest first; plans without a deadline after every
+//! plan that has one; first come, first served among equals: see [`queue`]). The plan holding
+//! the cores checks between its optimiser's iterations whether a more urgent plan waits, and
+//! if so steps back into the queue until that one is done: a light run's plan waits at most one
+//! iteration of a heavy run's plan, never the whole plan. The time a plan spends stepped back
+//! is not counted in its iteration timings (see [`crate::plan::anytime`]), but it does count
+//! against its own deadline, which then cuts it.
+//!
+//! Retraining has minutes where a plan has milliseconds, so it yields: before each minibatch a
+//! fit waits while any plan holds or waits for the cores, at most [`MAX_YIELD`] per minibatch
+//! so that a daemon planning without pause still trains (then at one minibatch per
+//! [`MAX_YIELD`]). The wait is between minibatches, never inside one.
+//!
+//! Limits: preemption happens only at iteration boundaries, so a waiting plan can lose up to
+//! one iteration of the holder's plan, and a minibatch already running finishes first. No
+//! schedule makes an overloaded machine fit: when the deadlines ask for more than the cores
+//! give (two half-cheetah + DEEN runs at 50 ms each on two cores), the deadlines decide how
+//! much each plan gets, and the anytime planner cuts and reports the rest.
+
+pub mod queue;
+
+use queue::PlanQueue;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
+use std::time::{Duration, Instant};
+
+/// The longest a retraining waits for plans before one minibatch.
+pub const MAX_YIELD: Duration = Duration::from_millis(200);
+
+/// The daemon's plan queue; every run's plans and retrainings share one.
+#[derive(Debug, Default)]
+pub struct Scheduler {
+    queue: Mutex<PlanQueue>,
+    /// Signalled whenever the holder changes or the queue empties.
+    changed: Condvar,
+}
+
+/// A plan's hold on the cores; dropping it ends the plan and hands them on.
+#[must_use = "the plan holds the cores until the turn drops"]
+#[derive(Debug)]
+pub struct Turn {
+    scheduler: Arc<Scheduler>,
+    ticket: u64,
+}
+
+impl Scheduler {
+    fn lock(&self) -> MutexGuard<'_, PlanQueue> {
+        self.queue.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Blocks until `queue` says `ticket` holds the cores.
+    fn wait_to_hold<'q>(&'q self, mut queue: MutexGuard<'q, PlanQueue>, ticket: u64) {
+        while !queue.holds(ticket) {
+            queue = self
+                .changed
+                .wait(queue)
+                .unwrap_or_else(PoisonError::into_inner);
+        }
+    }
+
+    /// Queues a plan that must end by `deadline` and blocks the calling thread until the plan
+    /// holds the cores.
+    pub fn turn(self: &Arc<Self>, deadline: Option<Instant>) -> Turn {
+        let mut queue = self.lock();
+        let ticket = queue.arrive(deadline).ticket();
+        queue.dispatch();
+        self.changed.notify_all();
+        self.wait_to_hold(queue, ticket);
+        Turn {
+            scheduler: self.clone(),
+            ticket,
+        }
+    }
+
+    /// Plans waiting for the cores now (not counting the one holding them).
+    pub fn waiting(&self) -> usize {
+        self.lock().waiting()
+    }
+
+    /// Waits (blocking the calling thread) until no plan holds or waits for the cores, or
+    /// `max` has passed. Returns how long it waited.
+    pub fn wait_for_plans(&self, max: Duration) -> Duration {
+        let start = Instant::now();
+        let queue = self.lock();
+        let _queue = self
+            .changed
+            .wait_timeout_while(queue, max, |q| !q.is_idle())
+            .unwrap_or_else(PoisonError::into_inner);
+        start.elapsed()
+    }
+}
+
+impl Turn {
+    /// Between two iterations: if a more urgent plan waits, steps back until it is done and
+    /// this plan is the most urgent again. Returns whether it stepped back.
+    pub fn yield_to_earlier(&self) -> bool {
+        let scheduler = &self.scheduler;
+        let mut queue = scheduler.lock();
+        if !queue.outranked() {
+            return false;
+        }
+        queue.preempt();
+        scheduler.changed.notify_all();
+        scheduler.wait_to_hold(queue, self.ticket);
+        true
+    }
+}
+
+impl crate::plan::anytime::Preempt for Turn {
+    fn between_iterations(&self) {
+        self.yield_to_earlier();
+    }
+}
+
+impl Drop for Turn {
+    fn drop(&mut self) {
+        self.scheduler.lock().leave(self.ticket);
+        self.scheduler.changed.notify_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicBool, Ordering};
+
+    /// Spins (without timing anything) until `n` plans wait.
+    fn until_waiting(scheduler: &Scheduler, n: usize) {
+        while scheduler.waiting() != n {
+            std::thread::yield_now();
+        }
+    }
+
+    #[test]
+    fn waiting_plans_get_the_cores_by_earliest_deadline() {
+        let scheduler = Arc::new(Scheduler::default());
+        let t0 = Instant::now();
+        let holder = scheduler.turn(None);
+        let order = Arc::new(Mutex::new(vec![]));
+        let mut threads = vec![];
+        // Queued one after the other, latest deadline first.
+        for (i, deadline) in [Some(900), None, Some(300), Some(100)]
+            .into_iter()
+            .enumerate()
+        {
+            let (queued, order) = (scheduler.clone(), order.clone());
+            threads.push(std::thread::spawn(move || {
+                let _turn = queued.turn(deadline.map(|ms| t0 + Duration::from_millis(ms)));
+                order.lock().unwrap().push(deadline);
+            }));
+            until_waiting(&scheduler, i + 1);
+        }
+        drop(holder);
+        threads.into_iter().for_each(|t| t.join().unwrap());
+        assert_eq!(
+            *order.lock().unwrap(),
+            [Some(100), Some(300), Some(900), None]
+        );
+    }
+
+    #[test]
+    fn the_holder_steps_back_for_a_more_urgent_plan() {
+        let scheduler = Arc::new(Scheduler::default());
+        let heavy = scheduler.turn(None);
+        assert!(!heavy.yield_to_earlier(), "nobody waits");
+        let light_done = Arc::new(AtomicBool::new(false));
+        let light = std::thread::spawn({
+            let (scheduler, light_done) = (scheduler.clone(), light_done.clone());
+            move || {
+                let _turn = scheduler.turn(Some(Instant::now() + Duration::from_millis(40)));
+                light_done.store(true, Ordering::SeqCst);
+            }
+        });
+        until_waiting(&scheduler, 1);
+        // The heavy plan's next iteration boundary: it resumes only after the light plan ran.
+        assert!(heavy.yield_to_earlier());
+        assert!(light_done.load(Ordering::SeqCst));
+        light.join().unwrap();
+        assert!(!heavy.yield_to_earlier());
+    }
+
+    #[test]
+    fn training_waits_while_a_plan_holds_or_waits() {
+        let scheduler = Arc::new(Scheduler::default());
+        // Nothing queued: the wait returns at once (else this test would hang 10 min).
+        scheduler.wait_for_plans(Duration::from_secs(600));
+        let ended = Arc::new(AtomicBool::new(false));
+        let plan = scheduler.turn(None);
+        let waiter = std::thread::spawn({
+            let (scheduler, ended) = (scheduler.clone(), ended.clone());
+            move || {
+                scheduler.wait_for_plans(Duration::from_secs(600));
+                // The wait ends only after the plan did.
+                assert!(ended.load(Ordering::SeqCst));
+            }
+        });
+        std::thread::sleep(Duration::from_millis(20));
+        ended.store(true, Ordering::SeqCst);
+        drop(plan);
+        waiter.join().unwrap();
+    }
+
+    #[test]
+    fn a_wait_is_bounded_while_plans_never_stop() {
+        let scheduler = Arc::new(Scheduler::default());
+        let _plan = scheduler.turn(None);
+        // The plan never ends: the wait gives up after its bound.
+        assert!(scheduler.wait_for_plans(Duration::from_millis(20)) >= Duration::from_millis(20));
+    }
+}

@@ -1,0 +1,86 @@
+"""Python client of the ebmpc planning service.
+
+A planner learns to control a system from the experience its agents send; an agent asks it for
+an action at every step::
+
+    from ebmpc import Planner
+
+    with Planner(connect="tcp/127.0.0.1:7447") as planner:
+        agent = planner.attach("my-run", "cartpole", overrides={"population": 100})
+        obs = env.reset()
+        action = agent.act(obs)                       # the first step of an episode
+        for t in range(199):
+            obs, reward = env.step(action)
+            action = agent.act(obs, reward)
+        obs, reward = env.step(action)
+        agent.end(obs, reward, "time_limit")          # stored: the planner retrains
+
+Errors the planner reports raise the :class:`PlannerError` subclass of their code.
+"""
+
+from .agent import Agent
+from .errors import (
+    ActionTimeout,
+    DimensionError,
+    EbmpcError,
+    EventTimeout,
+    InternalError,
+    MalformedError,
+    NoPlannerError,
+    NonFiniteError,
+    NotAttachedError,
+    OutOfOrderError,
+    OutOfRangeError,
+    PlannerError,
+    ProtocolError,
+    ProtocolVersionError,
+    RefusedError,
+    SessionError,
+    StorageError,
+    UnknownRunError,
+    UnknownTaskError,
+)
+from .events import (
+    EpisodeFinished,
+    ModelsUpdated,
+    RunEvent,
+    RunEvents,
+    TrainingFailed,
+    TrainingStarted,
+)
+from .planner import Planner
+from .wire import PROTOCOL_VERSION, EpisodeEnd, Task, TrainMode
+
+__all__ = [
+    "PROTOCOL_VERSION",
+    "ActionTimeout",
+    "Agent",
+    "DimensionError",
+    "EbmpcError",
+    "EpisodeEnd",
+    "EpisodeFinished",
+    "EventTimeout",
+    "InternalError",
+    "MalformedError",
+    "ModelsUpdated",
+    "NoPlannerError",
+    "NonFiniteError",
+    "NotAttachedError",
+    "OutOfOrderError",
+    "OutOfRangeError",
+    "Planner",
+    "PlannerError",
+    "ProtocolError",
+    "ProtocolVersionError",
+    "RefusedError",
+    "RunEvent",
+    "RunEvents",
+    "SessionError",
+    "StorageError",
+    "Task",
+    "TrainMode",
+    "TrainingFailed",
+    "TrainingStarted",
+    "UnknownRunError",
+    "UnknownTaskError",
+]
