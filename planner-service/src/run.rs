@@ -371,10 +371,7 @@ impl Run {
     /// The next episode number for `agent` (runs resumed after a restart continue numbering),
     /// without touching the buffer.
     pub fn next_episode(&self, agent: &str) -> u32 {
-        self.lock_next_episodes()
-            .get(agent)
-            .copied()
-            .unwrap_or(0)
+        self.lock_next_episodes().get(agent).copied().unwrap_or(0)
     }
 
     fn lock_next_episodes(&self) -> std::sync::MutexGuard<'_, HashMap<String, u32>> {
@@ -451,8 +448,11 @@ impl Run {
         .await;
         let (accepted, stored) = joined.map_err(|e| {
             Refused::Step(
-                ErrorReport::new(ErrorCode::Internal, format!("storing this step failed: {e}"))
-                    .at(msg.episode, msg.step),
+                ErrorReport::new(
+                    ErrorCode::Internal,
+                    format!("storing this step failed: {e}"),
+                )
+                .at(msg.episode, msg.step),
             )
         })?;
         let stored = stored.map_err(|e| match e {
@@ -521,7 +521,10 @@ impl Run {
         if let Some(syncer) = &sync {
             sync_log(&self.name, syncer);
         }
-        for summary in [&accepted.abandoned, &accepted.finished].into_iter().flatten() {
+        for summary in [&accepted.abandoned, &accepted.finished]
+            .into_iter()
+            .flatten()
+        {
             ended(&mut self.lock_next_episodes(), agent, summary.episode);
         }
         self.lock_tally().transitions = transitions;

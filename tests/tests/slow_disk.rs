@@ -168,7 +168,11 @@ impl Agent {
                 client.send(&msg).await.unwrap();
             } else {
                 let answer = client.step(&msg).await;
-                self.action = Some(answer.unwrap_or_else(|e| panic!("{}: {e}", client.run)).action);
+                self.action = Some(
+                    answer
+                        .unwrap_or_else(|e| panic!("{}: {e}", client.run))
+                        .action,
+                );
             }
         }
     }
@@ -217,7 +221,9 @@ fn a_run_whose_disk_is_held_never_delays_another_runs_actions() {
         slow_agent.play(&slow, 0, HELD_STEP - 1, SLOW_STEPS).await;
         // The disk of `slow` stops: the write of its next step is held inside the write.
         hold.set(true);
-        slow.send(&slow_agent.observe(HELD_STEP, false)).await.unwrap();
+        slow.send(&slow_agent.observe(HELD_STEP, false))
+            .await
+            .unwrap();
         let waiting = {
             let hold = hold.clone();
             tokio::task::spawn_blocking(move || hold.wait_for_a_held_write(ANSWER_TIMEOUT))

@@ -10,8 +10,9 @@
 //! stays silent on other runs' attach queries and observations, so the owner's answer is the
 //! only one. A planner with no peers owns every run.
 //! Each agent has one worker task, so its observations are handled strictly in order while
-//! agents (and runs) proceed concurrently; planning itself runs on the blocking pool, and
-//! training on the run's trainer task, so neither stalls the transport.
+//! agents (and runs) proceed concurrently; planning and storing (replay writes and fsyncs) run
+//! on the blocking pool, and training on the run's trainer task, so none of them stalls the
+//! transport, and one run's slow disk holds that run's agents only.
 
 mod log_limit;
 pub mod metrics;

@@ -164,21 +164,21 @@ impl AgentWorker {
             .map_err(|e| e.report(msg.episode, msg.step))?;
         // Stored (and an episode's end synced to disk) before this agent's next message is
         // taken, and before the observation is answered.
-        let (accepted, stored) = self
-            .run
-            .accept(&mut self.session, &msg)
-            .await
-            .map_err(|refused| match refused {
-                Refused::Step(report) => report,
-                Refused::Fenced(fenced) => {
-                    // Another planner owns the run now: step down, and send the agent there.
-                    self.fleet.report_fenced(self.run.name());
-                    position(ErrorReport::new(
-                        ErrorCode::NotAttached,
-                        format!("{fenced}: attach again"),
-                    ))
-                }
-            })?;
+        let (accepted, stored) =
+            self.run
+                .accept(&mut self.session, &msg)
+                .await
+                .map_err(|refused| match refused {
+                    Refused::Step(report) => report,
+                    Refused::Fenced(fenced) => {
+                        // Another planner owns the run now: step down, and send the agent there.
+                        self.fleet.report_fenced(self.run.name());
+                        position(ErrorReport::new(
+                            ErrorCode::NotAttached,
+                            format!("{fenced}: attach again"),
+                        ))
+                    }
+                })?;
         let must_cover = stored.must_cover;
         if let Some(finished) = &accepted.finished {
             tracing::info!(run = %self.run.name(), agent = %self.name, episode = finished.episode, steps = finished.steps, episode_return = finished.episode_return, "episode finished");
