@@ -142,14 +142,13 @@ pub fn prepare(exp: &Experiment) -> Result<Manifest> {
     std::fs::create_dir_all(exp.out.join("runs"))
         .with_context(|| format!("creating {}", exp.out.display()))?;
     std::fs::create_dir_all(exp.out.join("logs"))?;
-    let wanted = Manifest {
-        task: exp.task,
-        scale: exp.scale,
-        episodes: exp.episodes,
-        overrides: exp.scale.overrides(exp.task),
-        methods: exp.methods.clone(),
-        seeds: exp.seeds.clone(),
-    };
+    let wanted = Manifest::new(
+        exp.task,
+        exp.scale,
+        exp.episodes,
+        exp.methods.clone(),
+        exp.seeds.clone(),
+    )?;
     let manifest = match Manifest::load(&exp.out)? {
         Some(existing) => wanted.resume(&existing, &exp.out)?,
         None => wanted,
@@ -291,7 +290,7 @@ fn run_one(
         .args(["--train-timeout", "86400"])
         .arg("--out")
         .arg(&attempt)
-        .args(scale::bridge_flags(&manifest.overrides))
+        .args(scale::bridge_flags(&manifest.overrides_for(&run.method)))
         .env("RUST_LOG", "info,zenoh=warn,mujoco=warn")
         .stdin(Stdio::null())
         .stdout(log.try_clone()?)
@@ -502,14 +501,14 @@ mod tests {
     use super::*;
 
     fn manifest(methods: &[&str], seeds: &[u64], episodes: u32) -> Manifest {
-        Manifest {
-            task: TaskId::Cartpole,
-            scale: Scale::Small,
+        Manifest::new(
+            TaskId::Cartpole,
+            Scale::Small,
             episodes,
-            overrides: Scale::Small.overrides(TaskId::Cartpole),
-            methods: methods.iter().map(|m| m.to_string()).collect(),
-            seeds: seeds.to_vec(),
-        }
+            methods.iter().map(|m| m.to_string()).collect(),
+            seeds.to_vec(),
+        )
+        .unwrap()
     }
 
     fn bridge_csv(returns: &[f64]) -> String {

@@ -19,6 +19,3 @@ pub mod plot;
 pub mod progress;
 pub mod results;
 pub mod scale;
-
-/// The methods the planner's presets know (see `planner_service::config::Preset::new`).
-pub const METHODS: &[&str] = &["cem", "cem+dae", "cem+deen", "pets", "pets+deen"];

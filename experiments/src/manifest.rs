@@ -2,8 +2,10 @@
 //! same folder resumes the same experiment rather than mixing two different ones.
 
 use crate::scale::Scale;
+use planner_service::config::PresetError;
 use proto::{PlannerOverrides, TaskId};
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
+use std::collections::BTreeMap;
 use std::path::Path;
 
 /// File name of the manifest inside an experiment folder.
@@ -15,8 +17,10 @@ pub struct Manifest {
     pub task: TaskId,
     pub scale: Scale,
     pub episodes: u32,
-    /// The preset overrides every run sent (the scale's).
-    pub overrides: PlannerOverrides,
+    /// The preset overrides each method's runs sent (the scale's, which depend on the method).
+    /// Manifests written before overrides depended on the method hold one value for all.
+    #[serde(deserialize_with = "overrides_per_method")]
+    pub overrides: BTreeMap<String, PlannerOverrides>,
     /// Methods and seeds asked for so far (a resumed experiment may add more).
     pub methods: Vec<String>,
     pub seeds: Vec<u64>,
@@ -45,7 +49,58 @@ pub enum ManifestError {
     },
 }
 
+/// `overrides` as stored: one value per method, or (older manifests) one value for every
+/// method. An empty map stands for "no overrides" for every method.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum StoredOverrides {
+    PerMethod(BTreeMap<String, PlannerOverrides>),
+    Shared(Box<PlannerOverrides>),
+}
+
+fn overrides_per_method<'de, D: Deserializer<'de>>(
+    d: D,
+) -> Result<BTreeMap<String, PlannerOverrides>, D::Error> {
+    Ok(match StoredOverrides::deserialize(d)? {
+        StoredOverrides::PerMethod(map) => map,
+        // The methods are not known here; `Manifest::overrides_for` falls back to the value
+        // under the empty name.
+        StoredOverrides::Shared(o) => BTreeMap::from([(String::new(), *o)]),
+    })
+}
+
 impl Manifest {
+    /// The manifest of an experiment: the scale's overrides for each method.
+    pub fn new(
+        task: TaskId,
+        scale: Scale,
+        episodes: u32,
+        methods: Vec<String>,
+        seeds: Vec<u64>,
+    ) -> Result<Self, PresetError> {
+        let overrides = methods
+            .iter()
+            .map(|m| Ok((m.clone(), scale.overrides(task, m)?)))
+            .collect::<Result<_, PresetError>>()?;
+        Ok(Manifest {
+            task,
+            scale,
+            episodes,
+            overrides,
+            methods,
+            seeds,
+        })
+    }
+
+    /// The overrides `method`'s runs send: its own, or an older manifest's shared value.
+    pub fn overrides_for(&self, method: &str) -> PlannerOverrides {
+        self.overrides
+            .get(method)
+            .or_else(|| self.overrides.get(""))
+            .cloned()
+            .unwrap_or_default()
+    }
+
     /// Loads the folder's manifest if it has one.
     pub fn load(dir: &Path) -> Result<Option<Self>, ManifestError> {
         let path = dir.join(FILE);
@@ -93,12 +148,15 @@ impl Manifest {
                 self.episodes.to_string(),
             ));
         }
-        if existing.overrides != self.overrides {
-            return Err(mismatch(
-                "overrides",
-                format!("{:?}", existing.overrides),
-                format!("{:?}", self.overrides),
-            ));
+        for m in self.methods.iter().filter(|m| existing.methods.contains(m)) {
+            let (found, wanted) = (existing.overrides_for(m), self.overrides_for(m));
+            if found != wanted {
+                return Err(mismatch(
+                    "overrides",
+                    format!("{m}: {found:?}"),
+                    format!("{m}: {wanted:?}"),
+                ));
+            }
         }
         let mut merged = existing.clone();
         for m in &self.methods {
@@ -106,6 +164,20 @@ impl Manifest {
                 merged.methods.push(m.clone());
             }
         }
+        // Every method's overrides spelled out from now on: what its runs were started with,
+        // or the scale's for a method this resume adds.
+        merged.overrides = merged
+            .methods
+            .iter()
+            .map(|m| {
+                let o = if existing.methods.contains(m) {
+                    existing.overrides_for(m)
+                } else {
+                    self.overrides_for(m)
+                };
+                (m.clone(), o)
+            })
+            .collect();
         for s in &self.seeds {
             if !merged.seeds.contains(s) {
                 merged.seeds.push(*s);
@@ -130,14 +202,14 @@ mod tests {
     use super::*;
 
     fn manifest(episodes: u32, methods: &[&str], seeds: &[u64]) -> Manifest {
-        Manifest {
-            task: TaskId::Cartpole,
-            scale: Scale::Small,
+        Manifest::new(
+            TaskId::Cartpole,
+            Scale::Small,
             episodes,
-            overrides: Scale::Small.overrides(TaskId::Cartpole),
-            methods: methods.iter().map(|m| m.to_string()).collect(),
-            seeds: seeds.to_vec(),
-        }
+            methods.iter().map(|m| m.to_string()).collect(),
+            seeds.to_vec(),
+        )
+        .unwrap()
     }
 
     #[test]
@@ -159,5 +231,34 @@ mod tests {
             .unwrap_err();
         assert!(err.to_string().contains("episodes: 10 there, 12"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn each_method_keeps_its_own_overrides() {
+        let m = manifest(8, &["cem", "adam+dae"], &[0]);
+        assert_ne!(m.overrides_for("cem"), m.overrides_for("adam+dae"));
+        assert_eq!(m.overrides_for("adam+dae").population, None);
+        assert_eq!(m.overrides_for("cem").population, Some(200), "half of 400");
+    }
+
+    /// A folder written before overrides depended on the method (one shared value) still
+    /// resumes, and keeps what its runs were started with.
+    #[test]
+    fn a_manifest_with_one_shared_overrides_value_still_resumes() {
+        let dir = tempfile::tempdir().unwrap();
+        let shared = Scale::Small.overrides(TaskId::Cartpole, "cem").unwrap();
+        let old = serde_json::json!({
+            "task": "cartpole", "scale": "small", "episodes": 8,
+            "overrides": shared, "methods": ["cem", "cem+deen"], "seeds": [0, 1],
+        });
+        std::fs::write(dir.path().join(FILE), old.to_string()).unwrap();
+        let existing = Manifest::load(dir.path()).unwrap().unwrap();
+        assert_eq!(existing.overrides_for("cem+deen"), shared);
+        let merged = manifest(8, &["cem", "cem+deen", "adam+dae"], &[0])
+            .resume(&existing, dir.path())
+            .unwrap();
+        assert_eq!(merged.overrides_for("cem"), shared);
+        assert_eq!(merged.overrides_for("adam+dae").population, None);
+        assert_eq!(merged.overrides.len(), 3);
     }
 }

@@ -5,7 +5,8 @@
 //! launcher (which passes them to `sim-bridge run` as flags) and the in-process figures (which
 //! apply them to a [`planner_service::config::Preset`]) cannot disagree about what "small" means.
 
-use planner_service::config::Preset;
+use planner_service::config::{Preset, PresetError};
+use planner_service::plan::Optimizer;
 use proto::{PlannerOverrides, TaskId};
 use serde::{Deserialize, Serialize};
 
@@ -47,17 +48,30 @@ impl Scale {
         }
     }
 
-    /// The preset overrides of this scale for `task` (none at the paper's scale).
-    pub fn overrides(self, task: TaskId) -> PlannerOverrides {
-        match (self, task) {
+    /// The preset overrides of this scale for `method` on `task` (none at the paper's scale).
+    ///
+    /// The small scale shrinks a sampling search (CEM, iCEM) by its population and iterations;
+    /// a gradient search (`adam+dae`: 16 candidates) is small already, so it keeps its
+    /// candidates and takes fewer steps instead. Sizing from the method's own preset keeps a
+    /// "small" Adam from growing to a CEM-sized population.
+    pub fn overrides(self, task: TaskId, method: &str) -> Result<PlannerOverrides, PresetError> {
+        let paper = Preset::new(task, Some(method))?;
+        let sampling = paper.cem.optimizer != Optimizer::Adam;
+        let count = |n: usize| Some(n.max(1) as u32);
+        Ok(match (self, task) {
             (Scale::Paper, _) => PlannerOverrides::default(),
-            // 1000-step episodes: a quarter of the population, a shorter horizon, three CEM
-            // iterations and one exploration episode make a planned step ~10× cheaper; the
-            // networks keep their depth but train for fewer epochs on a smaller energy model.
+            // 1000-step episodes: a fifth of the population, a shorter
+            // horizon, three CEM iterations (three fifths of Adam's steps) and one exploration
+            // episode make a planned step ~10× cheaper; the networks keep their depth but train
+            // for fewer epochs on a smaller energy model.
             (Scale::Small, TaskId::HalfCheetah | TaskId::Ant) => PlannerOverrides {
-                population: Some(100),
-                elites: Some(10),
-                cem_iterations: Some(3),
+                population: if sampling { Some(100) } else { None },
+                elites: if sampling { Some(10) } else { None },
+                cem_iterations: if sampling {
+                    Some(3)
+                } else {
+                    count(paper.cem.iterations * 3 / 5)
+                },
                 horizon: Some(20),
                 exploration_episodes: Some(1),
                 dynamics_epochs: Some(50),
@@ -68,20 +82,27 @@ impl Scale {
             },
             // 150–200-step episodes: half the population and elites, a fifth of Table 2's
             // training epochs.
-            (Scale::Small, _) => {
-                // Preset::new fails only for an unknown method, and the default method is known.
-                let paper = Preset::new(task, None).expect("the default method has a preset");
-                let half = |n: usize| Some((n / 2).max(1) as u32);
-                let fifth = |n: usize| Some((n / 5).max(1) as u32);
-                PlannerOverrides {
-                    population: half(paper.cem.population),
-                    elites: half(paper.cem.elites),
-                    dynamics_epochs: fifth(paper.dynamics.epochs),
-                    energy_epochs: fifth(paper.energy.epochs),
-                    ..PlannerOverrides::default()
-                }
-            }
-        }
+            (Scale::Small, _) => PlannerOverrides {
+                population: if sampling {
+                    count(paper.cem.population / 2)
+                } else {
+                    None
+                },
+                elites: if sampling {
+                    count(paper.cem.elites / 2)
+                } else {
+                    None
+                },
+                cem_iterations: if sampling {
+                    None
+                } else {
+                    count(paper.cem.iterations / 2)
+                },
+                dynamics_epochs: count(paper.dynamics.epochs / 5),
+                energy_epochs: count(paper.energy.epochs / 5),
+                ..PlannerOverrides::default()
+            },
+        })
     }
 }
 
@@ -120,26 +141,41 @@ pub fn bridge_flags(o: &PlannerOverrides) -> Vec<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use planner_service::config::METHODS;
 
     #[test]
     fn paper_scale_changes_nothing() {
         for &task in TaskId::ALL {
-            assert_eq!(Scale::Paper.overrides(task), PlannerOverrides::default());
-            assert!(bridge_flags(&Scale::Paper.overrides(task)).is_empty());
+            for method in METHODS {
+                let paper = Scale::Paper.overrides(task, method).unwrap();
+                assert_eq!(paper, PlannerOverrides::default());
+                assert!(bridge_flags(&paper).is_empty());
+            }
         }
     }
 
     #[test]
     fn small_scale_is_a_valid_smaller_preset_for_every_method() {
         for &task in TaskId::ALL {
-            for method in crate::METHODS {
+            for method in METHODS {
                 let paper = Preset::new(task, Some(method)).unwrap();
                 let mut small = paper.clone();
-                small.apply(&Scale::Small.overrides(task)).unwrap();
+                small
+                    .apply(&Scale::Small.overrides(task, method).unwrap())
+                    .unwrap();
+                let paper_work = paper.cem.population * paper.cem.iterations;
+                let small_work = small.cem.population * small.cem.iterations;
+                assert!(small_work < paper_work, "{task} {method}");
                 assert!(
-                    small.cem.population < paper.cem.population,
-                    "{task} {method}"
+                    small.cem.population <= paper.cem.population,
+                    "{task} {method}: a small search never grows"
                 );
+                if paper.cem.optimizer == Optimizer::Adam {
+                    assert_eq!(
+                        small.cem.population, paper.cem.population,
+                        "{task}: Adam keeps its candidates at the small scale"
+                    );
+                }
                 assert!(
                     small.dynamics.epochs < paper.dynamics.epochs,
                     "{task} {method}"
@@ -151,7 +187,11 @@ mod tests {
 
     #[test]
     fn flags_spell_every_override() {
-        let flags = bridge_flags(&Scale::Small.overrides(TaskId::HalfCheetah));
+        let flags = bridge_flags(
+            &Scale::Small
+                .overrides(TaskId::HalfCheetah, "cem+deen")
+                .unwrap(),
+        );
         let pairs: Vec<(&str, &str)> = flags
             .chunks(2)
             .map(|p| (p[0].as_str(), p[1].as_str()))

@@ -31,7 +31,9 @@ fn bf16_moves_imagined_returns_far_less_than_the_model_errs() {
     let task = TaskId::HalfCheetah;
     let spec = task.spec();
     let mut preset = Preset::new(task, Some("cem+deen")).unwrap();
-    preset.apply(&Scale::Small.overrides(task)).unwrap();
+    preset
+        .apply(&Scale::Small.overrides(task, "cem+deen").unwrap())
+        .unwrap();
     let mut env = Env::new(task).unwrap();
     let mut rng = StdRng::seed_from_u64(0);
 
