@@ -35,7 +35,10 @@ pub struct Hosting {
 /// a wrapper chosen per run name (tests give one run a disk that fails or blocks, and check
 /// that the others are served meanwhile).
 #[derive(Clone)]
-pub struct LogDisk(Arc<dyn Fn(&str, std::fs::File) -> Box<dyn LogFile> + Send + Sync>);
+pub struct LogDisk(Arc<OpenLog>);
+
+/// Gives run `run`'s opened log file what its writes go through.
+type OpenLog = dyn Fn(&str, std::fs::File) -> Box<dyn LogFile> + Send + Sync;
 
 impl LogDisk {
     /// Every log writes straight to its file.
