@@ -1,6 +1,7 @@
-//! `planner-service bench plan|train|kernel`: how fast the planner plans and the models train,
-//! with networks of a task preset's sizes (the paper's Table 2), and how fast the matrix kernels
-//! underneath run on those networks' layer shapes.
+//! `planner-service bench plan|train|kernel|expression`: how fast the planner plans and the
+//! models train, with networks of a task preset's sizes (the paper's Table 2), how fast the
+//! matrix kernels underneath run on those networks' layer shapes, and what a reward written as
+//! a formula costs next to a plan.
 //!
 //! The models are fitted briefly on random transitions: the weights only need to be realistic
 //! numbers, since the cost of a planning call does not depend on what the networks learned.
@@ -9,12 +10,14 @@
 //! the per-row reward are extra work not counted).
 
 mod cputime;
+mod expression;
 mod kernel;
 mod peak;
 mod plan;
 mod timing;
 mod train;
 
+pub use expression::ExpressionReport;
 pub use kernel::{KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming};
 pub use peak::Peak;
 pub use plan::PlanReport;
@@ -106,6 +109,27 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
+    /// Time a reward formula (`proto::task::expression`) on one planning iteration's rows of
+    /// the task's preset (population × horizon × particles), with and without its gradient,
+    /// beside full planning calls of that preset, and print the formula's share of a plan.
+    Expression {
+        /// Task whose dimensions the formula reads and whose preset sizes the plan.
+        #[arg(long, default_value = "halfcheetah")]
+        task: TaskId,
+        /// The reward formula; the default is half-cheetah's reward written as one.
+        #[arg(long, default_value = "s_next[0] - 0.1*dot(a, a)")]
+        expression: String,
+        /// Milliseconds each timed batch of evaluations should last; every figure is the best
+        /// and the median of 15 such batches.
+        #[arg(long, default_value_t = 20)]
+        batch_ms: u64,
+        /// Planning calls to time, after two untimed ones.
+        #[arg(long, default_value_t = 10)]
+        plans: usize,
+        /// Seed of the random inputs, the models' training data and the planner.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
 }
 
 /// What a benchmark measured; `Display` prints it for people.
@@ -114,6 +138,7 @@ pub enum BenchReport {
     Plan(PlanReport),
     Train(TrainReport),
     Kernel(KernelReport),
+    Expression(ExpressionReport),
 }
 
 impl fmt::Display for BenchReport {
@@ -122,6 +147,7 @@ impl fmt::Display for BenchReport {
             BenchReport::Plan(r) => r.fmt(f),
             BenchReport::Train(r) => r.fmt(f),
             BenchReport::Kernel(r) => r.fmt(f),
+            BenchReport::Expression(r) => r.fmt(f),
         }
     }
 }
@@ -137,6 +163,8 @@ pub enum BenchError {
     Threads(#[from] rayon::ThreadPoolBuildError),
     #[error("{0} must be at least 1")]
     Zero(&'static str),
+    #[error("the formula: {0}")]
+    Expression(Box<proto::task::expression::ExpressionError>),
 }
 
 /// Runs one benchmark.
@@ -190,6 +218,20 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
             };
             kernel::run(&settings).map(BenchReport::Kernel)
         }
+        BenchCommand::Expression {
+            task,
+            ref expression,
+            batch_ms,
+            plans,
+            seed,
+        } => expression::run(&expression::Settings {
+            task,
+            source: expression.clone(),
+            batch: Duration::from_millis(batch_ms),
+            plans,
+            seed,
+        })
+        .map(BenchReport::Expression),
     }
 }
 
@@ -343,6 +385,17 @@ mod tests {
             }
         );
         assert!(Cli::try_parse_from(["bench", "kernel", "--batch-ms", "-1"]).is_err());
+        let expression = Cli::try_parse_from(["bench", "expression", "--expression", "a[0]"]);
+        assert_eq!(
+            expression.unwrap().bench,
+            BenchCommand::Expression {
+                task: TaskId::HalfCheetah,
+                expression: "a[0]".into(),
+                batch_ms: 20,
+                plans: 10,
+                seed: 0
+            }
+        );
     }
 
     #[test]

@@ -68,6 +68,9 @@ pub struct PlanReport {
     /// calls: the rate while running, which other processes on the cores do not lower (time
     /// the pool's threads spend spinning for work counts against it).
     pub cpu_gflops: Option<f64>,
+    /// Mean CPU time of one timed call, every thread's summed, in milliseconds. `None` where
+    /// the platform does not report it.
+    pub cpu_ms_per_call: Option<f64>,
     /// This core's peak, measured before and after the calls (the higher of the two).
     pub peak: Peak,
 }
@@ -189,6 +192,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         gflops: flops / (median * 1e-3) / 1e9,
         best_gflops: flops / (min_ms * 1e-3) / 1e9,
         cpu_share,
+        cpu_ms_per_call: cpu_seconds.map(|c| c * 1e3 / s.timed as f64),
         cpu_gflops: cpu_seconds
             .filter(|&c| c > 0.0)
             .map(|c| flops * s.timed as f64 / c / 1e9),

@@ -5,6 +5,7 @@
 
 pub mod ant;
 pub mod cartpole;
+pub mod expression;
 pub mod halfcheetah;
 pub mod pusher;
 pub mod reacher3d;
