@@ -5,12 +5,13 @@ use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
-use crate::replay::{EpisodeSummary, LogSyncer, Record, ReplayBuffer, ReplayError};
+use crate::replay::{EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
 use crate::service::status::{Latency, LatencyWindow, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
     EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, Task, TrainMode,
 };
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
 use tokio::sync::{Notify, watch};
@@ -26,6 +27,47 @@ pub struct Hosting {
     pub train_limits: TrainLimits,
     /// Most transitions the run's replay buffer keeps (`[storage] replay_capacity`).
     pub replay_capacity: Option<usize>,
+    /// How the run's replay log reaches its file.
+    pub log_disk: LogDisk,
+}
+
+/// How each run's replay log reaches the disk: straight to its file (the daemon), or through
+/// a wrapper chosen per run name (tests give one run a disk that fails or blocks, and check
+/// that the others are served meanwhile).
+#[derive(Clone)]
+pub struct LogDisk(Arc<OpenLog>);
+
+/// Gives run `run`'s opened log file what its writes go through.
+type OpenLog = dyn Fn(&str, std::fs::File) -> Box<dyn LogFile> + Send + Sync;
+
+impl LogDisk {
+    /// Every log writes straight to its file.
+    pub fn direct() -> Self {
+        Self(Arc::new(|_: &str, file| Box::new(file)))
+    }
+
+    /// Run `run`'s log writes through `wrap(run, file)`.
+    pub fn wrapped(
+        wrap: impl Fn(&str, std::fs::File) -> Box<dyn LogFile> + Send + Sync + 'static,
+    ) -> Self {
+        Self(Arc::new(wrap))
+    }
+
+    fn open(&self, run: &str, file: std::fs::File) -> Box<dyn LogFile> {
+        (self.0)(run, file)
+    }
+}
+
+impl Default for LogDisk {
+    fn default() -> Self {
+        Self::direct()
+    }
+}
+
+impl std::fmt::Debug for LogDisk {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("LogDisk")
+    }
 }
 
 /// One run.
@@ -48,6 +90,9 @@ pub struct Run {
     /// What `status` reports of the buffer, kept apart from it so a report never waits for a
     /// buffer busy writing to disk.
     tally: Mutex<Tally>,
+    /// The next episode number of every agent that ended one, kept apart from the buffer for
+    /// the same reason: attach asks for it while holding the service's table of runs.
+    next_episodes: Mutex<HashMap<String, u32>>,
     /// Where checkpoints go (`None`: the run lives in memory only).
     dir: Option<RunDir>,
     /// The ownership epoch this planner holds the run at (see `crate::fleet`).
@@ -84,20 +129,13 @@ pub struct Stored {
     /// The episode finished: the number of finished episodes a sync-mode agent must see
     /// trained before its next episode.
     pub must_cover: Option<u32>,
-    /// An episode ended (finished, or abandoned by a new one): the log to sync to disk, off
-    /// the event loop and without the buffer's lock (see [`sync_log`]).
-    pub sync: Option<LogSyncer>,
 }
 
-/// Forces a run's log to disk on the blocking pool, so a slow disk delays only the agent
-/// that waits for it. A failure is logged: the records were already handed to the OS, and the
-/// next sync tries again.
-pub async fn sync_log(run: &str, syncer: Option<LogSyncer>) {
-    let Some(syncer) = syncer else { return };
-    match tokio::task::spawn_blocking(move || syncer.sync()).await {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => tracing::error!(run = %run, error = %e, "cannot sync the replay log to disk"),
-        Err(e) => tracing::error!(run = %run, error = %e, "the replay log sync task failed"),
+/// Forces a run's log to disk, on the calling (blocking) thread. A failure is logged: the
+/// records were already handed to the OS, and the next sync tries again.
+fn sync_log(run: &str, syncer: &LogSyncer) {
+    if let Err(e) = syncer.sync() {
+        tracing::error!(run = %run, error = %e, "cannot sync the replay log to disk");
     }
 }
 
@@ -117,6 +155,8 @@ pub enum StoreError {
     Replay(#[from] ReplayError),
     #[error(transparent)]
     Fenced(#[from] Fenced),
+    #[error("the storing task failed: {0}")]
+    Task(String),
 }
 
 /// Why an agent's observation was refused.
@@ -141,6 +181,12 @@ pub struct Fenced {
     pub held: u64,
     /// The run's current epoch; `None` if it could not be read.
     pub current: Option<u64>,
+}
+
+/// Records in `next_episodes` that `agent` ended `episode` (its next one is numbered after).
+fn ended(next_episodes: &mut HashMap<String, u32>, agent: &str, episode: u32) {
+    let next = next_episodes.entry(agent.to_string()).or_default();
+    *next = (*next).max(episode.saturating_add(1));
 }
 
 impl std::fmt::Debug for Run {
@@ -168,7 +214,9 @@ impl Run {
         (epoch, planner): (u64, &str),
     ) -> Result<Arc<Self>, OpenError> {
         let task = preset.task;
-        let mut buffer = ReplayBuffer::open(&dir.replay_log(), task)?;
+        let disk = hosting.log_disk.clone();
+        let mut buffer =
+            ReplayBuffer::open_with(&dir.replay_log(), task, |file| disk.open(&name, file))?;
         buffer.claim(epoch, planner)?;
         buffer.set_capacity(hosting.replay_capacity)?;
         let mut models = match dir.load_models(task, &preset)? {
@@ -221,10 +269,12 @@ impl Run {
             transitions: buffer.len(),
             ..Tally::default()
         };
+        let mut next_episodes = HashMap::new();
         for e in buffer.episodes() {
             if e.end != EpisodeEnd::Interrupted {
                 tally.finished(&e.agent, e.episode, e.episode_return);
             }
+            ended(&mut next_episodes, &e.agent, e.episode);
         }
         let run = Arc::new(Self {
             name,
@@ -241,6 +291,7 @@ impl Run {
             latencies: Mutex::new(LatencyWindow::default()),
             plan_tally: Mutex::new(PlanTally::default()),
             tally: Mutex::new(tally),
+            next_episodes: Mutex::new(next_episodes),
             dir,
             epoch,
         });
@@ -320,15 +371,16 @@ impl Run {
         self.training.load(Ordering::SeqCst)
     }
 
-    /// The next episode number for `agent` (runs resumed after a restart continue numbering).
+    /// The next episode number for `agent` (runs resumed after a restart continue numbering),
+    /// without touching the buffer.
     pub fn next_episode(&self, agent: &str) -> u32 {
-        self.lock_buffer()
-            .episodes()
-            .iter()
-            .filter(|e| e.agent == agent)
-            .map(|e| e.episode.saturating_add(1))
-            .max()
-            .unwrap_or(0)
+        self.lock_next_episodes().get(agent).copied().unwrap_or(0)
+    }
+
+    fn lock_next_episodes(&self) -> std::sync::MutexGuard<'_, HashMap<String, u32>> {
+        self.next_episodes
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
     }
 
     /// Records a planned action: how long it took, its iterations, whether the deadline cut
@@ -375,42 +427,60 @@ impl Run {
     }
 
     /// Takes a validated observation from `session`'s agent: checks that it follows on, stores
-    /// what it completes, and only then moves the session on. If the store fails (a full
-    /// disk) the agent gets a [`ErrorCode::Storage`] error and its session stays where it was,
-    /// so it can send the same observation again once the disk has room. If this planner lost
-    /// the run, nothing is stored and [`Refused::Fenced`] says so.
-    pub fn accept(
-        &self,
+    /// what it completes (syncing an episode's end to disk), and only then moves the session
+    /// on. The store and the sync run on the blocking pool, so a slow or stuck disk holds this
+    /// run's agents only, never a thread that serves other runs; the caller acknowledges the
+    /// observation (answers it) only once this returns. If the store fails (a full disk) the
+    /// agent gets a [`ErrorCode::Storage`] error and its session stays where it was, so it can
+    /// send the same observation again once the disk has room. If this planner lost the run,
+    /// nothing is stored and [`Refused::Fenced`] says so.
+    pub async fn accept(
+        self: &Arc<Self>,
         session: &mut AgentSession,
         msg: &Observation,
     ) -> Result<(Accepted, Stored), Refused> {
         let mut next = session.clone();
         let accepted = next.observe(msg).map_err(Refused::Step)?;
-        let stored = self
-            .store(session.name(), msg.episode, msg.step, &msg.obs, &accepted)
-            .map_err(|e| match e {
-                StoreError::Fenced(fenced) => Refused::Fenced(fenced),
-                StoreError::Replay(e) => {
-                    tracing::error!(run = %self.name, agent = %session.name(), error = %e, "cannot store a transition; the step is refused");
-                    Refused::Step(
-                        ErrorReport::new(
-                            ErrorCode::Storage,
-                            format!(
-                                "the planner could not store this step, send it again later: {e}"
-                            ),
-                        )
-                        .at(msg.episode, msg.step),
+        let run = self.clone();
+        let agent = session.name().to_string();
+        let (episode, step, next_obs) = (msg.episode, msg.step, msg.obs.clone());
+        let joined = tokio::task::spawn_blocking(move || {
+            let stored = run.store(&agent, episode, step, &next_obs, &accepted);
+            (accepted, stored)
+        })
+        .await;
+        let (accepted, stored) = joined.map_err(|e| {
+            Refused::Step(
+                ErrorReport::new(
+                    ErrorCode::Internal,
+                    format!("storing this step failed: {e}"),
+                )
+                .at(msg.episode, msg.step),
+            )
+        })?;
+        let stored = stored.map_err(|e| match e {
+            StoreError::Fenced(fenced) => Refused::Fenced(fenced),
+            e => {
+                tracing::error!(run = %self.name, agent = %session.name(), error = %e, "cannot store a transition; the step is refused");
+                Refused::Step(
+                    ErrorReport::new(
+                        ErrorCode::Storage,
+                        format!("the planner could not store this step, send it again later: {e}"),
                     )
-                }
-            })?;
+                    .at(msg.episode, msg.step),
+                )
+            }
+        })?;
         *session = next;
         Ok((accepted, stored))
     }
 
     /// Stores what an accepted observation produced — an episode it abandoned, its
     /// transition (with `next_obs`), the episode it finished — in one append, so that either
-    /// all of it is stored or none. At episode boundaries (a start, an end) it first checks
-    /// that this planner still owns the run, and stores nothing if not.
+    /// all of it is stored or none, and syncs the log to disk when an episode ended (without
+    /// the buffer's lock). At episode boundaries (a start, an end) it first checks that this
+    /// planner still owns the run, and stores nothing if not. Blocking: called on the
+    /// blocking pool.
     fn store(
         &self,
         agent: &str,
@@ -451,12 +521,18 @@ impl Run {
         // Capacity may have evicted old transitions: the tally follows the buffer's length.
         let transitions = buffer.len();
         drop(buffer);
+        if let Some(syncer) = &sync {
+            sync_log(&self.name, syncer);
+        }
+        for summary in [&accepted.abandoned, &accepted.finished]
+            .into_iter()
+            .flatten()
+        {
+            ended(&mut self.lock_next_episodes(), agent, summary.episode);
+        }
         self.lock_tally().transitions = transitions;
         let Some(finished) = &accepted.finished else {
-            return Ok(Stored {
-                must_cover: None,
-                sync,
-            });
+            return Ok(Stored { must_cover: None });
         };
         self.lock_tally()
             .finished(agent, finished.episode, finished.episode_return);
@@ -471,21 +547,32 @@ impl Run {
         self.wake_trainer.notify_one();
         Ok(Stored {
             must_cover: Some(stored),
-            sync,
         })
     }
 
-    /// Records an episode that an agent left unfinished (it vanished or detached), and
-    /// returns the handle that syncs it to disk, unless this planner no longer owns the run
-    /// (the new owner records it when it reads the log).
-    pub fn store_interrupted(
-        &self,
+    /// Records an episode that an agent left unfinished (it vanished or detached) and syncs
+    /// it to disk, on the blocking pool, unless this planner no longer owns the run (the new
+    /// owner records it when it reads the log).
+    pub async fn store_interrupted(
+        self: &Arc<Self>,
         summary: EpisodeSummary,
-    ) -> Result<Option<LogSyncer>, StoreError> {
-        self.check_owner()?;
-        let mut buffer = self.lock_buffer();
-        buffer.append(vec![Record::from(summary)])?;
-        Ok(buffer.syncer())
+    ) -> Result<(), StoreError> {
+        let run = self.clone();
+        tokio::task::spawn_blocking(move || {
+            run.check_owner()?;
+            let (agent, episode) = (summary.agent.clone(), summary.episode);
+            let mut buffer = run.lock_buffer();
+            buffer.append(vec![Record::from(summary)])?;
+            let syncer = buffer.syncer();
+            drop(buffer);
+            if let Some(syncer) = &syncer {
+                sync_log(&run.name, syncer);
+            }
+            ended(&mut run.lock_next_episodes(), &agent, episode);
+            Ok(())
+        })
+        .await
+        .map_err(|e| StoreError::Task(e.to_string()))?
     }
 
     /// Waits until the models in use were trained on at least `episodes` finished episodes.
@@ -508,11 +595,7 @@ impl Run {
             if episodes <= *self.trained_through.borrow() {
                 continue;
             }
-            let data = self.lock_buffer().transitions().clone();
             self.training.store(true, Ordering::SeqCst);
-            self.emit(RunEventKind::TrainingStarted {
-                transitions: data.len() as u64,
-            });
             let current = self.models();
             let preset = self.preset.clone();
             let seed = self.spec.seed;
@@ -520,6 +603,12 @@ impl Run {
             let task = self.task;
             let limits = self.hosting.train_limits.clone();
             let outcome = tokio::task::spawn_blocking(move || {
+                // The snapshot waits for the buffer, which may be busy writing to a slow disk:
+                // here, on the blocking pool, that holds this run's trainer only.
+                let data = run.lock_buffer().transitions().clone();
+                run.emit(RunEventKind::TrainingStarted {
+                    transitions: data.len() as u64,
+                });
                 let trained = retrain(&current, &data, &preset, episodes, seed, &limits)?;
                 // Checkpoint before the swap: models in use are always on disk too, so a
                 // restart never plans with models older than the ones agents last saw. Only
@@ -634,6 +723,7 @@ mod tests {
             events: Arc::new(|_: &str, _: RunEventKind| {}),
             train_limits: TrainLimits::unbounded(),
             replay_capacity: None,
+            log_disk: LogDisk::direct(),
         }
     }
 
@@ -642,8 +732,8 @@ mod tests {
         Observation::new(episode, step, vec![step as f32; 4], reward, end)
     }
 
-    #[test]
-    fn a_full_disk_refuses_the_step_loses_nothing_acknowledged_and_the_agent_resends() {
+    #[tokio::test]
+    async fn a_full_disk_refuses_the_step_loses_nothing_acknowledged_and_the_agent_resends() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
         let full = Arc::new(AtomicBool::new(false));
@@ -651,14 +741,14 @@ mod tests {
         let mut session = AgentSession::new("a", 200);
         // Steps 0..=3 are stored and acknowledged (the agent "receives" an action each).
         for step in 0..4 {
-            run.accept(&mut session, &obs(0, step, None)).unwrap();
+            run.accept(&mut session, &obs(0, step, None)).await.unwrap();
             session.acted(step, &[0.5]);
         }
         // The disk fills: step 4 (mid-episode) and the episode's last step are refused with a
         // storage error and the session stays at step 3.
         full.store(true, Ordering::SeqCst);
         for attempt in [obs(0, 4, None), obs(0, 4, Some(EpisodeEnd::TimeLimit))] {
-            let Refused::Step(err) = run.accept(&mut session, &attempt).unwrap_err() else {
+            let Refused::Step(err) = run.accept(&mut session, &attempt).await.unwrap_err() else {
                 panic!("a run in memory is never fenced");
             };
             assert_eq!(err.code, ErrorCode::Storage, "{err:?}");
@@ -671,9 +761,10 @@ mod tests {
         full.store(false, Ordering::SeqCst);
         let (_, stored) = run
             .accept(&mut session, &obs(0, 4, Some(EpisodeEnd::TimeLimit)))
+            .await
             .unwrap();
         assert_eq!(stored.must_cover, Some(1));
-        stored.sync.expect("a log on disk").sync().unwrap();
+        assert_eq!(run.next_episode("a"), 1);
         drop(run);
         // Every transition is on disk exactly once, and the episode ended once.
         let reopened = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
@@ -685,21 +776,29 @@ mod tests {
         assert_eq!(reopened.episodes()[0].steps, 4);
     }
 
-    #[test]
-    fn every_episode_end_hands_back_a_sync_finished_or_abandoned() {
+    /// An episode that an agent abandoned (it started the next one) is stored as interrupted,
+    /// and its agent's next episode is numbered after it.
+    #[tokio::test]
+    async fn an_abandoned_episode_is_stored_as_interrupted_and_numbered_past() {
         let dir = tempfile::tempdir().unwrap();
-        let run = run_on_a_filling_disk(&dir.path().join("replay.log"), Default::default());
+        let path = dir.path().join("replay.log");
+        let run = run_on_a_filling_disk(&path, Default::default());
         let mut session = AgentSession::new("a", 200);
-        let (_, stored) = run.accept(&mut session, &obs(0, 0, None)).unwrap();
-        assert!(stored.sync.is_none(), "nothing ended");
+        run.accept(&mut session, &obs(0, 0, None)).await.unwrap();
         session.acted(0, &[0.5]);
-        let (_, stored) = run.accept(&mut session, &obs(0, 1, None)).unwrap();
-        assert!(stored.sync.is_none(), "a step in the middle");
-        // Episode 1 starts before 0 ended: 0 is abandoned, and its end is synced.
-        let (accepted, stored) = run.accept(&mut session, &obs(1, 0, None)).unwrap();
+        run.accept(&mut session, &obs(0, 1, None)).await.unwrap();
+        assert_eq!(run.next_episode("a"), 0, "nothing ended");
+        // Episode 1 starts before 0 ended: 0 is abandoned, and stored as interrupted.
+        let (accepted, stored) = run.accept(&mut session, &obs(1, 0, None)).await.unwrap();
         assert_eq!(accepted.abandoned.unwrap().end, EpisodeEnd::Interrupted);
-        assert!(stored.sync.is_some());
         assert_eq!(stored.must_cover, None);
+        assert_eq!(run.next_episode("a"), 1);
+        assert_eq!(run.next_episode("b"), 0);
+        drop(run);
+        let reopened = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
+        assert_eq!(reopened.len(), 1);
+        assert_eq!(reopened.episodes().len(), 1);
+        assert_eq!(reopened.episodes()[0].end, EpisodeEnd::Interrupted);
     }
 
     fn open(dir: &RunDir, planner: &str) -> Arc<Run> {

@@ -308,10 +308,17 @@ pub struct Observation {
     pub applied: Option<Vec<f32>>,
     /// The session token of the agent's attach ([`AttachAccepted::session`]). An observation
     /// whose token is not the agent's current session's is refused with
-    /// [`ErrorCode::Session`] and touches nothing (0, the default, is never a session).
+    /// [`ErrorCode::Session`] and touches nothing ([`NO_SESSION`], the default, is never a
+    /// session).
     #[serde(default)]
     pub session: u64,
 }
+
+/// The session token of a message that carries none: an observation sent without attaching,
+/// or bytes that could not be read far enough to find one (undecodable, over the payload
+/// limit). Never a live session's token, so an error report about such a message
+/// ([`ErrorReport::session`] = `Some(NO_SESSION)`) concerns no live agent under the name.
+pub const NO_SESSION: u64 = 0;
 
 impl Observation {
     /// An observation of the current protocol version.
@@ -330,7 +337,7 @@ impl Observation {
             reward,
             end,
             applied: None,
-            session: 0,
+            session: NO_SESSION,
         }
     }
 
@@ -442,6 +449,8 @@ pub struct ErrorReport {
     /// The session token the offending message carried, when known. Reports travel on the
     /// agent name's error key, which any process using that name hears: an agent ignores
     /// reports about a session that is not its own (an impostor's refused observations).
+    /// Bytes that could not be read (undecodable, oversized) are reported with
+    /// [`NO_SESSION`]: whoever sent them, they must not stop the live agent of the name.
     #[serde(default)]
     pub session: Option<u64>,
 }

@@ -1,12 +1,15 @@
 //! Bad input never harms the daemon: every malformed, mis-sized, non-finite, mis-versioned,
-//! misaddressed or out-of-order observation gets a clear error on the sender's error key, none
-//! reaches the replay buffer, and a well-behaved agent is served throughout.
+//! misaddressed or out-of-order observation gets a clear error on the sender's error key (bytes
+//! that do not decode with no session, [`NO_SESSION`]), none reaches the replay buffer, and a
+//! well-behaved agent is served throughout.
 
 use ebmpc_e2e::bridge::run_episodes;
 use ebmpc_e2e::client::{Answer, Client, runtime};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::{Planner, TempDir};
-use proto::{Builtin, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION, RunSpec};
+use proto::{
+    Builtin, Encoding, ErrorCode, ErrorReport, NO_SESSION, Observation, PROTOCOL_VERSION, RunSpec,
+};
 use std::time::Duration;
 
 fn config() -> String {
@@ -143,9 +146,14 @@ fn bad_input_is_refused(endpoint: &str) {
         ];
         for (bytes, mime, code) in cases {
             client.send_raw("bad", bytes.clone(), mime).await.unwrap();
-            let report = client.next_error().await.unwrap();
+            let report = client.next_error_any().await.unwrap();
             assert_eq!(report.code, code, "{bytes:?} → {report}");
             assert!(!report.message.is_empty());
+            // Bytes that do not decode name no session (anyone may have sent them under this
+            // name); the rest are reported to the session they carried.
+            let unreadable = matches!(code, ErrorCode::Malformed | ErrorCode::ProtocolVersion);
+            let session = if unreadable { NO_SESSION } else { token };
+            assert_eq!(report.session, Some(session), "{bytes:?} → {report}");
         }
 
         // An unknown run is named as such.

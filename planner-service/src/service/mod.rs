@@ -10,8 +10,9 @@
 //! stays silent on other runs' attach queries and observations, so the owner's answer is the
 //! only one. A planner with no peers owns every run.
 //! Each agent has one worker task, so its observations are handled strictly in order while
-//! agents (and runs) proceed concurrently; planning itself runs on the blocking pool, and
-//! training on the run's trainer task, so neither stalls the transport.
+//! agents (and runs) proceed concurrently; planning and storing (replay writes and fsyncs) run
+//! on the blocking pool, and training on the run's trainer task, so none of them stalls the
+//! transport, and one run's slow disk holds that run's agents only.
 
 mod log_limit;
 pub mod metrics;
@@ -23,7 +24,7 @@ mod worker;
 use crate::config::{Preset, ServiceConfig};
 use crate::fleet::{Fleet, FleetError, Owner};
 use crate::persist::{self, PersistError, RunDir};
-use crate::run::{EventSink, Hosting, Run};
+use crate::run::{EventSink, Hosting, LogDisk, Run};
 use crate::trainer::TrainLimits;
 use proto::{
     AttachAccepted, AttachOutcome, AttachReply, AttachRequest, Encoding, ErrorCode, ErrorReport,
@@ -225,6 +226,8 @@ pub struct Service {
     /// Every run's plans, given the cores by earliest deadline; retraining yields to them
     /// (see [`crate::sched`]).
     plans: Arc<crate::sched::Scheduler>,
+    /// How the runs' replay logs reach the disk.
+    log_disk: LogDisk,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -234,6 +237,16 @@ impl Service {
     pub async fn serve(
         config: ServiceConfig,
         shutdown: impl Future<Output = ()>,
+    ) -> Result<(), ServiceError> {
+        Self::serve_with(config, shutdown, LogDisk::direct()).await
+    }
+
+    /// As [`Service::serve`], with the runs' replay logs writing through `log_disk` (tests
+    /// give one run a disk that blocks, and check that the others are served meanwhile).
+    pub async fn serve_with(
+        config: ServiceConfig,
+        shutdown: impl Future<Output = ()>,
+        log_disk: LogDisk,
     ) -> Result<(), ServiceError> {
         let catalog = config.catalog()?;
         // Held until serving ends: `planner-service runs delete|archive` refuse meanwhile.
@@ -296,6 +309,7 @@ impl Service {
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             cancel_training: Arc::new(AtomicBool::new(false)),
             plans: Arc::default(),
+            log_disk,
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
@@ -769,6 +783,7 @@ impl Service {
                 yield_to: Some(self.plans.clone()),
             },
             replay_capacity: self.config.storage.replay_capacity,
+            log_disk: self.log_disk.clone(),
         };
         let internal = |why: String| {
             Refusal::Report(ErrorReport::new(
@@ -1123,7 +1138,9 @@ impl Service {
     /// (a message of at most `[limits] max_payload_bytes`, so this is short work for the
     /// event loop) and checks that it carries the session token of `agent`'s live session:
     /// only then does it reach that session's worker, so a stranger's messages under the
-    /// agent's name neither queue before the agent's own nor touch its episode.
+    /// agent's name neither queue before the agent's own nor touch its episode. Bytes that
+    /// are too large or do not decode name no session, so their report carries
+    /// [`proto::NO_SESSION`]: the live agent of the name (if any) ignores it, whoever sent them.
     fn decode_for_session(
         &self,
         run: &str,
@@ -1131,6 +1148,9 @@ impl Service {
         sample: &zenoh::sample::Sample,
         encoding: Encoding,
     ) -> Result<(proto::Observation, mpsc::Sender<Incoming>), ErrorReport> {
+        let unreadable = |report: ErrorReport| report.for_session(proto::NO_SESSION);
+        self.check_payload(sample.payload().len())
+            .map_err(unreadable)?;
         let (tx, session) = {
             let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
             match runs.get(run) {
@@ -1147,9 +1167,8 @@ impl Service {
                 },
             }
         }?;
-        self.check_payload(sample.payload().len())?;
-        let msg: proto::Observation =
-            proto::decode(&sample.payload().to_bytes(), encoding).map_err(|e| codec_report(&e))?;
+        let msg: proto::Observation = proto::decode(&sample.payload().to_bytes(), encoding)
+            .map_err(|e| unreadable(codec_report(&e)))?;
         if msg.session != session {
             return Err(ErrorReport::new(
                 ErrorCode::Session,

@@ -11,12 +11,11 @@ use rand::rngs::SysRng;
 pub struct TokenError(#[from] rand::rngs::SysError);
 
 /// A fresh session token: 64 bits from the OS random number generator (unguessable by another
-/// client), never 0 — 0 is what an observation without a token carries, so it is never a
-/// session.
+/// client), never [`proto::NO_SESSION`] (0) — what an observation without a token carries.
 pub(crate) fn new_token() -> Result<u64, TokenError> {
     loop {
         let token = SysRng.try_next_u64()?;
-        if token != 0 {
+        if token != proto::NO_SESSION {
             return Ok(token);
         }
     }
@@ -35,6 +34,6 @@ mod tests {
             1000,
             "1000 draws of 64 random bits repeated one"
         );
-        assert!(!tokens.contains(&0));
+        assert!(!tokens.contains(&proto::NO_SESSION));
     }
 }

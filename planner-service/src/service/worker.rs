@@ -5,7 +5,7 @@ use super::Outbox;
 use crate::agent::AgentSession;
 use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
-use crate::run::{Refused, Run, StoreError, sync_log};
+use crate::run::{Refused, Run, StoreError};
 use crate::sched::Scheduler;
 use proto::task::Magnitudes;
 use proto::{
@@ -147,16 +147,13 @@ impl AgentWorker {
                     .await;
             }
         }
-        if let Some(summary) = self.session.interrupt() {
-            match self.run.store_interrupted(summary) {
-                Ok(syncer) => sync_log(self.run.name(), syncer).await,
-                Err(e) => {
-                    if let StoreError::Fenced(_) = e {
-                        self.fleet.report_fenced(self.run.name());
-                    }
-                    tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode")
-                }
+        if let Some(summary) = self.session.interrupt()
+            && let Err(e) = self.run.store_interrupted(summary).await
+        {
+            if let StoreError::Fenced(_) = e {
+                self.fleet.report_fenced(self.run.name());
             }
+            tracing::error!(run = %self.run.name(), agent = %self.name, error = %e, "cannot record interrupted episode")
         }
     }
 
@@ -165,22 +162,23 @@ impl AgentWorker {
         let position = |r: ErrorReport| r.at(msg.episode, msg.step);
         proto::validate::validate_observation(&msg, self.run.task(), &self.magnitudes)
             .map_err(|e| e.report(msg.episode, msg.step))?;
-        let (accepted, stored) = self
-            .run
-            .accept(&mut self.session, &msg)
-            .map_err(|refused| match refused {
-                Refused::Step(report) => report,
-                Refused::Fenced(fenced) => {
-                    // Another planner owns the run now: step down, and send the agent there.
-                    self.fleet.report_fenced(self.run.name());
-                    position(ErrorReport::new(
-                        ErrorCode::NotAttached,
-                        format!("{fenced}: attach again"),
-                    ))
-                }
-            })?;
-        // The episode's records reach the disk before this agent's next message is taken.
-        sync_log(self.run.name(), stored.sync).await;
+        // Stored (and an episode's end synced to disk) before this agent's next message is
+        // taken, and before the observation is answered.
+        let (accepted, stored) =
+            self.run
+                .accept(&mut self.session, &msg)
+                .await
+                .map_err(|refused| match refused {
+                    Refused::Step(report) => report,
+                    Refused::Fenced(fenced) => {
+                        // Another planner owns the run now: step down, and send the agent there.
+                        self.fleet.report_fenced(self.run.name());
+                        position(ErrorReport::new(
+                            ErrorCode::NotAttached,
+                            format!("{fenced}: attach again"),
+                        ))
+                    }
+                })?;
         let must_cover = stored.must_cover;
         if let Some(finished) = &accepted.finished {
             tracing::info!(run = %self.run.name(), agent = %self.name, episode = finished.episode, steps = finished.steps, episode_return = finished.episode_return, "episode finished");
