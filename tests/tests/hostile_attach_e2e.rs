@@ -89,8 +89,8 @@ fn hostile_tasks() -> Vec<(RunSpec, &'static str)> {
             "builtin reward `ant` needs obs_dim = 27",
         ),
         (
-            with(&|t| t.reward = RewardKind::Expression("-s_next[1]^2".into())),
-            "expression rewards are not available in this build",
+            with(&|t| t.reward = RewardKind::Expression("-s_next[9]^2".into())),
+            "index 9 out of range for s_next",
         ),
         (with(&|t| t.name = "other".into()), "must agree"),
         (

@@ -8,12 +8,15 @@
 //! tasks a process may intern is bounded ([`MAX_DISTINCT_TASKS`]), so clients sending ever new
 //! specs cannot grow it without limit.
 
+use super::expression::{Dims, Expression, Gradients, Input, Inputs, Scratch};
 use super::spec::{ModelTransforms, RewardKind, SpecBounds, SpecError, TaskSpec, TerminationKind};
 use super::transforms::Declared;
 use super::{Builtin, BuiltinCode};
+use std::cell::RefCell;
 use std::fmt;
 use std::ops::Deref;
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Most distinct task specs one process compiles.
 pub const MAX_DISTINCT_TASKS: usize = 1024;
@@ -23,8 +26,14 @@ pub const MAX_DISTINCT_TASKS: usize = 1024;
 pub enum TaskError {
     #[error(transparent)]
     Spec(#[from] SpecError),
-    #[error("task {task}: expression rewards are not available in this build ({part} expression)")]
-    ExpressionsUnavailable { task: String, part: &'static str },
+    /// A formula that does not parse or does not fit the task's dimensions; `message` points
+    /// at the offending text (see [`super::expression::ExpressionError`]).
+    #[error("task {task}: {part} expression: {message}")]
+    Expression {
+        task: String,
+        part: &'static str,
+        message: String,
+    },
     #[error("task {task}: learned rewards are not available in this build")]
     LearnedUnavailable { task: String },
     #[error(
@@ -51,17 +60,103 @@ pub trait CompiledExpression: Send + Sync + fmt::Debug {
 }
 
 /// The one way from a spec's expression source to code: parsed and checked against the task's
-/// dimensions once, when the task is compiled. This build has no expression language, so every
-/// expression is refused with a clear error.
+/// dimensions once, when the task is compiled. A termination sees only `s_next`, so a
+/// termination formula that reads `s` or `a` is refused here rather than misread later.
 pub fn compile_expression(
     task: &TaskSpec,
     part: &'static str,
-    _source: &str,
+    source: &str,
 ) -> Result<Box<dyn CompiledExpression>, TaskError> {
-    Err(TaskError::ExpressionsUnavailable {
+    let error = |message: String| TaskError::Expression {
         task: task.name.clone(),
         part,
-    })
+        message,
+    };
+    let dims = Dims {
+        obs_dim: task.obs_dim,
+        act_dim: task.act_dim,
+    };
+    let expression = Expression::parse(source, dims).map_err(|e| error(e.to_string()))?;
+    if part == "termination" && (expression.reads(Input::S) || expression.reads(Input::A)) {
+        return Err(error(
+            "a termination reads only s_next (the state the episode may end in)".into(),
+        ));
+    }
+    Ok(Box::new(RowFormula {
+        expression,
+        id: NEXT_FORMULA_ID.fetch_add(1, Ordering::Relaxed),
+    }))
+}
+
+/// Numbers each compiled formula, so a thread can keep one scratch per formula.
+static NEXT_FORMULA_ID: AtomicUsize = AtomicUsize::new(0);
+
+thread_local! {
+    /// Each thread's evaluation scratch per formula it has evaluated: made on a thread's first
+    /// evaluation of a formula and reused after, so evaluating in the planning loop does not
+    /// allocate. Tasks are interned and few, so the list stays short.
+    static SCRATCH: RefCell<Vec<(usize, Scratch)>> = const { RefCell::new(Vec::new()) };
+}
+
+/// A formula evaluated one transition at a time, through the expression language's batched
+/// evaluator with a batch of one row.
+#[derive(Debug)]
+struct RowFormula {
+    expression: Expression,
+    id: usize,
+}
+
+impl RowFormula {
+    fn with_scratch<R>(&self, f: impl FnOnce(&mut Scratch) -> R) -> R {
+        SCRATCH.with(|cell| {
+            let mut all = cell.borrow_mut();
+            let at = match all.iter().position(|(id, _)| *id == self.id) {
+                Some(at) => at,
+                None => {
+                    all.push((self.id, self.expression.scratch()));
+                    all.len() - 1
+                }
+            };
+            f(&mut all[at].1)
+        })
+    }
+}
+
+impl CompiledExpression for RowFormula {
+    fn value(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
+        let mut out = [0.0];
+        let inputs = Inputs {
+            s: obs,
+            a: act,
+            s_next: next_obs,
+        };
+        self.with_scratch(|scratch| self.expression.eval_batch(inputs, &mut out, scratch));
+        out[0]
+    }
+
+    fn gradient(
+        &self,
+        obs: &[f32],
+        act: &[f32],
+        next_obs: &[f32],
+        d_act: &mut [f32],
+        d_next_obs: &mut [f32],
+    ) -> f32 {
+        let mut out = [0.0];
+        let inputs = Inputs {
+            s: obs,
+            a: act,
+            s_next: next_obs,
+        };
+        // An empty gradient slice is skipped: no planner descends the reward in `s`.
+        let grads = Gradients {
+            s: &mut [],
+            a: d_act,
+            s_next: d_next_obs,
+        };
+        self.with_scratch(|scratch| self.expression.eval_grad(inputs, &mut out, grads, scratch));
+        out[0]
+    }
 }
 
 /// A task: its spec (reachable through `Deref`, so `task.obs_dim` reads the spec's field) and
@@ -217,7 +312,8 @@ impl Task {
             Termination::Builtin(code) => (code.is_terminal)(next_obs),
             // A termination expression reads `s_next` only; `s` and `a` are passed as `s_next`
             // and an empty action so that no index of them can be valid.
-            Termination::Expression(e) => e.value(next_obs, &[], next_obs) > 0.0,
+            // Formulas make comparisons 1 or 0: any value but 0 ends the episode.
+            Termination::Expression(e) => e.value(&[], &[], next_obs) != 0.0,
         }
     }
 
@@ -324,14 +420,38 @@ mod tests {
     }
 
     #[test]
-    fn expression_and_learned_kinds_are_refused_in_this_build() {
+    fn expression_kinds_run_and_learned_rewards_are_refused_in_this_build() {
         let mut spec = custom("expr");
-        spec.reward = RewardKind::Expression("-s_next[0]^2".into());
+        spec.reward = RewardKind::Expression("-s_next[0]^2 - 0.1*a[0]^2".into());
+        spec.termination = TerminationKind::Expression("abs(s_next[2]) > 0.5".into());
+        let task = Task::intern(spec, &SpecBounds::default()).unwrap();
+        let (obs, act, next) = ([0.0; 4], [2.0], [3.0, 0.0, 0.1, 0.0]);
+        assert!((task.reward(&obs, &act, &next) - (-9.0 - 0.4)).abs() < 1e-5);
+        let (mut d_act, mut d_next) = ([0.0], [0.0; 4]);
+        let r = task.reward_gradient(&obs, &act, &next, &mut d_act, &mut d_next);
+        assert!((r - (-9.4)).abs() < 1e-5);
+        assert!((d_act[0] - (-0.4)).abs() < 1e-5, "{d_act:?}");
+        assert!((d_next[0] - (-6.0)).abs() < 1e-5, "{d_next:?}");
+        assert_eq!(&d_next[1..], &[0.0; 3]);
+        assert!(!task.is_terminal(&next));
+        assert!(task.is_terminal(&[0.0, 0.0, -0.7, 0.0]));
+
+        // A formula that does not fit is refused, naming the offending text.
+        let mut spec = custom("expr-bad");
+        spec.reward = RewardKind::Expression("-s_next[4]^2".into());
         let err = Task::intern(spec, &SpecBounds::default()).unwrap_err();
-        assert_eq!(
-            err.to_string(),
-            "task expr: expression rewards are not available in this build (reward expression)"
+        let text = err.to_string();
+        assert!(
+            text.starts_with("task expr-bad: reward expression:"),
+            "{text}"
         );
+        assert!(text.contains("s_next[4]"), "{text}");
+        // A termination sees only the state the episode may end in.
+        let mut spec = custom("expr-term");
+        spec.termination = TerminationKind::Expression("a[0] > 1".into());
+        let err = Task::intern(spec, &SpecBounds::default()).unwrap_err();
+        assert!(err.to_string().contains("reads only s_next"), "{err}");
+
         let mut spec = custom("learned");
         spec.reward = RewardKind::Learned;
         let err = Task::intern(spec, &SpecBounds::default()).unwrap_err();
