@@ -35,8 +35,10 @@ def test_the_schemas_refuse_what_the_planner_refuses() -> None:
     request = wire.attach_request("a-0", "cartpole", None, {"populaton": 40}, "sync", 0, None)
     with pytest.raises(jsonschema.ValidationError):
         validate("AttachRequest", request)  # a mistyped override
+    unnamed = wire.attach_request("a-0", "cartpole", None, None, "sync", 0, None)
+    unnamed["spec"]["task"] = 7  # a task is named by a string since protocol 4
     with pytest.raises(jsonschema.ValidationError):
-        validate("AttachRequest", wire.attach_request("a-0", "pendulum", None, None, "sync", 0, None))
+        validate("AttachRequest", unnamed)
     observation = wire.observation(0, 1, [0.0], 5, end="time_limit")
     observation["end"] = "crashed"
     with pytest.raises(jsonschema.ValidationError):

@@ -190,9 +190,14 @@ fn a_light_run_keeps_its_deadline_while_a_heavy_run_plans_and_a_third_retrains()
             retrained_episodes,
             trainer_run.models_version
         );
-        // The load was there: the heavy run planned throughout, and the third run retrained.
+        // The load was there: the heavy run planned throughout, and the third run was retraining
+        // (still at it, or done at least once: on a fast machine the light run may finish
+        // before the first retraining does).
         assert_eq!(heavy_run.plan_tally.plans, u64::from(heavy_steps));
-        assert!(trainer_run.models_version >= 1, "{trainer_run:?}");
+        assert!(
+            trainer_run.training || trainer_run.models_version >= 1,
+            "{trainer_run:?}"
+        );
         // The light run kept every deadline: no plan cut, none missed, every iteration ran.
         let l = light_run.plan_tally;
         assert_eq!(
