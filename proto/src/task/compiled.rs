@@ -13,7 +13,6 @@ use super::spec::{ModelTransforms, RewardKind, SpecBounds, SpecError, TaskSpec, 
 use super::transforms::Declared;
 use super::{Builtin, BuiltinCode};
 use std::cell::RefCell;
-use std::fmt;
 use std::ops::Deref;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -42,23 +41,6 @@ pub enum TaskError {
     TooManyTasks,
 }
 
-/// An expression compiled against a task's dimensions, as the expression language provides it
-/// (`proto/src/task/expression.rs`): evaluated per transition, with its gradient for planners
-/// that descend it.
-pub trait CompiledExpression: Send + Sync + fmt::Debug {
-    /// The value at `(s, a, s')`.
-    fn value(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32;
-    /// The value and its gradient: `∂/∂a` into `d_act`, `∂/∂s'` into `d_next_obs` (overwritten).
-    fn gradient(
-        &self,
-        obs: &[f32],
-        act: &[f32],
-        next_obs: &[f32],
-        d_act: &mut [f32],
-        d_next_obs: &mut [f32],
-    ) -> f32;
-}
-
 /// The one way from a spec's expression source to code: parsed and checked against the task's
 /// dimensions once, when the task is compiled. A termination sees only `s_next`, so a
 /// termination formula that reads `s` or `a` is refused here rather than misread later.
@@ -66,7 +48,7 @@ pub fn compile_expression(
     task: &TaskSpec,
     part: &'static str,
     source: &str,
-) -> Result<Box<dyn CompiledExpression>, TaskError> {
+) -> Result<RowFormula, TaskError> {
     let error = |message: String| TaskError::Expression {
         task: task.name.clone(),
         part,
@@ -82,10 +64,10 @@ pub fn compile_expression(
             "a termination reads only s_next (the state the episode may end in)".into(),
         ));
     }
-    Ok(Box::new(RowFormula {
+    Ok(RowFormula {
         expression,
         id: NEXT_FORMULA_ID.fetch_add(1, Ordering::Relaxed),
-    }))
+    })
 }
 
 /// Numbers each compiled formula, so a thread can keep one scratch per formula.
@@ -99,9 +81,10 @@ thread_local! {
 }
 
 /// A formula evaluated one transition at a time, through the expression language's batched
-/// evaluator with a batch of one row.
+/// evaluator with a batch of one row: the value at `(s, a, s')`, and with it the gradient for
+/// planners that descend it.
 #[derive(Debug)]
-struct RowFormula {
+pub struct RowFormula {
     expression: Expression,
     id: usize,
 }
@@ -122,8 +105,9 @@ impl RowFormula {
     }
 }
 
-impl CompiledExpression for RowFormula {
-    fn value(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
+impl RowFormula {
+    /// The value at `(s, a, s')`.
+    pub fn value(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
         let mut out = [0.0];
         let inputs = Inputs {
             s: obs,
@@ -134,7 +118,8 @@ impl CompiledExpression for RowFormula {
         out[0]
     }
 
-    fn gradient(
+    /// The value and its gradient: `∂/∂a` into `d_act`, `∂/∂s'` into `d_next_obs` (overwritten).
+    pub fn gradient(
         &self,
         obs: &[f32],
         act: &[f32],
@@ -180,14 +165,14 @@ enum Model {
 #[derive(Debug)]
 enum Reward {
     Builtin(&'static BuiltinCode),
-    Expression(Box<dyn CompiledExpression>),
+    Expression(RowFormula),
 }
 
 #[derive(Debug)]
 enum Termination {
     Never,
     Builtin(&'static BuiltinCode),
-    Expression(Box<dyn CompiledExpression>),
+    Expression(RowFormula),
 }
 
 /// Two tasks are the same task when their specs are equal (interning makes them one object).
