@@ -165,7 +165,7 @@ mod tests {
             let x = i as f32 / n as f32;
             let obs = [x * scale, -x * scale, 0.5 * scale, (1.0 - x) * scale];
             let next = [-x * scale, x * scale, -0.5 * scale, x * scale];
-            data.push(&obs, &[x], &next);
+            data.push(&obs, &[x], 0.0, &next);
         }
         data
     }

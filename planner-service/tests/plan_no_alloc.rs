@@ -80,7 +80,7 @@ fn random_transitions(task: Builtin, n: usize, rng: &mut StdRng) -> Transitions 
             .iter()
             .map(|o| o + 0.1 * rng.random_range(-1.0f32..1.0))
             .collect();
-        data.push(&obs, &act, &next);
+        data.push(&obs, &act, 0.0, &next);
     }
     data
 }

@@ -127,7 +127,7 @@ fn episode(
             }
         }
         let out = env.step(&action)?;
-        data.push(&obs, &action, &out.obs);
+        data.push(&obs, &action, out.reward, &out.obs);
         total += out.reward;
         let done = out.done();
         obs = out.obs;

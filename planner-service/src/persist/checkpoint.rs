@@ -313,7 +313,7 @@ mod tests {
         let mut data = Transitions::new(task.obs_dim, task.act_dim);
         for i in 0..40 {
             let s = [i as f32 * 0.1, 0.2, -0.1, 0.05 * i as f32];
-            data.push(&s, &[0.5], &[s[0] + 0.01, 0.2, -0.1, s[3]]);
+            data.push(&s, &[0.5], 0.0, &[s[0] + 0.01, 0.2, -0.1, s[3]]);
         }
         let mut rng = StdRng::seed_from_u64(1);
         models.dynamics.fit(&data, 2, &mut rng);

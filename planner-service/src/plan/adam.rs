@@ -575,7 +575,7 @@ mod tests {
                 .iter()
                 .map(|o| o + 0.3 * rng.random_range(-1.0f32..1.0))
                 .collect();
-            data.push(&obs, &act, &next);
+            data.push(&obs, &act, 0.0, &next);
         }
         data
     }
@@ -671,7 +671,7 @@ mod tests {
             for n in &mut next[1..] {
                 *n += 0.01 * rng.random_range(-1.0f32..1.0);
             }
-            data.push(&obs, &act, &next);
+            data.push(&obs, &act, 0.0, &next);
         }
         let dynamics_config = DynamicsConfig {
             hidden_layers: 2,

@@ -242,7 +242,7 @@ mod tests {
                 0.0,
             ];
             let a = rng.random_range(actions.0..actions.1);
-            data.push(&obs, &[a], &[obs[0] + 0.1 * a, obs[1], obs[2], obs[3]]);
+            data.push(&obs, &[a], 0.0, &[obs[0] + 0.1 * a, obs[1], obs[2], obs[3]]);
         }
         data
     }
