@@ -25,8 +25,8 @@ use crate::data::Transitions;
 use crate::dynamics::DynamicsConfig;
 use crate::nn::train::{FitBudget, run_epochs};
 use crate::nn::{
-    Activation, Adam, FitReport, FlushDenormals, ForwardScratch, Mlp, Normalizer, ShapeError,
-    Tape, add_weight_decay,
+    Activation, Adam, FitReport, FlushDenormals, ForwardScratch, Mlp, Normalizer, ShapeError, Tape,
+    add_weight_decay,
 };
 use proto::Task;
 use rand::SeedableRng;
@@ -105,8 +105,7 @@ pub struct RewardScratch {
 impl RewardScratch {
     /// Whether these buffers serve `model` on `rows` rows.
     pub fn fits(&self, model: &RewardModel, rows: usize) -> bool {
-        self.forward.fits(&model.mlp, rows)
-            && self.features.len() == model.task.state_feature_dim
+        self.forward.fits(&model.mlp, rows) && self.features.len() == model.task.state_feature_dim
     }
 }
 
@@ -247,7 +246,12 @@ impl RewardModel {
         });
         self.trained |= run.steps > 0;
         let mse = self.mean_squared_error(data);
-        tracing::debug!(steps = run.steps, loss = run.loss, mse, "reward model trained");
+        tracing::debug!(
+            steps = run.steps,
+            loss = run.loss,
+            mse,
+            "reward model trained"
+        );
         FitReport {
             samples: n,
             epochs,
@@ -355,15 +359,7 @@ impl RewardModel {
         );
         let ld = scratch.forward.ld();
         let RewardScratch { forward, features } = scratch;
-        self.fill_inputs(
-            obs,
-            act,
-            next_obs,
-            rows,
-            features,
-            forward.input_mut(),
-            ld,
-        );
+        self.fill_inputs(obs, act, next_obs, rows, features, forward.input_mut(), ld);
         let predicted = self.mlp.forward(rows, forward);
         let (mean, std) = (self.target_norm.mean()[0], self.target_norm.std()[0]);
         for (r, &z) in out[..rows].iter_mut().zip(&predicted[..rows]) {
@@ -420,8 +416,11 @@ impl RewardModel {
             for (k, d) in d_features.iter_mut().enumerate() {
                 *d = grad[k * ld + i] / scale[k];
             }
-            self.task
-                .state_features_backward(&obs[i * o..(i + 1) * o], d_features, &mut d_obs[i * o..(i + 1) * o]);
+            self.task.state_features_backward(
+                &obs[i * o..(i + 1) * o],
+                d_features,
+                &mut d_obs[i * o..(i + 1) * o],
+            );
             for j in 0..a {
                 let k = f + j;
                 d_act[i * a + j] = grad[k * ld + i] / scale[k];

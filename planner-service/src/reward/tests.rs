@@ -72,7 +72,10 @@ fn learns_a_known_reward_to_a_small_error_on_held_out_transitions() {
     assert!(report.steps > 0 && report.loss.is_finite(), "{report:?}");
     let after = model.mean_squared_error(&held_out);
     // In units of the reward's variance: 1 is no better than its mean.
-    assert!(after < 0.01, "held-out MSE {after} (before training {before})");
+    assert!(
+        after < 0.01,
+        "held-out MSE {after} (before training {before})"
+    );
     assert!(before > 0.3, "an untrained model knows nothing: {before}");
     // Batched inference (the planner's path, bf16 where the CPU has it) agrees.
     let mut bf16 = model.clone();
@@ -106,10 +109,22 @@ fn gradient_matches_finite_differences() {
         &data.next_obs()[..rows * 3],
     );
     let mut tape = model.tape(rows);
-    let (mut out, mut d_obs, mut d_act, mut d_next) =
-        (vec![0.0; rows], vec![0.0; rows * 3], vec![0.0; rows], vec![0.0; rows * 3]);
+    let (mut out, mut d_obs, mut d_act, mut d_next) = (
+        vec![0.0; rows],
+        vec![0.0; rows * 3],
+        vec![0.0; rows],
+        vec![0.0; rows * 3],
+    );
     model.predict_with_gradient(
-        obs, act, next, rows, &mut tape, &mut out, &mut d_obs, &mut d_act, &mut d_next,
+        obs,
+        act,
+        next,
+        rows,
+        &mut tape,
+        &mut out,
+        &mut d_obs,
+        &mut d_act,
+        &mut d_next,
     );
     let value = |s: &[f32], a: &[f32], s1: &[f32]| {
         let mut r = [0.0];
@@ -121,11 +136,28 @@ fn gradient_matches_finite_differences() {
     for i in 0..rows {
         let (s, a, s1) = data.row(i);
         model.predict(s, a, s1, 1, &mut scratch, &mut one);
-        assert!((one[0] - out[i]).abs() < 1e-4, "row {i}: {} vs {}", one[0], out[i]);
+        assert!(
+            (one[0] - out[i]).abs() < 1e-4,
+            "row {i}: {} vs {}",
+            one[0],
+            out[i]
+        );
         let checks = [
-            ("s", finite_difference(s, |x| value(x, a, s1)), &d_obs[i * 3..(i + 1) * 3]),
-            ("a", finite_difference(a, |x| value(s, x, s1)), &d_act[i..i + 1]),
-            ("s'", finite_difference(s1, |x| value(s, a, x)), &d_next[i * 3..(i + 1) * 3]),
+            (
+                "s",
+                finite_difference(s, |x| value(x, a, s1)),
+                &d_obs[i * 3..(i + 1) * 3],
+            ),
+            (
+                "a",
+                finite_difference(a, |x| value(s, x, s1)),
+                &d_act[i..i + 1],
+            ),
+            (
+                "s'",
+                finite_difference(s1, |x| value(s, a, x)),
+                &d_next[i * 3..(i + 1) * 3],
+            ),
         ];
         for (what, fd, analytic) in checks {
             for (k, (f, g)) in fd.iter().zip(analytic).enumerate() {
@@ -146,8 +178,7 @@ fn parts_restore_the_model_exactly_and_wrong_shapes_are_refused() {
     let data = transitions(200, &mut rng);
     let mut model = RewardModel::new(task(), &small(), &training(), &mut rng);
     model.fit(&data, 2, &mut rng);
-    let restored =
-        RewardModel::from_parts(task(), &small(), &training(), model.parts()).unwrap();
+    let restored = RewardModel::from_parts(task(), &small(), &training(), model.parts()).unwrap();
     assert!(restored.is_trained());
     assert_eq!(restored.parts(), model.parts());
     assert_eq!(

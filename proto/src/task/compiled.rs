@@ -461,7 +461,10 @@ mod tests {
         assert!(task.reward_is_learned());
         assert!(!Builtin::Cartpole.task().reward_is_learned());
         let formula = std::panic::catch_unwind(|| task.reward(&obs, &act, &next));
-        assert!(formula.is_err(), "a learned reward has no formula to evaluate");
+        assert!(
+            formula.is_err(),
+            "a learned reward has no formula to evaluate"
+        );
         let mut spec = custom("bad");
         spec.obs_dim = 0;
         assert!(matches!(
