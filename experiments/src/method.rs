@@ -67,9 +67,15 @@ mod tests {
     #[test]
     fn presets_keep_their_optimiser_and_icem_labels_name_the_cem_preset() {
         let m = Method::parse(Builtin::HalfCheetah, "cem+deen").unwrap();
-        assert_eq!((m.preset.as_str(), m.optimizer), ("cem+deen", Optimizer::Cem));
+        assert_eq!(
+            (m.preset.as_str(), m.optimizer),
+            ("cem+deen", Optimizer::Cem)
+        );
         let m = Method::parse(Builtin::HalfCheetah, "icem+deen").unwrap();
-        assert_eq!((m.preset.as_str(), m.optimizer), ("cem+deen", Optimizer::Icem));
+        assert_eq!(
+            (m.preset.as_str(), m.optimizer),
+            ("cem+deen", Optimizer::Icem)
+        );
         assert!(m.is_icem());
         let m = Method::parse(Builtin::Cartpole, "icem").unwrap();
         assert_eq!((m.preset.as_str(), m.optimizer), ("cem", Optimizer::Icem));
@@ -79,7 +85,15 @@ mod tests {
 
     #[test]
     fn labels_that_name_no_cem_preset_are_refused() {
-        for label in ["icem+pets", "iadam+dae", "icemx", "ipets", "", "icem+", "ICEM"] {
+        for label in [
+            "icem+pets",
+            "iadam+dae",
+            "icemx",
+            "ipets",
+            "",
+            "icem+",
+            "ICEM",
+        ] {
             let err = Method::parse(Builtin::Cartpole, label).unwrap_err();
             assert!(err.to_string().contains("icem+deen"), "{label}: {err}");
         }

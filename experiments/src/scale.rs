@@ -5,15 +5,15 @@
 //! launcher (which passes them to `sim-bridge run` as flags) and the in-process figures (which
 //! apply them to a [`planner_service::config::Preset`]) cannot disagree about what "small" means.
 
-use planner_service::config::{Preset, PresetError};
 use crate::method::Method;
+use planner_service::config::{Preset, PresetError};
 use planner_service::plan::Optimizer;
 use proto::{Builtin, PlannerOverrides};
 use serde::{Deserialize, Serialize};
 
 /// How large an experiment is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
+#[serde(rename_all = "kebab-case")]
 pub enum Scale {
     /// The paper's Table 2 sizes and 5 seeds (a large machine: hours per task).
     Paper,
@@ -270,14 +270,27 @@ mod tests {
         );
         assert_eq!(cem.optimizer, None);
         assert_eq!(
-            (cem.dynamics_epochs, cem.energy_hidden_size, cem.exploration_episodes),
-            (small.dynamics_epochs, small.energy_hidden_size, small.exploration_episodes),
+            (
+                cem.dynamics_epochs,
+                cem.energy_hidden_size,
+                cem.exploration_episodes
+            ),
+            (
+                small.dynamics_epochs,
+                small.energy_hidden_size,
+                small.exploration_episodes
+            ),
             "the small scale's training"
         );
         let icem = Scale::SmallLearning.overrides(task, "icem+deen").unwrap();
         assert_eq!(icem.optimizer, Some(Optimizer::Icem));
         assert_eq!(
-            (icem.population, icem.elites, icem.cem_iterations, icem.horizon),
+            (
+                icem.population,
+                icem.elites,
+                icem.cem_iterations,
+                icem.horizon
+            ),
             (Some(150), Some(15), Some(3), None)
         );
         let mut p = Preset::new(task.task(), Some("cem+deen")).unwrap();
@@ -285,7 +298,9 @@ mod tests {
         assert_eq!(p.cem.optimizer, Optimizer::Icem);
         let flags = bridge_flags(&icem);
         assert!(
-            flags.windows(2).any(|w| w[0] == "--optimizer" && w[1] == "icem"),
+            flags
+                .windows(2)
+                .any(|w| w[0] == "--optimizer" && w[1] == "icem"),
             "{flags:?}"
         );
         // Every scale gives iCEM fewer candidates than its CEM, with a valid preset.
@@ -304,6 +319,19 @@ mod tests {
                     );
                 }
             }
+        }
+    }
+
+    /// `experiment.json` spells a scale as the command line does.
+    #[test]
+    fn a_scale_is_stored_under_its_command_line_name() {
+        use clap::ValueEnum;
+        for scale in Scale::value_variants() {
+            let stored = serde_json::to_value(scale).unwrap();
+            assert_eq!(stored, scale.name(), "{scale:?}");
+            let cli = scale.to_possible_value().unwrap();
+            assert_eq!(cli.get_name(), scale.name());
+            assert_eq!(serde_json::from_value::<Scale>(stored).unwrap(), *scale);
         }
     }
 

@@ -9,11 +9,12 @@
 use crate::config::Preset;
 use crate::data::Transitions;
 use crate::models::Models;
+use crate::nn::split;
 use crate::nn::train::{FitBudget, Stop};
-use rand::SeedableRng;
 use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 /// What one retraining did.
@@ -36,8 +37,8 @@ pub struct TrainReport {
 /// The daemon's side of a retraining's budget.
 #[derive(Clone, Debug)]
 pub struct TrainLimits {
-    /// Wall-clock budget of one retraining, shared by the two models half and half (the
-    /// regulariser also gets whatever the dynamics left).
+    /// Wall-clock budget of one retraining; the two models train at the same time, each
+    /// within it.
     pub max_seconds: f64,
     /// Raised when the daemon stops: training ends before its next minibatch.
     pub cancel: Arc<AtomicBool>,
@@ -97,16 +98,39 @@ pub fn retrain(
         yield_to: limits.yield_to.clone(),
     };
     let mut next = current.clone();
-    let dynamics = next.dynamics.fit(
-        data,
-        plan(dynamics_epochs, limits.deadline(started, 0.5)),
-        &mut rng,
-    );
-    let energy = next.regularizer.fit(
-        data,
-        plan(energy_epochs, limits.deadline(started, 1.0)),
-        &mut rng,
-    );
+    // The two models train at the same time, each on its own thread with its own random
+    // stream: a core each, every product whole on the thread that needs it while both train
+    // (`nn::split`), instead of splitting each product across the cores and meeting after
+    // every one (which left the helper waiting through the element-wise work between
+    // products); the one that trains longer splits its products again once the other is done.
+    // Plain threads, not rayon's: training yields to plans between minibatches and the plans
+    // need rayon's threads.
+    let mut energy_rng = StdRng::seed_from_u64(rng.random());
+    let deadline = limits.deadline(started, 1.0);
+    let Models {
+        dynamics: next_dynamics,
+        regularizer: next_regularizer,
+        ..
+    } = &mut next;
+    let dynamics_busy = Arc::new(AtomicBool::new(true));
+    let energy_busy = Arc::new(AtomicBool::new(true));
+    let (dynamics, energy) = std::thread::scope(|scope| {
+        let energy = scope.spawn(|| {
+            let report = split::beside_partner(&dynamics_busy, || {
+                next_regularizer.fit(data, plan(energy_epochs, deadline), &mut energy_rng)
+            });
+            energy_busy.store(false, Ordering::Release);
+            report
+        });
+        let dynamics = split::beside_partner(&energy_busy, || {
+            next_dynamics.fit(data, plan(dynamics_epochs, deadline), &mut rng)
+        });
+        dynamics_busy.store(false, Ordering::Release);
+        let energy = energy
+            .join()
+            .unwrap_or_else(|e| std::panic::resume_unwind(e));
+        (dynamics, energy)
+    });
     if [dynamics.stopped, energy.stopped].contains(&Some(Stop::Cancelled)) {
         return Err(TrainError::Cancelled);
     }
