@@ -216,6 +216,36 @@ mod tests {
         assert_eq!(report.cut_short, None);
     }
 
+    /// The two models train at the same time, so each draws from its own random stream: how
+    /// long the dynamics trains cannot change the regulariser (trained one after the other from
+    /// one stream, the dynamics' shuffles moved the regulariser's noise and minibatches).
+    #[test]
+    fn each_model_trains_on_its_own_random_stream() {
+        let preset = small_preset();
+        let mut longer = preset.clone();
+        longer.dynamics.epochs = 7;
+        let train = |p: &Preset| {
+            retrain(
+                &untrained(p),
+                &data(64, 1.0),
+                p,
+                1,
+                0,
+                &TrainLimits::unbounded(),
+            )
+            .unwrap()
+            .0
+        };
+        let (a, b) = (train(&preset), train(&longer));
+        assert_ne!(
+            a.dynamics.member(0).mlp().params(),
+            b.dynamics.member(0).mlp().params(),
+            "the dynamics trained for 3 and 7 epochs"
+        );
+        assert!(a.regularizer.parts().is_some());
+        assert_eq!(a.regularizer.parts(), b.regularizer.parts());
+    }
+
     /// Data at f32's limits (what a planner refuses at validation, here put straight into a
     /// buffer) makes the targets overflow: the retraining is refused, naming what diverged,
     /// and no model comes out to be served or checkpointed.
