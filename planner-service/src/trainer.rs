@@ -29,6 +29,9 @@ pub struct TrainReport {
     pub energy_steps: usize,
     pub dynamics_loss: f32,
     pub energy_loss: f32,
+    /// The reward model's steps and last-epoch loss (`None`: the task's reward is not learned).
+    pub reward_steps: usize,
+    pub reward_loss: Option<f32>,
     /// Why a model's training ended before its epochs (the step cap or the time budget).
     pub cut_short: Option<Stop>,
     pub seconds: f32,
@@ -37,8 +40,10 @@ pub struct TrainReport {
 /// The daemon's side of a retraining's budget.
 #[derive(Clone, Debug)]
 pub struct TrainLimits {
-    /// Wall-clock budget of one retraining; the two models train at the same time, each
-    /// within it.
+    /// Wall-clock budget of one retraining. The dynamics (then, for a learned reward, the
+    /// reward model) and the regulariser train at the same time on two threads: the
+    /// regulariser may use all of it; the dynamics all of it, or three quarters when a reward
+    /// model follows it on its thread.
     pub max_seconds: f64,
     /// Raised when the daemon stops: training ends before its next minibatch.
     pub cancel: Arc<AtomicBool>,
@@ -98,23 +103,28 @@ pub fn retrain(
         yield_to: limits.yield_to.clone(),
     };
     let mut next = current.clone();
-    // The two models train at the same time, each on its own thread with its own random
-    // stream: a core each, every product whole on the thread that needs it while both train
-    // (`nn::split`), instead of splitting each product across the cores and meeting after
-    // every one (which left the helper waiting through the element-wise work between
-    // products); the one that trains longer splits its products again once the other is done.
-    // Plain threads, not rayon's: training yields to plans between minibatches and the plans
-    // need rayon's threads.
+    // The dynamics and the regulariser train at the same time, each on its own thread with
+    // its own random stream: a core each, every product whole on the thread that needs it
+    // while both train (`nn::split`), instead of splitting each product across the cores and
+    // meeting after every one (which left the helper waiting through the element-wise work
+    // between products); the one that trains longer splits its products again once the other
+    // is done. A learned reward's model trains after the dynamics on its thread, from its
+    // stream (it is the other half of the model of the system that imagination rolls out,
+    // with the dynamics' epochs). Plain threads, not rayon's: training yields to plans between
+    // minibatches and the plans need rayon's threads.
     let mut energy_rng = StdRng::seed_from_u64(rng.random());
-    let deadline = limits.deadline(started, 1.0);
     let Models {
         dynamics: next_dynamics,
+        reward: next_reward,
         regularizer: next_regularizer,
         ..
     } = &mut next;
+    let dynamics_deadline =
+        limits.deadline(started, if next_reward.is_some() { 0.75 } else { 1.0 });
+    let deadline = limits.deadline(started, 1.0);
     let dynamics_busy = Arc::new(AtomicBool::new(true));
     let energy_busy = Arc::new(AtomicBool::new(true));
-    let (dynamics, energy) = std::thread::scope(|scope| {
+    let (dynamics, reward, energy) = std::thread::scope(|scope| {
         let energy = scope.spawn(|| {
             let report = split::beside_partner(&dynamics_busy, || {
                 next_regularizer.fit(data, plan(energy_epochs, deadline), &mut energy_rng)
@@ -122,21 +132,37 @@ pub fn retrain(
             energy_busy.store(false, Ordering::Release);
             report
         });
-        let dynamics = split::beside_partner(&energy_busy, || {
-            next_dynamics.fit(data, plan(dynamics_epochs, deadline), &mut rng)
+        let (dynamics, reward) = split::beside_partner(&energy_busy, || {
+            let dynamics =
+                next_dynamics.fit(data, plan(dynamics_epochs, dynamics_deadline), &mut rng);
+            let reward = next_reward
+                .as_mut()
+                .map(|model| model.fit(data, plan(dynamics_epochs, deadline), &mut rng));
+            (dynamics, reward)
         });
         dynamics_busy.store(false, Ordering::Release);
         let energy = energy
             .join()
             .unwrap_or_else(|e| std::panic::resume_unwind(e));
-        (dynamics, energy)
+        (dynamics, reward, energy)
     });
-    if [dynamics.stopped, energy.stopped].contains(&Some(Stop::Cancelled)) {
+    let reports = [
+        Some(("dynamics loss", &dynamics)),
+        reward.as_ref().map(|r| ("reward model loss", r)),
+        Some(("regulariser loss", &energy)),
+    ];
+    let reports = reports.iter().flatten();
+    if reports
+        .clone()
+        .any(|(_, r)| r.stopped == Some(Stop::Cancelled))
+    {
         return Err(TrainError::Cancelled);
     }
-    for (what, report) in [("dynamics loss", &dynamics), ("regulariser loss", &energy)] {
+    for (what, report) in reports {
         if report.steps > 0 && !report.loss.is_finite() {
-            return Err(TrainError::NonFinite { what: what.into() });
+            return Err(TrainError::NonFinite {
+                what: (*what).into(),
+            });
         }
     }
     if let Some(what) = next.first_non_finite() {
@@ -154,7 +180,12 @@ pub fn retrain(
         energy_steps: energy.steps,
         dynamics_loss: dynamics.loss,
         energy_loss: energy.loss,
-        cut_short: dynamics.stopped.or(energy.stopped),
+        reward_steps: reward.as_ref().map_or(0, |r| r.steps),
+        reward_loss: reward.as_ref().map(|r| r.loss),
+        cut_short: dynamics
+            .stopped
+            .or(reward.as_ref().and_then(|r| r.stopped))
+            .or(energy.stopped),
         seconds: started.elapsed().as_secs_f32(),
     };
     Ok((next, report))
@@ -189,7 +220,7 @@ mod tests {
             let x = i as f32 / n as f32;
             let obs = [x * scale, -x * scale, 0.5 * scale, (1.0 - x) * scale];
             let next = [-x * scale, x * scale, -0.5 * scale, x * scale];
-            data.push(&obs, &[x], &next);
+            data.push(&obs, &[x], 0.0, &next);
         }
         data
     }
@@ -237,6 +268,57 @@ mod tests {
         assert_eq!((a.dynamics.members(), b.dynamics.members()), (1, 3));
         assert!(a.regularizer.parts().is_some());
         assert_eq!(a.regularizer.parts(), b.regularizer.parts());
+    }
+
+    /// A task whose reward is learned retrains its reward model with the dynamics (the same
+    /// epochs), on the transitions' rewards; the models are trained only once it has.
+    #[test]
+    fn a_learned_reward_trains_its_model_with_the_dynamics() {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "trainer-learned-cartpole".into();
+        spec.reward = proto::task::RewardKind::Learned;
+        let task = proto::Task::intern(spec, &proto::task::SpecBounds::default()).unwrap();
+        let mut preset = Preset::new(task, Some("cem")).unwrap();
+        preset.dynamics.hidden_size = 8;
+        preset.dynamics.epochs = 3;
+        preset.reward.hidden_size = 8;
+        let fresh = Models::untrained(task, &preset, 7);
+        assert!(!fresh.reward.as_ref().unwrap().is_trained());
+        let mut rewarded = Transitions::new(4, 1);
+        let plain = data(64, 1.0);
+        for i in 0..plain.len() {
+            let (s, a, s1) = plain.row(i);
+            rewarded.push(s, a, s1[0] - a[0], s1);
+        }
+        let (models, report) =
+            retrain(&fresh, &rewarded, &preset, 1, 0, &TrainLimits::unbounded()).unwrap();
+        assert!(models.is_trained() && models.reward.as_ref().unwrap().is_trained());
+        // Three epochs of 64 transitions in batches of the dynamics' size.
+        let batches = 64usize.div_ceil(preset.dynamics.batch_size);
+        assert_eq!(report.reward_steps, 3 * batches);
+        assert!(report.reward_loss.is_some_and(f32::is_finite), "{report:?}");
+        // A task with a formula has no reward model and reports none.
+        let small = small_preset();
+        let (plain_models, plain_report) = retrain(
+            &untrained(&small),
+            &plain,
+            &small,
+            1,
+            0,
+            &TrainLimits::unbounded(),
+        )
+        .unwrap();
+        assert!(plain_models.reward.is_none());
+        assert_eq!(
+            (plain_report.reward_steps, plain_report.reward_loss),
+            (0, None)
+        );
+        // A retraining whose budget ran out before the reward model took a step leaves it
+        // untrained: then the models are not trained, and the run keeps exploring instead of
+        // planning with a reward model of random weights.
+        let mut cut = models.clone();
+        cut.reward = fresh.reward.clone();
+        assert!(cut.version > 0 && !cut.is_trained());
     }
 
     /// Data at f32's limits (what a planner refuses at validation, here put straight into a
