@@ -36,6 +36,27 @@ pub struct Binaries {
     pub bridge: PathBuf,
 }
 
+/// Whether `name` is one of the variables cargo sets for the crate being run (this test
+/// crate's manifest directory, package name and version, ...). The nested `cargo build` must
+/// not inherit them: build scripts (ring's, under rustls and zenoh's TLS link) rerun when such
+/// a variable differs from the last build, so an inherited `CARGO_PKG_NAME=ebmpc-e2e` made
+/// every e2e run recompile ring, rustls and zenoh's links, and the next plain `cargo build`
+/// recompile them back.
+fn set_by_cargo_for_this_crate(name: &str) -> bool {
+    const EXACT: &[&str] = &[
+        "CARGO_MANIFEST_DIR",
+        "CARGO_MANIFEST_PATH",
+        "CARGO_MANIFEST_LINKS",
+        "CARGO_CRATE_NAME",
+        "CARGO_BIN_NAME",
+        "CARGO_PRIMARY_PACKAGE",
+        "CARGO_TARGET_TMPDIR",
+        "CARGO_RUSTC_CURRENT_DIR",
+        "OUT_DIR",
+    ];
+    EXACT.contains(&name) || name.starts_with("CARGO_PKG_") || name.starts_with("CARGO_BIN_EXE_")
+}
+
 /// Builds `planner-service` and `sim-bridge` once per test process, in the profile the caller
 /// was built in (tests: dev; `cargo bench`: release), and returns their paths.
 pub fn binaries() -> &'static Binaries {
@@ -53,11 +74,14 @@ pub fn binaries() -> &'static Binaries {
             args.push("--release");
         }
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let status = Command::new(cargo)
-            .current_dir(workspace())
-            .args(&args)
-            .status()
-            .expect("cargo runs");
+        let mut build = Command::new(cargo);
+        build.current_dir(workspace()).args(&args);
+        for (name, _) in std::env::vars_os() {
+            if name.to_str().is_some_and(set_by_cargo_for_this_crate) {
+                build.env_remove(name);
+            }
+        }
+        let status = build.status().expect("cargo runs");
         assert!(status.success(), "building the binaries failed");
         let b = Binaries {
             planner: dir.join("planner-service"),
