@@ -14,11 +14,11 @@
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-REQUIREMENT="$ROOT/python[test]"
+REQUIREMENT="$ROOT/python[test,gym]"
 VENV="${1:-$ROOT/.venv}"
 PY="$VENV/bin/python"
 PYTHON="${PYTHON:-python3}"
-CHECK='import importlib.metadata as m, zenoh, ebmpc, pytest, jsonschema, mypy; v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
+CHECK='import importlib.metadata as m, zenoh, ebmpc, pytest, jsonschema, mypy, gymnasium, mujoco, imageio; v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
 
 if [[ -x "$PY" ]] && "$PY" -c "$CHECK" 2>/dev/null; then
     echo "ebmpc and its test dependencies already installed in $VENV"
