@@ -231,7 +231,8 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--reward-expression", default=None, metavar="FORMULA",
-        help="reward formula over s, a, s_next (default: a learned reward)",
+        help="reward formula over s, a, s_next (default: a learned reward); one that starts "
+        "with '-' goes after '=': --reward-expression=-s[0]",
     )
     p.add_argument(
         "--termination-expression", default=None, metavar="FORMULA",

@@ -113,7 +113,7 @@ def test_a_refused_formula_exits_with_the_planners_code(
 ) -> None:
     status = driver.main([
         "--env", "Pendulum-v1", "--run", "bad-formula", "--episodes", "1",
-        "--connect", daemon.endpoint, "--reward-expression", "-s_next[7]",
+        "--connect", daemon.endpoint, "--reward-expression=-s_next[7]",
     ])
     err = capsys.readouterr().err
     assert status == driver.EXIT_STATUS["refused"], err
