@@ -112,14 +112,21 @@ fn inverted_pendulum_balances_its_whole_episode_within_five_episodes() {
     for (i, e) in episodes.iter().enumerate() {
         assert_eq!(e.episode, i as u32, "{log}");
         // A terminated episode ends where the pole fell; only the limit ends a full one.
-        let expected_end = if e.steps == 1000 { "time_limit" } else { "terminated" };
+        let expected_end = if e.steps == 1000 {
+            "time_limit"
+        } else {
+            "terminated"
+        };
         assert_eq!(e.end, expected_end, "{log}");
         // Gymnasium pays 1 for every step but the one that fell.
         let alive = e.steps - u32::from(e.end == "terminated");
         assert_eq!(e.ret, f64::from(alive), "1 per step alive: {log}");
     }
     let last = episodes.last().unwrap();
-    assert_eq!(last.steps, 1000, "the last episode balances to the limit: {log}");
+    assert_eq!(
+        last.steps, 1000,
+        "the last episode balances to the limit: {log}"
+    );
     assert_eq!(last.planned, 1000, "every action of it planned: {log}");
     assert!(last.models >= 1, "planned with trained models: {log}");
 }
@@ -158,7 +165,10 @@ fn pendulum_learns_its_reward_and_swings_up_within_ten_episodes() {
     );
     assert_eq!(episodes.len(), 10, "{log}");
     for (i, e) in episodes.iter().enumerate() {
-        assert_eq!((e.episode, e.steps, e.end.as_str()), (i as u32, 200, "time_limit"));
+        assert_eq!(
+            (e.episode, e.steps, e.end.as_str()),
+            (i as u32, 200, "time_limit")
+        );
         let planned = if i == 0 { 0 } else { 200 };
         assert_eq!(e.planned, planned, "one random episode, then plans: {log}");
     }
