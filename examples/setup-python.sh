@@ -2,9 +2,10 @@
 # Installs the `ebmpc` Python package (python/) with its test dependencies into a project-local
 # virtual environment: `eclipse-zenoh` of the planner's zenoh minor version (1.10), pytest,
 # jsonschema and mypy, and the Gymnasium driver's `gymnasium[mujoco]` (the package's `gym`
-# extra: Gymnasium, the PyPI `mujoco` wheel, imageio) (`make test` runs this: the package's
-# tests and the example's and the driver's end-to-end tests use that interpreter; the tests import the package from python/ itself, so an installed
-# copy that is older than the working tree does no harm).
+# extra: Gymnasium, the PyPI `mujoco` wheel, imageio). `make test` runs this: the package's
+# tests and the example's and the driver's end-to-end tests use that interpreter; the tests
+# import the package from python/ itself, so an installed copy that is older than the working
+# tree does no harm.
 #
 # Works without Debian's python3-venv too: if `python3 -m venv` cannot bootstrap pip, the venv
 # is made without pip and filled by the system's pip; if there is no venv module at all, the
