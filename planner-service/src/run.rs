@@ -676,6 +676,8 @@ impl Run {
             cut_short = ?report.cut_short,
             dynamics_loss = report.dynamics_loss,
             energy_loss = report.energy_loss,
+            reward_steps = report.reward_steps,
+            reward_loss = ?report.reward_loss,
             seconds = report.seconds,
             "models updated"
         );
@@ -685,6 +687,7 @@ impl Run {
             models_version: report.models_version,
             dynamics_loss: report.dynamics_loss,
             energy_loss: report.energy_loss,
+            reward_loss: report.reward_loss,
             seconds: report.seconds,
         });
     }

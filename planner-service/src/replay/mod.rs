@@ -251,9 +251,10 @@ impl ReplayBuffer {
                 act,
                 origin,
                 next_obs,
+                reward,
                 ..
             } => {
-                self.transitions.push(obs, act, next_obs);
+                self.transitions.push(obs, act, *reward, next_obs);
                 self.origins.push(*origin);
                 let index = match self.agents.iter().position(|a| a == agent) {
                     Some(index) => index,
