@@ -27,7 +27,8 @@ demo: toolchain mujoco
 	TASK=$(TASK) EPISODES=$(EPISODES) SEED=$(SEED) METHOD=$(METHOD) bash deploy/demo.sh
 
 # The ebmpc Python package (python/) with its test dependencies (eclipse-zenoh, pytest, jsonschema,
-# mypy): its tests and the Python example's run through `cargo test` with this interpreter.
+# mypy) and its Gymnasium driver's (gymnasium[mujoco]: Gymnasium and the PyPI mujoco wheel): its
+# tests, the Python example's and the Gymnasium driver's run through `cargo test` with it.
 VENV := .venv
 
 python-env:

@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Installs the `ebmpc` Python package (python/) with its test dependencies into a project-local
 # virtual environment: `eclipse-zenoh` of the planner's zenoh minor version (1.10), pytest,
-# jsonschema and mypy (`make test` runs this: the package's tests and the example's end-to-end
-# test use that interpreter; the tests import the package from python/ itself, so an installed
-# copy that is older than the working tree does no harm).
+# jsonschema and mypy, and the Gymnasium driver's `gymnasium[mujoco]` (the package's `gym`
+# extra: Gymnasium, the PyPI `mujoco` wheel, imageio). `make test` runs this: the package's
+# tests and the example's and the driver's end-to-end tests use that interpreter; the tests
+# import the package from python/ itself, so an installed copy that is older than the working
+# tree does no harm.
 #
 # Works without Debian's python3-venv too: if `python3 -m venv` cannot bootstrap pip, the venv
 # is made without pip and filled by the system's pip; if there is no venv module at all, the
@@ -14,11 +16,11 @@
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-REQUIREMENT="$ROOT/python[test]"
+REQUIREMENT="$ROOT/python[test,gym]"
 VENV="${1:-$ROOT/.venv}"
 PY="$VENV/bin/python"
 PYTHON="${PYTHON:-python3}"
-CHECK='import importlib.metadata as m, zenoh, ebmpc, pytest, jsonschema, mypy; v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
+CHECK='import importlib.metadata as m, zenoh, ebmpc, pytest, jsonschema, mypy, gymnasium, mujoco, imageio; v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
 
 if [[ -x "$PY" ]] && "$PY" -c "$CHECK" 2>/dev/null; then
     echo "ebmpc and its test dependencies already installed in $VENV"

@@ -6,7 +6,7 @@ the attach message's task spec (``proto/src/task/spec.rs`` of protocol 4): dimen
 bounds, the observation bounds when they are finite, the episode length, the control period,
 and the reward: ``learned`` (a model trained on the rewards the agent sends) unless a formula
 is given. It reads the spaces by duck typing (``shape``, ``low``, ``high``), so it needs neither
-Gymnasium nor NumPy itself. No driver uses it yet: the Gymnasium driver is still to come.
+Gymnasium nor NumPy itself. The Gymnasium driver (:mod:`ebmpc.gym`) attaches with it.
 """
 
 from __future__ import annotations
@@ -57,12 +57,15 @@ def task_spec_from_spaces(
     reward: Optional[str] = None,
     termination: Optional[str] = None,
     angles: Sequence[int] = (),
+    base_preset: Optional[str] = None,
 ) -> Dict[str, Any]:
     """The task spec of a system with these spaces.
 
     ``reward``/``termination``: formulas over ``s``, ``a``, ``s_next`` (``None``: a learned
     reward, and no termination rule: the agent still ends episodes its environment ends).
     ``angles``: observation dimensions that are angles (the model sees their sine and cosine).
+    ``base_preset``: the catalog task whose paper sizes a run starts from (``None``: the
+    planner's default, ``cartpole``, the smallest).
     Raises :class:`ValueError` for a space that is not a vector ``Box``, unbounded actions, or
     no episode length.
     """
@@ -90,14 +93,22 @@ def task_spec_from_spaces(
     }
     if all(math.isfinite(v) for v in obs_low + obs_high):
         spec["observation_bounds"] = {"low": obs_low, "high": obs_high}
+    if base_preset is not None:
+        spec["base_preset"] = base_preset
     return spec
 
 
-def task_spec_from_env(env: Any, reward: Optional[str] = None,
-                       termination: Optional[str] = None) -> Dict[str, Any]:
+def task_spec_from_env(
+    env: Any,
+    reward: Optional[str] = None,
+    termination: Optional[str] = None,
+    angles: Sequence[int] = (),
+    base_preset: Optional[str] = None,
+) -> Dict[str, Any]:
     """The task spec of a Gymnasium environment: its id as the name, its spaces, its
     ``spec.max_episode_steps``, and its control period (``dt`` of the unwrapped environment,
-    MuJoCo's, or else ``1 / metadata["render_fps"]``)."""
+    MuJoCo's, or else ``1 / metadata["render_fps"]``); the other arguments are
+    :func:`task_spec_from_spaces`'."""
     env_spec = getattr(env, "spec", None)
     env_id = getattr(env_spec, "id", None) or type(getattr(env, "unwrapped", env)).__name__
     dt = getattr(getattr(env, "unwrapped", env), "dt", None)
@@ -114,4 +125,6 @@ def task_spec_from_env(env: Any, reward: Optional[str] = None,
         float(dt),
         reward,
         termination,
+        angles,
+        base_preset,
     )

@@ -60,6 +60,9 @@ def test_pendulum_spec() -> None:
     }
     given = task_spec_from_env(Pendulum(), reward="-(s_next[2] ** 2)")
     assert given["reward"] == {"expression": "-(s_next[2] ** 2)"}
+    based = task_spec_from_env(Pendulum(), angles=[2], base_preset="reacher3d")
+    assert based["base_preset"] == "reacher3d"
+    assert based["model"] == {"declared": {"angles": [2], "absolute": []}}
 
 
 def test_unbounded_observations_have_no_bounds_and_mujoco_dt_wins() -> None:

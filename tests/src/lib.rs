@@ -3,7 +3,8 @@
 //! guard that kills it when dropped (also when a test fails), and gives each test its own
 //! temporary directory. Its modules speak for the other parties: [`config`] writes a test
 //! planner's configuration, [`bridge`] runs sim-bridge and reads its episodes, [`client`] is a
-//! scripted agent, and [`python`] runs the Python example controller.
+//! scripted agent, and [`python`] runs the Python package's tests, its example controller and its
+//! Gymnasium driver.
 
 pub mod bridge;
 pub mod client;

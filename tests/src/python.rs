@@ -1,5 +1,6 @@
-//! Python as the tests run it: the `ebmpc` package's own tests (`python/tests`, pytest) and the
-//! example controller (`examples/python_controller.py`, a user of the package).
+//! Python as the tests run it: the `ebmpc` package's own tests (`python/tests`, pytest), the
+//! example controller (`examples/python_controller.py`, a user of the package) and the
+//! package's Gymnasium driver (`python -m ebmpc.gym`).
 //!
 //! The interpreter is `$EBMPC_PYTHON`, or `.venv/bin/python` in the workspace, where `make test`
 //! installs the package's dependencies (`examples/setup-python.sh`). The package itself is
@@ -49,6 +50,24 @@ pub fn run_controller(
         .env("PYTHONPATH", workspace().join("python"));
     let log = dir.join(format!("python-{}.log", free_port()));
     let mut process = Guarded::spawn("python_controller.py", cmd, log)?;
+    let status = process.wait(timeout)?;
+    Ok((status, process.log()))
+}
+
+/// Runs the Gymnasium driver (`python -m ebmpc.gym`) with `args` to completion (killed after
+/// `timeout`); its exit status and everything it printed. The environments come from the
+/// `gymnasium[mujoco]` that `make test` installs with the package's `gym` extra.
+pub fn run_gym_driver(
+    dir: &Path,
+    args: &[&str],
+    timeout: Duration,
+) -> Result<(ExitStatus, String)> {
+    let mut cmd = Command::new(interpreter()?);
+    cmd.args(["-m", "ebmpc.gym"])
+        .args(args)
+        .env("PYTHONPATH", workspace().join("python"));
+    let log = dir.join(format!("gym-{}.log", free_port()));
+    let mut process = Guarded::spawn("python -m ebmpc.gym", cmd, log)?;
     let status = process.wait(timeout)?;
     Ok((status, process.log()))
 }

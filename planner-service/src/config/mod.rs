@@ -270,6 +270,26 @@ mod tests {
         assert!(err.contains("task short-cartpole: obs_dim = 4"), "{err}");
     }
 
+    /// The README's own-system example (`examples/tasks/balance-bot.toml`, a made-up robot)
+    /// is a valid spec file: a tasks folder with it gives its task, formulas and all.
+    #[test]
+    fn the_example_robot_spec_joins_the_catalog() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/tasks");
+        let config = ServiceConfig {
+            tasks_dir: Some(dir),
+            ..ServiceConfig::default()
+        };
+        config.validate().unwrap();
+        let catalog = config.catalog().unwrap();
+        let task = catalog.get("balance-bot").unwrap();
+        assert_eq!((task.obs_dim, task.act_dim, task.episode_len), (6, 2, 1000));
+        // The heading is seen as its sine and cosine: one feature more than the observation.
+        assert_eq!(task.state_feature_dim, 7);
+        let (upright, fallen) = ([0.0; 6], [0.9, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        assert_eq!(task.reward(&upright, &[0.0, 0.0], &upright), 1.0);
+        assert!(task.is_terminal(&fallen) && !task.is_terminal(&upright));
+    }
+
     #[test]
     fn invalid_limits_are_refused_at_load() {
         let config: ServiceConfig = toml::from_str("[limits]\nmax_horizon = 0\n").unwrap();

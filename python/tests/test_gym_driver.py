@@ -1,0 +1,120 @@
+"""The Gymnasium driver (``python -m ebmpc.gym``): its episode loop against a scripted agent, its
+command line, and its exit status on a planner's refusal (against the real daemon).
+
+Learning real environments is the end-to-end tests' (``tests/tests/gym_driver_e2e.rs``).
+"""
+
+from __future__ import annotations
+
+from typing import Any, List, Optional, Tuple
+
+import numpy as np
+import pytest
+
+from conftest import Daemon
+from ebmpc import gym as driver
+
+
+class Box:
+    def __init__(self, low: List[float], high: List[float]) -> None:
+        self.low, self.high = np.array(low, np.float32), np.array(high, np.float32)
+        self.shape, self.dtype = self.low.shape, np.float32
+
+
+class Walk:
+    """A 2-D walk that ends (``terminated``) once ``x`` passes 1, or is cut at ``limit`` steps
+    (``truncated``): what Gymnasium's ``TimeLimit`` wrapper reports."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.observation_space = Box([-5.0, -5.0], [5.0, 5.0])
+        self.action_space = Box([-1.0], [1.0])
+        self.actions: List[Any] = []
+
+    def reset(self, seed: Optional[int] = None) -> Tuple[Any, dict[str, Any]]:
+        self.x, self.t = 0.0, 0
+        return np.array([self.x, 0.0]), {}
+
+    def step(self, action: Any) -> Tuple[Any, float, bool, bool, dict[str, Any]]:
+        self.actions.append(action)
+        self.x += float(action[0])
+        self.t += 1
+        return np.array([self.x, float(self.t)]), 0.5, self.x > 1.0, self.t >= self.limit, {}
+
+
+class ScriptedAgent:
+    """Answers every observation with ``step``; records what it was sent."""
+
+    def __init__(self, step: float) -> None:
+        self.step = step
+        self.sent: List[Tuple[List[float], Optional[float]]] = []
+        self.ended: List[Tuple[List[float], float, str]] = []
+        self.last_stats = {"source": "planned"}
+        self.models_version = 3
+
+    def act(self, obs: List[float], reward: Optional[float] = None) -> List[float]:
+        self.sent.append((obs, reward))
+        return [self.step]
+
+    def end(self, obs: List[float], reward: float, kind: str) -> None:
+        self.ended.append((obs, reward, kind))
+
+
+def test_a_terminated_episode_ends_as_terminated_with_every_reward_sent() -> None:
+    env, agent = Walk(limit=100), ScriptedAgent(0.4)
+    result = driver.run_episode(env, agent, 7, seed=0)  # type: ignore[arg-type]
+    # x: 0.4, 0.8, 1.2 -> the third step passes 1.
+    assert (result.episode, result.steps, result.end) == (7, 3, "terminated")
+    assert result.episode_return == pytest.approx(1.5) and result.planned == 3
+    assert [reward for _, reward in agent.sent] == [None, 0.5, 0.5]
+    assert agent.ended == [([pytest.approx(1.2), 3.0], 0.5, "terminated")]
+    assert all(a.dtype == np.float32 and a.shape == (1,) for a in env.actions)
+
+
+def test_a_truncated_episode_ends_as_a_time_limit() -> None:
+    env, agent = Walk(limit=4), ScriptedAgent(0.1)
+    result = driver.run_episode(env, agent, 0, seed=None)  # type: ignore[arg-type]
+    assert (result.steps, result.end, result.models_version) == (4, "time_limit", 3)
+    assert agent.ended[0][2] == "time_limit" and len(agent.sent) == 4
+
+
+def test_a_non_finite_observation_stops_the_driver_before_it_is_sent() -> None:
+    env, agent = Walk(limit=10), ScriptedAgent(float("nan"))
+    with pytest.raises(driver.UndrivableEnvironment, match="non-finite observation"):
+        driver.run_episode(env, agent, 0, seed=None)  # type: ignore[arg-type]
+    assert len(agent.sent) == 1 and not agent.ended
+
+
+def test_overrides_are_json_or_strings() -> None:
+    assert driver.parse_override("population=100") == ("population", 100)
+    assert driver.parse_override("sample_dynamics=true") == ("sample_dynamics", True)
+    assert driver.parse_override("optimizer=icem") == ("optimizer", "icem")
+    assert driver.parse_override('epoch_schedule={"constant": null}') == (
+        "epoch_schedule", {"constant": None})
+    with pytest.raises(Exception, match="key=value"):
+        driver.parse_override("population")
+
+
+def test_every_planner_code_has_its_own_exit_status() -> None:
+    statuses = list(driver.EXIT_STATUS.values())
+    assert len(set(statuses)) == len(statuses) == 13
+    reserved = {0, 1, 2, driver.EXIT_ENVIRONMENT, driver.EXIT_CLIENT, driver.EXIT_UNKNOWN_CODE}
+    assert not reserved & set(statuses)
+
+
+def test_an_unknown_environment_exits_with_its_status(capsys: pytest.CaptureFixture[str]) -> None:
+    status = driver.main(["--env", "NoSuchEnv-v0", "--run", "r", "--connect", "tcp/127.0.0.1:9"])
+    assert status == driver.EXIT_ENVIRONMENT
+    assert "NoSuchEnv-v0" in capsys.readouterr().err
+
+
+def test_a_refused_formula_exits_with_the_planners_code(
+    daemon: Daemon, capsys: pytest.CaptureFixture[str]
+) -> None:
+    status = driver.main([
+        "--env", "Pendulum-v1", "--run", "bad-formula", "--episodes", "1",
+        "--connect", daemon.endpoint, "--reward-expression=-s_next[7]",
+    ])
+    err = capsys.readouterr().err
+    assert status == driver.EXIT_STATUS["refused"], err
+    assert "refused" in err and "s_next[7]" in err
