@@ -612,6 +612,11 @@ impl ReplayLog {
     pub fn path(&self) -> &Path {
         &self.path
     }
+
+    /// Bytes of the log file up to its last whole record: its size on disk (once synced).
+    pub fn len_bytes(&self) -> u64 {
+        self.end
+    }
 }
 
 fn open_rw(path: &Path) -> std::io::Result<File> {

@@ -2,10 +2,12 @@
 //! into it as things happen, the status report reads the same counters, and `[metrics]
 //! listen` serves the registry as Prometheus text on `GET /metrics`.
 //!
-//! Figures that live elsewhere (models version, replay size, episodes, agents) are copied into
-//! gauges from the status report at each scrape, so there is one source for each figure.
+//! Figures that live elsewhere (models version, replay size, episodes, agents, queue depths,
+//! the last retraining's losses) are copied into gauges from the status report at each scrape,
+//! and the status report reads the count and sum of each run's fsync and retraining histograms
+//! ([`RunHistograms`]), so there is one source for each figure.
 
-use super::status::PlannerStatus;
+use super::status::{PlannerStatus, Timings};
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -13,7 +15,7 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 use std::collections::BTreeSet;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
@@ -21,6 +23,19 @@ use tokio::net::TcpListener;
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct RunLabel {
     run: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct AgentLabel {
+    run: String,
+    agent: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ModelLabel {
+    run: String,
+    /// `dynamics` or `energy` (the regulariser: DEEN or DAE).
+    model: &'static str,
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -38,7 +53,69 @@ fn iterations_histogram() -> Histogram {
     Histogram::new([0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])
 }
 
+/// Replay log fsync buckets: 50 µs to about 1.6 s, doubling.
+fn fsync_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(50e-6, 2.0, 16))
+}
+
+/// Retraining buckets: 10 ms to about 20 min, doubling.
+fn retraining_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(0.01, 2.0, 18))
+}
+
 type Histograms = Family<RunLabel, Histogram, fn() -> Histogram>;
+type FloatGauge = Gauge<f64, std::sync::atomic::AtomicU64>;
+
+/// A timed operation: each duration goes into a Prometheus histogram and into the count and
+/// total the status report shows (`prometheus-client` does not read a histogram back), from
+/// one call.
+#[derive(Clone, Debug)]
+pub struct Timed {
+    histogram: Histogram,
+    totals: Arc<Mutex<Timings>>,
+}
+
+impl Timed {
+    fn new(histogram: Histogram) -> Self {
+        Self {
+            histogram,
+            totals: Arc::default(),
+        }
+    }
+
+    pub fn observe(&self, seconds: f64) {
+        self.histogram.observe(seconds);
+        let mut totals = self.totals.lock().unwrap_or_else(PoisonError::into_inner);
+        totals.count += 1;
+        totals.seconds_total += seconds;
+    }
+
+    /// How many durations were observed, and their sum: the histogram's `_count` and `_sum`.
+    pub fn timings(&self) -> Timings {
+        *self.totals.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+/// The durations a run times itself, since it is the run that syncs its replay log and
+/// retrains: the daemon's registry serves them (see [`Metrics::for_run`]) and the status
+/// report shows their count and total. The default ones are served nowhere (experiments,
+/// tests).
+#[derive(Clone, Debug)]
+pub struct RunHistograms {
+    /// Seconds per fsync of the run's replay log.
+    pub fsync_seconds: Timed,
+    /// Seconds per retraining that produced models.
+    pub retraining_seconds: Timed,
+}
+
+impl Default for RunHistograms {
+    fn default() -> Self {
+        Self {
+            fsync_seconds: Timed::new(fsync_histogram()),
+            retraining_seconds: Timed::new(retraining_histogram()),
+        }
+    }
+}
 
 /// Every metric of the daemon.
 pub struct Metrics {
@@ -55,6 +132,14 @@ pub struct Metrics {
     replay_transitions: Family<RunLabel, Gauge>,
     episodes: Family<RunLabel, Gauge>,
     agents: Family<RunLabel, Gauge>,
+    queue_depth: Family<AgentLabel, Gauge>,
+    replay_bytes: Family<RunLabel, Gauge>,
+    fsync_seconds: Histograms,
+    retraining_seconds: Histograms,
+    /// Each run's [`RunHistograms`], so a run opened again (after a fleet hand-over) keeps
+    /// counting where it left off, like its histograms do.
+    run_histograms: Mutex<std::collections::HashMap<String, RunHistograms>>,
+    training_loss: Family<ModelLabel, FloatGauge>,
 }
 
 impl Default for Metrics {
@@ -71,6 +156,12 @@ impl Default for Metrics {
         let replay_transitions = Family::default();
         let episodes = Family::default();
         let agents = Family::default();
+        let queue_depth = Family::default();
+        let replay_bytes = Family::default();
+        let fsync_seconds = Histograms::new_with_constructor(fsync_histogram as fn() -> Histogram);
+        let retraining_seconds =
+            Histograms::new_with_constructor(retraining_histogram as fn() -> Histogram);
+        let training_loss = Family::default();
         registry.register(
             "plan_seconds",
             "Time from taking an observation to its planned action, per run",
@@ -113,6 +204,31 @@ impl Default for Metrics {
         );
         registry.register("episodes", "Episodes stored by a run", episodes.clone());
         registry.register("agents", "Agents attached to a run", agents.clone());
+        registry.register(
+            "agent_queue_depth",
+            "An agent's observations waiting for an answer: in its inbox, or planned and waiting for the cores",
+            queue_depth.clone(),
+        );
+        registry.register(
+            "replay_bytes",
+            "Bytes of a run's replay log file",
+            replay_bytes.clone(),
+        );
+        registry.register(
+            "replay_fsync_seconds",
+            "Time per fsync of a run's replay log (one at every episode end)",
+            fsync_seconds.clone(),
+        );
+        registry.register(
+            "retraining_seconds",
+            "Time per retraining that produced models, per run",
+            retraining_seconds.clone(),
+        );
+        registry.register(
+            "training_loss",
+            "Final training loss of each model at a run's last retraining",
+            training_loss.clone(),
+        );
         Self {
             registry,
             plan_seconds,
@@ -126,6 +242,12 @@ impl Default for Metrics {
             replay_transitions,
             episodes,
             agents,
+            queue_depth,
+            replay_bytes,
+            fsync_seconds,
+            retraining_seconds,
+            run_histograms: Mutex::default(),
+            training_loss,
         }
     }
 }
@@ -137,6 +259,22 @@ fn run(name: &str) -> RunLabel {
 }
 
 impl Metrics {
+    /// The histograms run `run_name` records into, served by this registry.
+    pub fn for_run(&self, run_name: &str) -> RunHistograms {
+        let label = run(run_name);
+        self.run_histograms
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .entry(run_name.to_string())
+            .or_insert_with(|| RunHistograms {
+                fsync_seconds: Timed::new(self.fsync_seconds.get_or_create(&label).clone()),
+                retraining_seconds: Timed::new(
+                    self.retraining_seconds.get_or_create(&label).clone(),
+                ),
+            })
+            .clone()
+    }
+
     /// A planned action of `run`.
     pub fn record_plan(
         &self,
@@ -201,6 +339,8 @@ impl Metrics {
 
     /// The registry as Prometheus text, with the gauges copied from `status` first.
     pub fn render(&self, status: &PlannerStatus) -> String {
+        // Agents come and go: only the ones attached now have a queue.
+        self.queue_depth.clear();
         for r in &status.runs {
             let label = run(&r.name);
             let gauge = |v: u64| i64::try_from(v).unwrap_or(i64::MAX);
@@ -216,6 +356,37 @@ impl Metrics {
             self.agents
                 .get_or_create(&label)
                 .set(gauge(r.agents.len() as u64));
+            self.replay_bytes
+                .get_or_create(&label)
+                .set(gauge(r.replay_bytes));
+            for (agent, depth) in &r.queue_depth {
+                self.queue_depth
+                    .get_or_create(&AgentLabel {
+                        run: r.name.clone(),
+                        agent: agent.clone(),
+                    })
+                    .set(gauge(*depth));
+            }
+            let last = r.last_retraining.as_ref();
+            for (model, loss) in [
+                ("dynamics", last.and_then(|l| l.dynamics_loss)),
+                ("energy", last.and_then(|l| l.energy_loss)),
+            ] {
+                let label = ModelLabel {
+                    run: r.name.clone(),
+                    model,
+                };
+                match loss {
+                    Some(loss) => {
+                        self.training_loss
+                            .get_or_create(&label)
+                            .set(f64::from(loss));
+                    }
+                    None => {
+                        self.training_loss.remove(&label);
+                    }
+                }
+            }
         }
         let mut text = String::new();
         if let Err(e) = prometheus_client::encoding::text::encode(&mut text, &self.registry) {
