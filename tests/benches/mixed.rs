@@ -72,7 +72,7 @@ fn retraining() -> RunSpec {
         TrainMode::Async,
         3,
         PlannerOverrides {
-            exploration_episodes: Some(1_000_000),
+            exploration_episodes: Some(1_000),
             dynamics_epochs: Some(2_000),
             energy_epochs: Some(2_000),
             ..PlannerOverrides::default()
