@@ -196,7 +196,10 @@ impl Agent {
             let sent = Instant::now();
             let action = self.client.step(&obs).await?;
             if action.stats.source != ActionSource::Planned {
-                bail!("{}: step {step} was not planned: {action:?}", self.client.run);
+                bail!(
+                    "{}: step {step} was not planned: {action:?}",
+                    self.client.run
+                );
             }
             seen.record(sent, &action);
             reward = Some(self.plant.step(&action.action));
@@ -243,9 +246,7 @@ fn main() -> Result<()> {
     let config = format!("planner_id = \"{PLANNER}\"\n");
     let mut planner = Planner::start(dir.path(), &config)?;
     let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
-    println!(
-        "mixed load, {steps} planned cartpole steps per mix, {cores} cores; round trip in ms"
-    );
+    println!("mixed load, {steps} planned cartpole steps per mix, {cores} cores; round trip in ms");
     println!(
         "{:<16} {:<12} {:>6} {:>9} {:>9} {:>6} {:>7}",
         "mix", "agent", "steps", "p50 ms", "p99 ms", "cut", "missed"
