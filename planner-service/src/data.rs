@@ -1,16 +1,18 @@
-//! Transitions `(s, a, s')` laid out as dense row-major `f32` matrices.
+//! Transitions `(s, a, r, s')` laid out as dense row-major `f32` matrices.
 //!
 //! This is the one currency between the replay buffer (which owns the data), the trainers of the
 //! dynamics and energy models (which read it in minibatches) and the tests (which build it from
 //! known distributions). Row-major matrices feed `gemm` directly without copies.
 
-/// A set of transitions: row `i` of `obs`, `act` and `next_obs` is one transition.
+/// A set of transitions: row `i` of `obs`, `act`, `rewards` and `next_obs` is one transition.
+/// The reward is the one the agent reported for it: what a learned reward model trains on.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Transitions {
     obs_dim: usize,
     act_dim: usize,
     obs: Vec<f32>,
     act: Vec<f32>,
+    rewards: Vec<f32>,
     next_obs: Vec<f32>,
 }
 
@@ -24,14 +26,15 @@ impl Transitions {
         }
     }
 
-    /// Appends one transition. Panics if a slice has the wrong length: callers validate
-    /// untrusted input before it gets here.
-    pub fn push(&mut self, obs: &[f32], act: &[f32], next_obs: &[f32]) {
+    /// Appends one transition `obs --act--> next_obs` that earned `reward`. Panics if a slice
+    /// has the wrong length: callers validate untrusted input before it gets here.
+    pub fn push(&mut self, obs: &[f32], act: &[f32], reward: f32, next_obs: &[f32]) {
         assert_eq!(obs.len(), self.obs_dim, "observation dimension");
         assert_eq!(act.len(), self.act_dim, "action dimension");
         assert_eq!(next_obs.len(), self.obs_dim, "next observation dimension");
         self.obs.extend_from_slice(obs);
         self.act.extend_from_slice(act);
+        self.rewards.push(reward);
         self.next_obs.extend_from_slice(next_obs);
     }
 
@@ -40,6 +43,7 @@ impl Transitions {
         assert_eq!((self.obs_dim, self.act_dim), (other.obs_dim, other.act_dim));
         self.obs.extend_from_slice(&other.obs);
         self.act.extend_from_slice(&other.act);
+        self.rewards.extend_from_slice(&other.rewards);
         self.next_obs.extend_from_slice(&other.next_obs);
     }
 
@@ -55,12 +59,14 @@ impl Transitions {
                 self.obs.copy_within(i * od..(i + 1) * od, kept * od);
                 self.next_obs.copy_within(i * od..(i + 1) * od, kept * od);
                 self.act.copy_within(i * ad..(i + 1) * ad, kept * ad);
+                self.rewards[kept] = self.rewards[i];
             }
             kept += 1;
         }
         self.obs.truncate(kept * od);
         self.next_obs.truncate(kept * od);
         self.act.truncate(kept * ad);
+        self.rewards.truncate(kept);
     }
 
     pub fn len(&self) -> usize {
@@ -89,6 +95,11 @@ impl Transitions {
         &self.act
     }
 
+    /// Every transition's reward, as its agent reported it.
+    pub fn rewards(&self) -> &[f32] {
+        &self.rewards
+    }
+
     /// All next observations, `len() × obs_dim`, row-major.
     pub fn next_obs(&self) -> &[f32] {
         &self.next_obs
@@ -112,12 +123,16 @@ mod tests {
     #[test]
     fn rows_round_trip() {
         let mut t = Transitions::new(2, 1);
-        t.push(&[1.0, 2.0], &[0.5], &[3.0, 4.0]);
-        t.push(&[5.0, 6.0], &[-0.5], &[7.0, 8.0]);
+        t.push(&[1.0, 2.0], &[0.5], 0.25, &[3.0, 4.0]);
+        t.push(&[5.0, 6.0], &[-0.5], -1.0, &[7.0, 8.0]);
         assert_eq!(t.len(), 2);
         assert_eq!(t.row(1), (&[5.0, 6.0][..], &[-0.5][..], &[7.0, 8.0][..]));
+        assert_eq!(t.rewards(), &[0.25, -1.0]);
         let mut u = Transitions::new(2, 1);
         u.extend(&t);
         assert_eq!(u, t);
+        u.retain(|i| i == 1);
+        assert_eq!(u.rewards(), &[-1.0]);
+        assert_eq!(u.row(0).0, &[5.0, 6.0]);
     }
 }

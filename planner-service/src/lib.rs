@@ -20,6 +20,7 @@ pub mod nn;
 pub mod persist;
 pub mod plan;
 pub mod replay;
+pub mod reward;
 pub mod run;
 pub mod sched;
 pub mod service;

@@ -6,11 +6,13 @@
 use crate::config::Preset;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
+use crate::reward::RewardModel;
 use proto::Task;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
-/// The dynamics model and the regulariser of one version.
+/// The dynamics model, the regulariser and (for a task whose reward is learned) the reward
+/// model of one version.
 #[derive(Clone, Debug)]
 pub struct Models {
     /// 0 until the first training; +1 with every retraining.
@@ -19,6 +21,9 @@ pub struct Models {
     pub episodes_covered: u32,
     pub dynamics: Ensemble,
     pub regularizer: Regularizer,
+    /// The reward imagination scores with: `Some` exactly when the task's reward is learned
+    /// ([`proto::Task::reward_is_learned`]); otherwise the task's own reward is used.
+    pub reward: Option<RewardModel>,
 }
 
 impl Models {
@@ -33,13 +38,20 @@ impl Models {
             task.act_dim,
             &mut rng,
         );
+        let mut reward = task
+            .reward_is_learned()
+            .then(|| RewardModel::new(task, &preset.reward, &preset.dynamics, &mut rng));
         dynamics.set_inference_precision(preset.inference_precision);
         regularizer.set_inference_precision(preset.inference_precision);
+        if let Some(r) = &mut reward {
+            r.set_inference_precision(preset.inference_precision);
+        }
         Self {
             version: 0,
             episodes_covered: 0,
             dynamics,
             regularizer,
+            reward,
         }
     }
 
@@ -48,6 +60,9 @@ impl Models {
     pub fn set_inference_precision(&mut self, precision: proto::InferencePrecision) {
         self.dynamics.set_inference_precision(precision);
         self.regularizer.set_inference_precision(precision);
+        if let Some(r) = &mut self.reward {
+            r.set_inference_precision(precision);
+        }
     }
 
     /// Packs every network's weights into the inference layout now, so that the first plan
@@ -61,6 +76,9 @@ impl Models {
             Regularizer::None => {}
             Regularizer::Dae(m) => m.mlp().pack_for_inference(),
             Regularizer::Deen(m) => m.mlp().pack_for_inference(),
+        }
+        if let Some(r) = &self.reward {
+            r.mlp().pack_for_inference();
         }
     }
 
@@ -92,11 +110,29 @@ impl Models {
                 return Some(format!("{} regulariser: {what}", self.regularizer.kind()));
             }
         }
+        if let Some(r) = self.reward.as_ref().map(RewardModel::parts) {
+            let pieces: [(&str, &[f32]); 4] = [
+                ("parameters", &r.params),
+                ("input means", r.input_norm.mean()),
+                ("input scales", r.input_norm.std()),
+                (
+                    "reward mean and scale",
+                    &[r.target_norm.mean()[0], r.target_norm.std()[0]],
+                ),
+            ];
+            if let Some((what, _)) = pieces.iter().find(|(_, v)| !finite(v)) {
+                return Some(format!("reward model: {what}"));
+            }
+        }
         None
     }
 
-    /// Whether these models have been trained at all.
+    /// Whether these models have been trained, every one a plan needs: a run explores with
+    /// random actions until they are. For a task whose reward is learned that includes the
+    /// reward model (a retraining whose time budget ran out before the reward model took a
+    /// step leaves it untrained), so such a run never plans with a reward model of random
+    /// weights.
     pub fn is_trained(&self) -> bool {
-        self.version > 0
+        self.version > 0 && self.reward.as_ref().is_none_or(RewardModel::is_trained)
     }
 }

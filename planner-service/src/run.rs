@@ -5,7 +5,7 @@ use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
-use crate::replay::{EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
+use crate::replay::{self, EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
 use crate::service::metrics::RunHistograms;
 use crate::service::status::{LastRetraining, Latency, LatencyWindow, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
@@ -139,7 +139,6 @@ pub struct Stored {
     pub must_cover: Option<u32>,
 }
 
-
 /// Why a stored or new run could not be opened.
 #[derive(Debug, thiserror::Error)]
 pub enum OpenError {
@@ -220,6 +219,7 @@ impl Run {
             ReplayBuffer::open_with(&dir.replay_log(), task, |file| disk.open(&name, file))?;
         buffer.claim(epoch, planner)?;
         buffer.set_capacity(hosting.replay_capacity)?;
+        buffer.compact_if_due()?;
         let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
             None => Models::untrained(task, &preset, spec.seed),
@@ -452,6 +452,16 @@ impl Run {
         self.tally.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
+    /// Compacts the replay log if evictions made it due, holding the buffer's lock only to
+    /// start and to swap files (never across the copy or its fsyncs). A failure leaves the log
+    /// as it was, every record in it: it is logged, and the next episode end tries again.
+    /// Blocking: called on the blocking pool.
+    fn compact_log(&self) {
+        if let Err(e) = replay::compact_log(|| self.lock_buffer()) {
+            tracing::warn!(run = %self.name, error = %e, "cannot compact the replay log; it keeps every record and is compacted later");
+        }
+    }
+
     fn lock_buffer(&self) -> std::sync::MutexGuard<'_, ReplayBuffer> {
         self.buffer.lock().unwrap_or_else(PoisonError::into_inner)
     }
@@ -554,6 +564,7 @@ impl Run {
         if let Some(syncer) = &sync {
             self.sync_log(syncer);
         }
+        self.compact_log();
         for summary in [&accepted.abandoned, &accepted.finished]
             .into_iter()
             .flatten()
@@ -603,6 +614,7 @@ impl Run {
             if let Some(syncer) = &syncer {
                 run.sync_log(syncer);
             }
+            run.compact_log();
             ended(&mut run.lock_next_episodes(), &agent, episode);
             Ok(())
         })
@@ -698,6 +710,8 @@ impl Run {
             cut_short = ?report.cut_short,
             dynamics_loss = report.dynamics_loss,
             energy_loss = report.energy_loss,
+            reward_steps = report.reward_steps,
+            reward_loss = ?report.reward_loss,
             seconds = report.seconds,
             "models updated"
         );
@@ -723,6 +737,7 @@ impl Run {
             models_version: report.models_version,
             dynamics_loss: report.dynamics_loss,
             energy_loss: report.energy_loss,
+            reward_loss: report.reward_loss,
             seconds: report.seconds,
         });
     }

@@ -28,6 +28,9 @@ pub struct TrainReport {
     pub energy_steps: usize,
     pub dynamics_loss: f32,
     pub energy_loss: f32,
+    /// The reward model's steps and last-epoch loss (`None`: the task's reward is not learned).
+    pub reward_steps: usize,
+    pub reward_loss: Option<f32>,
     /// Why a model's training ended before its epochs (the step cap or the time budget).
     pub cut_short: Option<Stop>,
     pub seconds: f32,
@@ -36,8 +39,8 @@ pub struct TrainReport {
 /// The daemon's side of a retraining's budget.
 #[derive(Clone, Debug)]
 pub struct TrainLimits {
-    /// Wall-clock budget of one retraining, shared by the two models half and half (the
-    /// regulariser also gets whatever the dynamics left).
+    /// Wall-clock budget of one retraining: the dynamics may use its first half, a reward
+    /// model (for a learned reward) up to three quarters, the regulariser what is left.
     pub max_seconds: f64,
     /// Raised when the daemon stops: training ends before its next minibatch.
     pub cancel: Arc<AtomicBool>,
@@ -102,17 +105,37 @@ pub fn retrain(
         plan(dynamics_epochs, limits.deadline(started, 0.5)),
         &mut rng,
     );
+    // A learned reward trains on the same data with the dynamics' epochs: it is the other half
+    // of the model of the system that imagination rolls out.
+    let reward = next.reward.as_mut().map(|model| {
+        model.fit(
+            data,
+            plan(dynamics_epochs, limits.deadline(started, 0.75)),
+            &mut rng,
+        )
+    });
     let energy = next.regularizer.fit(
         data,
         plan(energy_epochs, limits.deadline(started, 1.0)),
         &mut rng,
     );
-    if [dynamics.stopped, energy.stopped].contains(&Some(Stop::Cancelled)) {
+    let reports = [
+        Some(("dynamics loss", &dynamics)),
+        reward.as_ref().map(|r| ("reward model loss", r)),
+        Some(("regulariser loss", &energy)),
+    ];
+    let reports = reports.iter().flatten();
+    if reports
+        .clone()
+        .any(|(_, r)| r.stopped == Some(Stop::Cancelled))
+    {
         return Err(TrainError::Cancelled);
     }
-    for (what, report) in [("dynamics loss", &dynamics), ("regulariser loss", &energy)] {
+    for (what, report) in reports {
         if report.steps > 0 && !report.loss.is_finite() {
-            return Err(TrainError::NonFinite { what: what.into() });
+            return Err(TrainError::NonFinite {
+                what: (*what).into(),
+            });
         }
     }
     if let Some(what) = next.first_non_finite() {
@@ -130,7 +153,12 @@ pub fn retrain(
         energy_steps: energy.steps,
         dynamics_loss: dynamics.loss,
         energy_loss: energy.loss,
-        cut_short: dynamics.stopped.or(energy.stopped),
+        reward_steps: reward.as_ref().map_or(0, |r| r.steps),
+        reward_loss: reward.as_ref().map(|r| r.loss),
+        cut_short: dynamics
+            .stopped
+            .or(reward.as_ref().and_then(|r| r.stopped))
+            .or(energy.stopped),
         seconds: started.elapsed().as_secs_f32(),
     };
     Ok((next, report))
@@ -165,7 +193,7 @@ mod tests {
             let x = i as f32 / n as f32;
             let obs = [x * scale, -x * scale, 0.5 * scale, (1.0 - x) * scale];
             let next = [-x * scale, x * scale, -0.5 * scale, x * scale];
-            data.push(&obs, &[x], &next);
+            data.push(&obs, &[x], 0.0, &next);
         }
         data
     }
@@ -190,6 +218,57 @@ mod tests {
         assert!(models.first_non_finite().is_none());
         assert!(report.dynamics_loss.is_finite() && report.energy_loss.is_finite());
         assert_eq!(report.cut_short, None);
+    }
+
+    /// A task whose reward is learned retrains its reward model with the dynamics (the same
+    /// epochs), on the transitions' rewards; the models are trained only once it has.
+    #[test]
+    fn a_learned_reward_trains_its_model_with_the_dynamics() {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "trainer-learned-cartpole".into();
+        spec.reward = proto::task::RewardKind::Learned;
+        let task = proto::Task::intern(spec, &proto::task::SpecBounds::default()).unwrap();
+        let mut preset = Preset::new(task, Some("cem")).unwrap();
+        preset.dynamics.hidden_size = 8;
+        preset.dynamics.epochs = 3;
+        preset.reward.hidden_size = 8;
+        let fresh = Models::untrained(task, &preset, 7);
+        assert!(!fresh.reward.as_ref().unwrap().is_trained());
+        let mut rewarded = Transitions::new(4, 1);
+        let plain = data(64, 1.0);
+        for i in 0..plain.len() {
+            let (s, a, s1) = plain.row(i);
+            rewarded.push(s, a, s1[0] - a[0], s1);
+        }
+        let (models, report) =
+            retrain(&fresh, &rewarded, &preset, 1, 0, &TrainLimits::unbounded()).unwrap();
+        assert!(models.is_trained() && models.reward.as_ref().unwrap().is_trained());
+        // Three epochs of 64 transitions in batches of the dynamics' size.
+        let batches = 64usize.div_ceil(preset.dynamics.batch_size);
+        assert_eq!(report.reward_steps, 3 * batches);
+        assert!(report.reward_loss.is_some_and(f32::is_finite), "{report:?}");
+        // A task with a formula has no reward model and reports none.
+        let small = small_preset();
+        let (plain_models, plain_report) = retrain(
+            &untrained(&small),
+            &plain,
+            &small,
+            1,
+            0,
+            &TrainLimits::unbounded(),
+        )
+        .unwrap();
+        assert!(plain_models.reward.is_none());
+        assert_eq!(
+            (plain_report.reward_steps, plain_report.reward_loss),
+            (0, None)
+        );
+        // A retraining whose budget ran out before the reward model took a step leaves it
+        // untrained: then the models are not trained, and the run keeps exploring instead of
+        // planning with a reward model of random weights.
+        let mut cut = models.clone();
+        cut.reward = fresh.reward.clone();
+        assert!(cut.version > 0 && !cut.is_trained());
     }
 
     /// Data at f32's limits (what a planner refuses at validation, here put straight into a

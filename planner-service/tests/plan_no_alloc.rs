@@ -1,6 +1,7 @@
 //! The planning loop allocates nothing: a counting global allocator watches full `plan` calls
 //! with real (tiny) networks, an ensemble with sampled particles, and a DEEN, for CEM, iCEM and
-//! Adam (whose back-propagation through the horizon keeps one training tape per step).
+//! Adam (whose back-propagation through the horizon keeps one training tape per step), with the
+//! task's own reward and with a learned one (a reward model scoring every imagined step).
 //!
 //! The planner's own buffers and the networks' scratch are allocated when the planner is built
 //! and on its first call with a model; rayon's pool and gemm-free kernels need nothing per call.
@@ -18,7 +19,9 @@ use planner_service::data::Transitions;
 use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
 use planner_service::plan::{CemConfig, IcemConfig, MpcPlanner, Optimizer};
-use proto::{Builtin, InferencePrecision};
+use planner_service::reward::{RewardConfig, RewardModel};
+use proto::task::{RewardKind, SpecBounds};
+use proto::{Builtin, InferencePrecision, Task};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -66,8 +69,7 @@ unsafe impl GlobalAlloc for CountingAllocator {
 static GLOBAL: CountingAllocator = CountingAllocator;
 
 /// Random transitions of the task: enough for the models' normalisers and a brief fit.
-fn random_transitions(task: Builtin, n: usize, rng: &mut StdRng) -> Transitions {
-    let spec = task.task();
+fn random_transitions(spec: &Task, n: usize, rng: &mut StdRng) -> Transitions {
     let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
     for _ in 0..n {
         let obs: Vec<f32> = (0..spec.obs_dim)
@@ -80,13 +82,17 @@ fn random_transitions(task: Builtin, n: usize, rng: &mut StdRng) -> Transitions 
             .iter()
             .map(|o| o + 0.1 * rng.random_range(-1.0f32..1.0))
             .collect();
-        data.push(&obs, &act, &next);
+        let reward = next.iter().sum::<f32>() - act.iter().map(|a| a * a).sum::<f32>();
+        data.push(&obs, &act, reward, &next);
     }
     data
 }
 
 /// Packs every network of the models ahead of planning (what a trainer does before publishing).
-fn pack(dynamics: &Ensemble, regularizer: &Regularizer) {
+fn pack(dynamics: &Ensemble, regularizer: &Regularizer, reward: Option<&RewardModel>) {
+    if let Some(model) = reward {
+        model.mlp().pack_for_inference();
+    }
     for i in 0..dynamics.members() {
         dynamics.member(i).mlp().pack_for_inference();
     }
@@ -101,18 +107,47 @@ fn pack(dynamics: &Ensemble, regularizer: &Regularizer) {
 /// the allocation counter is global, so no other test may run beside this one.
 #[test]
 fn planning_allocates_nothing_after_warm_up() {
-    for optimizer in [Optimizer::Cem, Optimizer::Icem, Optimizer::Adam] {
-        for precision in [InferencePrecision::F32, InferencePrecision::Bf16] {
-            allocates_nothing_after_warm_up_in(optimizer, precision);
+    // Ant: the task with termination, so that path is exercised too; and ant with its reward
+    // learned, planned with a reward model.
+    let mut learned = Builtin::Ant.spec();
+    learned.name = "ant-learned-reward".into();
+    learned.reward = RewardKind::Learned;
+    let learned = Task::intern(learned, &SpecBounds::default()).unwrap();
+    for spec in [Builtin::Ant.task(), learned] {
+        for optimizer in [Optimizer::Cem, Optimizer::Icem, Optimizer::Adam] {
+            for precision in [InferencePrecision::F32, InferencePrecision::Bf16] {
+                allocates_nothing_after_warm_up_in(spec, optimizer, precision);
+            }
         }
     }
 }
 
-fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: InferencePrecision) {
-    let task = Builtin::Ant; // the task with termination, so that path is exercised too
-    let spec = task.task();
+/// A reward model for `spec` trained briefly on `data` (`None` unless its reward is learned).
+fn reward_model(
+    spec: &'static Task,
+    data: &Transitions,
+    precision: InferencePrecision,
+    rng: &mut StdRng,
+) -> Option<RewardModel> {
+    spec.reward_is_learned().then(|| {
+        let sizes = RewardConfig {
+            hidden_layers: 2,
+            hidden_size: 24,
+        };
+        let mut model = RewardModel::new(spec, &sizes, &DynamicsConfig::default(), rng);
+        model.fit(data, 1, rng);
+        model.set_inference_precision(precision);
+        model
+    })
+}
+
+fn allocates_nothing_after_warm_up_in(
+    spec: &'static Task,
+    optimizer: Optimizer,
+    precision: InferencePrecision,
+) {
     let mut rng = StdRng::seed_from_u64(0);
-    let data = random_transitions(task, 256, &mut rng);
+    let data = random_transitions(spec, 256, &mut rng);
     let dynamics_config = DynamicsConfig {
         hidden_layers: 2,
         hidden_size: 32,
@@ -136,6 +171,8 @@ fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: Inference
     deen.fit(&data, 1, &mut rng);
     dynamics.set_inference_precision(precision);
     deen.set_inference_precision(precision);
+    let reward = reward_model(spec, &data, precision, &mut rng);
+    let reward = reward.as_ref();
 
     let cem = CemConfig {
         horizon: 7,
@@ -162,7 +199,7 @@ fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: Inference
         // Warm-up: the first calls create the network scratch; every worker thread runs a
         // chunk at least once.
         for _ in 0..10 {
-            planner.plan(&obs, &dynamics, &deen, None);
+            planner.plan(&obs, &dynamics, &deen, reward, None);
         }
         planner.reset();
         ALLOCATIONS.store(0, Ordering::SeqCst);
@@ -172,14 +209,19 @@ fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: Inference
         // is far enough away not to bind, so the checksum is the seed's alone).
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(3600);
         for _ in 0..5 {
-            let outcome = planner.plan(&obs, &dynamics, &deen, Some(deadline));
+            let outcome = planner.plan(&obs, &dynamics, &deen, reward, Some(deadline));
             checksum += outcome.action[0] + outcome.predicted_return + outcome.mean_energy;
         }
         COUNTING.store(false, Ordering::SeqCst);
         (ALLOCATIONS.load(Ordering::SeqCst), checksum)
     });
     assert!(checksum.is_finite(), "the plans were real: {checksum}");
-    assert_eq!(allocations, 0, "allocations during 5 planning calls");
+    assert_eq!(
+        allocations,
+        0,
+        "{}: allocations during 5 planning calls",
+        spec.name()
+    );
 
     // A retrained model of the same shapes, packed before the swap, plans without allocating
     // from its very first call.
@@ -195,11 +237,15 @@ fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: Inference
     deen.fit(&data, 2, &mut rng);
     dynamics.set_inference_precision(precision);
     deen.set_inference_precision(precision);
-    pack(&dynamics, &deen);
+    let reward = reward_model(spec, &data, precision, &mut rng);
+    let reward = reward.as_ref();
+    pack(&dynamics, &deen, reward);
     let (allocations, outcome) = pool.install(|| {
         ALLOCATIONS.store(0, Ordering::SeqCst);
         COUNTING.store(true, Ordering::SeqCst);
-        let outcome = planner.plan(&obs, &dynamics, &deen, None).predicted_return;
+        let outcome = planner
+            .plan(&obs, &dynamics, &deen, reward, None)
+            .predicted_return;
         COUNTING.store(false, Ordering::SeqCst);
         (ALLOCATIONS.load(Ordering::SeqCst), outcome)
     });
@@ -211,7 +257,7 @@ fn allocates_nothing_after_warm_up_in(optimizer: Optimizer, precision: Inference
 
     // The counter does see allocations, so a zero above is meaningful.
     COUNTING.store(true, Ordering::SeqCst);
-    let plan = planner.imagine_plan(&obs, &dynamics, &deen);
+    let plan = planner.imagine_plan(&obs, &dynamics, &deen, reward);
     COUNTING.store(false, Ordering::SeqCst);
     assert_eq!(plan.actions.len(), 7 * spec.act_dim);
     assert!(ALLOCATIONS.load(Ordering::SeqCst) > 0);

@@ -13,8 +13,11 @@ use serde::{Deserialize, Serialize};
 /// the agent's session token ([`AttachAccepted::session`], [`Observation::session`],
 /// [`AttachRequest::session`], [`ErrorReport::session`]); version 4 names tasks by their name
 /// string instead of a catalog index ([`RunSpec::task`], [`AttachAccepted::task`]) and appends
-/// [`RunSpec::task_spec`], a whole task for a system the planner's catalog does not know.
-pub const PROTOCOL_VERSION: u16 = 4;
+/// [`RunSpec::task_spec`], a whole task for a system the planner's catalog does not know;
+/// version 5 the reward model's sizes ([`PlannerOverrides::reward_hidden_layers`],
+/// [`PlannerOverrides::reward_hidden_size`]) and its loss in
+/// [`RunEventKind::ModelsUpdated`], for tasks whose reward is learned.
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// How the trainer interacts with acting agents (design.md).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
@@ -168,6 +171,11 @@ pub struct PlannerOverrides {
     pub dynamics_batch_size: Option<u32>,
     pub dynamics_learning_rate: Option<f32>,
     pub dynamics_weight_decay: Option<f32>,
+    /// Hidden layers of the reward model (used by a task whose reward is `learned`; it trains
+    /// with the dynamics' epochs, batch size and learning rate).
+    pub reward_hidden_layers: Option<u32>,
+    /// Units per hidden layer of the reward model.
+    pub reward_hidden_size: Option<u32>,
     pub energy_epochs: Option<u32>,
     pub energy_hidden_layers: Option<u32>,
     pub energy_hidden_size: Option<u32>,
@@ -522,6 +530,9 @@ pub enum RunEventKind {
         models_version: u64,
         dynamics_loss: f32,
         energy_loss: f32,
+        /// The reward model's last-epoch loss (mean squared error of the standardised reward;
+        /// `None` unless the task's reward is learned).
+        reward_loss: Option<f32>,
         seconds: f32,
     },
     /// Training failed; the previous models stay in use.

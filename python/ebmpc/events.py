@@ -46,6 +46,8 @@ class ModelsUpdated:
     dynamics_loss: float
     energy_loss: float
     seconds: float
+    #: The reward model's loss, for a task whose reward is learned (else ``None``).
+    reward_loss: Optional[float] = None
 
 
 @dataclass(frozen=True)
@@ -89,6 +91,7 @@ def parse_event(message: Mapping[str, Any]) -> RunEvent:
                 float(fields["dynamics_loss"]),
                 float(fields["energy_loss"]),
                 float(fields["seconds"]),
+                None if fields.get("reward_loss") is None else float(fields["reward_loss"]),
             )
         if name == "TrainingFailed":
             return TrainingFailed(run, str(fields["message"]))

@@ -72,6 +72,9 @@ def test_events_parse_into_typed_values() -> None:
                                          "energy_loss": 0.5, "seconds": 0.25}}
     validate("RunEvent", message)
     assert events.parse_event(message) == ebmpc.ModelsUpdated("r", 2, -1.0, 0.5, 0.25)
+    message["kind"]["ModelsUpdated"]["reward_loss"] = 0.125  # a learned reward's model
+    validate("RunEvent", message)
+    assert events.parse_event(message) == ebmpc.ModelsUpdated("r", 2, -1.0, 0.5, 0.25, 0.125)
     for bad in ({"run": "r", "kind": {"Exploded": {}}},
                 {"run": "r", "kind": {"TrainingStarted": {}}},
                 {"run": "r", "kind": {"EpisodeFinished": {"agent": "a", "episode": 0,

@@ -543,12 +543,14 @@ fn log_event(event: &RunEvent) {
             models_version,
             dynamics_loss,
             energy_loss,
+            reward_loss,
             seconds,
         } => tracing::info!(
             run = %event.run,
             models_version,
             dynamics_loss,
             energy_loss,
+            reward_loss = ?reward_loss,
             seconds,
             "planner: models updated"
         ),

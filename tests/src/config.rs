@@ -4,8 +4,9 @@
 //! planner id, limits, a Zenoh file) is a parameter of one template, so a change to the
 //! configuration format is made once.
 
-/// Network sizes, training epochs and CEM search size of a test planner (both networks have
-/// two hidden layers of `hidden_size` units and train for `epochs`; CEM runs two iterations).
+/// Network sizes, training epochs and CEM search size of a test planner (every network, the
+/// reward model of a task whose reward is learned too, has two hidden layers of `hidden_size`
+/// units; they train for `epochs`; CEM runs two iterations).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Sizes {
     pub hidden_size: u32,
@@ -92,6 +93,8 @@ dynamics_epochs = {epochs}
 energy_hidden_layers = 2
 energy_hidden_size = {hidden_size}
 energy_epochs = {epochs}
+reward_hidden_layers = 2
+reward_hidden_size = {hidden_size}
 population = {population}
 elites = {elites}
 horizon = {horizon}
@@ -130,6 +133,8 @@ mod tests {
                 energy_hidden_layers: Some(2),
                 energy_hidden_size: Some(16),
                 energy_epochs: Some(3),
+                reward_hidden_layers: Some(2),
+                reward_hidden_size: Some(16),
                 population: Some(20),
                 elites: Some(4),
                 horizon: Some(5),

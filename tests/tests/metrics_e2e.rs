@@ -182,7 +182,9 @@ fn the_metrics_endpoint_serves_every_metric_and_its_counters_move() {
         assert_eq!(watched.replay_bytes as f64, bytes);
         assert_eq!(watched.replay_fsync.count as f64, fsyncs);
         assert_eq!(watched.retraining.count as f64, retrainings);
-        let last = watched.last_retraining.expect("the models came from a retraining");
+        let last = watched
+            .last_retraining
+            .expect("the models came from a retraining");
         assert_eq!(last.dynamics_loss.map(f64::from), Some(dynamics_loss));
         assert_eq!(last.energy_loss.map(f64::from), Some(energy_loss));
         assert_eq!(

@@ -115,7 +115,10 @@ fn episode(
     loop {
         match planner.as_mut() {
             Some((p, m)) => {
-                action.copy_from_slice(p.plan(&obs, &m.dynamics, &m.regularizer, None).action);
+                action.copy_from_slice(
+                    p.plan(&obs, &m.dynamics, &m.regularizer, m.reward.as_ref(), None)
+                        .action,
+                );
             }
             None => {
                 for (a, (lo, hi)) in action
@@ -127,7 +130,7 @@ fn episode(
             }
         }
         let out = env.step(&action)?;
-        data.push(&obs, &action, &out.obs);
+        data.push(&obs, &action, out.reward, &out.obs);
         total += out.reward;
         let done = out.done();
         obs = out.obs;
@@ -217,7 +220,13 @@ pub fn run(
         let mut ended = false;
         for _ in 0..config.mpc_steps {
             let action = planner
-                .plan(&obs, &models.dynamics, &models.regularizer, None)
+                .plan(
+                    &obs,
+                    &models.dynamics,
+                    &models.regularizer,
+                    models.reward.as_ref(),
+                    None,
+                )
                 .action
                 .to_vec();
             let out = env.step(&action)?;
@@ -245,7 +254,8 @@ pub fn run(
                 false,
                 config.seed.wrapping_add(1000),
             )?;
-            let plan = fresh.imagine_plan(&obs, &models.dynamics, regularizer);
+            let plan =
+                fresh.imagine_plan(&obs, &models.dynamics, regularizer, models.reward.as_ref());
             // Reality: the same state (replaying the same actions in a deterministic
             // simulator), then the plan open-loop.
             env.reset(start_seed);

@@ -267,7 +267,7 @@ fn random_transitions(task: Builtin, n: usize, rng: &mut StdRng) -> Transitions 
         for (n, o) in next.iter_mut().zip(&obs) {
             *n = o + rng.random_range(-0.1..0.1);
         }
-        data.push(&obs, &act, &next);
+        data.push(&obs, &act, 0.0, &next);
     }
     data
 }

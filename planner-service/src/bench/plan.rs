@@ -130,7 +130,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
                 s.seed,
             )?;
             for _ in 0..s.warmup {
-                planner.plan(&obs, &dynamics, &regularizer, None);
+                planner.plan(&obs, &dynamics, &regularizer, None, None);
             }
             let mut times = Vec::with_capacity(s.timed);
             let mut iterations = 0u64;
@@ -138,7 +138,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
             for _ in 0..s.timed {
                 let start = Instant::now();
-                let outcome = planner.plan(&obs, &dynamics, &regularizer, None);
+                let outcome = planner.plan(&obs, &dynamics, &regularizer, None, None);
                 times.push(start.elapsed());
                 iterations += u64::from(outcome.iterations);
                 candidates += candidates_scored(&preset.cem, outcome.iterations as usize);

@@ -253,6 +253,18 @@ impl Limits {
                 "max_hidden_size",
             ),
             (
+                "reward_hidden_layers",
+                preset.reward.hidden_layers as u64,
+                self.max_hidden_layers,
+                "max_hidden_layers",
+            ),
+            (
+                "reward_hidden_size",
+                preset.reward.hidden_size as u64,
+                self.max_hidden_size,
+                "max_hidden_size",
+            ),
+            (
                 "dynamics_batch_size",
                 d.batch_size as u64,
                 self.max_batch_size,
@@ -346,13 +358,22 @@ impl Cost {
             .regularizer
             .layer_sizes(&preset.energy, task.obs_dim, task.act_dim)
             .unwrap_or_default();
+        // Only a task whose reward is learned has a reward network.
+        let reward = if task.reward_is_learned() {
+            crate::reward::layer_sizes(task, &preset.reward)
+        } else {
+            Vec::new()
+        };
         let members = preset.dynamics.ensemble_size as u64;
         let parameters = members
             .saturating_mul(parameters(&dynamics))
-            .saturating_add(parameters(&energy));
+            .saturating_add(parameters(&energy))
+            .saturating_add(parameters(&reward));
         // In imagination every particle steps one member, and every imagined transition is
-        // scored by the regulariser.
-        let per_transition = multiply_adds(&dynamics).saturating_add(multiply_adds(&energy));
+        // scored by the regulariser (and by the reward model, where the reward is learned).
+        let per_transition = multiply_adds(&dynamics)
+            .saturating_add(multiply_adds(&energy))
+            .saturating_add(multiply_adds(&reward));
         let c = &preset.cem;
         let transitions = [c.iterations, c.population, c.particles, c.horizon]
             .iter()
@@ -468,6 +489,20 @@ mod tests {
                     ..Default::default()
                 },
                 "energy_hidden_layers",
+            ),
+            (
+                PlannerOverrides {
+                    reward_hidden_layers: Some(11),
+                    ..Default::default()
+                },
+                "reward_hidden_layers",
+            ),
+            (
+                PlannerOverrides {
+                    reward_hidden_size: Some(u32::MAX),
+                    ..Default::default()
+                },
+                "reward_hidden_size",
             ),
             (
                 PlannerOverrides {

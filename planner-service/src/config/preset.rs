@@ -25,6 +25,7 @@
 use crate::dynamics::DynamicsConfig;
 use crate::energy::{EnergyConfig, RegularizerKind};
 use crate::plan::{AdamConfig, CemConfig, IcemConfig, Optimizer};
+use crate::reward::RewardConfig;
 use proto::{
     Builtin, EpochSchedule, InferencePrecision, PlannerOverrides, RegularizerChoice, Task,
 };
@@ -57,6 +58,9 @@ pub struct Preset {
     pub dynamics: DynamicsConfig,
     pub regularizer: RegularizerKind,
     pub energy: EnergyConfig,
+    /// Sizes of the reward model, trained and used only for a task whose reward is learned
+    /// (its training settings are the dynamics').
+    pub reward: RewardConfig,
     /// `alpha`: weight of the energy in the planning objective (Table 2's cost multiplier).
     pub energy_weight: f32,
     pub cem: CemConfig,
@@ -290,6 +294,7 @@ impl Preset {
                 noise_sigma: t.sigma,
                 learning_rate: 1e-3,
             },
+            reward: RewardConfig::default(),
             energy_weight: t.alpha,
             cem: CemConfig {
                 horizon: t.horizon,
@@ -443,6 +448,16 @@ impl Preset {
             o.dynamics_weight_decay,
             "dynamics_weight_decay",
             0.0..=1.0,
+        )?;
+        count(
+            &mut self.reward.hidden_layers,
+            o.reward_hidden_layers,
+            "reward_hidden_layers",
+        )?;
+        count(
+            &mut self.reward.hidden_size,
+            o.reward_hidden_size,
+            "reward_hidden_size",
         )?;
         count(&mut e.epochs, o.energy_epochs, "energy_epochs")?;
         count(
@@ -802,6 +817,8 @@ mod tests {
             dynamics_batch_size: Some(13),
             dynamics_learning_rate: Some(2e-3),
             dynamics_weight_decay: Some(1e-4),
+            reward_hidden_layers: Some(3),
+            reward_hidden_size: Some(17),
             energy_epochs: Some(14),
             energy_hidden_layers: Some(1),
             energy_hidden_size: Some(15),
@@ -850,6 +867,7 @@ mod tests {
             (14, 1, 15, 16)
         );
         assert_eq!((e.learning_rate, e.noise_sigma), (3e-3, 0.2));
+        assert_eq!((p.reward.hidden_layers, p.reward.hidden_size), (3, 17));
         assert_eq!(
             (c.particles, c.horizon, c.population, c.elites, c.iterations),
             (4, 6, 70, 7, 2)
@@ -868,6 +886,7 @@ mod tests {
             dynamics: _,
             regularizer: _,
             energy: _,
+            reward: _,
             energy_weight: _,
             cem: _,
             sample_dynamics: _,

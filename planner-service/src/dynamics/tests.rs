@@ -45,7 +45,7 @@ fn dataset(n: usize, noise: f32, rng: &mut StdRng) -> Transitions {
     let mut data = Transitions::new(4, 1);
     for _ in 0..n {
         let (s, a) = random_state(rng);
-        data.push(&s, &[a], &step(&s, a, noise, rng));
+        data.push(&s, &[a], 0.0, &step(&s, a, noise, rng));
     }
     data
 }

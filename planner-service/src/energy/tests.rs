@@ -207,7 +207,7 @@ fn oscillator(n: usize, rng: &mut StdRng) -> Transitions {
         ];
         let a = rng.random_range(-1.0f32..1.0);
         let next = [s[0] + 0.1 * s[1], s[1] + 0.1 * (-s[0] - 0.2 * s[1] + a)];
-        data.push(&s, &[a], &next);
+        data.push(&s, &[a], 0.0, &next);
     }
     data
 }
@@ -398,7 +398,7 @@ fn planning_gradients_match_finite_differences() {
         .collect();
     let mut data = Transitions::new(o, a);
     for r in data_rows.chunks_exact(2 * o + a) {
-        data.push(&r[..o], &r[o..o + a], &r[o + a..]);
+        data.push(&r[..o], &r[o..o + a], 0.0, &r[o + a..]);
     }
     let config = EnergyConfig {
         hidden_layers: 2,

@@ -1,9 +1,10 @@
 //! Model checkpoints: one safetensors file per models version.
 //!
-//! The network weights are safetensors tensors (`dynamics.{member}` and `energy`, flat f32 in
-//! [`crate::nn::Mlp::params`] order); everything small that a model also needs to predict —
-//! normaliser statistics, learned log-variance bounds, the models version, the episodes the
-//! models were trained on, the regulariser — is a JSON header stored in the safetensors
+//! The network weights are safetensors tensors (`dynamics.{member}`, `energy` and, for a task
+//! whose reward is learned, `reward`; flat f32 in [`crate::nn::Mlp::params`] order);
+//! everything small that a model also needs to predict — normaliser statistics, learned
+//! log-variance bounds, the models version, the episodes the models were trained on, the
+//! regulariser, whether the reward model is trained — is a JSON header stored in the safetensors
 //! metadata under [`HEADER_KEY`]. One self-describing file per version means a checkpoint is
 //! written with a single atomic rename and can be inspected with any safetensors reader.
 //!
@@ -16,6 +17,7 @@ use crate::dynamics::{Ensemble, ModelParts};
 use crate::energy::{EnergyParts, Regularizer, RegularizerKind};
 use crate::models::Models;
 use crate::nn::Normalizer;
+use crate::reward::{RewardModel, RewardParts};
 use proto::Task;
 use safetensors::tensor::{Dtype, TensorView};
 use safetensors::{SafeTensors, serialize};
@@ -30,8 +32,13 @@ pub const CHECKSUM_KEY: &str = "ebmpc.crc32";
 
 /// Version of the checkpoint layout (not of the models); bumped when the header changes.
 /// Version 2 added the checksum; version 1 files are refused as unsupported (not damaged), and
-/// the run retrains from its replay log.
-pub const FORMAT_VERSION: u32 = 2;
+/// the run retrains from its replay log. Version 3 added the reward model (`reward` in the
+/// header, the `reward` tensor); a version 2 file is read as models without one, which is
+/// what it holds: no build that wrote version 2 could run a task whose reward is learned.
+pub const FORMAT_VERSION: u32 = 3;
+
+/// The oldest layout this build reads (see [`FORMAT_VERSION`]).
+pub const OLDEST_FORMAT_READ: u32 = 2;
 
 /// Why a checkpoint could not be written or read.
 #[derive(Debug, thiserror::Error)]
@@ -42,7 +49,9 @@ pub enum CheckpointError {
     Header(#[from] serde_json::Error),
     #[error("checkpoint has no `{HEADER_KEY}` header")]
     MissingHeader,
-    #[error("checkpoint format {found} is not supported (this build reads {FORMAT_VERSION})")]
+    #[error(
+        "checkpoint format {found} is not supported (this build reads {OLDEST_FORMAT_READ} to {FORMAT_VERSION})"
+    )]
     Format { found: u32 },
     #[error("checkpoint is for {found}, the run learns {expected}")]
     Task { found: String, expected: String },
@@ -82,6 +91,18 @@ struct Header {
     regularizer: RegularizerKind,
     dynamics: Vec<MemberStats>,
     energy: Option<Normalizer>,
+    /// The reward model's statistics (absent in version 2 files and for a task whose reward
+    /// is not learned).
+    #[serde(default)]
+    reward: Option<RewardStats>,
+}
+
+/// The reward model's statistics and whether it is trained.
+#[derive(Debug, Serialize, Deserialize)]
+struct RewardStats {
+    input_norm: Normalizer,
+    target_norm: Normalizer,
+    trained: bool,
 }
 
 /// One dynamics member's statistics.
@@ -98,11 +119,13 @@ fn dynamics_tensor(member: usize) -> String {
 }
 
 const ENERGY_TENSOR: &str = "energy";
+const REWARD_TENSOR: &str = "reward";
 
 /// Encodes `models` of `task` as safetensors bytes.
 pub fn encode(models: &Models, task: &Task) -> Result<Vec<u8>, CheckpointError> {
     let members = models.dynamics.parts();
     let energy = models.regularizer.parts();
+    let reward = models.reward.as_ref().map(RewardModel::parts);
     let header = Header {
         format: FORMAT_VERSION,
         task: task.name().to_string(),
@@ -119,6 +142,11 @@ pub fn encode(models: &Models, task: &Task) -> Result<Vec<u8>, CheckpointError> 
             })
             .collect(),
         energy: energy.as_ref().map(|e| e.normalizer.clone()),
+        reward: reward.as_ref().map(|r| RewardStats {
+            input_norm: r.input_norm.clone(),
+            target_norm: r.target_norm.clone(),
+            trained: r.trained,
+        }),
     };
     let mut weights: Vec<(String, Vec<u8>, usize)> = members
         .iter()
@@ -130,6 +158,13 @@ pub fn encode(models: &Models, task: &Task) -> Result<Vec<u8>, CheckpointError> 
             ENERGY_TENSOR.to_string(),
             le_bytes(&e.params),
             e.params.len(),
+        ));
+    }
+    if let Some(r) = &reward {
+        weights.push((
+            REWARD_TENSOR.to_string(),
+            le_bytes(&r.params),
+            r.params.len(),
         ));
     }
     let views = weights
@@ -215,7 +250,7 @@ pub fn decode(
     let tensors = SafeTensors::deserialize(bytes)?;
     verify(metadata, header_json, &tensors)?;
     let header: Header = serde_json::from_str(header_json)?;
-    if header.format != FORMAT_VERSION {
+    if !(OLDEST_FORMAT_READ..=FORMAT_VERSION).contains(&header.format) {
         return Err(CheckpointError::Format {
             found: header.format,
         });
@@ -265,11 +300,36 @@ pub fn decode(
             ),
         });
     }
+    let reward = match (header.reward, task.reward_is_learned()) {
+        (None, false) => None,
+        (Some(stats), true) => Some(RewardModel::from_parts(
+            task,
+            &preset.reward,
+            &preset.dynamics,
+            RewardParts {
+                params: read_f32(&tensors, REWARD_TENSOR)?,
+                input_norm: stats.input_norm,
+                target_norm: stats.target_norm,
+                trained: stats.trained,
+            },
+        )?),
+        (stored, learned) => {
+            return Err(CheckpointError::Tensor {
+                name: REWARD_TENSOR.to_string(),
+                problem: format!(
+                    "{} a reward model, the run's task {} a learned reward",
+                    if stored.is_some() { "holds" } else { "lacks" },
+                    if learned { "has" } else { "does not have" },
+                ),
+            });
+        }
+    };
     Ok(Models {
         version: header.models_version,
         episodes_covered: header.episodes_covered,
         dynamics,
         regularizer,
+        reward,
     })
 }
 
@@ -304,23 +364,105 @@ mod tests {
     use rand::rngs::StdRng;
 
     fn trained(method: &str) -> (Preset, Models) {
-        let task = Builtin::Cartpole.task();
-        let mut preset = Preset::new(Builtin::Cartpole.task(), Some(method)).unwrap();
+        trained_for(Builtin::Cartpole.task(), method)
+    }
+
+    /// Cartpole with its reward observed only.
+    fn learned_cartpole() -> &'static Task {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "learned-cartpole".into();
+        spec.reward = proto::task::RewardKind::Learned;
+        Task::intern(spec, &proto::task::SpecBounds::default()).unwrap()
+    }
+
+    fn trained_for(task: &'static Task, method: &str) -> (Preset, Models) {
+        let mut preset = Preset::new(task, Some(method)).unwrap();
         preset.dynamics.hidden_size = 8;
         preset.dynamics.ensemble_size = preset.dynamics.ensemble_size.min(2);
         preset.energy.hidden_size = 8;
+        preset.reward.hidden_size = 8;
         let mut models = Models::untrained(task, &preset, 3);
         let mut data = Transitions::new(task.obs_dim, task.act_dim);
         for i in 0..40 {
             let s = [i as f32 * 0.1, 0.2, -0.1, 0.05 * i as f32];
-            data.push(&s, &[0.5], &[s[0] + 0.01, 0.2, -0.1, s[3]]);
+            data.push(&s, &[0.5], 0.1 * i as f32, &[s[0] + 0.01, 0.2, -0.1, s[3]]);
         }
         let mut rng = StdRng::seed_from_u64(1);
         models.dynamics.fit(&data, 2, &mut rng);
         models.regularizer.fit(&data, 2, &mut rng);
+        if let Some(reward) = &mut models.reward {
+            reward.fit(&data, 2, &mut rng);
+        }
         models.version = 4;
         models.episodes_covered = 7;
         (preset, models)
+    }
+
+    #[test]
+    fn a_learned_reward_model_round_trips_and_must_match_the_task() {
+        let task = learned_cartpole();
+        let (preset, models) = trained_for(task, "cem+deen");
+        let bytes = encode(&models, task).unwrap();
+        let restored = decode(&bytes, task, &preset).unwrap();
+        let (saved, loaded) = (models.reward.unwrap(), restored.reward.unwrap());
+        assert!(loaded.is_trained());
+        assert_eq!(loaded.parts(), saved.parts());
+        // Another size of reward network does not fit.
+        let mut wider = preset.clone();
+        wider.reward.hidden_size = 9;
+        let err = decode(&bytes, task, &wider).unwrap_err();
+        assert!(err.to_string().contains("reward parameters"), "{err}");
+        // Models without a reward model do not serve a learned reward, nor the reverse.
+        let (_, plain) = trained("cem+deen");
+        let mut renamed = encode(&plain, Builtin::Cartpole.task()).unwrap();
+        renamed = rewrite_header(&renamed, |h| h["task"] = task.name().into());
+        let err = decode(&renamed, task, &preset).unwrap_err();
+        assert!(err.to_string().contains("lacks a reward model"), "{err}");
+        let back = rewrite_header(&bytes, |h| h["task"] = "cartpole".into());
+        let plain_preset = Preset {
+            task: Builtin::Cartpole.task(),
+            ..preset.clone()
+        };
+        let err = decode(&back, Builtin::Cartpole.task(), &plain_preset).unwrap_err();
+        assert!(err.to_string().contains("holds a reward model"), "{err}");
+    }
+
+    /// The checkpoint `bytes` with its JSON header edited by `edit`, checksummed again.
+    fn rewrite_header(bytes: &[u8], edit: impl FnOnce(&mut serde_json::Value)) -> Vec<u8> {
+        let (_, metadata) = SafeTensors::read_metadata(bytes).unwrap();
+        let mut header: serde_json::Value =
+            serde_json::from_str(&metadata.metadata().as_ref().unwrap()[HEADER_KEY]).unwrap();
+        edit(&mut header);
+        let header = header.to_string();
+        let tensors = SafeTensors::deserialize(bytes).unwrap();
+        let views: Vec<(String, TensorView<'_>)> = tensors.tensors();
+        let crc = checksum(&header, views.iter().map(|(n, v)| (n.as_str(), v.data())));
+        serialize(
+            views,
+            Some(HashMap::from([
+                (HEADER_KEY.to_string(), header),
+                (CHECKSUM_KEY.to_string(), crc.to_string()),
+            ])),
+        )
+        .unwrap()
+    }
+
+    /// A version 2 file (before reward models) still loads: it holds models without one.
+    #[test]
+    fn a_version_2_checkpoint_reads_as_models_without_a_reward_model() {
+        let (preset, models) = trained("cem+deen");
+        let task = Builtin::Cartpole.task();
+        let bytes = encode(&models, task).unwrap();
+        let v2 = rewrite_header(&bytes, |h| {
+            h["format"] = 2.into();
+            h.as_object_mut().unwrap().remove("reward");
+        });
+        let restored = decode(&v2, task, &preset).unwrap();
+        assert!(restored.reward.is_none());
+        assert_eq!(restored.dynamics.parts(), models.dynamics.parts());
+        let v4 = rewrite_header(&bytes, |h| h["format"] = (FORMAT_VERSION + 1).into());
+        let err = decode(&v4, task, &preset).unwrap_err();
+        assert!(matches!(err, CheckpointError::Format { .. }), "{err}");
     }
 
     #[test]

@@ -11,7 +11,9 @@
 //! and weighted by its share of the particles. PETS' sampled particles (TS∞) are not used:
 //! Boney et al. plan through the mean of a single model, and a sampled objective would make
 //! every Adam step follow a different function. The reward's gradient is the task's own
-//! ([`proto::Task::reward_gradient`]); the regulariser's is
+//! ([`proto::Task::reward_gradient`]) or, for a task whose reward is learned, the reward
+//! model's ([`RewardModel::predict_with_gradient`], which unlike the catalog's rewards also
+//! depends on `s_t`); the regulariser's is
 //! [`Regularizer::energy_and_gradient`]: for the DAE, the penalty `‖g(x) − x‖²` with the
 //! gradient stopped at the autoencoder, as the paper describes Boney et al.'s method (§3).
 //! Termination (the ant falling) stops a row accruing, as in imagination; its gradient does
@@ -45,6 +47,7 @@ use super::anytime::IterationClock;
 use super::cem::{CemConfig, CemOutcome, ConfigError, SequenceBox};
 use crate::dynamics::{Ensemble, MeanTape};
 use crate::energy::{EnergyGradScratch, Regularizer};
+use crate::reward::{RewardModel, RewardTape};
 use proto::Task;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -143,9 +146,13 @@ struct Rollout {
     d_next: Vec<f32>,
     d_obs: Vec<f32>,
     d_act: Vec<f32>,
-    /// One row's reward gradient.
+    /// The step's reward per row and its gradient w.r.t. `s_t`, `a_t`, `s_{t+1}` (rows × dims).
+    reward: Vec<f32>,
+    r_obs: Vec<f32>,
     r_act: Vec<f32>,
     r_next: Vec<f32>,
+    /// The reward model's training pass, for a learned reward.
+    reward_tape: Option<RewardTape>,
 }
 
 impl AdamPlanner {
@@ -237,10 +244,11 @@ impl AdamPlanner {
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
+        reward: Option<&RewardModel>,
         clock: &mut IterationClock,
     ) -> CemOutcome {
         assert_eq!(obs.len(), self.task.obs_dim, "observation dimension");
-        self.prepare(dynamics, regularizer);
+        self.prepare(dynamics, regularizer, reward);
         let dim = self.warm.len();
         for (i, candidate) in self.params.chunks_exact_mut(dim).enumerate() {
             candidate.copy_from_slice(&self.warm);
@@ -268,7 +276,7 @@ impl AdamPlanner {
                 cut = true;
                 break;
             }
-            self.forward(obs, dynamics, regularizer);
+            self.forward(obs, dynamics, regularizer, reward);
             self.keep_best();
             if scores_only {
                 break;
@@ -322,12 +330,23 @@ impl AdamPlanner {
     }
 
     /// Makes sure the rollout memory fits these models.
-    fn prepare(&mut self, dynamics: &Ensemble, regularizer: &Regularizer) {
+    fn prepare(
+        &mut self,
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+        reward: Option<&RewardModel>,
+    ) {
+        super::imagine::assert_learned_reward_matches(self.task, reward);
         let c = self.config.population;
         let members = dynamics.members().min(self.config.particles);
         let fits = self.rollout.as_ref().is_some_and(|r| {
             r.members == members
                 && r.energy_scratch.fits(regularizer, members * c)
+                && match (reward, &r.reward_tape) {
+                    (None, _) => true,
+                    (Some(m), Some(tape)) => tape.fits(m, members * c),
+                    (Some(_), None) => false,
+                }
                 && r.tapes[0]
                     .iter()
                     .enumerate()
@@ -338,15 +357,20 @@ impl AdamPlanner {
                 self.task,
                 &self.config,
                 members,
-                dynamics,
-                regularizer,
+                (dynamics, regularizer, reward),
             ));
         }
     }
 
     /// Rolls every candidate forward through the mean dynamics, accumulating the objective and
     /// recording what [`AdamPlanner::backward`] needs.
-    fn forward(&mut self, obs: &[f32], dynamics: &Ensemble, regularizer: &Regularizer) {
+    fn forward(
+        &mut self,
+        obs: &[f32],
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+        learned: Option<&RewardModel>,
+    ) {
         let (o, a, h) = (self.task.obs_dim, self.task.act_dim, self.config.horizon);
         let c = self.config.population;
         let r = self.rollout.as_mut().expect("prepared");
@@ -386,6 +410,21 @@ impl AdamPlanner {
                 &mut r.g_act[t],
                 &mut r.g_next[t],
             );
+            if let Some(model) = learned {
+                model.predict_with_gradient(
+                    state,
+                    &r.act,
+                    next,
+                    rows,
+                    r.reward_tape
+                        .as_mut()
+                        .expect("prepared for the reward model"),
+                    &mut r.reward,
+                    &mut r.r_obs,
+                    &mut r.r_act,
+                    &mut r.r_next,
+                );
+            }
             let alpha = self.energy_weight;
             for row in 0..rows {
                 let (go, ga, gn) = (
@@ -404,20 +443,28 @@ impl AdamPlanner {
                     &r.act[row * a..(row + 1) * a],
                     &next[row * o..(row + 1) * o],
                 );
-                let reward = self
-                    .task
-                    .reward_gradient(s, u, s1, &mut r.r_act, &mut r.r_next);
+                let (dr_obs, dr_act, dr_next) = (
+                    &mut r.r_obs[row * o..(row + 1) * o],
+                    &mut r.r_act[row * a..(row + 1) * a],
+                    &mut r.r_next[row * o..(row + 1) * o],
+                );
+                if learned.is_none() {
+                    // The catalog's rewards and formulas give no `∂r/∂s` (see the module docs).
+                    r.reward[row] = self.task.reward_gradient(s, u, s1, dr_act, dr_next);
+                    dr_obs.fill(0.0);
+                }
+                let reward = r.reward[row];
                 r.ret[row] += reward - alpha * r.energy[row];
                 r.energy_sum[row] += r.energy[row];
                 // ∂J_t = w · (∂r − α ∂E), the member's share `w` of the particles.
                 let w = r.weight[row / c];
-                for g in go.iter_mut() {
-                    *g *= -alpha * w;
-                }
-                for (g, dr) in ga.iter_mut().zip(&r.r_act) {
+                for (g, dr) in go.iter_mut().zip(dr_obs.iter()) {
                     *g = w * (dr - alpha * *g);
                 }
-                for (g, dr) in gn.iter_mut().zip(&r.r_next) {
+                for (g, dr) in ga.iter_mut().zip(dr_act.iter()) {
+                    *g = w * (dr - alpha * *g);
+                }
+                for (g, dr) in gn.iter_mut().zip(dr_next.iter()) {
                     *g = w * (dr - alpha * *g);
                 }
                 if self.task.is_terminal(s1) {
@@ -490,8 +537,7 @@ impl Rollout {
         task: &'static Task,
         config: &CemConfig,
         members: usize,
-        dynamics: &Ensemble,
-        regularizer: &Regularizer,
+        (dynamics, regularizer, reward): (&Ensemble, &Regularizer, Option<&RewardModel>),
     ) -> Self {
         let (o, a, h, c) = (
             task.obs_dim,
@@ -531,8 +577,11 @@ impl Rollout {
             d_next: vec![0.0; rows * o],
             d_obs: vec![0.0; rows * o],
             d_act: vec![0.0; rows * a],
-            r_act: vec![0.0; a],
-            r_next: vec![0.0; o],
+            reward: vec![0.0; rows],
+            r_obs: vec![0.0; rows * o],
+            r_act: vec![0.0; rows * a],
+            r_next: vec![0.0; rows * o],
+            reward_tape: reward.map(|m| m.tape(rows)),
         }
     }
 }
@@ -561,8 +610,8 @@ mod tests {
         }
     }
 
-    fn random_data(task: Builtin, n: usize, rng: &mut StdRng) -> Transitions {
-        let spec = task.task();
+    /// Random transitions of `spec`, each rewarded `Σ sin(s')` (what a learned reward learns).
+    fn random_data(spec: &Task, n: usize, rng: &mut StdRng) -> Transitions {
         let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
         for _ in 0..n {
             let obs: Vec<f32> = (0..spec.obs_dim)
@@ -575,23 +624,34 @@ mod tests {
                 .iter()
                 .map(|o| o + 0.3 * rng.random_range(-1.0f32..1.0))
                 .collect();
-            data.push(&obs, &act, &next);
+            let reward = next.iter().map(|x| x.sin()).sum();
+            data.push(&obs, &act, reward, &next);
         }
         data
     }
 
+    /// Cartpole whose reward is learned.
+    fn learned_cartpole() -> &'static Task {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "adam-learned-cartpole".into();
+        spec.reward = proto::task::RewardKind::Learned;
+        Task::intern(spec, &proto::task::SpecBounds::default()).unwrap()
+    }
+
     /// The whole-horizon gradient (dynamics of a two-member ensemble with three particles,
-    /// task reward, DAE penalty with its stopped gradient, DEEN's exact one) against central
-    /// differences of the objective the forward pass computes.
+    /// task reward or a learned one (whose gradient reaches `s_t` too), DAE penalty with its
+    /// stopped gradient, DEEN's exact one) against central differences of the objective the
+    /// forward pass computes.
     #[test]
     fn whole_horizon_gradient_matches_finite_differences() {
-        for (task, kind) in [
-            (Builtin::Cartpole, RegularizerKind::Dae),
-            (Builtin::HalfCheetah, RegularizerKind::Deen),
+        for (spec, kind) in [
+            (Builtin::Cartpole.task(), RegularizerKind::Dae),
+            (Builtin::HalfCheetah.task(), RegularizerKind::Deen),
+            (learned_cartpole(), RegularizerKind::Deen),
         ] {
-            let spec = task.task();
+            let task = spec.name();
             let mut rng = StdRng::seed_from_u64(17);
-            let data = random_data(task, 200, &mut rng);
+            let data = random_data(spec, 200, &mut rng);
             let dynamics_config = DynamicsConfig {
                 hidden_layers: 2,
                 hidden_size: 16,
@@ -609,6 +669,17 @@ mod tests {
             let mut reg =
                 Regularizer::new(kind, &energy_config, spec.obs_dim, spec.act_dim, &mut rng);
             reg.fit(&data, 2, &mut rng);
+            let reward = spec.reward_is_learned().then(|| {
+                let sizes = crate::reward::RewardConfig {
+                    hidden_layers: 2,
+                    hidden_size: 16,
+                };
+                let mut model =
+                    RewardModel::new(spec, &sizes, &DynamicsConfig::default(), &mut rng);
+                model.fit(&data, 3, &mut rng);
+                model
+            });
+            let reward = reward.as_ref();
             // A frozen DAE output for the finite differences: the stopped gradient is the
             // gradient of the penalty with g held fixed, so compare only with DEEN's exact
             // gradient through the energy, and with the DAE at α = 0 plus its own test
@@ -619,14 +690,14 @@ mod tests {
                 0.0
             };
             let mut planner = AdamPlanner::new(spec, config(4, 3, 1, 3), alpha, 5).unwrap();
-            planner.prepare(&dynamics, &reg);
+            planner.prepare(&dynamics, &reg, reward);
             let dim = planner.warm.len();
             for (k, p) in planner.params.iter_mut().enumerate() {
                 let c = k % dim;
                 *p = 0.5 * planner.upper[c] * (0.7 * (k as f32 * 1.3).sin());
             }
             let obs: Vec<f32> = (0..spec.obs_dim).map(|i| 0.2 * (i as f32).cos()).collect();
-            planner.forward(&obs, &dynamics, &reg);
+            planner.forward(&obs, &dynamics, &reg, reward);
             planner.backward(&dynamics);
             let grad = planner.grad.clone();
             let base = planner.params.clone();
@@ -635,7 +706,7 @@ mod tests {
                 let mut at = |x: f32| {
                     planner.params.copy_from_slice(&base);
                     planner.params[k] = x;
-                    planner.forward(&obs, &dynamics, &reg);
+                    planner.forward(&obs, &dynamics, &reg, reward);
                     planner.returns[k / dim] as f64
                 };
                 let fd = ((at(base[k] + h) - at(base[k] - h)) / (2.0 * h as f64)) as f32;
@@ -671,7 +742,7 @@ mod tests {
             for n in &mut next[1..] {
                 *n += 0.01 * rng.random_range(-1.0f32..1.0);
             }
-            data.push(&obs, &act, &next);
+            data.push(&obs, &act, 0.0, &next);
         }
         let dynamics_config = DynamicsConfig {
             hidden_layers: 2,
@@ -684,7 +755,7 @@ mod tests {
         dynamics.fit(&data, 30, &mut rng);
         let mut planner = AdamPlanner::new(spec, config(5, 4, 60, 1), 0.0, 1).unwrap();
         let mut clock = IterationClock::default();
-        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None, &mut clock);
+        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None, None, &mut clock);
         assert_eq!(outcome.iterations, 60);
         assert!(!outcome.cut);
         for (t, step) in planner.best().chunks_exact(6).enumerate() {
@@ -710,7 +781,7 @@ mod tests {
         clock.start(Some(
             std::time::Instant::now() - std::time::Duration::from_millis(1),
         ));
-        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None, &mut clock);
+        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None, None, &mut clock);
         assert_eq!((outcome.iterations, outcome.cut), (0, true));
         assert_eq!(planner.best(), &warm[..]);
         planner.reset();

@@ -3,8 +3,10 @@
 //!
 //! `return = Σ_τ [ r(s_τ, a_τ, s_τ₊₁) − α·E(s_τ, a_τ, s_τ₊₁) ]`,
 //!
-//! with `r` the task's own reward ([`proto::Task::reward`], the function the simulator uses),
-//! `E` the regulariser's energy and `α` the energy weight.
+//! with `r` the task's own reward ([`proto::Task::reward`], the function the simulator uses)
+//! or, for a task whose reward is learned, the run's reward model (one batched forward pass
+//! per step for the whole chunk, [`RewardModel::predict`]), `E` the regulariser's energy and
+//! `α` the energy weight.
 //!
 //! - **Particles (PETS TS∞).** Each candidate is imagined `P` times; particle `p` follows
 //!   ensemble member `p mod B` for the whole horizon and, when sampling is on, draws its next
@@ -26,6 +28,7 @@
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
 use crate::plan::cem::CemConfig;
+use crate::reward::{RewardModel, RewardScratch};
 use proto::Task;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -82,6 +85,8 @@ struct Chunk {
 struct Scratch {
     dynamics: DynamicsScratch,
     energy: EnergyScratch,
+    /// For a learned reward only.
+    reward: Option<RewardScratch>,
 }
 
 impl Imagination {
@@ -126,13 +131,15 @@ impl Imagination {
     /// Scores every candidate of `actions` (`n × horizon × act_dim`) from `obs` into `returns`
     /// (`n`), for any `n` up to [`Imagination::population`] (iCEM's population shrinks from one
     /// iteration to the next; the chunks are filled in order, so a smaller population leaves
-    /// the last chunks short or idle).
+    /// the last chunks short or idle). `reward` is the run's reward model, exactly when the
+    /// task's reward is learned.
     pub fn evaluate(
         &mut self,
         obs: &[f32],
         actions: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
+        reward: Option<&RewardModel>,
         returns: &mut [f32],
     ) {
         let ctx = self.ctx;
@@ -140,7 +147,7 @@ impl Imagination {
         assert_eq!(obs.len(), ctx.task.obs_dim, "observation dimension");
         assert!(returns.len() <= self.population(), "population");
         assert_eq!(actions.len(), returns.len() * seq, "action sequences");
-        self.prepare(dynamics, regularizer);
+        self.prepare(dynamics, regularizer, reward);
         // The full population keeps its fixed split; a smaller one is spread evenly, which fits
         // every chunk (⌈n/c⌉ ≤ chunk_len, the room of each).
         let n = returns.len();
@@ -160,8 +167,7 @@ impl Imagination {
                     obs,
                     actions,
                     returns.len(),
-                    dynamics,
-                    regularizer,
+                    (dynamics, regularizer, reward),
                     None,
                 );
                 chunk.write_returns(&ctx, returns);
@@ -177,12 +183,14 @@ impl Imagination {
     /// Imagines one action sequence (`horizon × act_dim`) from `obs` and writes, per step, the
     /// particles' mean reward and mean energy. Returns the sequence's regularised return, scored
     /// exactly as [`Imagination::evaluate`] scores a candidate.
+    #[allow(clippy::too_many_arguments)]
     pub fn rollout(
         &mut self,
         obs: &[f32],
         actions: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
+        reward: Option<&RewardModel>,
         rewards: &mut [f32],
         energies: &mut [f32],
     ) -> f32 {
@@ -198,36 +206,60 @@ impl Imagination {
             (ctx.horizon, ctx.horizon),
             "per-step outputs"
         );
-        self.prepare(dynamics, regularizer);
+        self.prepare(dynamics, regularizer, reward);
         let chunk = &mut self.chunks[0];
         chunk.imagine(
             &ctx,
             obs,
             actions,
             1,
-            dynamics,
-            regularizer,
+            (dynamics, regularizer, reward),
             Some((rewards, energies)),
         );
         chunk.candidate_return(&ctx, 1, 0)
     }
 
     /// Makes sure every chunk has network scratch space that fits these models.
-    fn prepare(&mut self, dynamics: &Ensemble, regularizer: &Regularizer) {
+    fn prepare(
+        &mut self,
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+        reward: Option<&RewardModel>,
+    ) {
+        assert_learned_reward_matches(self.ctx.task, reward);
         let rows_per_chunk = |c: &Chunk| c.capacity * self.ctx.particles;
         for chunk in &mut self.chunks {
             let rows = rows_per_chunk(chunk);
             let fits = chunk.scratch.as_ref().is_some_and(|s| {
-                s.dynamics.fits(dynamics, rows) && s.energy.fits(regularizer, rows)
+                s.dynamics.fits(dynamics, rows)
+                    && s.energy.fits(regularizer, rows)
+                    && match (reward, &s.reward) {
+                        (None, _) => true,
+                        (Some(m), Some(r)) => r.fits(m, rows),
+                        (Some(_), None) => false,
+                    }
             });
             if !fits {
                 chunk.scratch = Some(Scratch {
                     dynamics: dynamics.scratch(rows),
                     energy: regularizer.scratch(rows),
+                    reward: reward.map(|m| m.scratch(rows)),
                 });
             }
         }
     }
+}
+
+/// A planner scores with a reward model exactly when the task's reward is learned: a learned
+/// reward has no formula, and a task with one has no use for a model. The service builds the
+/// call from the run's models, so a mismatch is a bug, not an input.
+pub(super) fn assert_learned_reward_matches(task: &Task, reward: Option<&RewardModel>) {
+    assert_eq!(
+        reward.is_some(),
+        task.reward_is_learned(),
+        "task {}: a reward model is given exactly when the reward is learned",
+        task.name()
+    );
 }
 
 /// Decorrelated seeds for the chunks' noise generators (splitmix64 of seed and chunk index).
@@ -262,15 +294,13 @@ impl Chunk {
     /// Rolls `n` candidates (their sequences in `actions`, `n × horizon × act_dim`) forward
     /// from `obs`, accumulating per-row returns; with `record`, also writes each step's mean
     /// reward and energy over all rows.
-    #[allow(clippy::too_many_arguments)]
     fn imagine(
         &mut self,
         ctx: &Context,
         obs: &[f32],
         actions: &[f32],
         n: usize,
-        dynamics: &Ensemble,
-        regularizer: &Regularizer,
+        (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Option<&RewardModel>),
         mut record: Option<(&mut [f32], &mut [f32])>,
     ) {
         let (o, a, h) = (ctx.task.obs_dim, ctx.task.act_dim, ctx.horizon);
@@ -324,6 +354,20 @@ impl Chunk {
                     &mut self.energy[..rows],
                 );
             }
+            if let Some(model) = learned {
+                let scratch = scratch
+                    .reward
+                    .as_mut()
+                    .expect("prepared for the reward model");
+                model.predict(
+                    &self.state[..rows * o],
+                    &self.act[..rows * a],
+                    &self.next[..rows * o],
+                    rows,
+                    scratch,
+                    &mut self.reward[..rows],
+                );
+            }
             for r in 0..rows {
                 if !self.alive[r] {
                     self.reward[r] = 0.0;
@@ -335,8 +379,10 @@ impl Chunk {
                     &self.act[r * a..(r + 1) * a],
                     &self.next[r * o..(r + 1) * o],
                 );
-                let reward = ctx.task.reward(s, u, s1);
-                self.reward[r] = reward;
+                if learned.is_none() {
+                    self.reward[r] = ctx.task.reward(s, u, s1);
+                }
+                let reward = self.reward[r];
                 self.ret[r] += reward - ctx.energy_weight * self.energy[r];
                 self.energy_sum[r] += self.energy[r];
                 if ctx.task.is_terminal(s1) {
@@ -509,7 +555,7 @@ mod tests {
                 let config = cem(horizon, population, particles);
                 let mut imagination = Imagination::new(task, &config, alpha, false, chunks, 0);
                 let mut returns = vec![0.0; population];
-                imagination.evaluate(&obs, &actions, &dynamics, &regularizer, &mut returns);
+                imagination.evaluate(&obs, &actions, &dynamics, &regularizer, None, &mut returns);
                 for (i, (r, e)) in returns.iter().zip(&expected).enumerate() {
                     assert_close(
                         *r,
@@ -519,10 +565,95 @@ mod tests {
                 }
                 // A second call reuses every buffer and gives the same answer.
                 let mut again = vec![0.0; population];
-                imagination.evaluate(&obs, &actions, &dynamics, &regularizer, &mut again);
+                imagination.evaluate(&obs, &actions, &dynamics, &regularizer, None, &mut again);
                 assert_eq!(returns, again);
             }
         }
+    }
+
+    /// With a learned reward, imagination scores every transition with the reward model (one
+    /// batched call per step): the same returns as a sequential reading that asks the model
+    /// one row at a time.
+    #[test]
+    fn a_learned_reward_is_scored_by_the_reward_model() {
+        use crate::data::Transitions;
+        use crate::reward::{RewardConfig, RewardModel};
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "imagine-learned-cartpole".into();
+        spec.reward = proto::task::RewardKind::Learned;
+        let task = Task::intern(spec, &proto::task::SpecBounds::default()).unwrap();
+        let mut rng = StdRng::seed_from_u64(11);
+        let mut data = Transitions::new(4, 1);
+        for _ in 0..200 {
+            let s: Vec<f32> = (0..4).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let a = [rng.random_range(-3.0..3.0)];
+            let s1: Vec<f32> = s.iter().map(|x| x + 0.1 * a[0]).collect();
+            data.push(&s, &a, s1[0].cos() - 0.1 * a[0] * a[0], &s1);
+        }
+        let sizes = RewardConfig {
+            hidden_layers: 2,
+            hidden_size: 16,
+        };
+        let mut model = RewardModel::new(task, &sizes, &DynamicsConfig::default(), &mut rng);
+        model.fit(&data, 5, &mut rng);
+        let dynamics = Ensemble::new(
+            task,
+            &DynamicsConfig {
+                hidden_layers: 2,
+                hidden_size: 24,
+                ..Default::default()
+            },
+            &mut rng,
+        );
+        let (horizon, population) = (5, 6);
+        let obs = [0.1, 0.4, -0.2, 0.3];
+        let actions = random_sequences(task, population, horizon, 3);
+        let mut imagination =
+            Imagination::new(task, &cem(horizon, population, 1), 0.0, false, 2, 0);
+        let mut returns = vec![0.0; population];
+        imagination.evaluate(
+            &obs,
+            &actions,
+            &dynamics,
+            &Regularizer::None,
+            Some(&model),
+            &mut returns,
+        );
+        let (mut scratch, mut reward_scratch) = (dynamics.scratch(1), model.scratch(1));
+        for (seq, ret) in actions.chunks_exact(horizon).zip(&returns) {
+            let (mut s, mut s1, mut expected) = (obs.to_vec(), vec![0.0; 4], 0.0);
+            for u in seq.chunks_exact(1) {
+                dynamics.predict_next(0, &s, u, 1, &mut scratch, None, &mut s1);
+                let mut r = [0.0];
+                model.predict(&s, u, &s1, 1, &mut reward_scratch, &mut r);
+                expected += r[0];
+                std::mem::swap(&mut s, &mut s1);
+            }
+            assert_close(*ret, expected, "return under the learned reward");
+        }
+    }
+
+    /// A learned reward without its model (or a model for a task with a formula) is a bug in
+    /// the caller, caught before any imagining.
+    #[test]
+    #[should_panic(expected = "a reward model is given exactly when the reward is learned")]
+    fn a_learned_reward_needs_its_model() {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "imagine-learned-without-model".into();
+        spec.reward = proto::task::RewardKind::Learned;
+        let task = Task::intern(spec, &proto::task::SpecBounds::default()).unwrap();
+        let dynamics = ensemble(Builtin::Cartpole, 1, 1);
+        let mut imagination = Imagination::new(task, &cem(3, 2, 1), 0.0, false, 1, 0);
+        let mut returns = vec![0.0; 2];
+        let actions = random_sequences(task, 2, 3, 1);
+        imagination.evaluate(
+            &[0.0; 4],
+            &actions,
+            &dynamics,
+            &Regularizer::None,
+            None,
+            &mut returns,
+        );
     }
 
     #[test]
@@ -535,7 +666,7 @@ mod tests {
         let score = |alpha: f32, reg: &Regularizer| {
             let mut imagination = Imagination::new(task, &cem(5, 4, 1), alpha, false, 2, 0);
             let mut returns = vec![0.0; 4];
-            imagination.evaluate(&obs, &actions, &dynamics, reg, &mut returns);
+            imagination.evaluate(&obs, &actions, &dynamics, reg, None, &mut returns);
             let energies: Vec<f32> = (0..4).map(|i| imagination.candidate_energy(i)).collect();
             (returns, energies)
         };
@@ -584,7 +715,14 @@ mod tests {
         let mut imagination =
             Imagination::new(task, &cem(horizon, population, 2), 0.0, false, 2, 0);
         let mut returns = vec![0.0; population];
-        imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
+        imagination.evaluate(
+            &obs,
+            &actions,
+            &dynamics,
+            &Regularizer::None,
+            None,
+            &mut returns,
+        );
         for (seq, r) in actions.chunks_exact(horizon * task.act_dim).zip(&returns) {
             let (expected, steps) =
                 reference(task, &obs, seq, &dynamics, 0, &Regularizer::None, 0.0);
@@ -598,7 +736,14 @@ mod tests {
         delta[0] = 0.0;
         let standing = constant_delta_ant(&delta);
         let mut upright = vec![0.0; population];
-        imagination.evaluate(&obs, &actions, &standing, &Regularizer::None, &mut upright);
+        imagination.evaluate(
+            &obs,
+            &actions,
+            &standing,
+            &Regularizer::None,
+            None,
+            &mut upright,
+        );
         for (r, u) in returns.iter().zip(&upright) {
             assert!(u > r, "{u} should exceed {r}");
         }
@@ -615,7 +760,14 @@ mod tests {
         let actions = random_sequences(task, 3, 4, 0);
         let mut imagination = Imagination::new(task, &cem(4, 3, 1), 0.0, false, 1, 0);
         let mut returns = vec![0.0; 3];
-        imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
+        imagination.evaluate(
+            &obs,
+            &actions,
+            &dynamics,
+            &Regularizer::None,
+            None,
+            &mut returns,
+        );
         assert!(
             returns.iter().all(|&r| r == f32::NEG_INFINITY),
             "{returns:?}"
@@ -635,14 +787,21 @@ mod tests {
         let mut imagination =
             Imagination::new(task, &cem(horizon, population, 1), 0.01, false, 3, 0);
         let mut full = vec![0.0; population];
-        imagination.evaluate(&obs, &actions, &dynamics, &energy, &mut full);
+        imagination.evaluate(&obs, &actions, &dynamics, &energy, None, &mut full);
         let full_energy: Vec<f32> = (0..population)
             .map(|i| imagination.candidate_energy(i))
             .collect();
         let seq = horizon * task.act_dim;
         for n in [9, 4, 1] {
             let mut part = vec![0.0; n];
-            imagination.evaluate(&obs, &actions[..n * seq], &dynamics, &energy, &mut part);
+            imagination.evaluate(
+                &obs,
+                &actions[..n * seq],
+                &dynamics,
+                &energy,
+                None,
+                &mut part,
+            );
             for i in 0..n {
                 assert_close(
                     part[i],
@@ -669,7 +828,14 @@ mod tests {
             let mut imagination =
                 Imagination::new(task, &cem(horizon, population, 4), 0.0, sample, 2, seed);
             let mut returns = vec![0.0; population];
-            imagination.evaluate(&obs, &actions, &dynamics, &Regularizer::None, &mut returns);
+            imagination.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                &Regularizer::None,
+                None,
+                &mut returns,
+            );
             returns
         };
         let sampled = run(true, 1);
@@ -694,6 +860,7 @@ mod tests {
             &seq,
             &dynamics,
             &regularizer,
+            None,
             &mut rewards,
             &mut energies,
         );

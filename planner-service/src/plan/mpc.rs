@@ -7,6 +7,7 @@ use crate::plan::anytime::{IterationClock, Preempt};
 use crate::plan::cem::{CemConfig, ConfigError};
 use crate::plan::imagine::Imagination;
 use crate::plan::search::{Imagined, Search};
+use crate::reward::RewardModel;
 use proto::Task;
 use std::sync::Arc;
 use std::time::Instant;
@@ -130,14 +131,18 @@ impl MpcPlanner {
     /// answer is the previous plan's next action (the warm start), with no elites scored
     /// (`predicted_return` is `-inf`, `mean_energy` 0). Without one, every configured
     /// iteration runs, exactly as the seed dictates.
+    ///
+    /// `reward` is the run's reward model, given exactly when the task's reward is learned
+    /// (a planner of such a task has no other way to score a transition).
     pub fn plan(
         &mut self,
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
+        reward: Option<&RewardModel>,
         deadline: Option<Instant>,
     ) -> PlanOutcome<'_> {
-        self.plan_shared(obs, dynamics, regularizer, deadline, None)
+        self.plan_shared(obs, dynamics, regularizer, reward, deadline, None)
     }
 
     /// [`MpcPlanner::plan`] on cores shared with other plans: `preempt` may pause the solve
@@ -147,6 +152,7 @@ impl MpcPlanner {
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
+        reward: Option<&RewardModel>,
         deadline: Option<Instant>,
         preempt: Option<Arc<dyn Preempt>>,
     ) -> PlanOutcome<'_> {
@@ -155,6 +161,7 @@ impl MpcPlanner {
             obs,
             dynamics,
             regularizer,
+            reward,
         };
         self.clock.start_shared(deadline, preempt);
         let (outcome, mean_energy) = self.search.optimize(&mut objective, &mut self.clock);
@@ -183,6 +190,7 @@ impl MpcPlanner {
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
+        reward: Option<&RewardModel>,
     ) -> ImaginedPlan {
         let warm_start = self.search.mean().to_vec();
         self.search.reset();
@@ -191,6 +199,7 @@ impl MpcPlanner {
             obs,
             dynamics,
             regularizer,
+            reward,
         };
         self.clock.start(None);
         let (outcome, _) = self.search.optimize(&mut objective, &mut self.clock);
@@ -203,6 +212,7 @@ impl MpcPlanner {
             &actions,
             dynamics,
             regularizer,
+            reward,
             &mut rewards,
             &mut energies,
         );
@@ -242,7 +252,7 @@ mod tests {
                 0.0,
             ];
             let a = rng.random_range(actions.0..actions.1);
-            data.push(&obs, &[a], &[obs[0] + 0.1 * a, obs[1], obs[2], obs[3]]);
+            data.push(&obs, &[a], 0.0, &[obs[0] + 0.1 * a, obs[1], obs[2], obs[3]]);
         }
         data
     }
@@ -280,7 +290,13 @@ mod tests {
         let dynamics = learned_cart();
         let task = Builtin::Cartpole.task();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 3).unwrap();
-        let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
+        let right = planner.plan(
+            &[0.5, PI, 0.0, 0.0],
+            &dynamics,
+            &Regularizer::None,
+            None,
+            None,
+        );
         assert!(right.action[0] < -1.0, "{right:?}");
         assert!(
             right.predicted_return > 5.0 && right.predicted_return <= 8.0,
@@ -288,7 +304,13 @@ mod tests {
         );
         assert_eq!((right.iterations, right.mean_energy), (5, 0.0));
         planner.reset();
-        let left = planner.plan(&[-0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
+        let left = planner.plan(
+            &[-0.5, PI, 0.0, 0.0],
+            &dynamics,
+            &Regularizer::None,
+            None,
+            None,
+        );
         assert!(left.action[0] > 1.0, "{left:?}");
     }
 
@@ -314,16 +336,16 @@ mod tests {
             |plan: &ImaginedPlan| plan.actions.iter().sum::<f32>() / plan.actions.len() as f32;
 
         let mut free = MpcPlanner::new(task, config(), 0.0, false, 3).unwrap();
-        let unregularised = free.imagine_plan(&obs, &dynamics, &deen);
+        let unregularised = free.imagine_plan(&obs, &dynamics, &deen, None);
         let mut careful = MpcPlanner::new(task, config(), 10.0, false, 3).unwrap();
-        let regularised = careful.imagine_plan(&obs, &dynamics, &deen);
+        let regularised = careful.imagine_plan(&obs, &dynamics, &deen, None);
         assert!(mean_push(&unregularised) < -0.4, "{unregularised:?}");
         assert!(mean_push(&regularised) > 0.1, "{regularised:?}");
         assert!(regularised.actions[0] > unregularised.actions[0] + 1.0);
         // The regularised plan is the more familiar one, step for step on average.
         let mean_energy = |plan: &ImaginedPlan| plan.energies.iter().sum::<f32>();
         assert!(mean_energy(&regularised) < mean_energy(&unregularised));
-        let outcome = careful.plan(&obs, &dynamics, &deen, None);
+        let outcome = careful.plan(&obs, &dynamics, &deen, None, None);
         assert!(
             outcome.mean_energy.is_finite() && outcome.mean_energy > 0.0,
             "{outcome:?}"
@@ -337,17 +359,24 @@ mod tests {
         let obs = [0.5, PI, 0.0, 0.0];
         let mut a = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
         let mut b = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
-        let first = a.plan(&obs, &dynamics, &Regularizer::None, None).action[0];
+        let first = a
+            .plan(&obs, &dynamics, &Regularizer::None, None, None)
+            .action[0];
         assert_eq!(
             first,
-            b.plan(&obs, &dynamics, &Regularizer::None, None).action[0]
+            b.plan(&obs, &dynamics, &Regularizer::None, None, None)
+                .action[0]
         );
         // The warm start is the plan shifted by one step, with the neutral action appended.
         let plan = a.search.mean().to_vec();
         assert_eq!(plan[plan.len() - 1], 0.0);
-        let second = a.plan(&obs, &dynamics, &Regularizer::None, None).action[0];
+        let second = a
+            .plan(&obs, &dynamics, &Regularizer::None, None, None)
+            .action[0];
         b.reset();
-        let fresh = b.plan(&obs, &dynamics, &Regularizer::None, None).action[0];
+        let fresh = b
+            .plan(&obs, &dynamics, &Regularizer::None, None, None)
+            .action[0];
         assert_ne!(
             second, fresh,
             "warm and cold starts drew from different distributions"
@@ -359,9 +388,16 @@ mod tests {
         let dynamics = learned_cart();
         let task = Builtin::Cartpole.task();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 2).unwrap();
-        planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
+        planner.plan(
+            &[0.5, PI, 0.0, 0.0],
+            &dynamics,
+            &Regularizer::None,
+            None,
+            None,
+        );
         let warm = planner.search.mean().to_vec();
-        let imagined = planner.imagine_plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None);
+        let imagined =
+            planner.imagine_plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
         assert_eq!(planner.search.mean(), &warm[..]);
         assert_eq!((imagined.actions.len(), imagined.rewards.len()), (8, 8));
         let total: f32 = imagined.rewards.iter().sum();
@@ -394,7 +430,7 @@ mod tests {
         let mut obs = [0.5, PI, 0.0, 0.0];
         for _ in 0..3 {
             let planned = planner
-                .plan(&obs, &dynamics, &Regularizer::None, None)
+                .plan(&obs, &dynamics, &Regularizer::None, None, None)
                 .action
                 .to_vec();
             cem.optimize(
@@ -403,6 +439,7 @@ mod tests {
                     obs: &obs,
                     dynamics: &dynamics,
                     regularizer: &Regularizer::None,
+                    reward: None,
                 },
                 &mut IterationClock::default(),
             );
@@ -421,10 +458,22 @@ mod tests {
         cfg.population = 50;
         cfg.elites = 10;
         let mut planner = MpcPlanner::new(task, cfg, 0.0, false, 3).unwrap();
-        let right = planner.plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
+        let right = planner.plan(
+            &[0.5, PI, 0.0, 0.0],
+            &dynamics,
+            &Regularizer::None,
+            None,
+            None,
+        );
         assert!(right.action[0] < -1.0, "{right:?}");
         planner.reset();
-        let left = planner.plan(&[-0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
+        let left = planner.plan(
+            &[-0.5, PI, 0.0, 0.0],
+            &dynamics,
+            &Regularizer::None,
+            None,
+            None,
+        );
         assert!(left.action[0] > 1.0, "{left:?}");
     }
 
@@ -435,13 +484,13 @@ mod tests {
         let task = Builtin::Cartpole.task();
         let obs = [0.5, PI, 0.0, 0.0];
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 4).unwrap();
-        let first = planner.plan(&obs, &dynamics, &Regularizer::None, None);
+        let first = planner.plan(&obs, &dynamics, &Regularizer::None, None, None);
         assert!(first.iterations > 0 && !first.cut, "{first:?}");
         // The warm start is the plan shifted by one step: its first action is what a plan
         // that cannot run one iteration answers.
         let shifted = planner.search.mean()[0];
         let passed = Some(Instant::now() - Duration::from_millis(1));
-        let late = planner.plan(&obs, &dynamics, &Regularizer::None, passed);
+        let late = planner.plan(&obs, &dynamics, &Regularizer::None, None, passed);
         assert_eq!((late.iterations, late.cut), (0, true));
         assert_eq!(late.action, &[shifted]);
         assert_eq!(late.mean_energy, 0.0);
@@ -459,7 +508,7 @@ mod tests {
             let mut obs = [0.5, PI, 0.0, 0.0];
             let mut taken = Vec::new();
             for _ in 0..4 {
-                let outcome = planner.plan(&obs, &dynamics, &Regularizer::None, deadline);
+                let outcome = planner.plan(&obs, &dynamics, &Regularizer::None, None, deadline);
                 assert!(outcome.iterations > 0 && !outcome.cut, "{outcome:?}");
                 taken.push(outcome.action[0]);
                 obs[0] += 0.1 * outcome.action[0];

@@ -8,6 +8,7 @@ use super::icem::Icem;
 use super::imagine::Imagination;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
+use crate::reward::RewardModel;
 use proto::Task;
 
 /// The planning problem of one step: imagination from one observation with fixed models.
@@ -17,12 +18,20 @@ pub(super) struct Imagined<'a> {
     pub obs: &'a [f32],
     pub dynamics: &'a Ensemble,
     pub regularizer: &'a Regularizer,
+    /// The run's reward model, exactly when the task's reward is learned.
+    pub reward: Option<&'a RewardModel>,
 }
 
 impl PopulationObjective for Imagined<'_> {
     fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]) {
-        self.imagination
-            .evaluate(self.obs, actions, self.dynamics, self.regularizer, returns);
+        self.imagination.evaluate(
+            self.obs,
+            actions,
+            self.dynamics,
+            self.regularizer,
+            self.reward,
+            returns,
+        );
     }
 }
 
@@ -91,7 +100,13 @@ impl Search {
             Search::Cem(s) => (s.optimize(problem, clock), s.elites()),
             Search::Icem(s) => (s.optimize(problem, clock), s.elites()),
             Search::Adam(s) => {
-                let outcome = s.optimize(problem.obs, problem.dynamics, problem.regularizer, clock);
+                let outcome = s.optimize(
+                    problem.obs,
+                    problem.dynamics,
+                    problem.regularizer,
+                    problem.reward,
+                    clock,
+                );
                 let energy = if outcome.iterations == 0 {
                     0.0
                 } else {

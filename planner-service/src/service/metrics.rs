@@ -462,7 +462,10 @@ type Body = http_body_util::Full<hyper::body::Bytes>;
 
 /// The answer to one request: the metrics for `GET /metrics`, `404` for any other path, `405`
 /// for another method there.
-fn answer<B>(request: &hyper::Request<B>, render: impl FnOnce() -> String) -> hyper::Response<Body> {
+fn answer<B>(
+    request: &hyper::Request<B>,
+    render: impl FnOnce() -> String,
+) -> hyper::Response<Body> {
     use hyper::{Method, StatusCode, header};
     let (status, body) = match (request.method(), request.uri().path()) {
         (&Method::GET, "/metrics") => (StatusCode::OK, render()),

@@ -33,8 +33,6 @@ pub enum TaskError {
         part: &'static str,
         message: String,
     },
-    #[error("task {task}: learned rewards are not available in this build")]
-    LearnedUnavailable { task: String },
     #[error(
         "this planner has compiled {MAX_DISTINCT_TASKS} distinct task specs, its most; restart it or reuse a spec"
     )]
@@ -166,6 +164,8 @@ enum Model {
 enum Reward {
     Builtin(&'static BuiltinCode),
     Expression(RowFormula),
+    /// Observed only: the run's reward model predicts it (see [`Task::reward_is_learned`]).
+    Learned,
 }
 
 #[derive(Debug)]
@@ -189,6 +189,10 @@ impl Deref for Task {
         &self.spec
     }
 }
+
+/// Why [`Task::reward`] cannot answer for a learned reward.
+const LEARNED_HAS_NO_FORMULA: &str =
+    "a learned reward has no formula: score transitions with the run's reward model";
 
 /// Every task this process compiled.
 static INTERNED: Mutex<Vec<&'static Task>> = Mutex::new(Vec::new());
@@ -225,11 +229,7 @@ impl Task {
             RewardKind::Expression(source) => {
                 Reward::Expression(compile_expression(&spec, "reward", source)?)
             }
-            RewardKind::Learned => {
-                return Err(TaskError::LearnedUnavailable {
-                    task: spec.name.clone(),
-                });
-            }
+            RewardKind::Learned => Reward::Learned,
         };
         let termination = match &spec.termination {
             TerminationKind::Never => Termination::Never,
@@ -262,11 +262,23 @@ impl Task {
         Builtin::from_name(&self.spec.name).filter(|b| b.spec() == self.spec)
     }
 
+    /// Whether this task's reward is learned: it has no formula, only the rewards agents send,
+    /// and a planner scores imagined transitions with the run's reward model instead of
+    /// [`Task::reward`].
+    pub fn reward_is_learned(&self) -> bool {
+        matches!(self.reward, Reward::Learned)
+    }
+
     /// Reward of the transition `obs --act--> next_obs`. The simulator reports exactly this.
+    ///
+    /// # Panics
+    ///
+    /// For a learned reward ([`Task::reward_is_learned`]): there is no formula to evaluate.
     pub fn reward(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
         match &self.reward {
             Reward::Builtin(code) => (code.reward)(obs, act, next_obs),
             Reward::Expression(e) => e.value(obs, act, next_obs),
+            Reward::Learned => panic!("{}: {LEARNED_HAS_NO_FORMULA}", self.spec.name),
         }
     }
 
@@ -276,6 +288,10 @@ impl Task {
     /// (the finite-difference tests check that too). Where a reward has a kink (pusher's L1
     /// distances) the gradient is the one-sided one of `signum`, 0 exactly at the kink.
     /// Gradient-based planning (Adam + DAE) back-propagates through it.
+    ///
+    /// # Panics
+    ///
+    /// For a learned reward, as [`Task::reward`].
     pub fn reward_gradient(
         &self,
         obs: &[f32],
@@ -287,6 +303,7 @@ impl Task {
         match &self.reward {
             Reward::Builtin(code) => (code.reward_gradient)(obs, act, next_obs, d_act, d_next_obs),
             Reward::Expression(e) => e.gradient(obs, act, next_obs, d_act, d_next_obs),
+            Reward::Learned => panic!("{}: {LEARNED_HAS_NO_FORMULA}", self.spec.name),
         }
     }
 
@@ -405,7 +422,7 @@ mod tests {
     }
 
     #[test]
-    fn expression_kinds_run_and_learned_rewards_are_refused_in_this_build() {
+    fn expression_and_learned_kinds_compile_and_run() {
         let mut spec = custom("expr");
         spec.reward = RewardKind::Expression("-s_next[0]^2 - 0.1*a[0]^2".into());
         spec.termination = TerminationKind::Expression("abs(s_next[2]) > 0.5".into());
@@ -437,12 +454,16 @@ mod tests {
         let err = Task::intern(spec, &SpecBounds::default()).unwrap_err();
         assert!(err.to_string().contains("reads only s_next"), "{err}");
 
+        // A learned reward compiles: it has no formula, the run's reward model scores it.
         let mut spec = custom("learned");
         spec.reward = RewardKind::Learned;
-        let err = Task::intern(spec, &SpecBounds::default()).unwrap_err();
+        let task = Task::intern(spec, &SpecBounds::default()).unwrap();
+        assert!(task.reward_is_learned());
+        assert!(!Builtin::Cartpole.task().reward_is_learned());
+        let formula = std::panic::catch_unwind(|| task.reward(&obs, &act, &next));
         assert!(
-            err.to_string()
-                .contains("learned rewards are not available")
+            formula.is_err(),
+            "a learned reward has no formula to evaluate"
         );
         let mut spec = custom("bad");
         spec.obs_dim = 0;
