@@ -651,9 +651,9 @@ impl Service {
             self.fleet.clone(),
             self.config.limits.magnitudes(run.task()),
             self.plans.clone(),
-            plans_waiting.clone(),
             session,
-        )?;
+        )?
+        .counting_waits_in(plans_waiting.clone());
         let idle = std::time::Duration::from_secs(self.config.limits.agent_idle_seconds);
         let worker = worker.idle_after(idle);
         let (tx, rx) = mpsc::channel(AGENT_QUEUE);

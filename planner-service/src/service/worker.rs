@@ -96,7 +96,6 @@ impl AgentWorker {
         fleet: Arc<Fleet>,
         magnitudes: Magnitudes,
         plans: Arc<Scheduler>,
-        waiting: Waiting,
         token: u64,
     ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
@@ -112,9 +111,16 @@ impl AgentWorker {
             fleet,
             magnitudes,
             plans,
-            waiting,
+            waiting: Waiting::default(),
             token,
         })
+    }
+
+    /// Counts this agent's plans waiting for the cores in `waiting`, which the service reads
+    /// as part of the agent's queue depth.
+    pub(crate) fn counting_waits_in(mut self, waiting: Waiting) -> Self {
+        self.waiting = waiting;
+        self
     }
 
     /// Closes the session after `idle` without an observation if the agent then holds no
