@@ -6,7 +6,8 @@ use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
 use crate::replay::{self, EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
-use crate::service::status::{Latency, LatencyWindow, PlanTally};
+use crate::service::metrics::RunHistograms;
+use crate::service::status::{LastRetraining, Latency, LatencyWindow, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
     EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, Task, TrainMode,
@@ -29,6 +30,9 @@ pub struct Hosting {
     pub replay_capacity: Option<usize>,
     /// How the run's replay log reaches its file.
     pub log_disk: LogDisk,
+    /// Where the run times its replay log's fsyncs and its retrainings (the daemon's metrics
+    /// registry serves them).
+    pub histograms: RunHistograms,
 }
 
 /// How each run's replay log reaches the disk: straight to its file (the daemon), or through
@@ -87,6 +91,8 @@ pub struct Run {
     hosting: Hosting,
     latencies: Mutex<LatencyWindow>,
     plan_tally: Mutex<PlanTally>,
+    /// The last retraining that produced models (`None` until one did here).
+    last_retraining: Mutex<Option<LastRetraining>>,
     /// What `status` reports of the buffer, kept apart from it so a report never waits for a
     /// buffer busy writing to disk.
     tally: Mutex<Tally>,
@@ -105,6 +111,8 @@ pub struct Tally {
     /// Finished (not interrupted) episodes.
     pub episodes: u32,
     pub transitions: usize,
+    /// Bytes of the replay log file.
+    pub log_bytes: u64,
     /// The last [`Tally::RETURNS`] finished episodes: agent, episode, return; oldest first.
     pub last_returns: Vec<(String, u32, f32)>,
 }
@@ -129,14 +137,6 @@ pub struct Stored {
     /// The episode finished: the number of finished episodes a sync-mode agent must see
     /// trained before its next episode.
     pub must_cover: Option<u32>,
-}
-
-/// Forces a run's log to disk, on the calling (blocking) thread. A failure is logged: the
-/// records were already handed to the OS, and the next sync tries again.
-fn sync_log(run: &str, syncer: &LogSyncer) {
-    if let Err(e) = syncer.sync() {
-        tracing::error!(run = %run, error = %e, "cannot sync the replay log to disk");
-    }
 }
 
 /// Why a stored or new run could not be opened.
@@ -268,6 +268,7 @@ impl Run {
         let epoch = buffer.epoch();
         let mut tally = Tally {
             transitions: buffer.len(),
+            log_bytes: buffer.log_bytes(),
             ..Tally::default()
         };
         let mut next_episodes = HashMap::new();
@@ -291,6 +292,7 @@ impl Run {
             hosting,
             latencies: Mutex::new(LatencyWindow::default()),
             plan_tally: Mutex::new(PlanTally::default()),
+            last_retraining: Mutex::new(None),
             tally: Mutex::new(tally),
             next_episodes: Mutex::new(next_episodes),
             dir,
@@ -395,6 +397,33 @@ impl Run {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .record(iterations, cut, missed);
+    }
+
+    /// Forces the run's log to disk, on the calling (blocking) thread, timing it. A failure is
+    /// logged: the records were already handed to the OS, and the next sync tries again.
+    fn sync_log(&self, syncer: &LogSyncer) {
+        let started = std::time::Instant::now();
+        let synced = syncer.sync();
+        self.hosting
+            .histograms
+            .fsync_seconds
+            .observe(started.elapsed().as_secs_f64());
+        if let Err(e) = synced {
+            tracing::error!(run = %self.name, error = %e, "cannot sync the replay log to disk");
+        }
+    }
+
+    /// The histograms this run records its fsyncs and retrainings in.
+    pub fn histograms(&self) -> &RunHistograms {
+        &self.hosting.histograms
+    }
+
+    /// The last retraining that produced models here, `None` before one did.
+    pub fn last_retraining(&self) -> Option<LastRetraining> {
+        *self
+            .last_retraining
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
     }
 
     /// How this run's plans went against its deadline.
@@ -530,10 +559,10 @@ impl Run {
             .then(|| buffer.syncer())
             .flatten();
         // Capacity may have evicted old transitions: the tally follows the buffer's length.
-        let transitions = buffer.len();
+        let (transitions, log_bytes) = (buffer.len(), buffer.log_bytes());
         drop(buffer);
         if let Some(syncer) = &sync {
-            sync_log(&self.name, syncer);
+            self.sync_log(syncer);
         }
         self.compact_log();
         for summary in [&accepted.abandoned, &accepted.finished]
@@ -542,7 +571,11 @@ impl Run {
         {
             ended(&mut self.lock_next_episodes(), agent, summary.episode);
         }
-        self.lock_tally().transitions = transitions;
+        {
+            let mut tally = self.lock_tally();
+            tally.transitions = transitions;
+            tally.log_bytes = log_bytes;
+        }
         let Some(finished) = &accepted.finished else {
             return Ok(Stored { must_cover: None });
         };
@@ -575,10 +608,11 @@ impl Run {
             let (agent, episode) = (summary.agent.clone(), summary.episode);
             let mut buffer = run.lock_buffer();
             buffer.append(vec![Record::from(summary)])?;
-            let syncer = buffer.syncer();
+            let (syncer, log_bytes) = (buffer.syncer(), buffer.log_bytes());
             drop(buffer);
+            run.lock_tally().log_bytes = log_bytes;
             if let Some(syncer) = &syncer {
-                sync_log(&run.name, syncer);
+                run.sync_log(syncer);
             }
             run.compact_log();
             ended(&mut run.lock_next_episodes(), &agent, episode);
@@ -682,6 +716,22 @@ impl Run {
             "models updated"
         );
         *self.models.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(models);
+        self.hosting
+            .histograms
+            .retraining_seconds
+            .observe(f64::from(report.seconds));
+        // A loss is `None` where the model took no step (nothing to report); a step's loss is
+        // finite, or `retrain` refused the models.
+        let loss = |steps: usize, loss: f32| (steps > 0 && loss.is_finite()).then_some(loss);
+        *self
+            .last_retraining
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(LastRetraining {
+            models_version: report.models_version,
+            seconds: report.seconds,
+            dynamics_loss: loss(report.dynamics_steps, report.dynamics_loss),
+            energy_loss: loss(report.energy_steps, report.energy_loss),
+        });
         self.trained_through.send_replace(episodes);
         self.emit(RunEventKind::ModelsUpdated {
             models_version: report.models_version,
@@ -740,6 +790,7 @@ mod tests {
             train_limits: TrainLimits::unbounded(),
             replay_capacity: None,
             log_disk: LogDisk::direct(),
+            histograms: RunHistograms::default(),
         }
     }
 

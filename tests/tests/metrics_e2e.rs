@@ -9,7 +9,10 @@ use proto::{Builtin, EpisodeEnd, Observation, RunSpec};
 
 const PLANNER: &str = "metrics";
 
-const METRICS: [&str; 10] = [
+/// Every metric the issue names, as served: plan latency per run, iterations, cut plans,
+/// misses, refusals by code, wildcards dropped, models version, replay transitions and bytes,
+/// episodes, agents, queue depth per agent, fsync latency, training duration and losses.
+const METRICS: [&str; 15] = [
     "ebmpc_plan_seconds_bucket",
     "ebmpc_plan_iterations_bucket",
     "ebmpc_plans_cut_total",
@@ -18,8 +21,13 @@ const METRICS: [&str; 10] = [
     "ebmpc_wildcard_keys_dropped_total",
     "ebmpc_models_version",
     "ebmpc_replay_transitions",
+    "ebmpc_replay_bytes",
     "ebmpc_episodes",
     "ebmpc_agents",
+    "ebmpc_agent_queue_depth",
+    "ebmpc_replay_fsync_seconds_bucket",
+    "ebmpc_retraining_seconds_bucket",
+    "ebmpc_training_loss",
 ];
 
 fn scrape(url: &str) -> String {
@@ -70,6 +78,17 @@ fn the_metrics_endpoint_serves_every_metric_and_its_counters_move() {
             sample(&before, "ebmpc_plan_seconds_count{run=\"watched\"}"),
             None
         );
+        // The agent is attached and waits for nothing yet.
+        assert_eq!(
+            sample(
+                &before,
+                "ebmpc_agent_queue_depth{run=\"watched\",agent=\"a\"}"
+            ),
+            Some(0.0),
+            "{before}"
+        );
+        let bytes_before = sample(&before, "ebmpc_replay_bytes{run=\"watched\"}").unwrap();
+        let fsyncs_before = sample(&before, "ebmpc_replay_fsync_seconds_count{run=\"watched\"}");
 
         // One explored episode, then planned steps; one refused (out-of-order) step.
         let mut system = ToySystem::new(3);
@@ -128,6 +147,24 @@ fn the_metrics_endpoint_serves_every_metric_and_its_counters_move() {
         assert_eq!(sample(&after, &run("ebmpc_replay_transitions")), Some(13.0));
         assert_eq!(sample(&after, &run("ebmpc_episodes")), Some(1.0));
         assert!(sample(&after, &run("ebmpc_models_version")).unwrap() >= 1.0);
+        // The counters moved while the agent played: the log grew and was synced at the
+        // episode's end, and the models it planned with came from a timed retraining.
+        let bytes = sample(&after, &run("ebmpc_replay_bytes")).unwrap();
+        assert!(bytes > bytes_before, "{bytes} > {bytes_before}");
+        let fsyncs = sample(&after, &run("ebmpc_replay_fsync_seconds_count")).unwrap();
+        assert!(fsyncs > fsyncs_before.unwrap_or(0.0), "{after}");
+        assert!(sample(&after, &run("ebmpc_replay_fsync_seconds_sum")).unwrap() > 0.0);
+        let retrainings = sample(&after, &run("ebmpc_retraining_seconds_count")).unwrap();
+        assert!(retrainings >= 1.0, "{after}");
+        assert!(sample(&after, &run("ebmpc_retraining_seconds_sum")).unwrap() > 0.0);
+        let loss = |model: &str| {
+            sample(
+                &after,
+                &format!("ebmpc_training_loss{{run=\"watched\",model=\"{model}\"}}"),
+            )
+        };
+        let (dynamics_loss, energy_loss) = (loss("dynamics").unwrap(), loss("energy").unwrap());
+        assert!(dynamics_loss.is_finite() && energy_loss.is_finite());
         assert_eq!(
             sample(
                 &after,
@@ -141,6 +178,19 @@ fn the_metrics_endpoint_serves_every_metric_and_its_counters_move() {
         assert_eq!(report.refused.get("out_of_order"), Some(&1));
         let watched = &report.runs[0];
         assert_eq!(watched.plan_tally.plans, 4);
+        assert_eq!(watched.queue_depth.get("a"), Some(&0), "{watched:?}");
+        assert_eq!(watched.replay_bytes as f64, bytes);
+        assert_eq!(watched.replay_fsync.count as f64, fsyncs);
+        assert_eq!(watched.retraining.count as f64, retrainings);
+        let last = watched
+            .last_retraining
+            .expect("the models came from a retraining");
+        assert_eq!(last.dynamics_loss.map(f64::from), Some(dynamics_loss));
+        assert_eq!(last.energy_loss.map(f64::from), Some(energy_loss));
+        assert_eq!(
+            last.models_version as f64,
+            sample(&after, &run("ebmpc_models_version")).unwrap()
+        );
         assert_eq!(
             sample(&after, &run("ebmpc_plans_cut_total")).unwrap_or(0.0),
             watched.plan_tally.cut as f64

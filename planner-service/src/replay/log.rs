@@ -674,6 +674,11 @@ impl ReplayLog {
     pub fn path(&self) -> &Path {
         &self.path
     }
+
+    /// Bytes of the log file up to its last whole record: its size on disk (once synced).
+    pub fn len_bytes(&self) -> u64 {
+        self.end
+    }
 }
 
 /// A compaction in progress (see [`ReplayLog::start_rewrite`]): the new file being written

@@ -495,6 +495,11 @@ impl ReplayBuffer {
         self.transitions.len()
     }
 
+    /// Bytes of the buffer's log file (0 for a buffer in memory only).
+    pub fn log_bytes(&self) -> u64 {
+        self.log.as_ref().map_or(0, ReplayLog::len_bytes)
+    }
+
     pub fn is_empty(&self) -> bool {
         self.transitions.is_empty()
     }

@@ -23,6 +23,7 @@
 pub mod queue;
 
 use queue::PlanQueue;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -37,12 +38,34 @@ pub struct Scheduler {
     changed: Condvar,
 }
 
+/// How many of one owner's plans (an agent's) wait for the cores now: queued, or stepped back
+/// for a more urgent plan. The status report and the metrics read it as the agent's queue depth;
+/// the scheduler keeps it, so it counts exactly the time a plan spends waiting in the queue.
+#[derive(Clone, Debug, Default)]
+pub struct Waiting(Arc<AtomicUsize>);
+
+impl Waiting {
+    pub fn get(&self) -> usize {
+        self.0.load(Ordering::SeqCst)
+    }
+
+    fn add(&self) {
+        self.0.fetch_add(1, Ordering::SeqCst);
+    }
+
+    fn sub(&self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
 /// A plan's hold on the cores; dropping it ends the plan and hands them on.
 #[must_use = "the plan holds the cores until the turn drops"]
 #[derive(Debug)]
 pub struct Turn {
     scheduler: Arc<Scheduler>,
     ticket: u64,
+    /// Its owner's count of plans waiting, raised while this plan steps back.
+    waiting: Waiting,
 }
 
 impl Scheduler {
@@ -61,16 +84,19 @@ impl Scheduler {
     }
 
     /// Queues a plan that must end by `deadline` and blocks the calling thread until the plan
-    /// holds the cores.
-    pub fn turn(self: &Arc<Self>, deadline: Option<Instant>) -> Turn {
+    /// holds the cores; `waiting` (its owner's count) counts it meanwhile.
+    pub fn turn(self: &Arc<Self>, deadline: Option<Instant>, waiting: &Waiting) -> Turn {
         let mut queue = self.lock();
         let ticket = queue.arrive(deadline).ticket();
         queue.dispatch();
         self.changed.notify_all();
+        waiting.add();
         self.wait_to_hold(queue, ticket);
+        waiting.sub();
         Turn {
             scheduler: self.clone(),
             ticket,
+            waiting: waiting.clone(),
         }
     }
 
@@ -103,7 +129,9 @@ impl Turn {
         }
         queue.preempt();
         scheduler.changed.notify_all();
+        self.waiting.add();
         scheduler.wait_to_hold(queue, self.ticket);
+        self.waiting.sub();
         true
     }
 }
@@ -137,7 +165,7 @@ mod tests {
     fn waiting_plans_get_the_cores_by_earliest_deadline() {
         let scheduler = Arc::new(Scheduler::default());
         let t0 = Instant::now();
-        let holder = scheduler.turn(None);
+        let holder = scheduler.turn(None, &Waiting::default());
         let order = Arc::new(Mutex::new(vec![]));
         let mut threads = vec![];
         // Queued one after the other, latest deadline first.
@@ -147,7 +175,10 @@ mod tests {
         {
             let (queued, order) = (scheduler.clone(), order.clone());
             threads.push(std::thread::spawn(move || {
-                let _turn = queued.turn(deadline.map(|ms| t0 + Duration::from_millis(ms)));
+                let _turn = queued.turn(
+                    deadline.map(|ms| t0 + Duration::from_millis(ms)),
+                    &Waiting::default(),
+                );
                 order.lock().unwrap().push(deadline);
             }));
             until_waiting(&scheduler, i + 1);
@@ -163,21 +194,33 @@ mod tests {
     #[test]
     fn the_holder_steps_back_for_a_more_urgent_plan() {
         let scheduler = Arc::new(Scheduler::default());
-        let heavy = scheduler.turn(None);
+        let heavy_waiting = Waiting::default();
+        let heavy = scheduler.turn(None, &heavy_waiting);
         assert!(!heavy.yield_to_earlier(), "nobody waits");
+        assert_eq!(heavy_waiting.get(), 0, "the holder does not wait");
         let light_done = Arc::new(AtomicBool::new(false));
+        let light_waiting = Waiting::default();
         let light = std::thread::spawn({
             let (scheduler, light_done) = (scheduler.clone(), light_done.clone());
+            let light_waiting = light_waiting.clone();
             move || {
-                let _turn = scheduler.turn(Some(Instant::now() + Duration::from_millis(40)));
+                let _turn = scheduler.turn(
+                    Some(Instant::now() + Duration::from_millis(40)),
+                    &light_waiting,
+                );
                 light_done.store(true, Ordering::SeqCst);
             }
         });
         until_waiting(&scheduler, 1);
+        // The light plan waits behind the holder, and its owner's count says so.
+        while light_waiting.get() != 1 {
+            std::thread::yield_now();
+        }
         // The heavy plan's next iteration boundary: it resumes only after the light plan ran.
         assert!(heavy.yield_to_earlier());
         assert!(light_done.load(Ordering::SeqCst));
         light.join().unwrap();
+        assert_eq!((light_waiting.get(), heavy_waiting.get()), (0, 0));
         assert!(!heavy.yield_to_earlier());
     }
 
@@ -187,7 +230,7 @@ mod tests {
         // Nothing queued: the wait returns at once (else this test would hang 10 min).
         scheduler.wait_for_plans(Duration::from_secs(600));
         let ended = Arc::new(AtomicBool::new(false));
-        let plan = scheduler.turn(None);
+        let plan = scheduler.turn(None, &Waiting::default());
         let waiter = std::thread::spawn({
             let (scheduler, ended) = (scheduler.clone(), ended.clone());
             move || {
@@ -205,7 +248,7 @@ mod tests {
     #[test]
     fn a_wait_is_bounded_while_plans_never_stop() {
         let scheduler = Arc::new(Scheduler::default());
-        let _plan = scheduler.turn(None);
+        let _plan = scheduler.turn(None, &Waiting::default());
         // The plan never ends: the wait gives up after its bound.
         assert!(scheduler.wait_for_plans(Duration::from_millis(20)) >= Duration::from_millis(20));
     }

@@ -2,10 +2,12 @@
 //! into it as things happen, the status report reads the same counters, and `[metrics]
 //! listen` serves the registry as Prometheus text on `GET /metrics`.
 //!
-//! Figures that live elsewhere (models version, replay size, episodes, agents) are copied into
-//! gauges from the status report at each scrape, so there is one source for each figure.
+//! Figures that live elsewhere (models version, replay size, episodes, agents, queue depths,
+//! the last retraining's losses) are copied into gauges from the status report at each scrape,
+//! and the status report reads the count and sum of each run's fsync and retraining histograms
+//! ([`RunHistograms`]), so there is one source for each figure.
 
-use super::status::PlannerStatus;
+use super::status::{PlannerStatus, Timings};
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -13,14 +15,26 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 use std::collections::BTreeSet;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct RunLabel {
     run: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct AgentLabel {
+    run: String,
+    agent: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ModelLabel {
+    run: String,
+    /// `dynamics` or `energy` (the regulariser: DEEN or DAE).
+    model: &'static str,
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -38,7 +52,69 @@ fn iterations_histogram() -> Histogram {
     Histogram::new([0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])
 }
 
+/// Replay log fsync buckets: 50 µs to about 1.6 s, doubling.
+fn fsync_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(50e-6, 2.0, 16))
+}
+
+/// Retraining buckets: 10 ms to about 20 min, doubling.
+fn retraining_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(0.01, 2.0, 18))
+}
+
 type Histograms = Family<RunLabel, Histogram, fn() -> Histogram>;
+type FloatGauge = Gauge<f64, std::sync::atomic::AtomicU64>;
+
+/// A timed operation: each duration goes into a Prometheus histogram and into the count and
+/// total the status report shows (`prometheus-client` does not read a histogram back), from
+/// one call.
+#[derive(Clone, Debug)]
+pub struct Timed {
+    histogram: Histogram,
+    totals: Arc<Mutex<Timings>>,
+}
+
+impl Timed {
+    fn new(histogram: Histogram) -> Self {
+        Self {
+            histogram,
+            totals: Arc::default(),
+        }
+    }
+
+    pub fn observe(&self, seconds: f64) {
+        self.histogram.observe(seconds);
+        let mut totals = self.totals.lock().unwrap_or_else(PoisonError::into_inner);
+        totals.count += 1;
+        totals.seconds_total += seconds;
+    }
+
+    /// How many durations were observed, and their sum: the histogram's `_count` and `_sum`.
+    pub fn timings(&self) -> Timings {
+        *self.totals.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+/// The durations a run times itself, since it is the run that syncs its replay log and
+/// retrains: the daemon's registry serves them (see [`Metrics::for_run`]) and the status
+/// report shows their count and total. The default ones are served nowhere (experiments,
+/// tests).
+#[derive(Clone, Debug)]
+pub struct RunHistograms {
+    /// Seconds per fsync of the run's replay log.
+    pub fsync_seconds: Timed,
+    /// Seconds per retraining that produced models.
+    pub retraining_seconds: Timed,
+}
+
+impl Default for RunHistograms {
+    fn default() -> Self {
+        Self {
+            fsync_seconds: Timed::new(fsync_histogram()),
+            retraining_seconds: Timed::new(retraining_histogram()),
+        }
+    }
+}
 
 /// Every metric of the daemon.
 pub struct Metrics {
@@ -55,6 +131,14 @@ pub struct Metrics {
     replay_transitions: Family<RunLabel, Gauge>,
     episodes: Family<RunLabel, Gauge>,
     agents: Family<RunLabel, Gauge>,
+    queue_depth: Family<AgentLabel, Gauge>,
+    replay_bytes: Family<RunLabel, Gauge>,
+    fsync_seconds: Histograms,
+    retraining_seconds: Histograms,
+    /// Each run's [`RunHistograms`], so a run opened again (after a fleet hand-over) keeps
+    /// counting where it left off, like its histograms do.
+    run_histograms: Mutex<std::collections::HashMap<String, RunHistograms>>,
+    training_loss: Family<ModelLabel, FloatGauge>,
 }
 
 impl Default for Metrics {
@@ -71,6 +155,12 @@ impl Default for Metrics {
         let replay_transitions = Family::default();
         let episodes = Family::default();
         let agents = Family::default();
+        let queue_depth = Family::default();
+        let replay_bytes = Family::default();
+        let fsync_seconds = Histograms::new_with_constructor(fsync_histogram as fn() -> Histogram);
+        let retraining_seconds =
+            Histograms::new_with_constructor(retraining_histogram as fn() -> Histogram);
+        let training_loss = Family::default();
         registry.register(
             "plan_seconds",
             "Time from taking an observation to its planned action, per run",
@@ -113,6 +203,31 @@ impl Default for Metrics {
         );
         registry.register("episodes", "Episodes stored by a run", episodes.clone());
         registry.register("agents", "Agents attached to a run", agents.clone());
+        registry.register(
+            "agent_queue_depth",
+            "An agent's observations waiting for an answer: in its inbox, or planned and waiting for the cores",
+            queue_depth.clone(),
+        );
+        registry.register(
+            "replay_bytes",
+            "Bytes of a run's replay log file",
+            replay_bytes.clone(),
+        );
+        registry.register(
+            "replay_fsync_seconds",
+            "Time per fsync of a run's replay log (one at every episode end)",
+            fsync_seconds.clone(),
+        );
+        registry.register(
+            "retraining_seconds",
+            "Time per retraining that produced models, per run",
+            retraining_seconds.clone(),
+        );
+        registry.register(
+            "training_loss",
+            "Final training loss of each model at a run's last retraining",
+            training_loss.clone(),
+        );
         Self {
             registry,
             plan_seconds,
@@ -126,6 +241,12 @@ impl Default for Metrics {
             replay_transitions,
             episodes,
             agents,
+            queue_depth,
+            replay_bytes,
+            fsync_seconds,
+            retraining_seconds,
+            run_histograms: Mutex::default(),
+            training_loss,
         }
     }
 }
@@ -137,6 +258,22 @@ fn run(name: &str) -> RunLabel {
 }
 
 impl Metrics {
+    /// The histograms run `run_name` records into, served by this registry.
+    pub fn for_run(&self, run_name: &str) -> RunHistograms {
+        let label = run(run_name);
+        self.run_histograms
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .entry(run_name.to_string())
+            .or_insert_with(|| RunHistograms {
+                fsync_seconds: Timed::new(self.fsync_seconds.get_or_create(&label).clone()),
+                retraining_seconds: Timed::new(
+                    self.retraining_seconds.get_or_create(&label).clone(),
+                ),
+            })
+            .clone()
+    }
+
     /// A planned action of `run`.
     pub fn record_plan(
         &self,
@@ -201,6 +338,8 @@ impl Metrics {
 
     /// The registry as Prometheus text, with the gauges copied from `status` first.
     pub fn render(&self, status: &PlannerStatus) -> String {
+        // Agents come and go: only the ones attached now have a queue.
+        self.queue_depth.clear();
         for r in &status.runs {
             let label = run(&r.name);
             let gauge = |v: u64| i64::try_from(v).unwrap_or(i64::MAX);
@@ -216,6 +355,37 @@ impl Metrics {
             self.agents
                 .get_or_create(&label)
                 .set(gauge(r.agents.len() as u64));
+            self.replay_bytes
+                .get_or_create(&label)
+                .set(gauge(r.replay_bytes));
+            for (agent, depth) in &r.queue_depth {
+                self.queue_depth
+                    .get_or_create(&AgentLabel {
+                        run: r.name.clone(),
+                        agent: agent.clone(),
+                    })
+                    .set(gauge(*depth));
+            }
+            let last = r.last_retraining.as_ref();
+            for (model, loss) in [
+                ("dynamics", last.and_then(|l| l.dynamics_loss)),
+                ("energy", last.and_then(|l| l.energy_loss)),
+            ] {
+                let label = ModelLabel {
+                    run: r.name.clone(),
+                    model,
+                };
+                match loss {
+                    Some(loss) => {
+                        self.training_loss
+                            .get_or_create(&label)
+                            .set(f64::from(loss));
+                    }
+                    None => {
+                        self.training_loss.remove(&label);
+                    }
+                }
+            }
         }
         let mut text = String::new();
         if let Err(e) = prometheus_client::encoding::text::encode(&mut text, &self.registry) {
@@ -233,18 +403,28 @@ fn code_name(code: proto::ErrorCode) -> String {
         .unwrap_or_else(|| format!("{code:?}"))
 }
 
-/// The most bytes of a request head read (a scraper sends a few hundred).
+/// The most bytes of a request head buffered (hyper's smallest read buffer; a scraper sends a
+/// few hundred): a longer head is answered `431` and the connection closed.
 const MAX_REQUEST_HEAD: usize = 8 << 10;
-/// How long a connection may take to send its request.
+/// How long a connection may take to send its request head.
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long a connection may last in all, reading the answer included: a client that never
+/// reads its answer is dropped then.
+const CONNECTION_TIMEOUT: Duration = Duration::from_secs(15);
+/// Connections served at once; more are closed at once, unanswered, so a flood of idle
+/// connections costs a bounded number of tasks and sockets.
+const MAX_CONNECTIONS: usize = 32;
 
-/// Serves `GET /metrics` on `listener` until the task is aborted; `render` builds the body.
-/// One request per connection (`Connection: close`): a scraper every few seconds needs no
-/// more, and each connection is bounded in bytes and time.
+/// Serves `GET /metrics` on `listener` until the task is aborted; `render` builds the body,
+/// every other path is `404`. HTTP/1.1 through hyper, one request per connection (a scraper
+/// every few seconds needs no more), each connection bounded in bytes, time and number, so a
+/// slow or hostile client holds at most one of [`MAX_CONNECTIONS`] slots for at most
+/// [`CONNECTION_TIMEOUT`] and never a thread the daemon serves agents with.
 pub async fn serve(listener: TcpListener, render: impl Fn() -> String + Send + Sync + 'static) {
-    let render = std::sync::Arc::new(render);
+    let render = Arc::new(render);
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
     loop {
-        let (mut stream, _) = match listener.accept().await {
+        let (stream, peer) = match listener.accept().await {
             Ok(accepted) => accepted,
             Err(e) => {
                 tracing::warn!(error = %e, "metrics: accept failed");
@@ -252,37 +432,133 @@ pub async fn serve(listener: TcpListener, render: impl Fn() -> String + Send + S
                 continue;
             }
         };
+        let Ok(slot) = slots.clone().try_acquire_owned() else {
+            tracing::debug!(%peer, "metrics: too many connections, this one is closed");
+            continue;
+        };
         let render = render.clone();
         tokio::spawn(async move {
-            let mut head = Vec::with_capacity(512);
-            let mut buf = [0u8; 1024];
-            let read = tokio::time::timeout(REQUEST_TIMEOUT, async {
-                while !head.windows(4).any(|w| w == b"\r\n\r\n") && head.len() < MAX_REQUEST_HEAD {
-                    match stream.read(&mut buf).await {
-                        Ok(0) | Err(_) => return false,
-                        Ok(n) => head.extend_from_slice(&buf[..n]),
-                    }
-                }
-                true
-            })
-            .await;
-            if !matches!(read, Ok(true)) {
-                return;
+            let service = hyper::service::service_fn(move |request| {
+                let render = render.clone();
+                async move { Ok::<_, std::convert::Infallible>(answer(&request, || render())) }
+            });
+            let connection = hyper::server::conn::http1::Builder::new()
+                .timer(hyper_util::rt::TokioTimer::new())
+                .header_read_timeout(REQUEST_TIMEOUT)
+                .max_buf_size(MAX_REQUEST_HEAD)
+                .keep_alive(false)
+                .serve_connection(hyper_util::rt::TokioIo::new(stream), service);
+            match tokio::time::timeout(CONNECTION_TIMEOUT, connection).await {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => tracing::debug!(%peer, error = %e, "metrics: connection failed"),
+                Err(_) => tracing::debug!(%peer, "metrics: connection timed out"),
             }
-            let (status, body) = if head.starts_with(b"GET /metrics ") {
-                ("200 OK", render())
-            } else {
-                (
-                    "404 Not Found",
-                    "only GET /metrics is served here\n".to_string(),
-                )
-            };
-            let response = format!(
-                "HTTP/1.1 {status}\r\nContent-Type: text/plain; version=0.0.4; charset=utf-8\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-                body.len()
-            );
-            let _ = stream.write_all(response.as_bytes()).await;
-            let _ = stream.shutdown().await;
+            drop(slot);
         });
+    }
+}
+
+type Body = http_body_util::Full<hyper::body::Bytes>;
+
+/// The answer to one request: the metrics for `GET /metrics`, `404` for any other path, `405`
+/// for another method there.
+fn answer<B>(
+    request: &hyper::Request<B>,
+    render: impl FnOnce() -> String,
+) -> hyper::Response<Body> {
+    use hyper::{Method, StatusCode, header};
+    let (status, body) = match (request.method(), request.uri().path()) {
+        (&Method::GET, "/metrics") => (StatusCode::OK, render()),
+        (_, "/metrics") => (
+            StatusCode::METHOD_NOT_ALLOWED,
+            "only GET /metrics is served here\n".to_string(),
+        ),
+        _ => (
+            StatusCode::NOT_FOUND,
+            "only GET /metrics is served here\n".to_string(),
+        ),
+    };
+    let mut response = hyper::Response::new(Body::from(body));
+    *response.status_mut() = status;
+    response.headers_mut().insert(
+        header::CONTENT_TYPE,
+        header::HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
+    );
+    response
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    use tokio::net::TcpStream;
+
+    /// Sends `request` raw and reads the whole answer (the server closes the connection).
+    async fn exchange(addr: std::net::SocketAddr, request: &[u8]) -> String {
+        let mut stream = TcpStream::connect(addr).await.unwrap();
+        // A server that closes early (a refused head) may reset the rest of a long write.
+        let _ = stream.write_all(request).await;
+        let mut answer = Vec::new();
+        let _ = stream.read_to_end(&mut answer).await;
+        String::from_utf8_lossy(&answer).into_owned()
+    }
+
+    async fn endpoint() -> std::net::SocketAddr {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        tokio::spawn(serve(listener, || "ebmpc_up 1\n".to_string()));
+        addr
+    }
+
+    #[tokio::test]
+    async fn serves_metrics_on_its_path_only() {
+        let addr = endpoint().await;
+        let ok = exchange(addr, b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n").await;
+        assert!(ok.starts_with("HTTP/1.1 200 OK\r\n"), "{ok}");
+        assert!(ok.contains("text/plain; version=0.0.4"), "{ok}");
+        assert!(ok.ends_with("ebmpc_up 1\n"), "{ok}");
+        let other = exchange(addr, b"GET /metricsx HTTP/1.1\r\nHost: x\r\n\r\n").await;
+        assert!(other.starts_with("HTTP/1.1 404"), "{other}");
+        let post = exchange(addr, b"POST /metrics HTTP/1.1\r\nHost: x\r\n\r\n").await;
+        assert!(post.starts_with("HTTP/1.1 405"), "{post}");
+        let garbage = exchange(addr, b"\x00\x01 not http at all\r\n\r\n").await;
+        assert!(!garbage.contains("ebmpc_up"), "{garbage}");
+    }
+
+    #[tokio::test]
+    async fn a_silent_or_oversized_client_stalls_no_one_and_is_dropped() {
+        let addr = endpoint().await;
+        // Connects and sends nothing.
+        let mut silent = TcpStream::connect(addr).await.unwrap();
+        // Sends a head far over the bound, and never ends it.
+        let mut huge = TcpStream::connect(addr).await.unwrap();
+        let head = format!(
+            "GET /metrics HTTP/1.1\r\nHost: x\r\nX-Big: {}\r\n",
+            "a".repeat(1 << 20)
+        );
+        let _ = huge.write_all(head.as_bytes()).await;
+        // Every connection slot but one taken by idle clients.
+        let mut idle = Vec::new();
+        for _ in 0..MAX_CONNECTIONS - 3 {
+            idle.push(TcpStream::connect(addr).await.unwrap());
+        }
+        // Meanwhile a scraper is served.
+        let ok = exchange(addr, b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n").await;
+        assert!(ok.ends_with("ebmpc_up 1\n"), "{ok}");
+        // The oversized head was refused, not buffered: answered 431 and closed (or reset).
+        let mut answer = Vec::new();
+        let _ = huge.read_to_end(&mut answer).await;
+        let answer = String::from_utf8_lossy(&answer);
+        assert!(
+            answer.is_empty() || answer.starts_with("HTTP/1.1 431"),
+            "{answer}"
+        );
+        // The silent client is closed once its time to send a head is up.
+        let mut byte = [0u8; 1];
+        let read = tokio::time::timeout(REQUEST_TIMEOUT * 4, silent.read(&mut byte)).await;
+        assert!(
+            matches!(read, Ok(Ok(0)) | Ok(Err(_))),
+            "closed, not left open: {read:?}"
+        );
     }
 }

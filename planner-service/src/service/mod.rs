@@ -86,6 +86,8 @@ const CONCURRENT_ATTACHES: usize = 8;
 
 struct AgentHandle {
     tx: mpsc::Sender<Incoming>,
+    /// The agent's plans waiting for the cores (see [`AgentHandle::queue_depth`]).
+    plans_waiting: crate::sched::Waiting,
     task: JoinHandle<()>,
     /// The session token handed to the agent at attach; its observations must carry it.
     session: u64,
@@ -100,6 +102,13 @@ impl AgentHandle {
     /// `[limits] agent_idle_seconds` without a liveliness token.)
     fn is_live(&self) -> bool {
         !self.task.is_finished() && !self.token_gone
+    }
+
+    /// The agent's observations waiting for an answer: in its inbox, or planned but waiting
+    /// for the cores in the scheduler (an observation being stored or planned is not counted).
+    fn queue_depth(&self) -> u64 {
+        let inbox = self.tx.max_capacity() - self.tx.capacity();
+        (inbox + self.plans_waiting.get()) as u64
     }
 }
 
@@ -634,6 +643,7 @@ impl Service {
                 self.config.max_agents_per_run
             )));
         }
+        let plans_waiting = crate::sched::Waiting::default();
         let worker = AgentWorker::new(
             run.clone(),
             request.agent.clone(),
@@ -642,7 +652,8 @@ impl Service {
             self.config.limits.magnitudes(run.task()),
             self.plans.clone(),
             session,
-        )?;
+        )?
+        .counting_waits_in(plans_waiting.clone());
         let idle = std::time::Duration::from_secs(self.config.limits.agent_idle_seconds);
         let worker = worker.idle_after(idle);
         let (tx, rx) = mpsc::channel(AGENT_QUEUE);
@@ -651,6 +662,7 @@ impl Service {
             request.agent.clone(),
             AgentHandle {
                 tx,
+                plans_waiting,
                 task,
                 session,
                 token_gone: false,
@@ -784,6 +796,7 @@ impl Service {
             },
             replay_capacity: self.config.storage.replay_capacity,
             log_disk: self.log_disk.clone(),
+            histograms: self.outbox.metrics.for_run(name),
         };
         let internal = |why: String| {
             Refusal::Report(ErrorReport::new(
@@ -951,25 +964,25 @@ impl Service {
     pub fn status_report(&self) -> status::PlannerStatus {
         // The runs and their agents' names, then each run's counters: no run's replay buffer
         // is locked, so a run busy on its disk delays no status report.
-        let hosted: Vec<(Arc<Run>, Vec<String>)> = {
+        let hosted: Vec<(Arc<Run>, BTreeMap<String, u64>)> = {
             let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
             runs.values()
                 .map(|h| {
-                    let mut agents: Vec<String> = h
+                    let queues = h
                         .agents
                         .iter()
                         .filter(|(_, a)| !a.task.is_finished())
-                        .map(|(name, _)| name.clone())
+                        .map(|(name, a)| (name.clone(), a.queue_depth()))
                         .collect();
-                    agents.sort();
-                    (h.run.clone(), agents)
+                    (h.run.clone(), queues)
                 })
                 .collect()
         };
         let mut reports: Vec<status::RunStatus> = hosted
             .into_iter()
-            .map(|(run, agents)| {
+            .map(|(run, queue_depth)| {
                 let tally = run.tally();
+                let agents = queue_depth.keys().cloned().collect();
                 status::RunStatus {
                     name: run.name().to_string(),
                     task: run.spec().task.to_string(),
@@ -986,6 +999,11 @@ impl Service {
                     planning_latency: run.latency(),
                     deadline_ms: run.preset().deadline_ms,
                     plan_tally: run.plan_tally(),
+                    queue_depth,
+                    replay_bytes: tally.log_bytes,
+                    replay_fsync: run.histograms().fsync_seconds.timings(),
+                    retraining: run.histograms().retraining_seconds.timings(),
+                    last_retraining: run.last_retraining(),
                 }
             })
             .collect();

@@ -61,6 +61,26 @@ impl PlanTally {
     }
 }
 
+/// The count and total of a timed operation since the run was opened here: the same figures
+/// as its Prometheus histogram's `_count` and `_sum`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct Timings {
+    pub count: u64,
+    pub seconds_total: f64,
+}
+
+/// The last retraining that produced models: how long it took and the final training loss of
+/// each model (`None`: that model took no step).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct LastRetraining {
+    pub models_version: u64,
+    pub seconds: f32,
+    /// The dynamics model's loss over its last epoch (the mean over the ensemble's members).
+    pub dynamics_loss: Option<f32>,
+    /// The regulariser's (DEEN or DAE) loss over its last epoch.
+    pub energy_loss: Option<f32>,
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Latency {
     pub p50_ms: f32,
@@ -111,12 +131,27 @@ pub struct RunStatus {
     /// The last (up to 10) finished episodes: agent, episode, return.
     pub last_returns: Vec<(String, u32, f32)>,
     pub agents: Vec<String>,
+    /// Each agent's observations waiting for an answer: in its inbox, or planned and waiting
+    /// for the cores.
+    #[serde(default)]
+    pub queue_depth: std::collections::BTreeMap<String, u64>,
     pub planning_latency: Option<Latency>,
     /// The run's deadline in milliseconds (`None`: off).
     #[serde(default)]
     pub deadline_ms: Option<u32>,
     #[serde(default)]
     pub plan_tally: PlanTally,
+    /// Bytes of the run's replay log file.
+    #[serde(default)]
+    pub replay_bytes: u64,
+    /// The replay log's fsyncs (one at every episode end).
+    #[serde(default)]
+    pub replay_fsync: Timings,
+    /// Retrainings that produced models, and their total time.
+    #[serde(default)]
+    pub retraining: Timings,
+    #[serde(default)]
+    pub last_retraining: Option<LastRetraining>,
 }
 
 #[cfg(test)]

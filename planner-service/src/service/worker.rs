@@ -6,7 +6,7 @@ use crate::agent::AgentSession;
 use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
 use crate::run::{Refused, Run, StoreError};
-use crate::sched::Scheduler;
+use crate::sched::{Scheduler, Waiting};
 use proto::task::Magnitudes;
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
@@ -50,6 +50,8 @@ pub(crate) struct AgentWorker {
     /// The daemon's plan queue: this worker's plans take the cores in deadline order there,
     /// and retraining yields to them.
     plans: Arc<Scheduler>,
+    /// This agent's plans waiting for the cores (its queue depth, with its inbox).
+    waiting: Waiting,
     /// The session token this worker serves; every report it sends names it.
     token: u64,
 }
@@ -109,8 +111,16 @@ impl AgentWorker {
             fleet,
             magnitudes,
             plans,
+            waiting: Waiting::default(),
             token,
         })
+    }
+
+    /// Counts this agent's plans waiting for the cores in `waiting`, which the service reads
+    /// as part of the agent's queue depth.
+    pub(crate) fn counting_waits_in(mut self, waiting: Waiting) -> Self {
+        self.waiting = waiting;
+        self
     }
 
     /// Closes the session after `idle` without an observation if the agent then holds no
@@ -238,9 +248,9 @@ impl AgentWorker {
                 let obs = msg.obs.clone();
                 let plan_models = models.clone();
                 let plan_deadline = deadline.map(|d| d - ANSWER_MARGIN);
-                let plans = self.plans.clone();
+                let (plans, waiting) = (self.plans.clone(), self.waiting.clone());
                 let joined = tokio::task::spawn_blocking(move || {
-                    let turn = Arc::new(plans.turn(plan_deadline));
+                    let turn = Arc::new(plans.turn(plan_deadline, &waiting));
                     let outcome = planner.plan_shared(
                         &obs,
                         &plan_models.dynamics,
