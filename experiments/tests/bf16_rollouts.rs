@@ -44,7 +44,7 @@ fn bf16_moves_imagined_returns_far_less_than_the_model_errs() {
         loop {
             let action = random_action(spec, &mut rng);
             let out = env.step(&action).unwrap();
-            data.push(&obs, &action, &out.obs);
+            data.push(&obs, &action, out.reward, &out.obs);
             let done = out.done();
             obs = out.obs;
             if done {
@@ -120,6 +120,7 @@ fn rollout(
         actions,
         &models.dynamics,
         &models.regularizer,
+        models.reward.as_ref(),
         &mut rewards,
         &mut energies,
     );

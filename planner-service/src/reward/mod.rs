@@ -311,9 +311,7 @@ impl RewardModel {
     /// Writes the standardised inputs of `rows` transitions feature-major (row stride `ld`).
     fn fill_inputs(
         &self,
-        obs: &[f32],
-        act: &[f32],
-        next_obs: &[f32],
+        (obs, act, next_obs): (&[f32], &[f32], &[f32]),
         rows: usize,
         features: &mut [f32],
         input: &mut [f32],
@@ -359,7 +357,13 @@ impl RewardModel {
         );
         let ld = scratch.forward.ld();
         let RewardScratch { forward, features } = scratch;
-        self.fill_inputs(obs, act, next_obs, rows, features, forward.input_mut(), ld);
+        self.fill_inputs(
+            (obs, act, next_obs),
+            rows,
+            features,
+            forward.input_mut(),
+            ld,
+        );
         let predicted = self.mlp.forward(rows, forward);
         let (mean, std) = (self.target_norm.mean()[0], self.target_norm.std()[0]);
         for (r, &z) in out[..rows].iter_mut().zip(&predicted[..rows]) {
@@ -399,7 +403,7 @@ impl RewardModel {
             d_features,
         } = tape;
         let ld = tape.ld();
-        self.fill_inputs(obs, act, next_obs, rows, features, tape.input_mut(), ld);
+        self.fill_inputs((obs, act, next_obs), rows, features, tape.input_mut(), ld);
         let (mean, std) = (self.target_norm.mean()[0], self.target_norm.std()[0]);
         let predicted = self.mlp.forward_train(tape, rows);
         for (r, &z) in out[..rows].iter_mut().zip(&predicted[..rows]) {
