@@ -5,7 +5,7 @@ use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
-use crate::replay::{EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
+use crate::replay::{self, EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
 use crate::service::status::{Latency, LatencyWindow, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
@@ -219,6 +219,7 @@ impl Run {
             ReplayBuffer::open_with(&dir.replay_log(), task, |file| disk.open(&name, file))?;
         buffer.claim(epoch, planner)?;
         buffer.set_capacity(hosting.replay_capacity)?;
+        buffer.compact_if_due()?;
         let mut models = match dir.load_models(task, &preset)? {
             Some(models) => models,
             None => Models::untrained(task, &preset, spec.seed),
@@ -422,6 +423,16 @@ impl Run {
         self.tally.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
+    /// Compacts the replay log if evictions made it due, holding the buffer's lock only to
+    /// start and to swap files (never across the copy or its fsyncs). A failure leaves the log
+    /// as it was, every record in it: it is logged, and the next episode end tries again.
+    /// Blocking: called on the blocking pool.
+    fn compact_log(&self) {
+        if let Err(e) = replay::compact_log(|| self.lock_buffer()) {
+            tracing::warn!(run = %self.name, error = %e, "cannot compact the replay log; it keeps every record and is compacted later");
+        }
+    }
+
     fn lock_buffer(&self) -> std::sync::MutexGuard<'_, ReplayBuffer> {
         self.buffer.lock().unwrap_or_else(PoisonError::into_inner)
     }
@@ -524,6 +535,7 @@ impl Run {
         if let Some(syncer) = &sync {
             sync_log(&self.name, syncer);
         }
+        self.compact_log();
         for summary in [&accepted.abandoned, &accepted.finished]
             .into_iter()
             .flatten()
@@ -568,6 +580,7 @@ impl Run {
             if let Some(syncer) = &syncer {
                 sync_log(&run.name, syncer);
             }
+            run.compact_log();
             ended(&mut run.lock_next_episodes(), &agent, episode);
             Ok(())
         })

@@ -133,6 +133,8 @@ mod tests {
                 energy_hidden_layers: Some(2),
                 energy_hidden_size: Some(16),
                 energy_epochs: Some(3),
+                reward_hidden_layers: Some(2),
+                reward_hidden_size: Some(16),
                 population: Some(20),
                 elites: Some(4),
                 horizon: Some(5),

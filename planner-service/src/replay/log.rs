@@ -37,7 +37,7 @@ use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// Largest record accepted when reading; anything larger is corruption.
 const MAX_RECORD: u32 = 16 << 20;
@@ -415,19 +415,70 @@ impl LogFile for File {
 
 /// A handle that forces the log's written bytes to disk. It is separate from the writer so
 /// that fsync runs on the blocking pool without holding the replay buffer's lock.
+///
+/// Every clone syncs the log's *current* file: a compaction swaps the file under the log's
+/// path (see [`ReplayLog::finish_rewrite`]), and a store that appended to the old file and
+/// syncs after the swap must make the new file durable, since the new file is the one the path
+/// names from then on (it holds a copy of what the old one held). After a swap the directory
+/// entry is synced once too, by the first sync that comes, before anything written to the new
+/// file is acknowledged.
 #[derive(Clone, Debug)]
 pub struct LogSyncer {
     path: PathBuf,
+    target: Arc<Mutex<SyncTarget>>,
+}
+
+/// The file a [`LogSyncer`] syncs, and whether its name in the directory is not yet durable.
+#[derive(Debug)]
+struct SyncTarget {
     file: Arc<File>,
+    directory_unsynced: bool,
 }
 
 impl LogSyncer {
-    /// Forces everything written so far to disk (survives power loss).
+    fn new(path: &Path, file: &File) -> std::io::Result<Self> {
+        Ok(Self {
+            path: path.to_path_buf(),
+            target: Arc::new(Mutex::new(SyncTarget {
+                file: Arc::new(file.try_clone()?),
+                directory_unsynced: false,
+            })),
+        })
+    }
+
+    fn target(&self) -> std::sync::MutexGuard<'_, SyncTarget> {
+        self.target.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Forces everything written so far to disk (survives power loss). The target's lock is
+    /// held only to read which file to sync, never across the fsync.
     pub fn sync(&self) -> Result<(), LogError> {
-        self.file.sync_data().map_err(|source| LogError::Io {
+        let io = |source| LogError::Io {
             path: self.path.clone(),
             source,
-        })
+        };
+        let (file, directory_unsynced) = {
+            let target = self.target();
+            (target.file.clone(), target.directory_unsynced)
+        };
+        file.sync_data().map_err(io)?;
+        if directory_unsynced {
+            sync_directory(&self.path).map_err(io)?;
+            let mut target = self.target();
+            if Arc::ptr_eq(&target.file, &file) {
+                target.directory_unsynced = false;
+            }
+        }
+        Ok(())
+    }
+
+    /// Points every clone at `file`, newly renamed over the log's path.
+    fn swap(&self, file: &File) -> std::io::Result<()> {
+        let file = Arc::new(file.try_clone()?);
+        let mut target = self.target();
+        target.file = file;
+        target.directory_unsynced = true;
+        Ok(())
     }
 }
 
@@ -501,10 +552,7 @@ impl ReplayLog {
         };
         let file = open_append(path).map_err(io)?;
         let end = file.metadata().map_err(io)?.len();
-        let syncer = LogSyncer {
-            path: path.to_path_buf(),
-            file: Arc::new(file.try_clone().map_err(io)?),
-        };
+        let syncer = LogSyncer::new(path, &file).map_err(io)?;
         let mut file = wrap(file);
         file.truncate_to(end).map_err(io)?;
         Ok((
@@ -549,19 +597,53 @@ impl ReplayLog {
         Ok(())
     }
 
-    /// Rewrites the log keeping only the records `keep` accepts: a new file is written and
-    /// fsynced, renamed over the log, and the directory fsynced, so a crash at any moment
-    /// leaves the old log or the new one. Writing continues on the new file (through the
-    /// plain file: a wrapper given to [`ReplayLog::open_with`] is not carried over).
+    /// Starts rewriting the log without the records `keep` refuses (a compaction), in three
+    /// steps so that the caller holds its buffer's lock only for the first and the last, and
+    /// never across an fsync:
     ///
-    /// Refused with [`LogError::Fenced`] if the file holds a claim newer than `held_epoch`,
-    /// the epoch the caller owns the run at: the new owner writes to this file, and replacing
-    /// it would lose what it wrote.
-    pub fn rewrite(
+    /// 1. this call (lock held): cuts the bytes of a failed write, if any, and names the job;
+    /// 2. [`Rewrite::copy`] (no lock): copies the kept records into a new file and fsyncs it;
+    ///    called again, it copies what was appended since (the *catch-up*);
+    /// 3. [`ReplayLog::finish_rewrite`] (lock held): if the log has not grown since the last
+    ///    copy, renames the new file over it and writes on there; otherwise it hands the job
+    ///    back for another catch-up.
+    ///
+    /// A crash at any moment leaves the old log or the new one, each holding every record
+    /// acknowledged as durable (see [`LogSyncer`]). Writing continues on the new file through
+    /// the plain file: a wrapper given to [`ReplayLog::open_with`] is not carried over.
+    ///
+    /// A copy fails with [`LogError::Fenced`] if the file holds a claim newer than
+    /// `held_epoch`, the epoch the caller owns the run at: the new owner writes to this file,
+    /// and replacing it would lose what it wrote.
+    pub fn start_rewrite(
         &mut self,
         held_epoch: u64,
-        mut keep: impl FnMut(&Record) -> bool,
-    ) -> Result<(), LogError> {
+        keep: impl FnMut(&Record) -> bool + Send + 'static,
+    ) -> Result<Rewrite, LogError> {
+        if self.dirty {
+            self.file
+                .truncate_to(self.end)
+                .map_err(|source| LogError::Io {
+                    path: self.path.clone(),
+                    source,
+                })?;
+            self.dirty = false;
+        }
+        Ok(Rewrite {
+            path: self.path.clone(),
+            tmp: self.path.with_extension("log.compacting"),
+            out: None,
+            copied_to: 0,
+            held_epoch,
+            keep: Box::new(keep),
+        })
+    }
+
+    /// Ends a rewrite whose last [`Rewrite::copy`] reached the end of the log: the new file
+    /// replaces the log and writing continues there (`Ok(None)`). If records were appended
+    /// since that copy, nothing changes and the job comes back (`Ok(Some(job))`) for another
+    /// copy. The directory entry is synced by the next [`LogSyncer::sync`], outside any lock.
+    pub fn finish_rewrite(&mut self, job: Rewrite) -> Result<Option<Rewrite>, LogError> {
         let io = |source| LogError::Io {
             path: self.path.clone(),
             source,
@@ -570,38 +652,18 @@ impl ReplayLog {
             self.file.truncate_to(self.end).map_err(io)?;
             self.dirty = false;
         }
-        let bytes = std::fs::read(&self.path).map_err(io)?;
-        let (recovered, _) = scan(&bytes);
-        let newest_claim = recovered
-            .records
-            .iter()
-            .filter_map(|r| match r {
-                Record::Claim { epoch, .. } => Some(*epoch),
-                _ => None,
-            })
-            .max();
-        if let Some(found) = newest_claim.filter(|&e| e > held_epoch) {
-            return Err(LogError::Fenced {
-                path: self.path.clone(),
-                held: held_epoch,
-                found,
-            });
+        let on_disk = std::fs::metadata(&self.path).map_err(io)?.len();
+        if on_disk != job.copied_to || job.out.is_none() {
+            return Ok(Some(job));
         }
-        let mut out = Vec::new();
-        for record in recovered.records.iter().filter(|r| keep(r)) {
-            encode_record(&self.path, record, &mut out)?;
-        }
-        write_file(&self.path, &out).map_err(io)?;
+        std::fs::rename(&job.tmp, &self.path).map_err(io)?;
         let mut file = open_append(&self.path).map_err(io)?;
         let end = file.metadata().map_err(io)?.len();
         file.truncate_to(end).map_err(io)?;
-        self.syncer = LogSyncer {
-            path: self.path.clone(),
-            file: Arc::new(file.try_clone().map_err(io)?),
-        };
+        self.syncer.swap(&file).map_err(io)?;
         self.file = Box::new(file);
         self.end = end;
-        Ok(())
+        Ok(None)
     }
 
     /// A handle that syncs this log to disk, usable without holding the log.
@@ -611,6 +673,106 @@ impl ReplayLog {
 
     pub fn path(&self) -> &Path {
         &self.path
+    }
+}
+
+/// A compaction in progress (see [`ReplayLog::start_rewrite`]): the new file being written
+/// beside the log and how far into the log it has copied.
+pub struct Rewrite {
+    path: PathBuf,
+    tmp: PathBuf,
+    out: Option<File>,
+    /// Bytes of the log copied (or skipped as refused) so far.
+    copied_to: u64,
+    held_epoch: u64,
+    keep: Box<dyn FnMut(&Record) -> bool + Send>,
+}
+
+impl std::fmt::Debug for Rewrite {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Rewrite")
+            .field("path", &self.path)
+            .field("copied_to", &self.copied_to)
+            .field("held_epoch", &self.held_epoch)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Rewrite {
+    /// Copies the log's records after the last copy into the new file, keeping those `keep`
+    /// accepts, and fsyncs it. The first call reads the whole log (skipping damaged stretches,
+    /// as opening does); later calls read only what was appended since, up to the last whole
+    /// record (a write still under way is copied next time). Takes no lock: the buffer keeps
+    /// storing meanwhile.
+    pub fn copy(&mut self) -> Result<(), LogError> {
+        let io = |source| LogError::Io {
+            path: self.path.clone(),
+            source,
+        };
+        let mut source = File::open(&self.path).map_err(io)?;
+        source.seek(SeekFrom::Start(self.copied_to)).map_err(io)?;
+        let mut bytes = Vec::new();
+        source.read_to_end(&mut bytes).map_err(io)?;
+        let (records, consumed) = if self.out.is_none() {
+            let (recovered, good_end) = scan(&bytes);
+            (recovered.records, good_end)
+        } else {
+            let (mut records, mut at) = (Vec::new(), 0);
+            while let Some((record, next)) = read_record(&bytes, at) {
+                records.push(record);
+                at = next;
+            }
+            (records, at as u64)
+        };
+        if let Some(found) = records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Claim { epoch, .. } => Some(*epoch),
+                _ => None,
+            })
+            .filter(|&e| e > self.held_epoch)
+            .max()
+        {
+            return Err(LogError::Fenced {
+                path: self.path.clone(),
+                held: self.held_epoch,
+                found,
+            });
+        }
+        let mut framed = Vec::new();
+        for record in records.iter().filter(|r| (self.keep)(r)) {
+            encode_record(&self.path, record, &mut framed)?;
+        }
+        let out = match &mut self.out {
+            Some(out) => out,
+            None => {
+                let mut out = File::create(&self.tmp).map_err(io)?;
+                out.write_all(MAGIC).map_err(io)?;
+                out.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io)?;
+                self.out.insert(out)
+            }
+        };
+        out.write_all(&framed).map_err(io)?;
+        out.sync_data().map_err(io)?;
+        self.copied_to += consumed;
+        Ok(())
+    }
+
+    /// Gives the rewrite up, removing its half-written file; the log is untouched.
+    pub fn abandon(self) {
+        if self.out.is_some()
+            && let Err(e) = std::fs::remove_file(&self.tmp)
+        {
+            tracing::warn!(path = %self.tmp.display(), error = %e, "cannot remove an abandoned compaction's file");
+        }
+    }
+}
+
+/// Makes the entries of `path`'s directory durable (a rename or a new file).
+fn sync_directory(path: &Path) -> std::io::Result<()> {
+    match path.parent() {
+        Some(dir) => File::open(dir)?.sync_all(),
+        None => Ok(()),
     }
 }
 
@@ -779,10 +941,7 @@ fn write_file(path: &Path, records: &[u8]) -> std::io::Result<()> {
     file.sync_all()?;
     drop(file);
     std::fs::rename(&tmp, path)?;
-    if let Some(dir) = path.parent() {
-        File::open(dir)?.sync_all()?;
-    }
-    Ok(())
+    sync_directory(path)
 }
 
 #[cfg(test)]
@@ -865,6 +1024,40 @@ pub(crate) mod tests {
             (rec.truncated_bytes, rec.damaged_regions, rec.migrated),
             (0, 0, false)
         );
+    }
+
+    /// A syncer handed out before a compaction swapped the file syncs the new file afterwards
+    /// (the one the path names), and the first sync after the swap makes the rename durable.
+    #[test]
+    fn a_syncer_taken_before_a_compaction_syncs_the_file_that_replaced_the_log() {
+        use std::os::unix::fs::MetadataExt;
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        let (mut log, _) = ReplayLog::open(&path).unwrap();
+        for step in 0..6 {
+            log.append(&[transition(step)]).unwrap();
+        }
+        let early = log.syncer();
+        let mut job = log
+            .start_rewrite(
+                1,
+                |r| !matches!(r, Record::Transition { step, .. } if *step < 3),
+            )
+            .unwrap();
+        job.copy().unwrap();
+        assert!(log.finish_rewrite(job).unwrap().is_none());
+        let synced_inode = early.target().file.metadata().unwrap().ino();
+        assert_eq!(synced_inode, std::fs::metadata(&path).unwrap().ino());
+        assert!(early.target().directory_unsynced);
+        early.sync().unwrap();
+        assert!(
+            !log.syncer().target().directory_unsynced,
+            "one sync for all clones"
+        );
+        log.append(&[transition(6)]).unwrap();
+        drop(log);
+        let (_, rec) = ReplayLog::open(&path).unwrap();
+        assert_eq!(rec.records, (3..7).map(transition).collect::<Vec<_>>());
     }
 
     #[test]

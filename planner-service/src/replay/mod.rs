@@ -5,11 +5,12 @@ mod log;
 
 #[cfg(test)]
 pub(crate) use log::tests as log_tests;
-pub use log::{ActionOrigin, LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog};
+pub use log::{ActionOrigin, LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog, Rewrite};
 
 use crate::data::Transitions;
 use proto::{EpisodeEnd, Task};
 use std::collections::{BTreeMap, HashMap, HashSet};
+use std::ops::DerefMut;
 use std::path::Path;
 
 /// A finished episode, as stored.
@@ -43,9 +44,9 @@ pub enum ReplayError {
 ///
 /// With a capacity (see [`ReplayBuffer::set_capacity`]), the transitions of the oldest
 /// finished episodes are evicted whole once the buffer holds more than the capacity: at once
-/// from memory, and from the log when the evicted records on disk outnumber the kept ones
-/// (so the log stays under about twice the capacity and each record is rewritten a bounded
-/// number of times). Episode summaries are never evicted: they are small, and episode counts
+/// from memory, and from the log by [`compact_log`] once the evicted records on disk
+/// outnumber the kept ones (so the log stays under about twice the capacity and each record is
+/// rewritten a bounded number of times). Episode summaries are never evicted: they are small, and episode counts
 /// and numbering depend on them.
 #[derive(Debug)]
 pub struct ReplayBuffer {
@@ -70,6 +71,8 @@ pub struct ReplayBuffer {
     evicted: HashSet<(String, u32)>,
     /// Transitions evicted from memory whose records are still in the log.
     evicted_on_disk: usize,
+    /// A compaction of the log is under way (see [`compact_log`]).
+    compacting: bool,
 }
 
 impl From<EpisodeSummary> for Record {
@@ -110,6 +113,7 @@ impl ReplayBuffer {
             capacity: None,
             evicted: HashSet::new(),
             evicted_on_disk: 0,
+            compacting: false,
         }
     }
 
@@ -336,9 +340,9 @@ impl ReplayBuffer {
         self.evict()
     }
 
-    /// Evicts the transitions of the oldest finished episodes until at most `capacity` are
-    /// left (episodes in progress are never evicted), and compacts the log when the evicted
-    /// records on disk outnumber the kept ones.
+    /// Evicts the transitions of the oldest finished episodes from memory until at most
+    /// `capacity` are left (episodes in progress are never evicted). Their records leave the
+    /// log when [`compact_log`] runs (see [`ReplayBuffer::compaction_due`]).
     fn evict(&mut self) -> Result<(), ReplayError> {
         let Some(capacity) = self.capacity else {
             return Ok(());
@@ -387,38 +391,86 @@ impl ReplayBuffer {
             kept = self.len(),
             "evicted the oldest episodes from the replay buffer"
         );
-        if self.evicted_on_disk >= self.len().max(1) {
-            self.compact()?;
-        }
         Ok(())
     }
 
-    /// Rewrites the log without the records of evicted episodes' transitions, unless another
-    /// planner has claimed the run since (its records must not be rewritten by a planner that
-    /// lost the run: the compaction is skipped, and this planner steps down at its next
-    /// ownership check).
-    fn compact(&mut self) -> Result<(), ReplayError> {
+    /// Whether the log should be compacted: the evicted records on disk outnumber the kept
+    /// ones, and no compaction is under way.
+    pub fn compaction_due(&self) -> bool {
+        self.log.is_some()
+            && !self.compacting
+            && self.evicted_on_disk > 0
+            && self.evicted_on_disk >= self.len().max(1)
+    }
+
+    /// Step 1 of [`compact_log`] (under the buffer's lock): starts a compaction if one is due.
+    fn start_compaction(&mut self) -> Result<Option<Compaction>, ReplayError> {
+        if !self.compaction_due() {
+            return Ok(None);
+        }
         let Some(log) = &mut self.log else {
-            self.evicted.clear();
-            self.evicted_on_disk = 0;
-            return Ok(());
+            return Ok(None);
         };
-        let evicted = &self.evicted;
-        let rewritten = log.rewrite(self.epoch, |record| match record {
+        let evicted = self.evicted.clone();
+        let dropped = evicted.clone();
+        let rewrite = log.start_rewrite(self.epoch, move |record| match record {
             Record::Transition { agent, episode, .. } => {
-                !evicted.contains(&(agent.clone(), *episode))
+                !dropped.contains(&(agent.clone(), *episode))
             }
             Record::Header { .. } | Record::Claim { .. } | Record::EpisodeEnd { .. } => true,
-        });
-        if let Err(LogError::Fenced { found, .. }) = &rewritten {
-            tracing::warn!(path = %log.path().display(), held = self.epoch, found, "the run was claimed by another planner; the log is not compacted");
-            return Ok(());
+        })?;
+        self.compacting = true;
+        Ok(Some(Compaction {
+            rewrite,
+            evicted,
+            transitions: self.evicted_on_disk,
+        }))
+    }
+
+    /// Step 3 of [`compact_log`] (under the buffer's lock): puts the compacted file in place,
+    /// or hands the job back if records were appended since its last copy.
+    fn finish_compaction(&mut self, job: Compaction) -> Result<Option<Compaction>, ReplayError> {
+        let Compaction {
+            rewrite,
+            evicted,
+            transitions,
+        } = job;
+        let Some(log) = &mut self.log else {
+            self.compacting = false;
+            rewrite.abandon();
+            return Ok(None);
+        };
+        match log.finish_rewrite(rewrite) {
+            Ok(Some(rewrite)) => Ok(Some(Compaction {
+                rewrite,
+                evicted,
+                transitions,
+            })),
+            Ok(None) => {
+                tracing::info!(path = %log.path().display(), removed = transitions, kept = self.transitions.len(), "compacted the replay log");
+                self.evicted.retain(|e| !evicted.contains(e));
+                self.evicted_on_disk -= transitions;
+                self.compacting = false;
+                Ok(None)
+            }
+            Err(e) => {
+                self.compacting = false;
+                Err(e.into())
+            }
         }
-        rewritten?;
-        tracing::info!(path = %log.path().display(), removed = self.evicted_on_disk, kept = self.transitions.len(), "compacted the replay log");
-        self.evicted.clear();
-        self.evicted_on_disk = 0;
-        Ok(())
+    }
+
+    /// Gives a compaction up; the log stays as it is and the next one starts afresh.
+    fn abandon_compaction(&mut self, job: Compaction) {
+        self.compacting = false;
+        job.rewrite.abandon();
+    }
+
+    /// Compacts the log now if it is due, for a caller that holds the buffer alone (opening a
+    /// run, tests): [`compact_log`] with a lock nobody else takes.
+    pub fn compact_if_due(&mut self) -> Result<(), ReplayError> {
+        let only = std::cell::RefCell::new(self);
+        compact_log(|| std::cell::RefMut::map(only.borrow_mut(), |b| &mut **b))
     }
 
     /// A handle that syncs the log to disk without holding the buffer (`None` in memory).
@@ -446,6 +498,62 @@ impl ReplayBuffer {
     pub fn is_empty(&self) -> bool {
         self.transitions.is_empty()
     }
+}
+
+/// A compaction under way: the log's rewrite, and the evictions it removes from disk.
+#[derive(Debug)]
+struct Compaction {
+    rewrite: Rewrite,
+    evicted: HashSet<(String, u32)>,
+    /// Transitions evicted from memory whose records this rewrite drops.
+    transitions: usize,
+}
+
+/// Catch-up copies a compaction makes before it gives up for now (records kept being appended
+/// between its copy and its swap); the next episode end tries again.
+const CATCH_UPS: usize = 4;
+
+/// Rewrites the log without the records of evicted episodes, if due, taking the buffer's lock
+/// through `lock` only to start and to swap files: the copying and its fsyncs run with no lock
+/// held, so the run's agents keep storing (and its trainer keeps reading) meanwhile, and what
+/// they append during the copy is copied too before the swap (see [`ReplayLog::start_rewrite`]).
+///
+/// A planner that lost the run (a newer claim is in the log) does not compact: its records
+/// must not replace the new owner's file. The compaction is skipped, and this planner steps
+/// down at its next ownership check.
+pub fn compact_log<G: DerefMut<Target = ReplayBuffer>>(
+    lock: impl Fn() -> G,
+) -> Result<(), ReplayError> {
+    let Some(mut job) = lock().start_compaction()? else {
+        return Ok(());
+    };
+    for _ in 0..CATCH_UPS {
+        if let Err(e) = job.rewrite.copy() {
+            lock().abandon_compaction(job);
+            return match e {
+                LogError::Fenced { path, held, found } => {
+                    tracing::warn!(path = %path.display(), held, found, "the run was claimed by another planner; the log is not compacted");
+                    Ok(())
+                }
+                e => Err(e.into()),
+            };
+        }
+        let behind = lock().finish_compaction(job)?;
+        match behind {
+            Some(again) => job = again,
+            None => {
+                // The new file's name in its directory becomes durable here, off the lock.
+                let syncer = lock().syncer();
+                if let Some(syncer) = syncer {
+                    syncer.sync()?;
+                }
+                return Ok(());
+            }
+        }
+    }
+    tracing::info!("the replay log kept growing during its compaction; it is compacted later");
+    lock().abandon_compaction(job);
+    Ok(())
 }
 
 #[cfg(test)]
@@ -618,6 +726,7 @@ mod tests {
         buffer.append(vec![transition("b", 0, 0, 9.0)]).unwrap();
         for e in 0..20 {
             buffer.append(episode("a", e, 4)).unwrap();
+            buffer.compact_if_due().unwrap();
             assert!(buffer.len() <= 10 + 1, "episode {e}: {} kept", buffer.len());
         }
         // a's newest two episodes (8 transitions) and b's open one are kept.
@@ -689,6 +798,7 @@ mod tests {
                 *origin = ActionOrigin::Applied;
             }
             old_owner.append(records).unwrap();
+            old_owner.compact_if_due().unwrap();
         }
         // Only the newest episode is kept in memory, its origins with it.
         assert_eq!(old_owner.len(), 4);
@@ -705,6 +815,7 @@ mod tests {
         // The old owner, fenced without knowing, evicts again: the log stays as it is.
         for e in 3..6 {
             old_owner.append(episode("a", e, 4)).unwrap();
+            old_owner.compact_if_due().unwrap();
         }
         let after = std::fs::read(&path).unwrap();
         assert_eq!(after[..before.len()], before[..], "nothing rewritten");
@@ -717,5 +828,90 @@ mod tests {
             "the new owner's transitions are all kept"
         );
         assert_eq!(reopened.stale_skipped(), 3 * 5);
+    }
+    /// The buffer's lock is free while a compaction copies and fsyncs (its steps 1 and 3 are
+    /// the only ones that take it): agents append meanwhile, the compaction catches up with
+    /// what they wrote before it swaps files, and nothing they stored is lost.
+    #[test]
+    fn appends_during_a_compaction_are_caught_up_and_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = Builtin::Cartpole.task();
+        let buffer = std::sync::Mutex::new(ReplayBuffer::open(&path, task).unwrap());
+        let lock = || buffer.lock().unwrap();
+        lock().set_capacity(Some(4)).unwrap();
+        for e in 0..3 {
+            lock().append(episode("a", e, 4)).unwrap();
+        }
+        assert!(lock().compaction_due(), "8 evicted on disk, 4 kept");
+
+        let mut job = lock().start_compaction().unwrap().expect("due");
+        assert!(!lock().compaction_due(), "one compaction at a time");
+        // Step 2 runs with no lock held: an agent stores a whole episode in the middle of it.
+        job.rewrite.copy().unwrap();
+        lock().append(episode("b", 0, 3)).unwrap();
+        let job = lock()
+            .finish_compaction(job)
+            .unwrap()
+            .expect("the log grew since the copy: the job comes back");
+        let mut job = job;
+        job.rewrite.copy().unwrap();
+        assert!(lock().finish_compaction(job).unwrap().is_none(), "swapped");
+        // Stored after the swap, through the new file.
+        lock().append(episode("c", 0, 2)).unwrap();
+        lock().syncer().unwrap().sync().unwrap();
+        let kept = lock().transitions().clone();
+        drop(buffer);
+
+        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        let agents: Vec<&str> = reopened
+            .episodes()
+            .iter()
+            .map(|e| e.agent.as_str())
+            .collect();
+        assert_eq!(agents, ["a", "a", "a", "b", "c"], "every summary is kept");
+        assert_eq!(
+            reopened.len(),
+            4 + 3 + 2,
+            "a's evicted episodes left the log, nothing else"
+        );
+        let mut bounded = reopened;
+        bounded.set_capacity(Some(4)).unwrap();
+        assert_eq!(bounded.transitions(), &kept);
+    }
+
+    /// A claim by another planner that lands during the copy stops the compaction: the new
+    /// owner's file is never replaced, and the half-written copy is removed.
+    #[test]
+    fn a_claim_appended_during_a_compaction_fences_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = Builtin::Cartpole.task();
+        let old_owner = std::sync::Mutex::new(ReplayBuffer::open(&path, task).unwrap());
+        let lock = || old_owner.lock().unwrap();
+        lock().claim(1, "pa").unwrap();
+        lock().set_capacity(Some(4)).unwrap();
+        for e in 0..3 {
+            lock().append(episode("a", e, 4)).unwrap();
+        }
+        let mut job = lock().start_compaction().unwrap().expect("due");
+        job.rewrite.copy().unwrap();
+        let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
+        new_owner.claim(2, "pb").unwrap();
+        let before = std::fs::read(&path).unwrap();
+        let mut job = lock()
+            .finish_compaction(job)
+            .unwrap()
+            .expect("the log grew");
+        assert!(matches!(
+            job.rewrite.copy(),
+            Err(LogError::Fenced { found: 2, .. })
+        ));
+        lock().abandon_compaction(job);
+        assert_eq!(std::fs::read(&path).unwrap(), before, "nothing rewritten");
+        assert!(!path.with_extension("log.compacting").exists());
+        // The driver reports the same refusal as a skipped compaction, not a failure.
+        compact_log(lock).unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), before);
     }
 }
