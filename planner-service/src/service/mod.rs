@@ -597,7 +597,8 @@ impl Service {
         proto::validate_name(run_name).map_err(|e| refuse(e.to_string()))?;
         proto::validate_name(&request.agent).map_err(|e| refuse(e.to_string()))?;
         if !self.is_hosted(run_name) {
-            self.open_new_run(run_name, &request.spec).await?;
+            self.open_new_run(run_name, &self.with_declared_spec(&request.spec))
+                .await?;
         }
         let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         let handle = runs.get_mut(run_name).ok_or_else(|| {
@@ -711,6 +712,37 @@ impl Service {
         }
         proto::Task::intern(task_spec.clone(), &self.config.limits.spec_bounds())
             .map_err(|e| refuse(e.to_string()))
+    }
+
+    /// `spec` with the full spec of an operator-declared task (`[tasks.NAME]`, `tasks_dir`)
+    /// it names only by name: the run stores the spec it runs, as it does a client's, so
+    /// that editing or removing the declaration later cannot silently change or orphan it
+    /// (see [`Service::declaration_conflict`]). Built-in tasks are code, not declarations,
+    /// and are stored by name.
+    fn with_declared_spec(&self, spec: &RunSpec) -> RunSpec {
+        let mut spec = spec.clone();
+        if spec.task_spec.is_none()
+            && let Ok(task) = self.catalog.get(&spec.task)
+            && task.builtin().is_none()
+        {
+            spec.task_spec = Some(task.spec().clone());
+        }
+        spec
+    }
+
+    /// Why a stored run cannot resume under this daemon's declarations: its stored task spec
+    /// differs from the daemon's declaration of the same name (`None`: no conflict; a run whose
+    /// declaration was removed resumes with its stored spec). The run is set aside rather than
+    /// resumed with a task it was not trained on.
+    fn declaration_conflict(&self, spec: &RunSpec) -> Option<String> {
+        let stored = spec.task_spec.as_ref()?;
+        let declared = self.catalog.get(&spec.task).ok()?;
+        (declared.spec() != stored).then(|| {
+            format!(
+                "this planner declares task `{}` with another spec than the one stored with the run (run.json): restore the declaration, or declare the changed task under another name",
+                spec.task
+            )
+        })
     }
 
     /// The preset a run spec asks for, with the daemon's and the spec's overrides applied.
@@ -912,6 +944,10 @@ impl Service {
             // One opening at a time, as at attach: an agent may be opening this run now.
             let _opening = self.opening.lock().await;
             if self.is_hosted(&name) {
+                continue;
+            }
+            if let Some(reason) = self.declaration_conflict(&spec) {
+                self.set_aside(&name, reason);
                 continue;
             }
             match self.open_run(&name, spec).await {
