@@ -460,6 +460,9 @@ impl Run {
         if let Err(e) = replay::compact_log(|| self.lock_buffer()) {
             tracing::warn!(run = %self.name, error = %e, "cannot compact the replay log; it keeps every record and is compacted later");
         }
+        // A compaction shrinks the file: the reported size follows at once.
+        let log_bytes = self.lock_buffer().log_bytes();
+        self.lock_tally().log_bytes = log_bytes;
     }
 
     fn lock_buffer(&self) -> std::sync::MutexGuard<'_, ReplayBuffer> {
@@ -564,17 +567,17 @@ impl Run {
         if let Some(syncer) = &sync {
             self.sync_log(syncer);
         }
+        {
+            let mut tally = self.lock_tally();
+            tally.transitions = transitions;
+            tally.log_bytes = log_bytes;
+        }
         self.compact_log();
         for summary in [&accepted.abandoned, &accepted.finished]
             .into_iter()
             .flatten()
         {
             ended(&mut self.lock_next_episodes(), agent, summary.episode);
-        }
-        {
-            let mut tally = self.lock_tally();
-            tally.transitions = transitions;
-            tally.log_bytes = log_bytes;
         }
         let Some(finished) = &accepted.finished else {
             return Ok(Stored { must_cover: None });
