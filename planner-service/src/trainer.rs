@@ -9,12 +9,11 @@
 use crate::config::Preset;
 use crate::data::Transitions;
 use crate::models::Models;
-use crate::nn::split;
 use crate::nn::train::{FitBudget, Stop};
+use rand::SeedableRng;
 use rand::rngs::StdRng;
-use rand::{RngExt, SeedableRng};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::time::{Duration, Instant};
 
 /// What one retraining did.
@@ -40,10 +39,8 @@ pub struct TrainReport {
 /// The daemon's side of a retraining's budget.
 #[derive(Clone, Debug)]
 pub struct TrainLimits {
-    /// Wall-clock budget of one retraining. The dynamics (then, for a learned reward, the
-    /// reward model) and the regulariser train at the same time on two threads: the
-    /// regulariser may use all of it; the dynamics all of it, or three quarters when a reward
-    /// model follows it on its thread.
+    /// Wall-clock budget of one retraining: the dynamics may use its first half, a reward
+    /// model (for a learned reward) up to three quarters, the regulariser what is left.
     pub max_seconds: f64,
     /// Raised when the daemon stops: training ends before its next minibatch.
     pub cancel: Arc<AtomicBool>,
@@ -103,49 +100,25 @@ pub fn retrain(
         yield_to: limits.yield_to.clone(),
     };
     let mut next = current.clone();
-    // The dynamics and the regulariser train at the same time, each on its own thread with
-    // its own random stream: a core each, every product whole on the thread that needs it
-    // while both train (`nn::split`), instead of splitting each product across the cores and
-    // meeting after every one (which left the helper waiting through the element-wise work
-    // between products); the one that trains longer splits its products again once the other
-    // is done. A learned reward's model trains after the dynamics on its thread, from its
-    // stream (it is the other half of the model of the system that imagination rolls out,
-    // with the dynamics' epochs). Plain threads, not rayon's: training yields to plans between
-    // minibatches and the plans need rayon's threads.
-    let mut energy_rng = StdRng::seed_from_u64(rng.random());
-    let Models {
-        dynamics: next_dynamics,
-        reward: next_reward,
-        regularizer: next_regularizer,
-        ..
-    } = &mut next;
-    let dynamics_deadline =
-        limits.deadline(started, if next_reward.is_some() { 0.75 } else { 1.0 });
-    let deadline = limits.deadline(started, 1.0);
-    let dynamics_busy = Arc::new(AtomicBool::new(true));
-    let energy_busy = Arc::new(AtomicBool::new(true));
-    let (dynamics, reward, energy) = std::thread::scope(|scope| {
-        let energy = scope.spawn(|| {
-            let report = split::beside_partner(&dynamics_busy, || {
-                next_regularizer.fit(data, plan(energy_epochs, deadline), &mut energy_rng)
-            });
-            energy_busy.store(false, Ordering::Release);
-            report
-        });
-        let (dynamics, reward) = split::beside_partner(&energy_busy, || {
-            let dynamics =
-                next_dynamics.fit(data, plan(dynamics_epochs, dynamics_deadline), &mut rng);
-            let reward = next_reward
-                .as_mut()
-                .map(|model| model.fit(data, plan(dynamics_epochs, deadline), &mut rng));
-            (dynamics, reward)
-        });
-        dynamics_busy.store(false, Ordering::Release);
-        let energy = energy
-            .join()
-            .unwrap_or_else(|e| std::panic::resume_unwind(e));
-        (dynamics, reward, energy)
+    let dynamics = next.dynamics.fit(
+        data,
+        plan(dynamics_epochs, limits.deadline(started, 0.5)),
+        &mut rng,
+    );
+    // A learned reward trains on the same data with the dynamics' epochs: it is the other half
+    // of the model of the system that imagination rolls out.
+    let reward = next.reward.as_mut().map(|model| {
+        model.fit(
+            data,
+            plan(dynamics_epochs, limits.deadline(started, 0.75)),
+            &mut rng,
+        )
     });
+    let energy = next.regularizer.fit(
+        data,
+        plan(energy_epochs, limits.deadline(started, 1.0)),
+        &mut rng,
+    );
     let reports = [
         Some(("dynamics loss", &dynamics)),
         reward.as_ref().map(|r| ("reward model loss", r)),
@@ -245,29 +218,6 @@ mod tests {
         assert!(models.first_non_finite().is_none());
         assert!(report.dynamics_loss.is_finite() && report.energy_loss.is_finite());
         assert_eq!(report.cut_short, None);
-    }
-
-    /// The two models train at the same time, so each draws from its own random stream: the
-    /// dynamics' draws cannot change the regulariser (trained one after the other from one
-    /// stream, a bootstrapped ensemble's resampling moved the regulariser's noise and
-    /// minibatches).
-    #[test]
-    fn each_model_trains_on_its_own_random_stream() {
-        let one = small_preset();
-        let mut ensemble = one.clone();
-        ensemble.dynamics.ensemble_size = 3;
-        let start = untrained(&one);
-        let train = |p: &Preset| {
-            let mut models = untrained(p);
-            models.regularizer = start.regularizer.clone();
-            retrain(&models, &data(64, 1.0), p, 1, 0, &TrainLimits::unbounded())
-                .unwrap()
-                .0
-        };
-        let (a, b) = (train(&one), train(&ensemble));
-        assert_eq!((a.dynamics.members(), b.dynamics.members()), (1, 3));
-        assert!(a.regularizer.parts().is_some());
-        assert_eq!(a.regularizer.parts(), b.regularizer.parts());
     }
 
     /// A task whose reward is learned retrains its reward model with the dynamics (the same

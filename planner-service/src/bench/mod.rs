@@ -14,7 +14,6 @@ mod expression;
 mod kernel;
 mod peak;
 mod plan;
-mod retrain;
 mod timing;
 mod train;
 
@@ -162,8 +161,6 @@ pub enum BenchError {
     Planner(#[from] ConfigError),
     #[error("cannot start a thread pool: {0}")]
     Threads(#[from] rayon::ThreadPoolBuildError),
-    #[error("the retraining: {0}")]
-    Retrain(#[from] crate::trainer::TrainError),
     #[error("{0} must be at least 1")]
     Zero(&'static str),
     #[error("the formula: {0}")]

@@ -8,7 +8,6 @@
 //! the machine was. The CPU share says how much of `threads × wall time` that was.
 
 use super::peak::{Peak, percent};
-use super::retrain::{self, RetrainTiming, WithPeak};
 use super::timing::{BATCHES, Clock, Samples, Timing, measure};
 use super::{BenchError, describe, preset, random_transitions};
 use crate::dynamics::{Ensemble, TrainWorkspace, TrainingSet};
@@ -83,9 +82,6 @@ pub struct TrainReport {
     /// Threads the training products may use (rayon's pool): the fraction of peak is taken
     /// of this many cores.
     pub threads: usize,
-    /// Whole retrainings as the daemon runs them: the aggregate rate of both models' training
-    /// on every thread, the figure a run's retraining cost follows.
-    pub retraining: RetrainTiming,
 }
 
 /// Where a DEEN step's time goes: its double backprop is the costliest training pass of the
@@ -153,7 +149,6 @@ pub(super) fn run(
         deen.train_step(&set, batch, &mut workspace, &mut noise_rng);
     });
     let deen_phases = deen_phases(deen.mlp(), &set, &energy_batches[0], steps);
-    let retraining = retrain::time(task, &preset, seed)?;
 
     Ok(TrainReport {
         task,
@@ -173,7 +168,6 @@ pub(super) fn run(
         deen_phases,
         peak: peak.max(Peak::measure()),
         threads: rayon::current_num_threads(),
-        retraining,
     })
 }
 
@@ -249,8 +243,7 @@ impl fmt::Display for TrainReport {
             "\n  DEEN step phases (CPU ms, best of {BATCHES} batches): forward + input gradient \
              {:.3} ms, double backprop {:.3} ms, Adam {:.3} ms",
             p.forward.min_ms, p.backward.min_ms, p.optimiser.min_ms
-        )?;
-        write!(f, "\n  {}", WithPeak(&self.retraining, &self.peak))
+        )
     }
 }
 
@@ -290,23 +283,6 @@ mod tests {
                 && text.contains("of peak")
                 && text.contains("CPU ms")
                 && !text.contains("PyTorch"),
-            "{text}"
-        );
-        // One whole retraining at Table 2's epochs (cartpole: 500 each) on 64 transitions.
-        let r = &report.retraining;
-        assert_eq!(
-            (r.transitions, r.dynamics_epochs, r.energy_epochs, r.members),
-            (64, 500, 500, 1)
-        );
-        assert_eq!(
-            r.flops,
-            64.0 * 500.0
-                * (dynamics_step_flops(&[6, 200, 200, 200, 8])
-                    + deen_step_flops(&[9, 200, 200, 200, 1]))
-        );
-        assert!(r.wall_s.0 > 0.0 && r.wall_s.0 <= r.wall_s.1, "{r:?}");
-        assert!(
-            text.contains("retraining") && text.contains("aggregate"),
             "{text}"
         );
         assert!(matches!(

@@ -76,7 +76,7 @@ impl Adam {
             self.epsilon,
         ];
         let n = params.len();
-        if n < PARALLEL_MIN || rayon::current_num_threads() < 2 || !super::split::may_split() {
+        if n < PARALLEL_MIN || rayon::current_num_threads() < 2 {
             adam_update(params, grads, &mut self.m, &mut self.v, k);
             return;
         }

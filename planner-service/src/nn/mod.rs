@@ -28,7 +28,6 @@ pub mod normalizer;
 #[cfg(test)]
 pub(crate) mod reference;
 pub mod simd;
-pub mod split;
 pub mod train;
 pub mod vecops;
 

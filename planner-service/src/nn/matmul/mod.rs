@@ -273,16 +273,11 @@ fn matmul_at(lvl: SimdLevel, c: MatMut<'_>, x: MatRef<'_>, y: MatRef<'_>, init: 
 /// 0.10 ms of CPU.
 const PARALLEL_MIN_MACS: usize = 1 << 22;
 
-/// [`matmul`], with the rows of `C` split across two rayon tasks when the product is large
-/// and the thread may split its work ([`super::split::may_split`]).
+/// [`matmul`], with the rows of `C` split across two rayon tasks when the product is large.
 /// The floating-point mode (flush-to-zero) of the calling thread is carried to the helper.
 pub fn matmul_par(c: MatMut<'_>, x: MatRef<'_>, y: MatRef<'_>, init: Init<'_>) {
     let (m, n, k) = (c.rows, c.cols, x.cols);
-    if m < 24
-        || m * n * k < PARALLEL_MIN_MACS
-        || rayon::current_num_threads() < 2
-        || !super::split::may_split()
-    {
+    if m < 24 || m * n * k < PARALLEL_MIN_MACS || rayon::current_num_threads() < 2 {
         return matmul(c, x, y, init);
     }
     assert_eq!(x.rows, m, "X has {} rows, C has {m}", x.rows);
