@@ -17,6 +17,7 @@
 pub mod figures;
 pub mod launcher;
 pub mod manifest;
+pub mod method;
 pub mod plot;
 pub mod progress;
 pub mod replan;

@@ -49,10 +49,13 @@ struct ExperimentArgs {
     /// Task to learn.
     #[arg(long)]
     task: Builtin,
-    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen, adam+dae.
+    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen, adam+dae,
+    /// and icem, icem+dae, icem+deen: the cem… preset planned by iCEM with 30 % of the scale's
+    /// CEM population, a tenth of that as elites and 3 iterations.
     #[arg(long, value_delimiter = ',', default_value = "cem,cem+dae,cem+deen")]
     methods: Vec<String>,
-    /// Sizes: `paper` (Table 2) or `small` (fits a 2-core machine; see the README).
+    /// Sizes: `paper` (Table 2), `small` (fits a 2-core machine; see the README) or
+    /// `small-learning` (small's seeds, episodes and training, Table 2's planning search).
     #[arg(long, value_enum, default_value_t = Scale::Paper)]
     scale: Scale,
     /// Seeds per method (0, 1, …; default: 5 at paper scale, 2 at small).
