@@ -174,3 +174,116 @@ pub fn run(config: &ReplanConfig) -> Result<ReplanReport> {
         plan_ms,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use planner_service::models::Models;
+    use proto::RunSpec;
+    use std::path::Path;
+
+    /// A cartpole `cem+deen` run with tiny models and a small search, stored as the daemon
+    /// stores one (its spec and a checkpoint).
+    fn store_run(dir: &Path) {
+        let task = Builtin::Cartpole.task();
+        let spec = RunSpec {
+            task: "cartpole".into(),
+            preset: Some("cem+deen".into()),
+            overrides: PlannerOverrides {
+                dynamics_hidden_layers: Some(1),
+                dynamics_hidden_size: Some(8),
+                energy_hidden_layers: Some(1),
+                energy_hidden_size: Some(8),
+                horizon: Some(5),
+                population: Some(20),
+                elites: Some(4),
+                cem_iterations: Some(2),
+                ..Default::default()
+            },
+            mode: Default::default(),
+            seed: 0,
+            task_spec: None,
+        };
+        let mut preset = Preset::new(task, spec.preset.as_deref()).unwrap();
+        preset.apply(&spec.overrides).unwrap();
+        let mut models = Models::untrained(task, &preset, 0);
+        models.version = 1;
+        std::fs::create_dir_all(dir).unwrap();
+        let run = RunDir::at(dir);
+        run.write_spec(&spec).unwrap();
+        run.save_models(&models, task).unwrap();
+    }
+
+    fn replan(dir: &Path, overrides: PlannerOverrides) -> Result<ReplanReport> {
+        run(&ReplanConfig {
+            run_dir: dir.to_path_buf(),
+            overrides,
+            steps: 12,
+            seed: 3,
+        })
+    }
+
+    #[test]
+    fn replans_a_stored_run_with_each_optimiser_and_the_same_seed_repeats() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("cartpole-run");
+        store_run(&dir);
+        let cem = replan(&dir, PlannerOverrides::default()).unwrap();
+        assert_eq!((cem.task, cem.models_version), (Builtin::Cartpole, 1));
+        assert_eq!(
+            (cem.optimizer, cem.population, cem.iterations),
+            (Optimizer::Cem, 20, 2)
+        );
+        assert_eq!((cem.steps, cem.plan_ms.len()), (12, 12));
+        assert!(cem.real_return.is_finite(), "{cem:?}");
+        assert!(cem.candidates_per_plan > 0.0 && cem.candidates_per_plan <= 40.0);
+        assert!(cem.best_ms() <= cem.median_ms(), "{cem:?}");
+        assert_eq!(cem.noise_beta, None);
+        let again = replan(&dir, PlannerOverrides::default()).unwrap();
+        assert_eq!(again.real_return, cem.real_return);
+
+        let icem = replan(
+            &dir,
+            PlannerOverrides {
+                optimizer: Some(Optimizer::Icem),
+                population: Some(30),
+                icem_noise_beta: Some(0.5),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(
+            (icem.optimizer, icem.noise_beta),
+            (Optimizer::Icem, Some(0.5))
+        );
+        // 30 candidates, then 24 (decay 1.25), never more.
+        assert!(icem.candidates_per_plan <= 54.0, "{icem:?}");
+        assert_eq!(icem.steps, 12);
+    }
+
+    #[test]
+    fn refuses_a_directory_without_a_run_and_overrides_that_do_not_fit() {
+        let tmp = tempfile::tempdir().unwrap();
+        let err = replan(tmp.path(), PlannerOverrides::default()).unwrap_err();
+        assert!(err.to_string().contains("run.json"), "{err}");
+        let dir = tmp.path().join("run");
+        store_run(&dir);
+        for bad in [
+            PlannerOverrides {
+                icem_noise_beta: Some(0.5),
+                ..Default::default()
+            },
+            PlannerOverrides {
+                elites: Some(1000),
+                ..Default::default()
+            },
+            PlannerOverrides {
+                optimizer: Some(Optimizer::Icem),
+                icem_noise_beta: Some(f32::NAN),
+                ..Default::default()
+            },
+        ] {
+            assert!(replan(&dir, bad.clone()).is_err(), "{bad:?}");
+        }
+    }
+}
