@@ -33,6 +33,7 @@
 //! more than the CSV, and the CSV's episode numbers skip one).
 
 use crate::manifest::Manifest;
+use crate::method::Method;
 use crate::progress::Progress;
 use crate::results::{self, EpisodeRow};
 use crate::scale::{self, Scale};
@@ -136,8 +137,7 @@ pub fn collect_rows(dir: &Path, manifest: &Manifest) -> Result<Vec<EpisodeRow>> 
 /// one when resuming).
 pub fn prepare(exp: &Experiment) -> Result<Manifest> {
     for method in &exp.methods {
-        planner_service::config::Preset::new(exp.task.task(), Some(method))
-            .with_context(|| format!("method `{method}`"))?;
+        Method::parse(exp.task, method).with_context(|| format!("method `{method}`"))?;
     }
     std::fs::create_dir_all(exp.out.join("runs"))
         .with_context(|| format!("creating {}", exp.out.display()))?;
@@ -262,6 +262,8 @@ fn run_one(
         .open(&log_path)
         .with_context(|| format!("opening {}", log_path.display()))?;
     let run_name = run.daemon_run(exp.task);
+    // An `icem…` label attaches with its CEM preset; the optimiser is among the overrides.
+    let preset = Method::parse(exp.task, &run.method)?.preset;
     if remaining == 0 {
         // Every episode was recorded before the last launcher stopped.
         std::fs::rename(&partial, run.csv(&exp.out))?;
@@ -285,7 +287,7 @@ fn run_one(
         ])
         .args(["--episodes", &remaining.to_string()])
         .args(["--seed", &run.seed.to_string()])
-        .args(["--preset", &run.method])
+        .args(["--preset", &preset])
         .args(["--connect", endpoint])
         .args(["--train-timeout", "86400"])
         .arg("--out")

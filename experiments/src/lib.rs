@@ -7,6 +7,8 @@
 //! - [`figures`]: the paper's Figure 3 (DEEN vs DAE on a 1-D mixture) and Figure 5
 //!   (imagination against reality), computed in-process with the planner's library and the
 //!   simulator's [`sim_bridge::Env`].
+//! - [`replan`]: optimisers side by side on one stored run's frozen models, in the simulator:
+//!   real return and milliseconds per plan.
 //!
 //! This crate exists so that planner-service never depends on sim-bridge: Figure 5 needs both
 //! the planner (to optimise a plan) and the simulator (to execute it), and the launcher and the
@@ -15,7 +17,9 @@
 pub mod figures;
 pub mod launcher;
 pub mod manifest;
+pub mod method;
 pub mod plot;
 pub mod progress;
+pub mod replan;
 pub mod results;
 pub mod scale;

@@ -8,8 +8,8 @@ use clap::{Args, Parser, Subcommand};
 use ebmpc_experiments::figures::{imagination, toy};
 use ebmpc_experiments::launcher::{self, Experiment};
 use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
-use ebmpc_experiments::results;
 use ebmpc_experiments::scale::Scale;
+use ebmpc_experiments::{replan, results};
 use proto::Builtin;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -39,6 +39,9 @@ enum Command {
     Imagination(ImaginationArgs),
     /// Figure 3: DEEN and DAE score estimates on a 1-D Gaussian mixture against the truth.
     Toy(ToyArgs),
+    /// Plan with a stored run's frozen models in the simulator for one episode: real return
+    /// and milliseconds per plan, to compare optimisers (CEM, iCEM) on the same model.
+    Replan(ReplanArgs),
 }
 
 #[derive(Args, Debug)]
@@ -46,10 +49,13 @@ struct ExperimentArgs {
     /// Task to learn.
     #[arg(long)]
     task: Builtin,
-    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen, adam+dae.
+    /// Methods to compare (comma-separated): cem, cem+dae, cem+deen, pets, pets+deen, adam+dae,
+    /// and icem, icem+dae, icem+deen: the cem… preset planned by iCEM with 30 % of the scale's
+    /// CEM population, a tenth of that as elites and 3 iterations.
     #[arg(long, value_delimiter = ',', default_value = "cem,cem+dae,cem+deen")]
     methods: Vec<String>,
-    /// Sizes: `paper` (Table 2) or `small` (fits a 2-core machine; see the README).
+    /// Sizes: `paper` (Table 2), `small` (fits a 2-core machine; see the README) or
+    /// `small-learning` (small's seeds, episodes and training, Table 2's planning search).
     #[arg(long, value_enum, default_value_t = Scale::Paper)]
     scale: Scale,
     /// Seeds per method (0, 1, …; default: 5 at paper scale, 2 at small).
@@ -125,6 +131,41 @@ struct ToyArgs {
     /// Output folder.
     #[arg(long, default_value = "results/figures")]
     out: PathBuf,
+}
+
+#[derive(Args, Debug)]
+struct ReplanArgs {
+    /// A run's directory (`run.json` and `models-*.safetensors`), e.g. a copy of
+    /// `<experiment>/planner/runs/<run>`; a damaged checkpoint in it is moved aside.
+    #[arg(long)]
+    run: PathBuf,
+    /// Simulator steps of the episode (at most the task's episode length).
+    #[arg(long, default_value_t = 1000)]
+    steps: u32,
+    /// Seed of the start state and of the planner.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Optimiser: cem, icem or adam (default: the run's).
+    #[arg(long)]
+    optimizer: Option<proto::Optimizer>,
+    /// Candidates per iteration (iCEM: of its first iteration; default: the run's).
+    #[arg(long)]
+    population: Option<u32>,
+    /// Elites per iteration (default: the run's).
+    #[arg(long)]
+    elites: Option<u32>,
+    /// Iterations per plan (default: the run's).
+    #[arg(long)]
+    iterations: Option<u32>,
+    /// iCEM's colored-noise exponent β (default: the preset's for the task).
+    #[arg(long)]
+    noise_beta: Option<f32>,
+    /// iCEM's fraction of elites kept across iterations and steps.
+    #[arg(long)]
+    keep_elites: Option<f32>,
+    /// iCEM's population decay per iteration (≥ 1).
+    #[arg(long)]
+    population_decay: Option<f32>,
 }
 
 /// `YYYYMMDD-HHMMSS` in UTC, for experiment folders.
@@ -332,6 +373,26 @@ fn toy_command(args: ToyArgs) -> Result<()> {
     Ok(())
 }
 
+fn replan_command(args: ReplanArgs) -> Result<()> {
+    let config = replan::ReplanConfig {
+        run_dir: args.run,
+        overrides: proto::PlannerOverrides {
+            optimizer: args.optimizer,
+            population: args.population,
+            elites: args.elites,
+            cem_iterations: args.iterations,
+            icem_noise_beta: args.noise_beta,
+            icem_keep_elites: args.keep_elites,
+            icem_population_decay: args.population_decay,
+            ..Default::default()
+        },
+        steps: args.steps,
+        seed: args.seed,
+    };
+    println!("{}", replan::run(&config)?);
+    Ok(())
+}
+
 fn main() -> Result<()> {
     // MuJoCo's compile-time report and zenoh's chatter are noise here; colours only on a
     // terminal, so that a run under nohup leaves a readable log.
@@ -348,5 +409,6 @@ fn main() -> Result<()> {
         Command::Plot(args) => plot_command(args),
         Command::Imagination(args) => imagination_command(args),
         Command::Toy(args) => toy_command(args),
+        Command::Replan(args) => replan_command(args),
     }
 }

@@ -141,7 +141,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
                 let outcome = planner.plan(&obs, &dynamics, &regularizer, None, None);
                 times.push(start.elapsed());
                 iterations += u64::from(outcome.iterations);
-                candidates += candidates_scored(&preset.cem, outcome.iterations as usize);
+                candidates += preset.cem.candidates_scored(outcome.iterations as usize);
             }
             let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
             let cpu_seconds = cpu_before
@@ -198,17 +198,6 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             .map(|c| flops * s.timed as f64 / c / 1e9),
         peak,
     })
-}
-
-/// Candidate sequences a solve of `iterations` iterations scores.
-fn candidates_scored(cem: &crate::plan::CemConfig, iterations: usize) -> usize {
-    match cem.optimizer {
-        // Adam: one forward rollout per candidate and step (its backward pass is not counted).
-        proto::Optimizer::Cem | proto::Optimizer::Adam => iterations * cem.population,
-        proto::Optimizer::Icem => (0..iterations)
-            .map(|i| crate::plan::icem::population_at(cem, i))
-            .sum(),
-    }
 }
 
 impl fmt::Display for PlanReport {

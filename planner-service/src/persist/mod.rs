@@ -83,6 +83,11 @@ impl RunDir {
         }
     }
 
+    /// The run directory at `root` itself (e.g. a copy of a run's directory, read by tools).
+    pub fn at(root: impl Into<PathBuf>) -> Self {
+        Self { root: root.into() }
+    }
+
     pub fn root(&self) -> &Path {
         &self.root
     }

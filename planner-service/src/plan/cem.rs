@@ -97,6 +97,20 @@ impl CemConfig {
     }
 }
 
+impl CemConfig {
+    /// Candidate sequences a solve of `iterations` iterations scores: the population each
+    /// time for CEM (and Adam's sequences, one forward rollout each), iCEM's decaying
+    /// population ([`super::icem::population_at`]) summed.
+    pub fn candidates_scored(&self, iterations: usize) -> usize {
+        match self.optimizer {
+            Optimizer::Cem | Optimizer::Adam => iterations * self.population,
+            Optimizer::Icem => (0..iterations)
+                .map(|i| super::icem::population_at(self, i))
+                .sum(),
+        }
+    }
+}
+
 /// Why a planner configuration was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ConfigError {
