@@ -19,7 +19,9 @@ mod spec;
 mod transforms;
 
 pub use catalog::{CatalogError, TaskCatalog, UnknownTask};
-pub use compiled::{MAX_DISTINCT_TASKS, RowFormula, Task, TaskError, compile_expression};
+pub use compiled::{
+    Formula, FormulaScratch, MAX_DISTINCT_TASKS, Task, TaskError, compile_expression,
+};
 pub use spec::{
     DeclaredTransforms, MAX_ACTION_BOUND, MAX_CONTROL_DT, MAX_EXPRESSION_BYTES, MAX_MAGNITUDE,
     MIN_CONTROL_DT, Magnitudes, ModelTransforms, ObservationBounds, RewardKind, SpecBounds,
