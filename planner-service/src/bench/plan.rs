@@ -418,9 +418,9 @@ impl fmt::Display for PlanReport {
             }
             writeln!(
                 f,
-                "\n    per plan   {:.2} ms best, {:.2} ms median, over {} calls ({:.1} iterations and \
+                "\n    per plan   {:.2} ms median, {:.2} ms best, over {} calls ({:.1} iterations and \
                  {:.0} candidates per call)",
-                t.min_ms, t.median_ms, self.calls, t.mean_iterations, t.mean_candidates
+                t.median_ms, t.min_ms, self.calls, t.mean_iterations, t.mean_candidates
             )?;
             if let Some(cpu) = t.cpu_ms_per_call {
                 writeln!(f, "    CPU        {cpu:.2} ms per call, every thread's")?;
