@@ -448,15 +448,15 @@ impl fmt::Display for PlanReport {
         if let Some((best, median)) = self.expression_share() {
             write!(
                 f,
-                "  formula    the expression's calls took {:.2} % (best) and {:.2} % (median) of \
-                 their wall time beyond the builtin code's",
+                "  formula    expression − builtin: {:+.2} % (best), {:+.2} % (median) of the \
+                 expression's wall time per plan",
                 best * 100.0,
                 median * 100.0
             )?;
             if let Some(cpu) = self.expression_cpu_share() {
-                write!(f, ", {:.2} % of their CPU time", cpu * 100.0)?;
+                write!(f, ", {:+.2} % of its CPU time per plan", cpu * 100.0)?;
             }
-            writeln!(f)?;
+            writeln!(f, " (a cost below the noise can come out negative)")?;
         }
         out.write_str(text.trim_end())
     }
@@ -599,7 +599,7 @@ mod tests {
         assert!(
             text.contains("reward     expression `s_next[0] - 0.1*dot(a, a)`")
                 && text.contains("reward model 42→2×200→1")
-                && text.contains("beyond the builtin code's"),
+                && text.contains("expression − builtin: "),
             "{text}"
         );
 

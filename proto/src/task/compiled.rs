@@ -101,6 +101,17 @@ impl Formula {
         self.expression.eval_batch(inputs, out, scratch);
     }
 
+    /// [`Formula::values`] and each row's gradient into `grads` (overwritten).
+    fn values_and_gradients(
+        &self,
+        inputs: Inputs,
+        out: &mut [f32],
+        grads: Gradients,
+        scratch: &mut Scratch,
+    ) {
+        self.expression.eval_grad(inputs, out, grads, scratch);
+    }
+
     /// The one-row paths' scratch: this thread's for this formula.
     fn with_scratch<R>(&self, f: impl FnOnce(&mut Scratch) -> R) -> R {
         SCRATCH.with(|cell| {
@@ -398,6 +409,70 @@ impl Task {
         }
     }
 
+    /// [`Task::rewards`] and each row's gradient: `∂r/∂obs` into `d_obs`, `∂r/∂act` into
+    /// `d_act`, `∂r/∂next_obs` into `d_next_obs` (rows × dims, all overwritten). Builtin code
+    /// reads no `obs` (its `d_obs` is 0); a formula may, and its `∂r/∂s` is exact.
+    ///
+    /// # Panics
+    ///
+    /// As [`Task::rewards`], and if a gradient does not hold `out.len()` rows.
+    #[allow(clippy::too_many_arguments)]
+    pub fn reward_gradients(
+        &self,
+        obs: &[f32],
+        act: &[f32],
+        next_obs: &[f32],
+        scratch: &mut FormulaScratch,
+        out: &mut [f32],
+        d_obs: &mut [f32],
+        d_act: &mut [f32],
+        d_next_obs: &mut [f32],
+    ) {
+        let (o, a, rows) = (self.spec.obs_dim, self.spec.act_dim, out.len());
+        assert_eq!(
+            (obs.len(), act.len(), next_obs.len()),
+            (rows * o, rows * a, rows * o),
+            "{}: rows of the transitions",
+            self.spec.name
+        );
+        assert_eq!(
+            (d_obs.len(), d_act.len(), d_next_obs.len()),
+            (rows * o, rows * a, rows * o),
+            "{}: rows of the gradients",
+            self.spec.name
+        );
+        match &self.reward {
+            Reward::Builtin(code) => {
+                d_obs.fill(0.0);
+                let inputs = obs
+                    .chunks_exact(o)
+                    .zip(act.chunks_exact(a))
+                    .zip(next_obs.chunks_exact(o));
+                let grads = d_act
+                    .chunks_exact_mut(a)
+                    .zip(d_next_obs.chunks_exact_mut(o));
+                for ((r, ((s, u), s1)), (du, ds1)) in out.iter_mut().zip(inputs).zip(grads) {
+                    *r = (code.reward_gradient)(s, u, s1, du, ds1);
+                }
+            }
+            Reward::Expression(f) => {
+                let inputs = Inputs {
+                    s: obs,
+                    a: act,
+                    s_next: next_obs,
+                };
+                let grads = Gradients {
+                    s: d_obs,
+                    a: d_act,
+                    s_next: d_next_obs,
+                };
+                let scratch = scratch.reward.as_mut().expect(SCRATCH_OF_ANOTHER_TASK);
+                f.values_and_gradients(inputs, out, grads, scratch);
+            }
+            Reward::Learned => panic!("{}: {LEARNED_HAS_NO_FORMULA}", self.spec.name),
+        }
+    }
+
     /// [`Task::is_terminal`] of every row of `next_obs` (row-major) into `out`, one per row.
     ///
     /// # Panics
@@ -599,8 +674,42 @@ mod tests {
             task.rewards(&obs, &act, &next, &mut scratch, &mut rewards);
             let mut ended = vec![false; rows];
             task.terminations(&next, &mut scratch, &mut ended);
+            let (mut values, mut d_obs, mut d_act, mut d_next) = (
+                vec![f32::NAN; rows],
+                vec![f32::NAN; rows * o],
+                vec![f32::NAN; rows * a],
+                vec![f32::NAN; rows * o],
+            );
+            task.reward_gradients(
+                &obs,
+                &act,
+                &next,
+                &mut scratch,
+                &mut values,
+                &mut d_obs,
+                &mut d_act,
+                &mut d_next,
+            );
+            assert!(
+                d_obs.iter().all(|&g| g == 0.0),
+                "{}: no reward reads s",
+                task.name()
+            );
+            let (mut want_da, mut want_dn) = (vec![0.0; a], vec![0.0; o]);
             for r in 0..rows {
                 let (s, u, s1) = (&obs[r * o..][..o], &act[r * a..][..a], &next[r * o..][..o]);
+                let want = task.reward_gradient(s, u, s1, &mut want_da, &mut want_dn);
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    (
+                        values[r].to_bits(),
+                        bits(&d_act[r * a..][..a]),
+                        bits(&d_next[r * o..][..o])
+                    ),
+                    (want.to_bits(), bits(&want_da), bits(&want_dn)),
+                    "{} row {r}: value and gradient",
+                    task.name()
+                );
                 let want = task.reward(s, u, s1);
                 assert!(
                     rewards[r].to_bits() == want.to_bits(),
@@ -625,6 +734,34 @@ mod tests {
             &mut ended,
         );
         assert_eq!(ended, [false, true, true], "a NaN height is not healthy");
+    }
+
+    /// A formula that reads `s` has a gradient in `s` too, on the population path.
+    #[test]
+    fn population_gradients_include_the_previous_state() {
+        let mut spec = custom("population-reads-s");
+        spec.reward = RewardKind::Expression("s_next[0] - s[1]^2 + 0.5*a[0]*s[3]".into());
+        let task = Task::intern(spec, &SpecBounds::default()).unwrap();
+        let obs = [0.3, -0.7, 2.0, 1.5, 0.0, 0.4, 0.1, -2.0];
+        let (act, next) = ([0.5, -1.0], [1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0]);
+        let (mut out, mut d_obs, mut d_act, mut d_next) = ([0.0; 2], [9.0; 8], [9.0; 2], [9.0; 8]);
+        task.reward_gradients(
+            &obs,
+            &act,
+            &next,
+            &mut task.formula_scratch(),
+            &mut out,
+            &mut d_obs,
+            &mut d_act,
+            &mut d_next,
+        );
+        assert!(
+            (out[0] - 0.885).abs() < 1e-6 && (out[1] + 0.16).abs() < 1e-6,
+            "{out:?}"
+        );
+        assert_eq!(d_obs, [0.0, 1.4, 0.0, 0.25, 0.0, -0.8, 0.0, -0.5]);
+        assert_eq!(d_act, [0.75, -1.0]);
+        assert_eq!(d_next, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]);
     }
 
     /// A scratch is made by its task: another task's has no room for the formula.
