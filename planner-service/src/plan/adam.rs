@@ -624,7 +624,9 @@ mod tests {
         }
     }
 
-    /// Random transitions of `spec`, each rewarded `Σ sin(s')` (what a learned reward learns).
+    /// Random transitions of `spec` whose next state moves with the action (so that a plan's
+    /// later states, and a reward of them, depend on its earlier actions), each rewarded
+    /// `Σ sin(s')` (what a learned reward learns).
     fn random_data(spec: &Task, n: usize, rng: &mut StdRng) -> Transitions {
         let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
         for _ in 0..n {
@@ -634,9 +636,10 @@ mod tests {
             let act: Vec<f32> = (0..spec.act_dim)
                 .map(|d| rng.random_range(spec.action_low[d]..spec.action_high[d]))
                 .collect();
+            let push: f32 = act.iter().sum::<f32>() / spec.act_dim as f32;
             let next: Vec<f32> = obs
                 .iter()
-                .map(|o| o + 0.3 * rng.random_range(-1.0f32..1.0))
+                .map(|o| o + 0.5 * push + 0.1 * rng.random_range(-1.0f32..1.0))
                 .collect();
             let reward = next.iter().map(|x| x.sin()).sum();
             data.push(&obs, &act, reward, &next);
@@ -657,7 +660,7 @@ mod tests {
         let mut spec = Builtin::Cartpole.spec();
         spec.name = "adam-formula-cartpole".into();
         spec.reward = proto::task::RewardKind::Expression(
-            "exp(-s_next[0]^2) - 0.5*s[1]*s_next[1] + sin(s[3]) - 0.01*dot(a, a)".into(),
+            "exp(-s_next[0]^2) - 0.5*s[1]*s_next[1] + 2*sin(s[3]) - 0.01*dot(a, a)".into(),
         );
         Task::intern(spec, &proto::task::SpecBounds::default()).unwrap()
     }
