@@ -6,6 +6,7 @@ use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
 use crate::replay::{self, EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
+use crate::sched::background::run_in_background;
 use crate::service::metrics::RunHistograms;
 use crate::service::status::{LastRetraining, Latency, LatencyWindow, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
@@ -652,7 +653,9 @@ impl Run {
             let run = self.clone();
             let task = self.task;
             let limits = self.hosting.train_limits.clone();
-            let outcome = tokio::task::spawn_blocking(move || {
+            // On a thread of its own at background priority: a minibatch running when a plan
+            // arrives gives way to it (see `sched::background`).
+            let outcome = run_in_background("ebmpc-retrain".into(), move || {
                 // The snapshot waits for the buffer, which may be busy writing to a slow disk:
                 // here, on the blocking pool, that holds this run's trainer only.
                 let data = run.lock_buffer().transitions().clone();
@@ -687,7 +690,7 @@ impl Run {
                     return;
                 }
                 Ok(Err(e)) => Some(e.to_string()),
-                Err(e) => Some(format!("training panicked: {e}")),
+                Err(e) => Some(format!("training failed: {e}")),
             };
             if let Some(message) = failure {
                 tracing::error!(run = %self.name, "training failed; keeping the previous models: {message}");

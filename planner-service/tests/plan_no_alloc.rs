@@ -19,6 +19,7 @@
 use planner_service::data::Transitions;
 use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
+use planner_service::plan::anytime::Preempt;
 use planner_service::plan::{CemConfig, IcemConfig, MpcPlanner, Optimizer};
 use planner_service::reward::{RewardConfig, RewardModel};
 use proto::task::{RewardKind, SpecBounds, TerminationKind};
@@ -70,6 +71,18 @@ unsafe impl GlobalAlloc for CountingAllocator {
 static GLOBAL: CountingAllocator = CountingAllocator;
 
 /// Random transitions of the task: enough for the models' normalisers and a brief fit.
+/// A scheduler with no rival plan: offered every pause, never takes one.
+#[derive(Debug)]
+struct NeverPaused;
+
+impl Preempt for NeverPaused {
+    fn step_back(&self) {}
+
+    fn paused(&self) -> std::time::Duration {
+        std::time::Duration::ZERO
+    }
+}
+
 fn random_transitions(spec: &Task, n: usize, rng: &mut StdRng) -> Transitions {
     let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
     for _ in 0..n {
@@ -203,6 +216,7 @@ fn allocates_nothing_after_warm_up_in(
         .map(|i| if i == 0 { 0.55 } else { 0.01 * i as f32 })
         .collect();
 
+    let preempt: std::sync::Arc<dyn Preempt> = std::sync::Arc::new(NeverPaused);
     let (allocations, checksum) = pool.install(|| {
         // Warm-up: the first calls create the network scratch; every worker thread runs a
         // chunk at least once.
@@ -218,6 +232,13 @@ fn allocates_nothing_after_warm_up_in(
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(3600);
         for _ in 0..5 {
             let outcome = planner.plan(&obs, &dynamics, &deen, reward, Some(deadline));
+            checksum += outcome.action[0] + outcome.predicted_return + outcome.mean_energy;
+        }
+        // Nor does a plan sharing the cores, offered a pause between every imagined step.
+        for _ in 0..2 {
+            let shared = Some(preempt.clone());
+            let outcome =
+                planner.plan_shared(&obs, &dynamics, &deen, reward, Some(deadline), shared);
             checksum += outcome.action[0] + outcome.predicted_return + outcome.mean_energy;
         }
         COUNTING.store(false, Ordering::SeqCst);

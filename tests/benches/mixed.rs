@@ -17,7 +17,9 @@
 //! (never ended, so its own run does not retrain during the measure) while the neighbour
 //! plays. Printed for each agent of each mix: its planned steps, the p50 and p99 of the round
 //! trip (observation sent → action received, measured by the agent), and the plans the
-//! deadline cut and the deadlines missed, from each action's stats.
+//! deadline cut and the deadlines missed, from each action's stats. Planned steps are paced as
+//! a controller paces them: one observation per control period of the agent's task (40 ms
+//! cartpole, 50 ms half-cheetah), the next one at once after a late action.
 //!
 //! Flags (after `--`): `--steps N` planned cartpole steps per mix (default 200).
 
@@ -146,6 +148,8 @@ struct Agent {
     episode: u32,
     /// The task's time limit: an episode's last step is `episode_len - 1`.
     episode_len: u32,
+    /// The task's control period: a controller sends an observation once per period.
+    period: Duration,
 }
 
 impl Agent {
@@ -157,6 +161,7 @@ impl Agent {
             plant: Plant::new(task.task().obs_dim),
             episode: 0,
             episode_len: task.task().episode_len,
+            period: Duration::from_secs_f64(task.spec().control_dt),
         })
     }
 
@@ -176,16 +181,26 @@ impl Agent {
             Some(EpisodeEnd::TimeLimit),
         );
         self.client.send(&end).await?;
+        // The client keeps run events in a bounded channel; left full (256 events: a
+        // retraining neighbour ends that many episodes in seconds) it would stall the client's
+        // session, and with it the answers to this agent.
+        self.client.drain_events()?;
         self.episode += 1;
         Ok(())
     }
 
-    /// Plans `max` steps, or until `stop` is raised, from a new episode on. Episodes are never
-    /// ended (a new one abandons the last one), so the agent's own run does not retrain.
+    /// Plans `max` steps, or until `stop` is raised, from a new episode on, one observation per
+    /// control period as a controller sends them (the next one as soon as a late action comes).
+    /// Episodes are never ended (a new one abandons the last one), so the agent's own run does
+    /// not retrain.
     async fn plan(&mut self, max: u32, stop: Option<&AtomicBool>) -> Result<Seen> {
         let mut seen = Seen::default();
         let (mut step, mut reward) = (0, None);
+        let mut tick = tokio::time::interval(self.period);
+        // A late action delays the next observation; it does not make the controller catch up.
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         for _ in 0..max {
+            tick.tick().await;
             if stop.is_some_and(|s| s.load(Ordering::SeqCst)) {
                 break;
             }
@@ -252,7 +267,7 @@ fn main() -> Result<()> {
         "mix", "agent", "steps", "p50 ms", "p99 ms", "cut", "missed"
     );
     let rt = runtime();
-    rt.block_on(async {
+    let measured = rt.block_on(async {
         let endpoint = planner.endpoint.clone();
         let mut light = Agent::attach(
             &endpoint,
@@ -333,6 +348,13 @@ fn main() -> Result<()> {
         measured?;
         light.client.close().await?;
         anyhow::Ok(())
-    })?;
+    });
+    if let Err(e) = measured {
+        let log = planner.process.log();
+        let tail: Vec<&str> = log.lines().rev().take(40).collect();
+        eprintln!("the daemon's last log lines:");
+        tail.iter().rev().for_each(|line| eprintln!("  {line}"));
+        return Err(e);
+    }
     planner.stop()
 }

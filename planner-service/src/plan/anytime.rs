@@ -4,21 +4,28 @@
 //! The cost of the next iteration is estimated from the iterations already timed, per scored
 //! candidate (iCEM's population shrinks from one iteration to the next): the latest iteration
 //! of this solve, or for a solve's first iteration the latest of an earlier solve. Without a
-//! deadline nothing is estimated or cut, so a seeded planner takes exactly the actions it
-//! always did; the only cost is reading the clock once per iteration.
+//! deadline nothing is cut, so a seeded planner takes exactly the actions it always did; the
+//! iterations are still timed (two clock reads each), for the scheduler's estimate of a whole
+//! solve ([`IterationClock::estimate`]).
 //!
 //! A solve that shares the cores (the daemon's plans, see [`crate::sched`]) may be paused
-//! before an iteration while a more urgent plan runs; the pause counts against the deadline
-//! but not in the iteration timings, which describe this planner's own work.
+//! before an iteration, and between two imagined time steps within one, while a more urgent
+//! plan runs; the pause counts against the deadline but not in the iteration timings, which
+//! describe this planner's own work.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// What may pause a solve between two iterations: the scheduler, when a plan with an earlier
-/// deadline waits for the cores.
+/// What may pause a solve: the scheduler, when a more urgent plan waits for the cores.
 pub trait Preempt: Send + Sync + std::fmt::Debug {
-    /// Blocks while a more urgent plan has the cores.
-    fn between_iterations(&self);
+    /// Blocks while a more urgent plan has the cores. Called between two iterations and
+    /// between two imagined time steps (never inside a rayon job: the pause must leave the
+    /// pool's threads free for the plan it makes way for).
+    fn step_back(&self);
+
+    /// Everything this solve has spent stepped back so far, so that iteration timings can
+    /// leave it out.
+    fn paused(&self) -> Duration;
 }
 
 /// The time budget of one solve, and the iteration timings that outlive it. Owned by one
@@ -29,8 +36,11 @@ pub struct IterationClock {
     deadline: Option<Instant>,
     /// Seconds per scored candidate of the latest timed iteration; `None` before any.
     per_candidate: Option<f64>,
-    /// When the iteration in hand started.
-    started: Option<Instant>,
+    /// The same before any halving by a refused first iteration: what the scheduler ranks the
+    /// next solve by, so that a heavy plan refused again and again does not come to look light.
+    measured_per_candidate: Option<f64>,
+    /// When the iteration in hand started, and [`Preempt::paused`] then.
+    started: Option<(Instant, Duration)>,
     /// Who may pause the solve in hand between iterations; `None`: it has the cores alone.
     preempt: Option<Arc<dyn Preempt>>,
 }
@@ -55,22 +65,38 @@ impl IterationClock {
     /// slow moment (a burst of load) tries again soon instead of answering unplanned for ever.
     pub fn may_start(&mut self, candidates: usize, first: bool) -> bool {
         if let Some(preempt) = &self.preempt {
-            preempt.between_iterations();
+            preempt.step_back();
         }
-        let Some(deadline) = self.deadline else {
-            return true;
-        };
         let now = Instant::now();
-        let fits = match self.per_candidate {
-            None => now < deadline,
-            Some(per) => now + Duration::from_secs_f64(per * candidates as f64) <= deadline,
+        let fits = match (self.deadline, self.per_candidate) {
+            (None, _) => true,
+            (Some(deadline), None) => now < deadline,
+            (Some(deadline), Some(per)) => {
+                now + Duration::from_secs_f64(per * candidates as f64) <= deadline
+            }
         };
         if fits {
-            self.started = Some(now);
+            self.started = Some((now, self.paused()));
         } else if first && let Some(per) = self.per_candidate.as_mut() {
             *per *= 0.5;
         }
         fits
+    }
+
+    /// Who may pause the solve in hand inside an iteration (between imagined steps).
+    pub fn preempt(&self) -> Option<&dyn Preempt> {
+        self.preempt.as_deref()
+    }
+
+    fn paused(&self) -> Duration {
+        self.preempt.as_ref().map_or(Duration::ZERO, |p| p.paused())
+    }
+
+    /// How long a whole solve of `candidates` (summed over its iterations) is expected to
+    /// take on the cores alone, from the latest timed iteration; `None` before any.
+    pub fn estimate(&self, candidates: usize) -> Option<Duration> {
+        self.measured_per_candidate
+            .map(|per| Duration::from_secs_f64(per * candidates as f64))
     }
 
     /// Ends the solve in hand: whoever could pause it is let go.
@@ -80,9 +106,11 @@ impl IterationClock {
 
     /// Records the end of the iteration that [`IterationClock::may_start`] let start.
     pub fn finished(&mut self, candidates: usize) {
-        if let Some(started) = self.started.take() {
-            let seconds = started.elapsed().as_secs_f64();
+        if let Some((started, paused_before)) = self.started.take() {
+            let paused = self.paused().saturating_sub(paused_before);
+            let seconds = started.elapsed().saturating_sub(paused).as_secs_f64();
             self.per_candidate = Some(seconds / candidates.max(1) as f64);
+            self.measured_per_candidate = self.per_candidate;
         }
     }
 
@@ -136,15 +164,63 @@ mod tests {
         assert!(!clock.may_start(8000, true));
         assert!(!clock.may_start(8000, true));
         assert!(clock.may_start(8000, true));
+        // What the scheduler ranks the plan by is still the last measurement (none here).
+        assert_eq!(clock.estimate(1), None);
+        clock.finished(8000);
+        let measured = clock.estimate(8000).expect("timed");
+        clock.start(Some(Instant::now()));
+        assert!(!clock.may_start(8000, true), "the deadline has passed");
+        assert_eq!(clock.estimate(8000), Some(measured), "not halved");
     }
 
     #[derive(Debug, Default)]
     struct CountingPreempt(std::sync::atomic::AtomicUsize);
 
     impl Preempt for CountingPreempt {
-        fn between_iterations(&self) {
+        fn step_back(&self) {
             self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         }
+
+        fn paused(&self) -> Duration {
+            Duration::ZERO
+        }
+    }
+
+    /// Pauses `pause` in the middle of every iteration (as the scheduler does between two
+    /// imagined steps), and says so.
+    #[derive(Debug)]
+    struct PausingPreempt {
+        pause: Duration,
+        paused: std::sync::Mutex<Duration>,
+    }
+
+    impl Preempt for PausingPreempt {
+        fn step_back(&self) {
+            std::thread::sleep(self.pause);
+            *self.paused.lock().unwrap() += self.pause;
+        }
+
+        fn paused(&self) -> Duration {
+            *self.paused.lock().unwrap()
+        }
+    }
+
+    #[test]
+    fn time_stepped_back_inside_an_iteration_is_left_out_of_its_timing() {
+        let preempt = Arc::new(PausingPreempt {
+            pause: Duration::from_millis(300),
+            paused: Default::default(),
+        });
+        let mut clock = IterationClock::default();
+        clock.start_shared(None, Some(preempt.clone()));
+        assert!(clock.may_start(1, true));
+        // The iteration's own work takes no measurable time; a more urgent plan takes 300 ms
+        // of the cores in its middle.
+        clock.preempt().expect("shared").step_back();
+        clock.finished(1);
+        let estimate = clock.estimate(1).expect("timed");
+        assert!(estimate < Duration::from_millis(300), "{estimate:?}");
+        assert!(preempt.paused() >= Duration::from_millis(600), "two pauses");
     }
 
     #[test]

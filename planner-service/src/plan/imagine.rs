@@ -28,6 +28,7 @@
 
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
+use crate::plan::anytime::Preempt;
 use crate::plan::cem::CemConfig;
 use crate::reward::{RewardModel, RewardScratch};
 use proto::Task;
@@ -36,6 +37,7 @@ use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
+use std::ops::Range;
 
 /// Scores populations of action sequences with a learned model; owns all working memory.
 pub struct Imagination {
@@ -139,6 +141,12 @@ impl Imagination {
     /// iteration to the next; the chunks are filled in order, so a smaller population leaves
     /// the last chunks short or idle). `reward` is the run's reward model, exactly when the
     /// task's reward is learned.
+    ///
+    /// With `preempt` (a plan sharing the cores), the chunks meet after every imagined time
+    /// step, outside rayon's jobs, where a more urgent plan may take the cores (see
+    /// [`crate::sched`]); the chunks' random streams and arithmetic are the same either way, so
+    /// the returns are too.
+    #[allow(clippy::too_many_arguments)]
     pub fn evaluate(
         &mut self,
         obs: &[f32],
@@ -147,6 +155,7 @@ impl Imagination {
         regularizer: &Regularizer,
         reward: Option<&RewardModel>,
         returns: &mut [f32],
+        preempt: Option<&dyn Preempt>,
     ) {
         let ctx = self.ctx;
         let seq = ctx.horizon * ctx.task.act_dim;
@@ -163,21 +172,34 @@ impl Imagination {
             n.div_ceil(self.chunks.len()).max(1)
         };
         self.split = chunk_len;
-        self.chunks
-            .par_iter_mut()
-            .zip(returns.par_chunks_mut(chunk_len))
-            .zip(actions.par_chunks(chunk_len * seq))
-            .for_each(|((chunk, returns), actions)| {
-                chunk.imagine(
-                    &ctx,
-                    obs,
-                    actions,
-                    returns.len(),
-                    (dynamics, regularizer, reward),
-                    None,
-                );
-                chunk.write_returns(&ctx, returns);
-            });
+        let horizon = ctx.horizon;
+        let stride = if preempt.is_some() { 1 } else { horizon };
+        for start in (0..horizon).step_by(stride) {
+            if start > 0
+                && let Some(preempt) = preempt
+            {
+                preempt.step_back();
+            }
+            let steps = start..(start + stride).min(horizon);
+            self.chunks
+                .par_iter_mut()
+                .zip(returns.par_chunks_mut(chunk_len))
+                .zip(actions.par_chunks(chunk_len * seq))
+                .for_each(|((chunk, returns), actions)| {
+                    chunk.imagine(
+                        &ctx,
+                        obs,
+                        actions,
+                        returns.len(),
+                        (dynamics, regularizer, reward),
+                        None,
+                        steps.clone(),
+                    );
+                    if steps.end == horizon {
+                        chunk.write_returns(&ctx, returns);
+                    }
+                });
+        }
     }
 
     /// Mean energy per imagined step of candidate `i` in the last [`Imagination::evaluate`]
@@ -221,6 +243,7 @@ impl Imagination {
             1,
             (dynamics, regularizer, reward),
             Some((rewards, energies)),
+            0..ctx.horizon,
         );
         chunk.candidate_return(&ctx, 1, 0)
     }
@@ -300,8 +323,10 @@ impl Chunk {
     }
 
     /// Rolls `n` candidates (their sequences in `actions`, `n × horizon × act_dim`) forward
-    /// from `obs`, accumulating per-row returns; with `record`, also writes each step's mean
-    /// reward and energy over all rows.
+    /// from `obs` over the time `steps` (a solve's steps in order, from 0: a range starting at 0
+    /// starts the rollout over), accumulating per-row returns; with `record`, also writes each
+    /// step's mean reward and energy over all rows.
+    #[allow(clippy::too_many_arguments)]
     fn imagine(
         &mut self,
         ctx: &Context,
@@ -310,20 +335,23 @@ impl Chunk {
         n: usize,
         (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Option<&RewardModel>),
         mut record: Option<(&mut [f32], &mut [f32])>,
+        steps: Range<usize>,
     ) {
         let (o, a, h) = (ctx.task.obs_dim, ctx.task.act_dim, ctx.horizon);
         let rows = ctx.particles * n;
         let members = dynamics.members();
         let with_energy = !matches!(regularizer, Regularizer::None);
-        for s in self.state[..rows * o].chunks_exact_mut(o) {
-            s.copy_from_slice(obs);
+        if steps.start == 0 {
+            for s in self.state[..rows * o].chunks_exact_mut(o) {
+                s.copy_from_slice(obs);
+            }
+            self.ret[..rows].fill(0.0);
+            self.energy_sum[..rows].fill(0.0);
+            self.alive[..rows].fill(true);
+            self.energy[..rows].fill(0.0);
         }
-        self.ret[..rows].fill(0.0);
-        self.energy_sum[..rows].fill(0.0);
-        self.alive[..rows].fill(true);
-        self.energy[..rows].fill(0.0);
         let scratch = self.scratch.as_mut().expect("prepared before imagining");
-        for t in 0..h {
+        for t in steps {
             // Row `k·n + i` is particle slot `k` of candidate `i`.
             for slot in self.act[..rows * a].chunks_exact_mut(n * a) {
                 for (i, row) in slot.chunks_exact_mut(a).enumerate() {
@@ -571,7 +599,15 @@ mod tests {
                 let config = cem(horizon, population, particles);
                 let mut imagination = Imagination::new(task, &config, alpha, false, chunks, 0);
                 let mut returns = vec![0.0; population];
-                imagination.evaluate(&obs, &actions, &dynamics, &regularizer, None, &mut returns);
+                imagination.evaluate(
+                    &obs,
+                    &actions,
+                    &dynamics,
+                    &regularizer,
+                    None,
+                    &mut returns,
+                    None,
+                );
                 for (i, (r, e)) in returns.iter().zip(&expected).enumerate() {
                     assert_close(
                         *r,
@@ -581,7 +617,15 @@ mod tests {
                 }
                 // A second call reuses every buffer and gives the same answer.
                 let mut again = vec![0.0; population];
-                imagination.evaluate(&obs, &actions, &dynamics, &regularizer, None, &mut again);
+                imagination.evaluate(
+                    &obs,
+                    &actions,
+                    &dynamics,
+                    &regularizer,
+                    None,
+                    &mut again,
+                    None,
+                );
                 assert_eq!(returns, again);
             }
         }
@@ -634,6 +678,7 @@ mod tests {
             &Regularizer::None,
             Some(&model),
             &mut returns,
+            None,
         );
         let (mut scratch, mut reward_scratch) = (dynamics.scratch(1), model.scratch(1));
         for (seq, ret) in actions.chunks_exact(horizon).zip(&returns) {
@@ -669,6 +714,7 @@ mod tests {
             &Regularizer::None,
             None,
             &mut returns,
+            None,
         );
     }
 
@@ -682,7 +728,7 @@ mod tests {
         let score = |alpha: f32, reg: &Regularizer| {
             let mut imagination = Imagination::new(task, &cem(5, 4, 1), alpha, false, 2, 0);
             let mut returns = vec![0.0; 4];
-            imagination.evaluate(&obs, &actions, &dynamics, reg, None, &mut returns);
+            imagination.evaluate(&obs, &actions, &dynamics, reg, None, &mut returns, None);
             let energies: Vec<f32> = (0..4).map(|i| imagination.candidate_energy(i)).collect();
             (returns, energies)
         };
@@ -748,6 +794,7 @@ mod tests {
             &Regularizer::None,
             None,
             &mut returns,
+            None,
         );
         for (seq, r) in actions.chunks_exact(horizon * task.act_dim).zip(&returns) {
             let (expected, steps) =
@@ -769,6 +816,7 @@ mod tests {
             &Regularizer::None,
             None,
             &mut upright,
+            None,
         );
         for (r, u) in returns.iter().zip(&upright) {
             assert!(u > r, "{u} should exceed {r}");
@@ -843,11 +891,62 @@ mod tests {
             &Regularizer::None,
             None,
             &mut returns,
+            None,
         );
         assert!(
             returns.iter().all(|&r| r == f32::NEG_INFINITY),
             "{returns:?}"
         );
+    }
+
+    /// Counts the pauses a plan sharing the cores is offered.
+    #[derive(Debug, Default)]
+    struct CountingPreempt(std::sync::atomic::AtomicUsize);
+
+    impl Preempt for CountingPreempt {
+        fn step_back(&self) {
+            self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        }
+
+        fn paused(&self) -> std::time::Duration {
+            std::time::Duration::ZERO
+        }
+    }
+
+    #[test]
+    fn a_shared_plan_may_step_back_between_imagined_steps_and_scores_exactly_the_same() {
+        // Sampled transitions (each chunk's random stream) and DEEN: everything that could
+        // drift if stepping through the horizon in pieces changed the order of the work.
+        let task = Builtin::Cartpole.task();
+        let obs = [0.1, 2.0, 0.0, 0.3];
+        let (horizon, population) = (6, 9);
+        let actions = random_sequences(task, population, horizon, 3);
+        let dynamics = ensemble(Builtin::Cartpole, 2, 5);
+        let energy = deen(Builtin::Cartpole, 6);
+        let config = cem(horizon, population, 2);
+        let mut alone = Imagination::new(task, &config, 0.01, true, 2, 11);
+        let mut shared = Imagination::new(task, &config, 0.01, true, 2, 11);
+        let preempt = CountingPreempt::default();
+        for round in 1..=2 {
+            let (mut a, mut b) = (vec![0.0; population], vec![0.0; population]);
+            alone.evaluate(&obs, &actions, &dynamics, &energy, None, &mut a, None);
+            shared.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                &energy,
+                None,
+                &mut b,
+                Some(&preempt),
+            );
+            assert_eq!(a, b, "round {round}");
+            assert!(a.iter().all(|r| r.is_finite()), "{a:?}");
+            // Between every two of the horizon's steps, never before the first.
+            assert_eq!(
+                preempt.0.load(std::sync::atomic::Ordering::SeqCst),
+                round * (horizon - 1)
+            );
+        }
     }
 
     #[test]
@@ -863,7 +962,7 @@ mod tests {
         let mut imagination =
             Imagination::new(task, &cem(horizon, population, 1), 0.01, false, 3, 0);
         let mut full = vec![0.0; population];
-        imagination.evaluate(&obs, &actions, &dynamics, &energy, None, &mut full);
+        imagination.evaluate(&obs, &actions, &dynamics, &energy, None, &mut full, None);
         let full_energy: Vec<f32> = (0..population)
             .map(|i| imagination.candidate_energy(i))
             .collect();
@@ -877,6 +976,7 @@ mod tests {
                 &energy,
                 None,
                 &mut part,
+                None,
             );
             for i in 0..n {
                 assert_close(
@@ -911,6 +1011,7 @@ mod tests {
                 &Regularizer::None,
                 None,
                 &mut returns,
+                None,
             );
             returns
         };

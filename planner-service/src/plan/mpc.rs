@@ -10,7 +10,7 @@ use crate::plan::search::{Imagined, Search};
 use crate::reward::RewardModel;
 use proto::Task;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// One agent's planner. Owns the optimiser's distribution (the warm start), the imagination's
 /// buffers and the random state, so planning allocates nothing.
@@ -145,8 +145,16 @@ impl MpcPlanner {
         self.plan_shared(obs, dynamics, regularizer, reward, deadline, None)
     }
 
+    /// How long a whole solve is expected to take on the cores alone, from this planner's
+    /// latest timed iteration (`None` before its first): the scheduler ranks plans that fit
+    /// their deadline before plans that will be cut (see [`crate::sched::queue`]).
+    pub fn estimated_solve(&self) -> Option<Duration> {
+        self.clock.estimate(self.search.candidates_per_solve())
+    }
+
     /// [`MpcPlanner::plan`] on cores shared with other plans: `preempt` may pause the solve
-    /// before each iteration while a more urgent plan runs (see [`crate::sched`]).
+    /// before each iteration, and between imagined steps within one, while a more urgent plan
+    /// runs (see [`crate::sched`]).
     pub fn plan_shared(
         &mut self,
         obs: &[f32],
@@ -162,6 +170,7 @@ impl MpcPlanner {
             dynamics,
             regularizer,
             reward,
+            preempt: preempt.clone(),
         };
         self.clock.start_shared(deadline, preempt);
         let (outcome, mean_energy) = self.search.optimize(&mut objective, &mut self.clock);
@@ -200,6 +209,7 @@ impl MpcPlanner {
             dynamics,
             regularizer,
             reward,
+            preempt: None,
         };
         self.clock.start(None);
         let (outcome, _) = self.search.optimize(&mut objective, &mut self.clock);
@@ -440,6 +450,7 @@ mod tests {
                     dynamics: &dynamics,
                     regularizer: &Regularizer::None,
                     reward: None,
+                    preempt: None,
                 },
                 &mut IterationClock::default(),
             );

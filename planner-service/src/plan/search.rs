@@ -3,6 +3,7 @@
 
 use super::adam::AdamPlanner;
 use super::anytime::IterationClock;
+use super::anytime::Preempt;
 use super::cem::{Cem, CemConfig, CemOutcome, ConfigError, Optimizer, PopulationObjective};
 use super::icem::Icem;
 use super::imagine::Imagination;
@@ -10,6 +11,7 @@ use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
 use crate::reward::RewardModel;
 use proto::Task;
+use std::sync::Arc;
 
 /// The planning problem of one step: imagination from one observation with fixed models.
 /// CEM and iCEM see it as a [`PopulationObjective`]; Adam differentiates the same objective.
@@ -20,6 +22,8 @@ pub(super) struct Imagined<'a> {
     pub regularizer: &'a Regularizer,
     /// The run's reward model, exactly when the task's reward is learned.
     pub reward: Option<&'a RewardModel>,
+    /// Who may pause the solve between imagined steps (a plan sharing the cores).
+    pub preempt: Option<Arc<dyn Preempt>>,
 }
 
 impl PopulationObjective for Imagined<'_> {
@@ -31,6 +35,7 @@ impl PopulationObjective for Imagined<'_> {
             self.regularizer,
             self.reward,
             returns,
+            self.preempt.as_deref(),
         );
     }
 }
@@ -85,6 +90,18 @@ impl Search {
             Search::Cem(s) => s.shift(),
             Search::Icem(s) => s.shift(),
             Search::Adam(s) => s.shift(),
+        }
+    }
+
+    /// Candidates a whole solve scores, summed over its iterations: with the clock's time per
+    /// candidate, the scheduler's estimate of the solve ([`super::anytime::IterationClock::estimate`]).
+    pub fn candidates_per_solve(&self) -> usize {
+        let config = self.config();
+        match self {
+            Search::Icem(_) => (0..config.iterations)
+                .map(|i| super::icem::population_at(config, i))
+                .sum(),
+            Search::Cem(_) | Search::Adam(_) => config.population * config.iterations,
         }
     }
 

@@ -1,29 +1,35 @@
 //! Sharing the cores between every run's plans and retrainings.
 //!
 //! Every plan spreads its population over the whole rayon pool, so plans take the cores one at
-//! a time, in order of their deadlines (earliest first; plans without a deadline after every
-//! plan that has one; first come, first served among equals: see [`queue`]). The plan holding
-//! the cores checks between its optimiser's iterations whether a more urgent plan waits, and
-//! if so steps back into the queue until that one is done: a light run's plan waits at most one
-//! iteration of a heavy run's plan, never the whole plan. The time a plan spends stepped back
-//! is not counted in its iteration timings (see [`crate::plan::anytime`]), but it does count
-//! against its own deadline, which then cuts it.
+//! a time, in order of urgency (see [`queue`]): plans whose whole solve fits before their
+//! deadline first, earliest deadline first; then plans that will be cut anyway, shortest solve
+//! first; plans without a deadline last; first come, first served among equals. The plan holding the cores checks
+//! between its optimiser's iterations, and between two imagined time steps within one, whether
+//! a more urgent plan waits, and if so steps back into the queue until that one is done: a
+//! light run's plan waits at most one imagined step of a heavy run's plan (about 2 ms for
+//! half-cheetah + DEEN at the paper's sizes), never the whole plan. The time a plan spends
+//! stepped back is not counted in its iteration timings (see [`crate::plan::anytime`]), but it
+//! does count against its own deadline, which then cuts it.
 //!
 //! Retraining has minutes where a plan has milliseconds, so it yields: before each minibatch a
 //! fit waits while any plan holds or waits for the cores, at most [`MAX_YIELD`] per minibatch
 //! so that a daemon planning without pause still trains (then at one minibatch per
 //! [`MAX_YIELD`]). The wait is between minibatches, never inside one.
 //!
-//! Limits: preemption happens only at iteration boundaries, so a waiting plan can lose up to
-//! one iteration of the holder's plan, and a minibatch already running finishes first. No
+//! Limits: preemption happens only between imagined steps (Adam + DAE: between its gradient
+//! steps), so a waiting plan can lose up to one of those, and a minibatch already running
+//! finishes first (retraining runs on threads of lower OS priority, so that minibatch takes
+//! little from the plan meanwhile: see [`background`]). No
 //! schedule makes an overloaded machine fit: when the deadlines ask for more than the cores
 //! give (two half-cheetah + DEEN runs at 50 ms each on two cores), the deadlines decide how
 //! much each plan gets, and the anytime planner cuts and reports the rest.
 
+pub mod background;
 pub mod queue;
 
+use crate::plan::anytime::Preempt;
 use queue::PlanQueue;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -66,6 +72,8 @@ pub struct Turn {
     ticket: u64,
     /// Its owner's count of plans waiting, raised while this plan steps back.
     waiting: Waiting,
+    /// Nanoseconds this plan has spent stepped back (see [`Preempt::paused`]).
+    paused_ns: AtomicU64,
 }
 
 impl Scheduler {
@@ -83,11 +91,17 @@ impl Scheduler {
         }
     }
 
-    /// Queues a plan that must end by `deadline` and blocks the calling thread until the plan
-    /// holds the cores; `waiting` (its owner's count) counts it meanwhile.
-    pub fn turn(self: &Arc<Self>, deadline: Option<Instant>, waiting: &Waiting) -> Turn {
+    /// Queues a plan that must end by `deadline`, whose whole solve its planner expects to take
+    /// `estimate` on the cores alone (`None`: not timed yet), and blocks the calling thread until
+    /// the plan holds the cores; `waiting` (its owner's count) counts it meanwhile.
+    pub fn turn(
+        self: &Arc<Self>,
+        deadline: Option<Instant>,
+        estimate: Option<Duration>,
+        waiting: &Waiting,
+    ) -> Turn {
         let mut queue = self.lock();
-        let ticket = queue.arrive(deadline).ticket();
+        let ticket = queue.arrive(Instant::now(), deadline, estimate).ticket();
         queue.dispatch();
         self.changed.notify_all();
         waiting.add();
@@ -97,6 +111,7 @@ impl Scheduler {
             scheduler: self.clone(),
             ticket,
             waiting: waiting.clone(),
+            paused_ns: AtomicU64::new(0),
         }
     }
 
@@ -119,26 +134,33 @@ impl Scheduler {
 }
 
 impl Turn {
-    /// Between two iterations: if a more urgent plan waits, steps back until it is done and
-    /// this plan is the most urgent again. Returns whether it stepped back.
+    /// Between two iterations or two imagined steps: if a more urgent plan waits, steps back
+    /// until it is done and this plan is the most urgent again. Returns whether it stepped back.
     pub fn yield_to_earlier(&self) -> bool {
         let scheduler = &self.scheduler;
         let mut queue = scheduler.lock();
         if !queue.outranked() {
             return false;
         }
+        let since = Instant::now();
         queue.preempt();
         scheduler.changed.notify_all();
         self.waiting.add();
         scheduler.wait_to_hold(queue, self.ticket);
         self.waiting.sub();
+        let paused = u64::try_from(since.elapsed().as_nanos()).unwrap_or(u64::MAX);
+        self.paused_ns.fetch_add(paused, Ordering::SeqCst);
         true
     }
 }
 
-impl crate::plan::anytime::Preempt for Turn {
-    fn between_iterations(&self) {
+impl Preempt for Turn {
+    fn step_back(&self) {
         self.yield_to_earlier();
+    }
+
+    fn paused(&self) -> Duration {
+        Duration::from_nanos(self.paused_ns.load(Ordering::SeqCst))
     }
 }
 
@@ -165,7 +187,7 @@ mod tests {
     fn waiting_plans_get_the_cores_by_earliest_deadline() {
         let scheduler = Arc::new(Scheduler::default());
         let t0 = Instant::now();
-        let holder = scheduler.turn(None, &Waiting::default());
+        let holder = scheduler.turn(None, None, &Waiting::default());
         let order = Arc::new(Mutex::new(vec![]));
         let mut threads = vec![];
         // Queued one after the other, latest deadline first.
@@ -177,6 +199,7 @@ mod tests {
             threads.push(std::thread::spawn(move || {
                 let _turn = queued.turn(
                     deadline.map(|ms| t0 + Duration::from_millis(ms)),
+                    None,
                     &Waiting::default(),
                 );
                 order.lock().unwrap().push(deadline);
@@ -195,7 +218,7 @@ mod tests {
     fn the_holder_steps_back_for_a_more_urgent_plan() {
         let scheduler = Arc::new(Scheduler::default());
         let heavy_waiting = Waiting::default();
-        let heavy = scheduler.turn(None, &heavy_waiting);
+        let heavy = scheduler.turn(None, None, &heavy_waiting);
         assert!(!heavy.yield_to_earlier(), "nobody waits");
         assert_eq!(heavy_waiting.get(), 0, "the holder does not wait");
         let light_done = Arc::new(AtomicBool::new(false));
@@ -206,6 +229,7 @@ mod tests {
             move || {
                 let _turn = scheduler.turn(
                     Some(Instant::now() + Duration::from_millis(40)),
+                    None,
                     &light_waiting,
                 );
                 light_done.store(true, Ordering::SeqCst);
@@ -230,7 +254,7 @@ mod tests {
         // Nothing queued: the wait returns at once (else this test would hang 10 min).
         scheduler.wait_for_plans(Duration::from_secs(600));
         let ended = Arc::new(AtomicBool::new(false));
-        let plan = scheduler.turn(None, &Waiting::default());
+        let plan = scheduler.turn(None, None, &Waiting::default());
         let waiter = std::thread::spawn({
             let (scheduler, ended) = (scheduler.clone(), ended.clone());
             move || {
@@ -248,7 +272,7 @@ mod tests {
     #[test]
     fn a_wait_is_bounded_while_plans_never_stop() {
         let scheduler = Arc::new(Scheduler::default());
-        let _plan = scheduler.turn(None, &Waiting::default());
+        let _plan = scheduler.turn(None, None, &Waiting::default());
         // The plan never ends: the wait gives up after its bound.
         assert!(scheduler.wait_for_plans(Duration::from_millis(20)) >= Duration::from_millis(20));
     }

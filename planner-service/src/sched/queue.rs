@@ -1,15 +1,55 @@
-//! The order plans get the cores in: earliest deadline first. Pure bookkeeping, no clocks and
-//! no threads, so the policy is tested deterministically.
+//! The order plans get the cores in. Pure bookkeeping, no clocks and no threads, so the policy
+//! is tested deterministically.
+//!
+//! Earliest deadline first is optimal while the deadlines can all be met, and the worst policy
+//! when they cannot: a heavy plan that will be cut anyway (half-cheetah + DEEN at the paper's
+//! sizes needs several times its 50 ms) would take the cores right up to its deadline, and a
+//! light plan that arrived behind it with a slightly later deadline would miss too. So plans
+//! come in [`Class`]es first: plans whose whole solve fits before their deadline (by their
+//! planner's own estimate) go before plans that will be cut whatever happens, earliest deadline
+//! first. The plans that will be cut share what is left, the shortest solve first: it holds
+//! the cores the least time and keeps the largest share of its iterations, which matters on a
+//! loaded machine, where a light plan's estimate can cross its deadline too and the light plan
+//! would otherwise rank beside the heavy one. The heavy run's misses are then its own, counted
+//! and reported, instead of being passed on to the light one.
 
 use std::collections::BTreeSet;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-/// How urgent a plan is: its deadline (`None`: no deadline, after every plan that has one),
-/// then its arrival (first come, first served among equals).
+/// What a plan can still make of its deadline, as it arrives; earlier variants go first.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Class {
+    /// Its deadline has passed: it answers at once (its previous plan, counted as a miss), so
+    /// running it first costs the others nothing.
+    Overdue,
+    /// Its whole solve fits before its deadline (or it has no estimate yet).
+    Fits,
+    /// Its solve cannot fit: it will be cut, and gets what the fitting plans leave.
+    Cut,
+    /// No deadline: after every plan that has one.
+    Unbounded,
+}
+
+impl Class {
+    /// The class of a plan arriving `now` that must end by `deadline` and whose whole solve is
+    /// expected to take `estimate` on the cores alone (`None`: not timed yet).
+    pub fn of(now: Instant, deadline: Option<Instant>, estimate: Option<Duration>) -> Self {
+        match (deadline, estimate) {
+            (None, _) => Class::Unbounded,
+            (Some(deadline), _) if deadline <= now => Class::Overdue,
+            (Some(deadline), Some(estimate)) if now + estimate > deadline => Class::Cut,
+            (Some(_), _) => Class::Fits,
+        }
+    }
+}
+
+/// How urgent a plan is: its [`Class`], then (plans that will be cut) its estimated solve,
+/// then its deadline, then its arrival (first come, first served among equals).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub struct Urgency {
-    /// `false` sorts first: a plan with a deadline goes before every plan without one.
-    unbounded: bool,
+    class: Class,
+    /// The estimated solve of a plan of class [`Class::Cut`]; `None` for the others.
+    cut_solve: Option<Duration>,
     deadline: Option<Instant>,
     /// Arrival order, unique per plan; also the plan's identity in the queue.
     arrival: u64,
@@ -31,11 +71,19 @@ pub struct PlanQueue {
 }
 
 impl PlanQueue {
-    /// Queues a new plan that must end by `deadline`; returns its urgency, which names it
-    /// from now on.
-    pub fn arrive(&mut self, deadline: Option<Instant>) -> Urgency {
+    /// Queues a new plan arriving `now` that must end by `deadline`, whose whole solve its
+    /// planner expects to take `estimate` (`None`: not timed yet); returns its urgency, which
+    /// names it from now on.
+    pub fn arrive(
+        &mut self,
+        now: Instant,
+        deadline: Option<Instant>,
+        estimate: Option<Duration>,
+    ) -> Urgency {
+        let class = Class::of(now, deadline, estimate);
         let urgency = Urgency {
-            unbounded: deadline.is_none(),
+            class,
+            cut_solve: estimate.filter(|_| class == Class::Cut),
             deadline,
             arrival: self.arrivals,
         };
@@ -100,7 +148,16 @@ impl PlanQueue {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::time::Duration;
+
+    /// Queues a plan arriving at `now` the way the scheduler does.
+    fn arrive(
+        queue: &mut PlanQueue,
+        now: Instant,
+        deadline: Option<Instant>,
+        estimate: Option<Duration>,
+    ) -> Urgency {
+        queue.arrive(now, deadline, estimate)
+    }
 
     /// Tickets in the order the queue hands out the cores, each plan running to its end.
     fn drain(queue: &mut PlanQueue) -> Vec<u64> {
@@ -117,11 +174,11 @@ mod tests {
         let t0 = Instant::now();
         let at = |ms| Some(t0 + Duration::from_millis(ms));
         let mut queue = PlanQueue::default();
-        let late = queue.arrive(at(500)).ticket();
-        let free = queue.arrive(None).ticket();
-        let soon = queue.arrive(at(40)).ticket();
-        let free_later = queue.arrive(None).ticket();
-        let soon_too = queue.arrive(at(40)).ticket();
+        let late = arrive(&mut queue, t0, at(500), None).ticket();
+        let free = arrive(&mut queue, Instant::now(), None, None).ticket();
+        let soon = arrive(&mut queue, t0, at(40), None).ticket();
+        let free_later = arrive(&mut queue, Instant::now(), None, None).ticket();
+        let soon_too = arrive(&mut queue, t0, at(40), None).ticket();
         assert_eq!(queue.waiting(), 5);
         assert_eq!(drain(&mut queue), [soon, soon_too, late, free, free_later]);
         assert!(queue.is_idle());
@@ -133,8 +190,8 @@ mod tests {
         // counted as a miss), so running it first costs the others nothing.
         let t0 = Instant::now();
         let mut queue = PlanQueue::default();
-        let fresh = queue.arrive(Some(t0 + Duration::from_secs(1))).ticket();
-        let overdue = queue.arrive(Some(t0 - Duration::from_millis(5))).ticket();
+        let fresh = arrive(&mut queue, t0, Some(t0 + Duration::from_secs(1)), None).ticket();
+        let overdue = arrive(&mut queue, t0, Some(t0 - Duration::from_millis(5)), None).ticket();
         assert_eq!(drain(&mut queue), [overdue, fresh]);
     }
 
@@ -142,12 +199,12 @@ mod tests {
     fn the_holder_keeps_the_cores_until_a_more_urgent_plan_arrives() {
         let t0 = Instant::now();
         let mut queue = PlanQueue::default();
-        let heavy = queue.arrive(None).ticket();
+        let heavy = arrive(&mut queue, Instant::now(), None, None).ticket();
         assert_eq!(queue.dispatch(), Some(heavy));
         // A later deadline or another plan without one does not outrank the holder.
-        let other_heavy = queue.arrive(None).ticket();
+        let other_heavy = arrive(&mut queue, Instant::now(), None, None).ticket();
         assert!(!queue.outranked());
-        let light = queue.arrive(Some(t0 + Duration::from_millis(40))).ticket();
+        let light = arrive(&mut queue, t0, Some(t0 + Duration::from_millis(40)), None).ticket();
         assert!(queue.outranked());
         queue.preempt();
         assert!(queue.holds(light));
@@ -165,9 +222,9 @@ mod tests {
     #[test]
     fn a_plan_that_leaves_while_waiting_is_forgotten() {
         let mut queue = PlanQueue::default();
-        let first = queue.arrive(None).ticket();
-        let gone = queue.arrive(None).ticket();
-        let last = queue.arrive(None).ticket();
+        let first = arrive(&mut queue, Instant::now(), None, None).ticket();
+        let gone = arrive(&mut queue, Instant::now(), None, None).ticket();
+        let last = arrive(&mut queue, Instant::now(), None, None).ticket();
         assert_eq!(queue.dispatch(), Some(first));
         queue.leave(gone);
         assert_eq!(queue.waiting(), 1);
@@ -180,9 +237,52 @@ mod tests {
     #[test]
     fn preempting_without_a_rival_keeps_the_holder() {
         let mut queue = PlanQueue::default();
-        let only = queue.arrive(None).ticket();
+        let only = arrive(&mut queue, Instant::now(), None, None).ticket();
         queue.dispatch();
         queue.preempt();
         assert!(queue.holds(only));
+    }
+
+    #[test]
+    fn a_plan_that_will_be_cut_anyway_makes_way_for_one_that_fits() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let mut queue = PlanQueue::default();
+        // Half-cheetah + DEEN: a 300 ms solve against a 50 ms deadline. It holds the cores.
+        let heavy = arrive(&mut queue, t0, Some(t0 + ms(50)), Some(ms(300))).ticket();
+        assert_eq!(queue.dispatch(), Some(heavy));
+        // Cartpole arrives 20 ms later: a 30 ms solve due 40 ms later, after the heavy one's
+        // deadline. Earliest deadline first would leave it 10 ms for 30 ms of work.
+        let later = t0 + ms(20);
+        let light = arrive(&mut queue, later, Some(later + ms(40)), Some(ms(30))).ticket();
+        assert!(queue.outranked());
+        queue.preempt();
+        assert!(queue.holds(light));
+        queue.leave(light);
+        assert!(queue.holds(heavy));
+        // Among plans that all fit (or all will be cut), the earliest deadline goes first.
+        let fits_late = arrive(&mut queue, t0, Some(t0 + ms(90)), Some(ms(10))).ticket();
+        let fits_soon = arrive(&mut queue, t0, Some(t0 + ms(60)), Some(ms(10))).ticket();
+        let cut_soon = arrive(&mut queue, t0, Some(t0 + ms(45)), Some(ms(300))).ticket();
+        let unbounded = arrive(&mut queue, t0, None, Some(ms(1))).ticket();
+        let untimed = arrive(&mut queue, t0, Some(t0 + ms(70)), None).ticket();
+        queue.leave(heavy);
+        assert_eq!(
+            drain(&mut queue),
+            [fits_soon, untimed, fits_late, cut_soon, unbounded]
+        );
+    }
+
+    #[test]
+    fn among_plans_that_will_be_cut_the_shortest_solve_goes_first() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let mut queue = PlanQueue::default();
+        // On a loaded machine the light plan's estimate crosses its deadline too: it still goes
+        // before the heavy one, although the heavy one's deadline is earlier.
+        let heavy = arrive(&mut queue, t0, Some(t0 + ms(50)), Some(ms(300))).ticket();
+        let light = arrive(&mut queue, t0, Some(t0 + ms(60)), Some(ms(70))).ticket();
+        let heavy_later = arrive(&mut queue, t0, Some(t0 + ms(80)), Some(ms(300))).ticket();
+        assert_eq!(drain(&mut queue), [light, heavy, heavy_later]);
     }
 }

@@ -250,7 +250,8 @@ impl AgentWorker {
                 let plan_deadline = deadline.map(|d| d - ANSWER_MARGIN);
                 let (plans, waiting) = (self.plans.clone(), self.waiting.clone());
                 let joined = tokio::task::spawn_blocking(move || {
-                    let turn = Arc::new(plans.turn(plan_deadline, &waiting));
+                    let estimate = planner.estimated_solve();
+                    let turn = Arc::new(plans.turn(plan_deadline, estimate, &waiting));
                     let outcome = planner.plan_shared(
                         &obs,
                         &plan_models.dynamics,
