@@ -856,6 +856,7 @@ mod tests {
                 &Regularizer::None,
                 None,
                 &mut returns,
+                None,
             );
             (returns, dynamics)
         };
