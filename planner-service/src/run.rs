@@ -8,7 +8,7 @@ use crate::persist::{PersistError, RunDir};
 use crate::replay::{self, EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
 use crate::sched::background::run_in_background;
 use crate::service::metrics::RunHistograms;
-use crate::service::status::{LastRetraining, Latency, LatencyWindow, PlanTally};
+use crate::service::status::{LastRetraining, Latency, LatencyWindow, PlanRecord, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
     EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, Task, TrainMode,
@@ -387,9 +387,8 @@ impl Run {
             .unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Records a planned action: how long it took, its iterations, whether the deadline cut
-    /// it short and whether it missed the deadline.
-    pub fn record_plan(&self, ms: f32, iterations: u32, cut: bool, missed: bool) {
+    /// Records a planned action: how long it took, and what it adds to the plan tally.
+    pub fn record_plan(&self, ms: f32, plan: PlanRecord) {
         self.latencies
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
@@ -397,7 +396,7 @@ impl Run {
         self.plan_tally
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .record(iterations, cut, missed);
+            .record(plan);
     }
 
     /// Forces the run's log to disk, on the calling (blocking) thread, timing it. A failure is

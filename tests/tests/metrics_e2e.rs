@@ -11,12 +11,14 @@ const PLANNER: &str = "metrics";
 
 /// Every metric the issue names, as served: plan latency per run, iterations, cut plans,
 /// misses, refusals by code, wildcards dropped, models version, replay transitions and bytes,
-/// episodes, agents, queue depth per agent, fsync latency, training duration and losses.
-const METRICS: [&str; 15] = [
+/// episodes, agents, queue depth per agent, fsync latency, training duration and losses; and
+/// how often plans stepped back for a more urgent one.
+const METRICS: [&str; 16] = [
     "ebmpc_plan_seconds_bucket",
     "ebmpc_plan_iterations_bucket",
     "ebmpc_plans_cut_total",
     "ebmpc_deadline_misses_total",
+    "ebmpc_plan_step_backs_total",
     "ebmpc_refused_messages_total",
     "ebmpc_wildcard_keys_dropped_total",
     "ebmpc_models_version",
@@ -198,6 +200,10 @@ fn the_metrics_endpoint_serves_every_metric_and_its_counters_move() {
         assert_eq!(
             sample(&after, &run("ebmpc_deadline_misses_total")).unwrap_or(0.0),
             watched.plan_tally.deadline_misses as f64
+        );
+        assert_eq!(
+            sample(&after, &run("ebmpc_plan_step_backs_total")).unwrap_or(0.0),
+            watched.plan_tally.stepped_back as f64
         );
         agent.close().await.unwrap();
     });

@@ -29,7 +29,7 @@ pub mod queue;
 
 use crate::plan::anytime::Preempt;
 use queue::PlanQueue;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -74,6 +74,8 @@ pub struct Turn {
     waiting: Waiting,
     /// Nanoseconds this plan has spent stepped back (see [`Preempt::paused`]).
     paused_ns: AtomicU64,
+    /// Times this plan stepped back.
+    step_backs: AtomicU32,
 }
 
 impl Scheduler {
@@ -112,6 +114,7 @@ impl Scheduler {
             ticket,
             waiting: waiting.clone(),
             paused_ns: AtomicU64::new(0),
+            step_backs: AtomicU32::new(0),
         }
     }
 
@@ -150,7 +153,13 @@ impl Turn {
         self.waiting.sub();
         let paused = u64::try_from(since.elapsed().as_nanos()).unwrap_or(u64::MAX);
         self.paused_ns.fetch_add(paused, Ordering::SeqCst);
+        self.step_backs.fetch_add(1, Ordering::SeqCst);
         true
+    }
+
+    /// Times this plan stepped back for a more urgent one so far.
+    pub fn stepped_back(&self) -> u32 {
+        self.step_backs.load(Ordering::SeqCst)
     }
 }
 
@@ -243,6 +252,7 @@ mod tests {
         // The heavy plan's next iteration boundary: it resumes only after the light plan ran.
         assert!(heavy.yield_to_earlier());
         assert!(light_done.load(Ordering::SeqCst));
+        assert_eq!(heavy.stepped_back(), 1);
         light.join().unwrap();
         assert_eq!((light_waiting.get(), heavy_waiting.get()), (0, 0));
         assert!(!heavy.yield_to_earlier());

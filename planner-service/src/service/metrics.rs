@@ -7,7 +7,7 @@
 //! and the status report reads the count and sum of each run's fsync and retraining histograms
 //! ([`RunHistograms`]), so there is one source for each figure.
 
-use super::status::{PlannerStatus, Timings};
+use super::status::{PlanRecord, PlannerStatus, Timings};
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -123,6 +123,7 @@ pub struct Metrics {
     plan_iterations: Histograms,
     plans_cut: Family<RunLabel, Counter>,
     deadline_misses: Family<RunLabel, Counter>,
+    plan_step_backs: Family<RunLabel, Counter>,
     refused: Family<CodeLabel, Counter>,
     /// The codes refused so far, for the status report (a family cannot be listed).
     refused_codes: Mutex<BTreeSet<String>>,
@@ -149,6 +150,7 @@ impl Default for Metrics {
             Histograms::new_with_constructor(iterations_histogram as fn() -> Histogram);
         let plans_cut = Family::default();
         let deadline_misses = Family::default();
+        let plan_step_backs = Family::default();
         let refused = Family::default();
         let wildcards_dropped = Counter::default();
         let models_version = Family::default();
@@ -180,6 +182,11 @@ impl Default for Metrics {
             "deadline_misses",
             "Planned actions sent after the run's deadline, or with no iteration before it",
             deadline_misses.clone(),
+        );
+        registry.register(
+            "plan_step_backs",
+            "Times a run's plans stepped back from the cores for a more urgent plan",
+            plan_step_backs.clone(),
         );
         registry.register(
             "refused_messages",
@@ -234,6 +241,7 @@ impl Default for Metrics {
             plan_iterations,
             plans_cut,
             deadline_misses,
+            plan_step_backs,
             refused,
             refused_codes: Mutex::default(),
             wildcards_dropped,
@@ -275,25 +283,23 @@ impl Metrics {
     }
 
     /// A planned action of `run`.
-    pub fn record_plan(
-        &self,
-        run_name: &str,
-        seconds: f64,
-        iterations: u32,
-        cut: bool,
-        missed: bool,
-    ) {
+    pub fn record_plan(&self, run_name: &str, seconds: f64, plan: PlanRecord) {
         let label = run(run_name);
         self.plan_seconds.get_or_create(&label).observe(seconds);
         self.plan_iterations
             .get_or_create(&label)
-            .observe(f64::from(iterations));
-        // Both series exist (at 0) from a run's first plan on, so a dashboard shows a zero
+            .observe(f64::from(plan.iterations));
+        // The counters exist (at 0) from a run's first plan on, so a dashboard shows a zero
         // rather than no data.
-        self.plans_cut.get_or_create(&label).inc_by(u64::from(cut));
+        self.plans_cut
+            .get_or_create(&label)
+            .inc_by(u64::from(plan.cut));
         self.deadline_misses
             .get_or_create(&label)
-            .inc_by(u64::from(missed));
+            .inc_by(u64::from(plan.missed));
+        self.plan_step_backs
+            .get_or_create(&label)
+            .inc_by(u64::from(plan.stepped_back));
     }
 
     /// A message answered with an error report of `code`.

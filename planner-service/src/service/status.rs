@@ -50,14 +50,29 @@ pub struct PlanTally {
     pub deadline_misses: u64,
     /// Iterations run, over all plans.
     pub iterations: u64,
+    /// Times its plans stepped back from the cores for a more urgent plan (see `sched`).
+    pub stepped_back: u64,
+}
+
+/// What one planned action adds to its run's tally and metrics.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct PlanRecord {
+    pub iterations: u32,
+    /// The deadline cut its iterations short.
+    pub cut: bool,
+    /// It was sent after the deadline, or with no iteration run before it.
+    pub missed: bool,
+    /// Times it stepped back for a more urgent plan.
+    pub stepped_back: u32,
 }
 
 impl PlanTally {
-    pub fn record(&mut self, iterations: u32, cut: bool, missed: bool) {
+    pub fn record(&mut self, plan: PlanRecord) {
         self.plans += 1;
-        self.cut += u64::from(cut);
-        self.deadline_misses += u64::from(missed);
-        self.iterations += u64::from(iterations);
+        self.cut += u64::from(plan.cut);
+        self.deadline_misses += u64::from(plan.missed);
+        self.iterations += u64::from(plan.iterations);
+        self.stepped_back += u64::from(plan.stepped_back);
     }
 }
 

@@ -2,6 +2,7 @@
 //! answers each with an action — uniformly random while the run explores, planned otherwise.
 
 use super::Outbox;
+use super::status::PlanRecord;
 use crate::agent::AgentSession;
 use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
@@ -229,87 +230,94 @@ impl AgentWorker {
         let started = Instant::now();
         let task = self.run.task();
         let models = self.run.models();
-        let (action, source, predicted_return, mean_energy, iterations, cut) =
-            if self.run.exploring() {
-                let action: Vec<f32> = task
-                    .action_low
-                    .iter()
-                    .zip(&task.action_high)
-                    .map(|(&lo, &hi)| self.explore_rng.random_range(lo..=hi))
-                    .collect();
-                (action, ActionSource::Random, 0.0, 0.0, 0, false)
-            } else {
-                let mut planner = self.planner.take().ok_or_else(|| {
-                    ErrorReport::new(
-                        ErrorCode::Internal,
-                        "this agent's planner was lost in an earlier failure: attach again",
-                    )
-                })?;
-                let obs = msg.obs.clone();
-                let plan_models = models.clone();
-                let plan_deadline = deadline.map(|d| d - ANSWER_MARGIN);
-                let (plans, waiting) = (self.plans.clone(), self.waiting.clone());
-                let joined = tokio::task::spawn_blocking(move || {
-                    let estimate = planner.estimated_solve();
-                    let turn = Arc::new(plans.turn(plan_deadline, estimate, &waiting));
-                    let outcome = planner.plan_shared(
-                        &obs,
-                        &plan_models.dynamics,
-                        &plan_models.regularizer,
-                        plan_models.reward.as_ref(),
-                        plan_deadline,
-                        Some(turn),
-                    );
-                    let planned = (
-                        outcome.action.to_vec(),
-                        outcome.predicted_return,
-                        outcome.mean_energy,
-                        outcome.iterations,
-                        outcome.cut,
-                    );
-                    (planner, planned)
-                })
-                .await;
-                let (planner, outcome) = match joined {
-                    Ok(done) => done,
-                    Err(e) => {
-                        // The planner panicked: start this agent over with a fresh one.
-                        self.planner =
-                            new_planner(&self.run, agent_seed(self.run.spec().seed, &self.name))
-                                .ok();
-                        return Err(ErrorReport::new(
-                            ErrorCode::Internal,
-                            format!("planning failed: {e}"),
-                        ));
-                    }
-                };
-                self.planner = Some(planner);
-                let (action, predicted_return, mean_energy, iterations, cut) = outcome;
-                // A model that diverged on every elite scores −inf; JSON cannot carry that, and
-                // the statistic is informational, so report the most negative finite number.
-                let (predicted_return, mean_energy) =
-                    (finite_or_min(predicted_return), finite_or_min(mean_energy));
-                (
-                    action,
-                    ActionSource::Planned,
-                    predicted_return,
-                    mean_energy,
-                    iterations,
-                    cut,
+        let (action, source, predicted_return, mean_energy, iterations, cut, stepped_back) = if self
+            .run
+            .exploring()
+        {
+            let action: Vec<f32> = task
+                .action_low
+                .iter()
+                .zip(&task.action_high)
+                .map(|(&lo, &hi)| self.explore_rng.random_range(lo..=hi))
+                .collect();
+            (action, ActionSource::Random, 0.0, 0.0, 0, false, 0)
+        } else {
+            let mut planner = self.planner.take().ok_or_else(|| {
+                ErrorReport::new(
+                    ErrorCode::Internal,
+                    "this agent's planner was lost in an earlier failure: attach again",
                 )
+            })?;
+            let obs = msg.obs.clone();
+            let plan_models = models.clone();
+            let plan_deadline = deadline.map(|d| d - ANSWER_MARGIN);
+            let (plans, waiting) = (self.plans.clone(), self.waiting.clone());
+            let joined = tokio::task::spawn_blocking(move || {
+                let estimate = planner.estimated_solve();
+                let turn = Arc::new(plans.turn(plan_deadline, estimate, &waiting));
+                let outcome = planner.plan_shared(
+                    &obs,
+                    &plan_models.dynamics,
+                    &plan_models.regularizer,
+                    plan_models.reward.as_ref(),
+                    plan_deadline,
+                    Some(turn.clone()),
+                );
+                let planned = (
+                    outcome.action.to_vec(),
+                    outcome.predicted_return,
+                    outcome.mean_energy,
+                    outcome.iterations,
+                    outcome.cut,
+                    turn.stepped_back(),
+                );
+                (planner, planned)
+            })
+            .await;
+            let (planner, outcome) = match joined {
+                Ok(done) => done,
+                Err(e) => {
+                    // The planner panicked: start this agent over with a fresh one.
+                    self.planner =
+                        new_planner(&self.run, agent_seed(self.run.spec().seed, &self.name)).ok();
+                    return Err(ErrorReport::new(
+                        ErrorCode::Internal,
+                        format!("planning failed: {e}"),
+                    ));
+                }
             };
+            self.planner = Some(planner);
+            let (action, predicted_return, mean_energy, iterations, cut, stepped_back) = outcome;
+            // A model that diverged on every elite scores −inf; JSON cannot carry that, and
+            // the statistic is informational, so report the most negative finite number.
+            let (predicted_return, mean_energy) =
+                (finite_or_min(predicted_return), finite_or_min(mean_energy));
+            (
+                action,
+                ActionSource::Planned,
+                predicted_return,
+                mean_energy,
+                iterations,
+                cut,
+                stepped_back,
+            )
+        };
         let planning_ms = started.elapsed().as_secs_f32() * 1e3;
         let planned = source == ActionSource::Planned;
         let late = deadline.is_some_and(|d| Instant::now() > d);
         let missed = planned && (late || (deadline.is_some() && iterations == 0));
         if planned {
-            self.run.record_plan(planning_ms, iterations, cut, missed);
-            self.outbox.metrics().record_plan(
-                self.run.name(),
-                f64::from(planning_ms) / 1e3,
+            let record = PlanRecord {
                 iterations,
                 cut,
                 missed,
+                stepped_back,
+            };
+            self.run.record_plan(planning_ms, record);
+            self.outbox.metrics().record_plan(
+                self.run.name(),
+                f64::from(planning_ms) / 1e3,
+                record,
             );
         }
         Ok(Action {
