@@ -1,7 +1,8 @@
 //! The planning loop allocates nothing: a counting global allocator watches full `plan` calls
 //! with real (tiny) networks, an ensemble with sampled particles, and a DEEN, for CEM, iCEM and
 //! Adam (whose back-propagation through the horizon keeps one training tape per step), with the
-//! task's own reward and with a learned one (a reward model scoring every imagined step).
+//! task's own reward, with a learned one (a reward model scoring every imagined step) and with
+//! a reward and a termination written as formulas.
 //!
 //! The planner's own buffers and the networks' scratch are allocated when the planner is built
 //! and on its first call with a model; rayon's pool and gemm-free kernels need nothing per call.
@@ -21,7 +22,7 @@ use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
 use planner_service::plan::anytime::Preempt;
 use planner_service::plan::{CemConfig, IcemConfig, MpcPlanner, Optimizer};
 use planner_service::reward::{RewardConfig, RewardModel};
-use proto::task::{RewardKind, SpecBounds};
+use proto::task::{RewardKind, SpecBounds, TerminationKind};
 use proto::{Builtin, InferencePrecision, Task};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -120,13 +121,20 @@ fn pack(dynamics: &Ensemble, regularizer: &Regularizer, reward: Option<&RewardMo
 /// the allocation counter is global, so no other test may run beside this one.
 #[test]
 fn planning_allocates_nothing_after_warm_up() {
-    // Ant: the task with termination, so that path is exercised too; and ant with its reward
-    // learned, planned with a reward model.
+    // Ant: the task with termination, so that path is exercised too; ant with its reward
+    // learned, planned with a reward model; and ant with its reward and termination written as
+    // formulas, evaluated for the population by the expression language's block evaluator.
     let mut learned = Builtin::Ant.spec();
     learned.name = "ant-learned-reward".into();
     learned.reward = RewardKind::Learned;
     let learned = Task::intern(learned, &SpecBounds::default()).unwrap();
-    for spec in [Builtin::Ant.task(), learned] {
+    let mut formulas = Builtin::Ant.spec();
+    formulas.name = "ant-formulas".into();
+    formulas.reward = RewardKind::Expression("s_next[13] - 0.5*dot(a, a) + 1".into());
+    formulas.termination =
+        TerminationKind::Expression("!(s_next[0] >= 0.2 && s_next[0] <= 1)".into());
+    let formulas = Task::intern(formulas, &SpecBounds::default()).unwrap();
+    for spec in [Builtin::Ant.task(), learned, formulas] {
         for optimizer in [Optimizer::Cem, Optimizer::Icem, Optimizer::Adam] {
             for precision in [InferencePrecision::F32, InferencePrecision::Bf16] {
                 allocates_nothing_after_warm_up_in(spec, optimizer, precision);

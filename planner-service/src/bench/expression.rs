@@ -9,7 +9,7 @@
 //! reward evaluations across them too.
 
 use super::BenchError;
-use super::plan::{self, PlanReport};
+use super::plan::{self, BenchReward, PlanReport, RewardTiming};
 use super::timing::{Clock, Timing, measure_for};
 use crate::energy::RegularizerKind;
 use proto::task::expression::{Dims, Expression, ExpressionError, Gradients, Inputs};
@@ -56,6 +56,7 @@ pub(super) fn run(s: &Settings) -> Result<ExpressionReport, BenchError> {
     let plan = plan::run(&plan::Settings {
         task: s.task,
         regularizer: RegularizerKind::None,
+        rewards: vec![BenchReward::Builtin],
         timed: s.plans,
         warmup: 2,
         pets: false,
@@ -123,15 +124,15 @@ impl ExpressionReport {
     /// share of the plan's wall time, at the best and at the median of both.
     pub fn share_of_plan(&self) -> (f64, f64) {
         (
-            self.per_plan_ms(self.eval.min_ms) / self.plan.min_ms,
-            self.per_plan_ms(self.eval.median_ms) / self.plan.median_ms,
+            self.per_plan_ms(self.eval.min_ms) / self.builtin().min_ms,
+            self.per_plan_ms(self.eval.median_ms) / self.builtin().median_ms,
         )
     }
 
     /// The same share of the plan's CPU time (every thread's, mean per call), for the best and
     /// the median evaluation: the share of the work, whatever the load on the machine.
     pub fn share_of_plan_cpu(&self) -> Option<(f64, f64)> {
-        self.plan.cpu_ms_per_call.map(|cpu| {
+        self.builtin().cpu_ms_per_call.map(|cpu| {
             (
                 self.per_plan_ms(self.eval.min_ms) / cpu,
                 self.per_plan_ms(self.eval.median_ms) / cpu,
@@ -140,13 +141,18 @@ impl ExpressionReport {
     }
 
     fn per_plan_ms(&self, eval_ms: f64) -> f64 {
-        eval_ms * self.plan.mean_iterations
+        eval_ms * self.builtin().mean_iterations
+    }
+
+    /// The plans' timing (with the builtin reward, the only one this benchmark plans with).
+    fn builtin(&self) -> &RewardTiming {
+        &self.plan.rewards[0]
     }
 }
 
 impl fmt::Display for ExpressionReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let p = &self.plan;
+        let (p, t) = (&self.plan, self.builtin());
         writeln!(f, "bench expression: {} reward `{}`", p.task, self.source)?;
         writeln!(
             f,
@@ -162,9 +168,9 @@ impl fmt::Display for ExpressionReport {
         write!(
             f,
             "  plan       {:.2} ms best, {:.2} ms median over {} calls, wall clock ({} thread(s), {:.1} iterations per call)",
-            p.min_ms, p.median_ms, p.calls, p.threads, p.mean_iterations
+            t.min_ms, t.median_ms, p.calls, p.threads, t.mean_iterations
         )?;
-        if let (Some(cpu), Some(share)) = (p.cpu_ms_per_call, p.cpu_share) {
+        if let (Some(cpu), Some(share)) = (t.cpu_ms_per_call, p.cpu_share) {
             write!(
                 f,
                 "; {cpu:.2} ms CPU per call, the threads ran {:.0} % of the time",
@@ -175,7 +181,7 @@ impl fmt::Display for ExpressionReport {
         write!(
             f,
             "\n  share      {:.1} evaluations per plan: the formula's values cost {:.2} % of a plan's wall time at the best, {:.2} % at the median",
-            p.mean_iterations,
+            t.mean_iterations,
             best * 100.0,
             median * 100.0,
         )?;

@@ -20,7 +20,7 @@ mod train;
 pub use expression::ExpressionReport;
 pub use kernel::{KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming};
 pub use peak::Peak;
-pub use plan::PlanReport;
+pub use plan::{BenchReward, PlanReport, RewardTiming};
 pub use train::TrainReport;
 
 use crate::config::{Preset, PresetError};
@@ -36,11 +36,17 @@ use std::time::Duration;
 /// The benchmarks.
 #[derive(clap::Subcommand, Clone, Debug, PartialEq)]
 pub enum BenchCommand {
-    /// Time full MPC planning calls (all CEM iterations) from one observation.
+    /// Time full MPC planning calls (all CEM iterations) from one observation, with the task's
+    /// reward given one or more ways (timed in turns, call by call, and put side by side).
     Plan {
         /// Task whose preset sizes the networks and the CEM search.
         #[arg(long, default_value = "cartpole")]
         task: Builtin,
+        /// The task's reward as builtin (its Rust code), expression (the same reward written
+        /// as a formula; every task but reacher3d) or learned (a reward model of the preset's
+        /// sizes), comma-separated: e.g. `builtin,expression,learned`.
+        #[arg(long, value_delimiter = ',', default_value = "builtin")]
+        rewards: Vec<BenchReward>,
         /// Regulariser in the objective: none, dae or deen (sizes from the preset).
         #[arg(long, default_value = "none")]
         regularizer: RegularizerKind,
@@ -165,6 +171,10 @@ pub enum BenchError {
     Zero(&'static str),
     #[error("the formula: {0}")]
     Expression(Box<proto::task::expression::ExpressionError>),
+    #[error("{0}'s reward has no formula to compare (`--rewards builtin,learned` works)")]
+    NoFormula(Builtin),
+    #[error(transparent)]
+    Task(Box<proto::task::TaskError>),
 }
 
 /// Runs one benchmark.
@@ -172,6 +182,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
     match *cmd {
         BenchCommand::Plan {
             task,
+            ref rewards,
             regularizer,
             iterations_to_time,
             warmup,
@@ -192,6 +203,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
                 iterations,
                 task,
                 regularizer,
+                rewards: rewards.clone(),
                 timed: iterations_to_time,
                 warmup,
                 pets,
@@ -344,6 +356,7 @@ mod tests {
             cli.bench,
             BenchCommand::Plan {
                 task: Builtin::HalfCheetah,
+                rewards: vec![BenchReward::Builtin],
                 regularizer: RegularizerKind::Deen,
                 iterations_to_time: 7,
                 warmup: 3,
@@ -359,6 +372,13 @@ mod tests {
             }
         );
         assert!(Cli::try_parse_from(["bench", "plan", "--task", "walker"]).is_err());
+        let all = Cli::try_parse_from(["bench", "plan", "--rewards", "builtin,expression,learned"]);
+        assert!(matches!(
+            all.unwrap().bench,
+            BenchCommand::Plan { rewards, .. } if rewards
+                == [BenchReward::Builtin, BenchReward::Expression, BenchReward::Learned]
+        ));
+        assert!(Cli::try_parse_from(["bench", "plan", "--rewards", "oracle"]).is_err());
         let train = Cli::try_parse_from(["bench", "train", "--task", "ant"]).unwrap();
         assert!(matches!(
             train.bench,

@@ -1,4 +1,10 @@
-//! `bench plan`: milliseconds per full MPC planning call and the matrix throughput achieved.
+//! `bench plan`: milliseconds per full MPC planning call and the matrix throughput achieved,
+//! for the task's reward as builtin code, as the equivalent formula and as a reward model.
+//!
+//! With more than one reward (`--rewards builtin,expression,learned`) the planners take turns
+//! call by call on the same models and observation, so that every reward's calls see the same
+//! load on a shared machine; the report puts them side by side and states the formula's cost
+//! on the planner's path as the difference from the builtin code.
 
 use super::cputime::process_cpu_time;
 use super::peak::{Peak, percent};
@@ -6,16 +12,20 @@ use super::{BenchError, describe, flops_per_row, median_ms, preset, random_trans
 use crate::dynamics::Ensemble;
 use crate::energy::{Regularizer, RegularizerKind};
 use crate::plan::MpcPlanner;
-use proto::{Builtin, InferencePrecision};
+use crate::reward::RewardModel;
+use proto::task::{RewardKind, SpecBounds};
+use proto::{Builtin, InferencePrecision, Task};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use std::fmt;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// What `bench plan` was asked to do.
 pub(super) struct Settings {
     pub task: Builtin,
     pub regularizer: RegularizerKind,
+    /// The rewards to plan with, timed in turns (at least one).
+    pub rewards: Vec<BenchReward>,
     pub timed: usize,
     pub warmup: usize,
     pub pets: bool,
@@ -27,6 +37,27 @@ pub(super) struct Settings {
     pub population: Option<usize>,
     pub elites: Option<usize>,
     pub iterations: Option<usize>,
+}
+
+/// How the benchmarked task's reward is given to the planner.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BenchReward {
+    /// The catalog's Rust code.
+    Builtin,
+    /// The same reward written as a formula ([`Builtin::reward_formula`]).
+    Expression,
+    /// A reward model of the preset's sizes (untrained weights plan at the same cost).
+    Learned,
+}
+
+impl fmt::Display for BenchReward {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            BenchReward::Builtin => "builtin",
+            BenchReward::Expression => "expression",
+            BenchReward::Learned => "learned",
+        })
+    }
 }
 
 /// Timing of full planning calls.
@@ -48,36 +79,110 @@ pub struct PlanReport {
     pub chunks: usize,
     /// The number format inference actually ran in.
     pub precision: InferencePrecision,
-    /// Planning calls timed.
+    /// Planning calls timed per reward.
     pub calls: usize,
+    /// One entry per reward asked for, in the order asked.
+    pub rewards: Vec<RewardTiming>,
+    /// Share of `threads × wall time` that this process's threads spent on a CPU during the
+    /// timed calls (below ~0.95: other work took cores away and the times are pessimistic).
+    /// `None` where the platform does not report it.
+    pub cpu_share: Option<f64>,
+    /// This core's peak, measured before and after the calls (the higher of the two).
+    pub peak: Peak,
+}
+
+/// The planning calls of one reward.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RewardTiming {
+    pub reward: BenchReward,
+    /// The formula, for [`BenchReward::Expression`].
+    pub formula: Option<String>,
+    /// The reward model's layer sizes, for [`BenchReward::Learned`].
+    pub model_sizes: Vec<usize>,
     /// Mean iterations per call (early stopping may cut some).
     pub mean_iterations: f64,
     /// Mean candidate sequences scored per call (iCEM's population decays).
     pub mean_candidates: f64,
     pub median_ms: f64,
     pub min_ms: f64,
-    /// Matrix-product GFLOP/s at the median call time.
+    /// Matrix-product GFLOP/s at the median call time (the reward model's included).
     pub gflops: f64,
     /// Matrix-product GFLOP/s at the best call time.
     pub best_gflops: f64,
-    /// Share of `threads × wall time` that this process's threads spent on a CPU during the
-    /// timed calls (below ~0.95: other work took cores away and the times are pessimistic).
-    /// `None` where the platform does not report it.
-    pub cpu_share: Option<f64>,
-    /// Matrix-product GFLOP/s per second of CPU time the threads received over all timed
+    /// Matrix-product GFLOP/s per second of CPU time the threads received over this reward's
     /// calls: the rate while running, which other processes on the cores do not lower (time
     /// the pool's threads spend spinning for work counts against it).
     pub cpu_gflops: Option<f64>,
-    /// Mean CPU time of one timed call, every thread's summed, in milliseconds. `None` where
-    /// the platform does not report it.
+    /// Mean CPU time of one call, every thread's summed, in milliseconds. `None` where the
+    /// platform does not report it.
     pub cpu_ms_per_call: Option<f64>,
-    /// This core's peak, measured before and after the calls (the higher of the two).
-    pub peak: Peak,
+}
+
+impl PlanReport {
+    /// The timing of `reward`, if it was asked for.
+    pub fn of(&self, reward: BenchReward) -> Option<&RewardTiming> {
+        self.rewards.iter().find(|t| t.reward == reward)
+    }
+
+    /// The formula's cost on the planner's path: what the expression reward's calls took beyond
+    /// the builtin code's, as a share of the expression's calls, at the best and at the median
+    /// (`None` unless both were timed). Negative where the difference drowned in noise.
+    pub fn expression_share(&self) -> Option<(f64, f64)> {
+        let (b, e) = (
+            self.of(BenchReward::Builtin)?,
+            self.of(BenchReward::Expression)?,
+        );
+        Some((
+            (e.min_ms - b.min_ms) / e.min_ms,
+            (e.median_ms - b.median_ms) / e.median_ms,
+        ))
+    }
+
+    /// [`PlanReport::expression_share`] of the mean CPU time per call.
+    pub fn expression_cpu_share(&self) -> Option<f64> {
+        let (b, e) = (
+            self.of(BenchReward::Builtin)?.cpu_ms_per_call?,
+            self.of(BenchReward::Expression)?.cpu_ms_per_call?,
+        );
+        Some((e - b) / e)
+    }
+}
+
+/// One reward's planner and what it has measured so far.
+struct Contender {
+    reward: BenchReward,
+    formula: Option<String>,
+    model: Option<RewardModel>,
+    planner: MpcPlanner,
+    times: Vec<Duration>,
+    iterations: u64,
+    candidates: usize,
+    cpu: Option<Duration>,
+}
+
+/// The benchmarked task with its reward given as `reward`.
+fn task_with(task: Builtin, reward: BenchReward) -> Result<&'static Task, BenchError> {
+    let kind = match reward {
+        BenchReward::Builtin => return Ok(task.task()),
+        BenchReward::Expression => RewardKind::Expression(
+            task.reward_formula()
+                .ok_or(BenchError::NoFormula(task))?
+                .to_string(),
+        ),
+        BenchReward::Learned => RewardKind::Learned,
+    };
+    let mut spec = task.spec();
+    spec.name = format!("{}-{reward}-reward", task.name());
+    spec.reward = kind;
+    Task::intern(spec, &SpecBounds::default()).map_err(|e| BenchError::Task(Box::new(e)))
 }
 
 pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     if s.timed == 0 {
         return Err(BenchError::Zero("iterations-to-time"));
+    }
+    if s.rewards.is_empty() {
+        return Err(BenchError::Zero("rewards"));
     }
     let mut preset = preset(s.task, s.regularizer, s.pets)?;
     preset.cem.optimizer = s.optimizer;
@@ -117,48 +222,71 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             "chunks"
         }));
     }
+    let mut contenders = Vec::with_capacity(s.rewards.len());
+    for &reward in &s.rewards {
+        let task = task_with(s.task, reward)?;
+        let model = task.reward_is_learned().then(|| {
+            let mut model = RewardModel::new(task, &preset.reward, &preset.dynamics, &mut rng);
+            model.fit(&data, 1, &mut rng);
+            model.set_inference_precision(s.precision);
+            model
+        });
+        let planner = MpcPlanner::with_chunks(
+            task,
+            preset.cem.clone(),
+            preset.energy_weight,
+            preset.sample_dynamics,
+            s.seed,
+            chunks,
+        )?;
+        contenders.push(Contender {
+            reward,
+            formula: (reward == BenchReward::Expression)
+                .then(|| s.task.reward_formula().map(str::to_string))
+                .flatten(),
+            model,
+            planner,
+            times: Vec::with_capacity(s.timed),
+            iterations: 0,
+            candidates: 0,
+            cpu: Some(Duration::ZERO),
+        });
+    }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    let (times, iterations, candidates, cpu_share, cpu_seconds) =
-        pool.install(|| -> Result<_, BenchError> {
-            let mut planner = MpcPlanner::new(
-                spec,
-                preset.cem.clone(),
-                preset.energy_weight,
-                preset.sample_dynamics,
-                s.seed,
-            )?;
+    let (cpu_share, contenders) = pool.install(|| {
+        for c in &mut contenders {
             for _ in 0..s.warmup {
-                planner.plan(&obs, &dynamics, &regularizer, None, None);
+                c.planner
+                    .plan(&obs, &dynamics, &regularizer, c.model.as_ref(), None);
             }
-            let mut times = Vec::with_capacity(s.timed);
-            let mut iterations = 0u64;
-            let mut candidates = 0usize;
-            let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
-            for _ in 0..s.timed {
+        }
+        let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
+        // In turns, call by call: every reward sees the same load.
+        for _ in 0..s.timed {
+            for c in &mut contenders {
+                let cpu_start = process_cpu_time();
                 let start = Instant::now();
-                let outcome = planner.plan(&obs, &dynamics, &regularizer, None, None);
-                times.push(start.elapsed());
-                iterations += u64::from(outcome.iterations);
-                candidates += preset.cem.candidates_scored(outcome.iterations as usize);
+                let outcome = c
+                    .planner
+                    .plan(&obs, &dynamics, &regularizer, c.model.as_ref(), None);
+                c.times.push(start.elapsed());
+                c.cpu = c
+                    .cpu
+                    .zip(cpu_start.zip(process_cpu_time()))
+                    .map(|(sum, (before, after))| sum + after.saturating_sub(before));
+                c.iterations += u64::from(outcome.iterations);
+                c.candidates += preset.cem.candidates_scored(outcome.iterations as usize);
             }
-            let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
-            let cpu_seconds = cpu_before
-                .zip(process_cpu_time())
-                .map(|(before, after)| after.saturating_sub(before).as_secs_f64());
-            Ok((
-                times,
-                iterations,
-                candidates,
-                cpu_seconds.map(|c| c / wall),
-                cpu_seconds,
-            ))
-        })?;
+        }
+        let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
+        let cpu_share = cpu_before
+            .zip(process_cpu_time())
+            .map(|(before, after)| after.saturating_sub(before).as_secs_f64() / wall);
+        (cpu_share, contenders)
+    });
     let peak = peak.max(Peak::measure());
-    let mut times = times;
-    let min_ms = times.iter().min().map_or(0.0, |t| t.as_secs_f64() * 1e3);
-    let median = median_ms(&mut times);
 
     let dynamics_sizes = dynamics.member(0).mlp().sizes().to_vec();
     let energy_sizes = match &regularizer {
@@ -167,10 +295,40 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         Regularizer::Deen(m) => m.mlp().sizes().to_vec(),
     };
     let cem = &preset.cem;
-    let mean_iterations = iterations as f64 / s.timed as f64;
-    let mean_candidates = candidates as f64 / s.timed as f64;
-    let rows_per_call = mean_candidates * (cem.particles * cem.horizon) as f64;
-    let flops = rows_per_call * (flops_per_row(&dynamics_sizes) + flops_per_row(&energy_sizes));
+    let rewards = contenders
+        .into_iter()
+        .map(|mut c| {
+            let model_sizes = c
+                .model
+                .as_ref()
+                .map_or(Vec::new(), |m| m.mlp().sizes().to_vec());
+            let min_ms = c.times.iter().min().map_or(0.0, |t| t.as_secs_f64() * 1e3);
+            let median = median_ms(&mut c.times);
+            let mean_iterations = c.iterations as f64 / s.timed as f64;
+            let mean_candidates = c.candidates as f64 / s.timed as f64;
+            let rows_per_call = mean_candidates * (cem.particles * cem.horizon) as f64;
+            let flops = rows_per_call
+                * (flops_per_row(&dynamics_sizes)
+                    + flops_per_row(&energy_sizes)
+                    + flops_per_row(&model_sizes));
+            let cpu_seconds = c.cpu.map(|d| d.as_secs_f64());
+            RewardTiming {
+                reward: c.reward,
+                formula: c.formula,
+                model_sizes,
+                mean_iterations,
+                mean_candidates,
+                median_ms: median,
+                min_ms,
+                gflops: flops / (median * 1e-3) / 1e9,
+                best_gflops: flops / (min_ms * 1e-3) / 1e9,
+                cpu_ms_per_call: cpu_seconds.map(|c| c * 1e3 / s.timed as f64),
+                cpu_gflops: cpu_seconds
+                    .filter(|&c| c > 0.0)
+                    .map(|c| flops * s.timed as f64 / c / 1e9),
+            }
+        })
+        .collect();
     Ok(PlanReport {
         task: s.task,
         regularizer: s.regularizer,
@@ -185,23 +343,18 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         chunks,
         precision,
         calls: s.timed,
-        mean_iterations,
-        mean_candidates,
-        median_ms: median,
-        min_ms,
-        gflops: flops / (median * 1e-3) / 1e9,
-        best_gflops: flops / (min_ms * 1e-3) / 1e9,
+        rewards,
         cpu_share,
-        cpu_ms_per_call: cpu_seconds.map(|c| c * 1e3 / s.timed as f64),
-        cpu_gflops: cpu_seconds
-            .filter(|&c| c > 0.0)
-            .map(|c| flops * s.timed as f64 / c / 1e9),
         peak,
     })
 }
 
 impl fmt::Display for PlanReport {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+    fn fmt(&self, out: &mut fmt::Formatter<'_>) -> fmt::Result {
+        // Written line by line, printed without the last line's end.
+        let mut text = String::new();
+        let f = &mut text;
+        use std::fmt::Write;
         writeln!(
             f,
             "bench plan: {} with regularizer {}",
@@ -218,34 +371,21 @@ impl fmt::Display for PlanReport {
         }
         writeln!(
             f,
-            "  {:<10} horizon {}, population {}, {} particle(s), {:.1} iterations and {:.0} \
-             candidates per call",
+            "  {:<10} horizon {}, population {}, {} particle(s)",
             self.optimizer.to_string().to_uppercase(),
             self.horizon,
             self.population,
             self.particles,
-            self.mean_iterations,
-            self.mean_candidates
         )?;
         writeln!(
             f,
             "  parallel   {} thread(s), {} population chunk(s), {} inference",
             self.threads, self.chunks, self.precision
         )?;
-        writeln!(
-            f,
-            "  per plan   {:.2} ms median, {:.2} ms best, over {} calls",
-            self.median_ms, self.min_ms, self.calls
-        )?;
-        write!(
-            f,
-            "  throughput {:.1} GFLOP/s median, {:.1} GFLOP/s best (matrix products)",
-            self.gflops, self.best_gflops
-        )?;
         if let Some(share) = self.cpu_share {
-            write!(
+            writeln!(
                 f,
-                "\n  CPU        the threads ran {:.0}% of the time{}",
+                "  CPU        the threads ran {:.0}% of the time{}",
                 share * 100.0,
                 if share < 0.95 {
                     " (other work shared the cores: times are pessimistic)"
@@ -256,23 +396,58 @@ impl fmt::Display for PlanReport {
         }
         let peak = self.peak.for_precision(self.precision);
         let all_cores = peak.map(|p| p * self.threads as f64);
-        write!(
-            f,
-            "\n  peak       {}\n  of peak    {} best, {} median ({} thread(s) × the {} peak)",
-            self.peak,
-            percent(self.best_gflops, all_cores),
-            percent(self.gflops, all_cores),
-            self.threads,
-            self.precision
-        )?;
-        if let Some(g) = self.cpu_gflops {
+        writeln!(f, "  peak       {}", self.peak)?;
+        for t in &self.rewards {
+            write!(f, "  reward     {}", t.reward)?;
+            if let Some(formula) = &t.formula {
+                write!(f, " `{formula}`")?;
+            }
+            if !t.model_sizes.is_empty() {
+                write!(f, " (reward model {})", describe(&t.model_sizes))?;
+            }
+            writeln!(
+                f,
+                "\n    per plan   {:.2} ms median, {:.2} ms best, over {} calls ({:.1} iterations and \
+                 {:.0} candidates per call)",
+                t.median_ms, t.min_ms, self.calls, t.mean_iterations, t.mean_candidates
+            )?;
+            if let Some(cpu) = t.cpu_ms_per_call {
+                writeln!(f, "    CPU        {cpu:.2} ms per call, every thread's")?;
+            }
             write!(
                 f,
-                "; per CPU second {g:.1} GFLOP/s per core = {} of peak",
-                percent(g, peak)
+                "    throughput {:.1} GFLOP/s median, {:.1} GFLOP/s best (matrix products) = \
+                 {} best, {} median of {} thread(s) × the {} peak",
+                t.gflops,
+                t.best_gflops,
+                percent(t.best_gflops, all_cores),
+                percent(t.gflops, all_cores),
+                self.threads,
+                self.precision
             )?;
+            if let Some(g) = t.cpu_gflops {
+                write!(
+                    f,
+                    "; per CPU second {g:.1} GFLOP/s per core = {} of peak",
+                    percent(g, peak)
+                )?;
+            }
+            writeln!(f)?;
         }
-        Ok(())
+        if let Some((best, median)) = self.expression_share() {
+            write!(
+                f,
+                "  formula    expression − builtin: {:+.2} % (best), {:+.2} % (median) of the \
+                 expression's wall time per plan",
+                best * 100.0,
+                median * 100.0
+            )?;
+            if let Some(cpu) = self.expression_cpu_share() {
+                write!(f, ", {:+.2} % of its CPU time per plan", cpu * 100.0)?;
+            }
+            writeln!(f, " (a cost below the noise can come out negative)")?;
+        }
+        out.write_str(text.trim_end())
     }
 }
 
@@ -280,11 +455,11 @@ impl fmt::Display for PlanReport {
 mod tests {
     use super::*;
 
-    #[test]
-    fn times_real_planning_calls() {
-        let settings = Settings {
+    fn settings() -> Settings {
+        Settings {
             task: Builtin::Cartpole,
             regularizer: RegularizerKind::Deen,
+            rewards: vec![BenchReward::Builtin],
             timed: 2,
             warmup: 1,
             pets: false,
@@ -296,8 +471,12 @@ mod tests {
             population: None,
             elites: None,
             iterations: None,
-        };
-        let report = run(&settings).unwrap();
+        }
+    }
+
+    #[test]
+    fn times_real_planning_calls() {
+        let report = run(&settings()).unwrap();
         assert_eq!(report.dynamics_sizes, vec![6, 200, 200, 200, 8]);
         assert_eq!(report.energy_sizes, vec![9, 200, 200, 200, 1]);
         assert_eq!(
@@ -309,28 +488,36 @@ mod tests {
             ),
             (400, 25, 1, 2)
         );
-        assert!(report.mean_iterations >= 1.0 && report.mean_iterations <= 5.0);
-        assert_eq!(report.mean_candidates, 400.0 * report.mean_iterations);
+        let [timing] = &report.rewards[..] else {
+            panic!("one reward: {report:?}")
+        };
+        assert_eq!(timing.reward, BenchReward::Builtin);
+        assert!(timing.mean_iterations >= 1.0 && timing.mean_iterations <= 5.0);
+        assert_eq!(timing.mean_candidates, 400.0 * timing.mean_iterations);
+        assert_eq!(report.expression_share(), None);
         let icem = run(&Settings {
             optimizer: proto::Optimizer::Icem,
             population: Some(100),
             elites: Some(10),
             iterations: Some(3),
             timed: 1,
-            ..settings
+            ..settings()
         })
         .unwrap();
         assert_eq!(
             (icem.population, icem.optimizer),
             (100, proto::Optimizer::Icem)
         );
-        assert!(icem.mean_candidates <= (100 + 80 + 64) as f64, "{icem:?}");
+        assert!(
+            icem.rewards[0].mean_candidates <= (100 + 80 + 64) as f64,
+            "{icem:?}"
+        );
         assert!(icem.to_string().contains("ICEM"), "{icem}");
-        assert!(report.median_ms > 0.0 && report.min_ms <= report.median_ms);
-        assert!(report.gflops.is_finite() && report.gflops > 0.0);
-        assert!(report.best_gflops >= report.gflops);
+        assert!(timing.median_ms > 0.0 && timing.min_ms <= timing.median_ms);
+        assert!(timing.gflops.is_finite() && timing.gflops > 0.0);
+        assert!(timing.best_gflops >= timing.gflops);
         assert!(report.cpu_share.is_none_or(|c| c > 0.0));
-        assert!(report.cpu_gflops.is_none_or(|g| g.is_finite() && g > 0.0));
+        assert!(timing.cpu_gflops.is_none_or(|g| g.is_finite() && g > 0.0));
         assert_eq!(
             report.peak.bf16_gflops.is_some(),
             report.precision == InferencePrecision::Bf16
@@ -340,8 +527,84 @@ mod tests {
             text.contains("6→3×200→8")
                 && text.contains("9→3×200→1")
                 && text.contains("of peak")
+                && !text.contains("formula")
                 && !text.contains("PyTorch"),
             "{text}"
         );
+    }
+
+    /// The three ways of giving the reward plan side by side on the same models; the formula
+    /// is the builtin reward's, the reward model has the preset's sizes, and its products
+    /// count in the throughput.
+    #[test]
+    fn times_each_reward_in_turns() {
+        let report = run(&Settings {
+            task: Builtin::HalfCheetah,
+            regularizer: RegularizerKind::None,
+            rewards: vec![
+                BenchReward::Builtin,
+                BenchReward::Expression,
+                BenchReward::Learned,
+            ],
+            timed: 2,
+            population: Some(40),
+            elites: Some(4),
+            iterations: Some(2),
+            ..settings()
+        })
+        .unwrap();
+        let kinds: Vec<_> = report.rewards.iter().map(|t| t.reward).collect();
+        assert_eq!(
+            kinds,
+            [
+                BenchReward::Builtin,
+                BenchReward::Expression,
+                BenchReward::Learned
+            ]
+        );
+        let expression = report.of(BenchReward::Expression).unwrap();
+        assert_eq!(
+            expression.formula.as_deref(),
+            Some("s_next[0] - 0.1*dot(a, a)")
+        );
+        // Half-cheetah's state features are 18 wide: [features(s), a, features(s')].
+        let learned = report.of(BenchReward::Learned).unwrap();
+        assert_eq!(learned.model_sizes, vec![18 + 6 + 18, 200, 200, 1]);
+        let builtin = report.of(BenchReward::Builtin).unwrap();
+        assert!(builtin.model_sizes.is_empty() && builtin.formula.is_none());
+        for t in &report.rewards {
+            assert_eq!(t.mean_candidates, 40.0 * t.mean_iterations, "{t:?}");
+            assert!(t.min_ms > 0.0 && t.min_ms <= t.median_ms, "{t:?}");
+        }
+        // The reward model's products are counted beside the dynamics'.
+        let per_candidate = |t: &RewardTiming| t.gflops * t.median_ms / t.mean_candidates;
+        let dynamics = flops_per_row(&report.dynamics_sizes);
+        let ratio = per_candidate(learned) / per_candidate(builtin);
+        let want = (dynamics + flops_per_row(&learned.model_sizes)) / dynamics;
+        assert!((ratio - want).abs() < 1e-9, "{ratio} vs {want}");
+        let (best, median) = report.expression_share().unwrap();
+        assert!(best.is_finite() && median.is_finite() && best < 1.0 && median < 1.0);
+        let text = report.to_string();
+        assert!(
+            text.contains("reward     expression `s_next[0] - 0.1*dot(a, a)`")
+                && text.contains("reward model 42→2×200→1")
+                && text.contains("expression − builtin: "),
+            "{text}"
+        );
+
+        let reacher = run(&Settings {
+            task: Builtin::Reacher3d,
+            rewards: vec![BenchReward::Expression],
+            ..settings()
+        });
+        assert!(
+            matches!(reacher, Err(BenchError::NoFormula(Builtin::Reacher3d))),
+            "{reacher:?}"
+        );
+        let none = run(&Settings {
+            rewards: Vec::new(),
+            ..settings()
+        });
+        assert!(matches!(none, Err(BenchError::Zero("rewards"))));
     }
 }

@@ -10,10 +10,11 @@
 //! without sampling the particles of one member are identical, each member is rolled out once
 //! and weighted by its share of the particles. PETS' sampled particles (TS∞) are not used:
 //! Boney et al. plan through the mean of a single model, and a sampled objective would make
-//! every Adam step follow a different function. The reward's gradient is the task's own
-//! ([`proto::Task::reward_gradient`]) or, for a task whose reward is learned, the reward
-//! model's ([`RewardModel::predict_with_gradient`], which unlike the catalog's rewards also
-//! depends on `s_t`); the regulariser's is
+//! every Adam step follow a different function. The reward's gradient is the task's own (for
+//! the whole population per step, [`proto::Task::reward_gradients`]: a formula through the
+//! expression language's block evaluator, with its `∂r/∂s_t` where it reads `s`) or, for a
+//! task whose reward is learned, the reward model's ([`RewardModel::predict_with_gradient`],
+//! which unlike the catalog's rewards also depends on `s_t`); the regulariser's is
 //! [`Regularizer::energy_and_gradient`]: for the DAE, the penalty `‖g(x) − x‖²` with the
 //! gradient stopped at the autoencoder, as the paper describes Boney et al.'s method (§3).
 //! Termination (the ant falling) stops a row accruing, as in imagination; its gradient does
@@ -49,6 +50,7 @@ use crate::dynamics::{Ensemble, MeanTape};
 use crate::energy::{EnergyGradScratch, Regularizer};
 use crate::reward::{RewardModel, RewardTape};
 use proto::Task;
+use proto::task::FormulaScratch;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -153,6 +155,10 @@ struct Rollout {
     r_next: Vec<f32>,
     /// The reward model's training pass, for a learned reward.
     reward_tape: Option<RewardTape>,
+    /// Per row: whether the step's next state ends the episode.
+    terminal: Vec<bool>,
+    /// The task's formulas' working memory.
+    formulas: FormulaScratch,
 }
 
 impl AdamPlanner {
@@ -425,6 +431,22 @@ impl AdamPlanner {
                     &mut r.r_next,
                 );
             }
+            if learned.is_none() {
+                // The whole population's rewards and gradients at once: a formula through the
+                // block evaluator (its `∂r/∂s` included), builtin code row by row.
+                self.task.reward_gradients(
+                    state,
+                    &r.act,
+                    next,
+                    &mut r.formulas,
+                    &mut r.reward,
+                    &mut r.r_obs,
+                    &mut r.r_act,
+                    &mut r.r_next,
+                );
+            }
+            self.task
+                .terminations(next, &mut r.formulas, &mut r.terminal);
             let alpha = self.energy_weight;
             for row in 0..rows {
                 let (go, ga, gn) = (
@@ -438,36 +460,26 @@ impl AdamPlanner {
                     gn.fill(0.0);
                     continue;
                 }
-                let (s, u, s1) = (
-                    &state[row * o..(row + 1) * o],
-                    &r.act[row * a..(row + 1) * a],
-                    &next[row * o..(row + 1) * o],
-                );
                 let (dr_obs, dr_act, dr_next) = (
-                    &mut r.r_obs[row * o..(row + 1) * o],
-                    &mut r.r_act[row * a..(row + 1) * a],
-                    &mut r.r_next[row * o..(row + 1) * o],
+                    &r.r_obs[row * o..(row + 1) * o],
+                    &r.r_act[row * a..(row + 1) * a],
+                    &r.r_next[row * o..(row + 1) * o],
                 );
-                if learned.is_none() {
-                    // The catalog's rewards and formulas give no `∂r/∂s` (see the module docs).
-                    r.reward[row] = self.task.reward_gradient(s, u, s1, dr_act, dr_next);
-                    dr_obs.fill(0.0);
-                }
                 let reward = r.reward[row];
                 r.ret[row] += reward - alpha * r.energy[row];
                 r.energy_sum[row] += r.energy[row];
                 // ∂J_t = w · (∂r − α ∂E), the member's share `w` of the particles.
                 let w = r.weight[row / c];
-                for (g, dr) in go.iter_mut().zip(dr_obs.iter()) {
+                for (g, dr) in go.iter_mut().zip(dr_obs) {
                     *g = w * (dr - alpha * *g);
                 }
-                for (g, dr) in ga.iter_mut().zip(dr_act.iter()) {
+                for (g, dr) in ga.iter_mut().zip(dr_act) {
                     *g = w * (dr - alpha * *g);
                 }
-                for (g, dr) in gn.iter_mut().zip(dr_next.iter()) {
+                for (g, dr) in gn.iter_mut().zip(dr_next) {
                     *g = w * (dr - alpha * *g);
                 }
-                if self.task.is_terminal(s1) {
+                if r.terminal[row] {
                     r.alive[row] = false;
                 }
             }
@@ -582,6 +594,8 @@ impl Rollout {
             r_act: vec![0.0; rows * a],
             r_next: vec![0.0; rows * o],
             reward_tape: reward.map(|m| m.tape(rows)),
+            terminal: vec![false; rows],
+            formulas: task.formula_scratch(),
         }
     }
 }
@@ -610,7 +624,9 @@ mod tests {
         }
     }
 
-    /// Random transitions of `spec`, each rewarded `Σ sin(s')` (what a learned reward learns).
+    /// Random transitions of `spec` whose next state moves with the action (so that a plan's
+    /// later states, and a reward of them, depend on its earlier actions), each rewarded
+    /// `Σ sin(s')` (what a learned reward learns).
     fn random_data(spec: &Task, n: usize, rng: &mut StdRng) -> Transitions {
         let mut data = Transitions::new(spec.obs_dim, spec.act_dim);
         for _ in 0..n {
@@ -620,9 +636,10 @@ mod tests {
             let act: Vec<f32> = (0..spec.act_dim)
                 .map(|d| rng.random_range(spec.action_low[d]..spec.action_high[d]))
                 .collect();
+            let push: f32 = act.iter().sum::<f32>() / spec.act_dim as f32;
             let next: Vec<f32> = obs
                 .iter()
-                .map(|o| o + 0.3 * rng.random_range(-1.0f32..1.0))
+                .map(|o| o + 0.5 * push + 0.1 * rng.random_range(-1.0f32..1.0))
                 .collect();
             let reward = next.iter().map(|x| x.sin()).sum();
             data.push(&obs, &act, reward, &next);
@@ -638,16 +655,27 @@ mod tests {
         Task::intern(spec, &proto::task::SpecBounds::default()).unwrap()
     }
 
+    /// Cartpole whose reward is a formula that reads `s` as well as `s_next` and `a`.
+    fn formula_cartpole() -> &'static Task {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "adam-formula-cartpole".into();
+        spec.reward = proto::task::RewardKind::Expression(
+            "exp(-s_next[0]^2) - 0.5*s[1]*s_next[1] + 2*sin(s[3]) - 0.01*dot(a, a)".into(),
+        );
+        Task::intern(spec, &proto::task::SpecBounds::default()).unwrap()
+    }
+
     /// The whole-horizon gradient (dynamics of a two-member ensemble with three particles,
-    /// task reward or a learned one (whose gradient reaches `s_t` too), DAE penalty with its
-    /// stopped gradient, DEEN's exact one) against central differences of the objective the
-    /// forward pass computes.
+    /// task reward, a formula or a learned one (both of whose gradients reach `s_t` too), DAE
+    /// penalty with its stopped gradient, DEEN's exact one) against central differences of the
+    /// objective the forward pass computes.
     #[test]
     fn whole_horizon_gradient_matches_finite_differences() {
         for (spec, kind) in [
             (Builtin::Cartpole.task(), RegularizerKind::Dae),
             (Builtin::HalfCheetah.task(), RegularizerKind::Deen),
             (learned_cartpole(), RegularizerKind::Deen),
+            (formula_cartpole(), RegularizerKind::Deen),
         ] {
             let task = spec.name();
             let mut rng = StdRng::seed_from_u64(17);

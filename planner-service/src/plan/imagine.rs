@@ -3,27 +3,28 @@
 //!
 //! `return = Σ_τ [ r(s_τ, a_τ, s_τ₊₁) − α·E(s_τ, a_τ, s_τ₊₁) ]`,
 //!
-//! with `r` the task's own reward ([`proto::Task::reward`], the function the simulator uses)
-//! or, for a task whose reward is learned, the run's reward model (one batched forward pass
-//! per step for the whole chunk, [`RewardModel::predict`]), `E` the regulariser's energy and
-//! `α` the energy weight.
+//! with `r` the task's own reward (the function the simulator uses, evaluated for the whole
+//! chunk per step by [`proto::Task::rewards`]: a formula through the expression language's
+//! block evaluator) or, for a task whose reward is learned, the run's reward model (one batched
+//! forward pass per step for the whole chunk, [`RewardModel::predict`]), `E` the regulariser's
+//! energy and `α` the energy weight.
 //!
 //! - **Particles (PETS TS∞).** Each candidate is imagined `P` times; particle `p` follows
 //!   ensemble member `p mod B` for the whole horizon and, when sampling is on, draws its next
 //!   state from the member's predicted Gaussian. The candidate's return is the particles' mean.
 //!   `P = 1`, `B = 1` without sampling is the paper's single-model setting.
 //! - **Termination.** Once a particle reaches a terminal state (`Task::is_terminal`, e.g. the
-//!   ant falling) it stops accruing reward and energy; the transition into the terminal state
-//!   still counts.
+//!   ant falling; for the whole chunk per step by `Task::terminations`) it stops accruing reward
+//!   and energy; the transition into the terminal state still counts.
 //! - **Non-finite returns** (a diverging model) are reported as `-inf`, so they never win.
 //! - **Batching.** The whole population advances one horizon step at a time, so every network
 //!   call is a large matrix product. The population is split into one chunk per rayon thread;
 //!   each chunk owns its buffers and scratch and runs single-threaded kernels. Within a chunk
 //!   the rows are ordered particle-major with particles grouped by ensemble member, so each
 //!   member sees one contiguous block of rows.
-//! - **No allocation.** Every buffer is allocated when the imagination is built; the network
-//!   scratch space is allocated on the first call with a model (and again only if a model of
-//!   another shape arrives).
+//! - **No allocation.** Every buffer, the task's formula scratch included, is allocated when
+//!   the imagination is built; the network scratch space is allocated on the first call with a
+//!   model (and again only if a model of another shape arrives).
 
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
@@ -31,6 +32,7 @@ use crate::plan::anytime::Preempt;
 use crate::plan::cem::CemConfig;
 use crate::reward::{RewardModel, RewardScratch};
 use proto::Task;
+use proto::task::FormulaScratch;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -73,12 +75,16 @@ struct Chunk {
     noise: Vec<f32>,
     reward: Vec<f32>,
     energy: Vec<f32>,
-    /// Per row: accumulated regularised return, accumulated energy, still alive.
+    /// Per row: whether the step's next state ends the episode; accumulated regularised return,
+    /// accumulated energy, still alive.
+    terminal: Vec<bool>,
     ret: Vec<f32>,
     energy_sum: Vec<f32>,
     alive: Vec<bool>,
     /// Per candidate: the particles' mean return and mean energy per step.
     candidate_energy: Vec<f32>,
+    /// The task's formulas' working memory (made with the chunk: it depends on the task only).
+    formulas: FormulaScratch,
     scratch: Option<Scratch>,
     rng: StdRng,
 }
@@ -305,10 +311,12 @@ impl Chunk {
             noise: vec![0.0; rows * o],
             reward: vec![0.0; rows],
             energy: vec![0.0; rows],
+            terminal: vec![false; rows],
             ret: vec![0.0; rows],
             energy_sum: vec![0.0; rows],
             alive: vec![true; rows],
             candidate_energy: vec![0.0; capacity],
+            formulas: task.formula_scratch(),
             scratch: None,
             rng: StdRng::seed_from_u64(seed),
         }
@@ -382,6 +390,10 @@ impl Chunk {
                     &mut self.energy[..rows],
                 );
             }
+            // The whole chunk's rewards and terminations per step: the reward model's forward
+            // pass, or the task's formula through the block evaluator (builtin code row by row).
+            // Rows that ended earlier are scored too and then ignored: cheaper than gathering
+            // the live ones.
             if let Some(model) = learned {
                 let scratch = scratch
                     .reward
@@ -395,25 +407,29 @@ impl Chunk {
                     scratch,
                     &mut self.reward[..rows],
                 );
+            } else {
+                ctx.task.rewards(
+                    &self.state[..rows * o],
+                    &self.act[..rows * a],
+                    &self.next[..rows * o],
+                    &mut self.formulas,
+                    &mut self.reward[..rows],
+                );
             }
+            ctx.task.terminations(
+                &self.next[..rows * o],
+                &mut self.formulas,
+                &mut self.terminal[..rows],
+            );
             for r in 0..rows {
                 if !self.alive[r] {
                     self.reward[r] = 0.0;
                     self.energy[r] = 0.0;
                     continue;
                 }
-                let (s, u, s1) = (
-                    &self.state[r * o..(r + 1) * o],
-                    &self.act[r * a..(r + 1) * a],
-                    &self.next[r * o..(r + 1) * o],
-                );
-                if learned.is_none() {
-                    self.reward[r] = ctx.task.reward(s, u, s1);
-                }
-                let reward = self.reward[r];
-                self.ret[r] += reward - ctx.energy_weight * self.energy[r];
+                self.ret[r] += self.reward[r] - ctx.energy_weight * self.energy[r];
                 self.energy_sum[r] += self.energy[r];
-                if ctx.task.is_terminal(s1) {
+                if self.terminal[r] {
                     self.alive[r] = false;
                 }
             }
@@ -734,8 +750,18 @@ mod tests {
     /// An ant model that predicts the delta `delta` (to within ~1e-4) whatever the input: the
     /// target normaliser has a tiny spread around it, scaling the network's output away.
     fn constant_delta_ant(delta: &[f32]) -> Ensemble {
-        let spec = Builtin::Ant.task();
-        let mut dynamics = ensemble(Builtin::Ant, 1, 6);
+        constant_delta(Builtin::Ant.task(), delta)
+    }
+
+    /// [`constant_delta_ant`] for any task with ant's dimensions and model transforms.
+    fn constant_delta(spec: &'static Task, delta: &[f32]) -> Ensemble {
+        let config = DynamicsConfig {
+            hidden_layers: 2,
+            hidden_size: 24,
+            ensemble_size: 1,
+            ..Default::default()
+        };
+        let mut dynamics = Ensemble::new(spec, &config, &mut StdRng::seed_from_u64(6));
         let rows: Vec<f32> = [1e-5f32, -1e-5]
             .iter()
             .flat_map(|&jitter| delta.iter().map(move |d| d + jitter))
@@ -794,6 +820,57 @@ mod tests {
         );
         for (r, u) in returns.iter().zip(&upright) {
             assert!(u > r, "{u} should exceed {r}");
+        }
+    }
+
+    /// Ant's reward and termination restated as formulas: imagination scores them for the whole
+    /// chunk through the block evaluator, and the returns are exactly the builtin code's (the
+    /// formulas compute the same operations in the same order), up to and including the fall
+    /// that ends the particles, and the row-by-row reading's.
+    #[test]
+    fn formulas_score_the_population_as_the_builtin_code_they_restate() {
+        let mut spec = Builtin::Ant.spec();
+        spec.name = "imagine-ant-formulas".into();
+        spec.reward = proto::task::RewardKind::Expression("s_next[13] - 0.5*dot(a, a) + 1".into());
+        spec.termination = proto::task::TerminationKind::Expression(
+            "!(s_next[0] >= 0.2 && s_next[0] <= 1)".into(),
+        );
+        let formulas = Task::intern(spec, &proto::task::SpecBounds::default()).unwrap();
+        let mut delta = vec![0.0; formulas.obs_dim];
+        delta[0] = -0.1; // falls on the fourth step, as in `terminal_states_stop_reward_accrual`
+        delta[13] = 0.5;
+        let mut obs = vec![0.0; formulas.obs_dim];
+        obs[0] = 0.55;
+        // 70 candidates × 2 particles in 2 chunks: 70 rows each, more than one block of rows.
+        let (horizon, population) = (8, 70);
+        let actions = random_sequences(formulas, population, horizon, 5);
+        let score = |task: &'static Task| {
+            let dynamics = constant_delta(task, &delta);
+            let mut imagination =
+                Imagination::new(task, &cem(horizon, population, 2), 0.0, false, 2, 0);
+            let mut returns = vec![0.0; population];
+            imagination.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                &Regularizer::None,
+                None,
+                &mut returns,
+                None,
+            );
+            (returns, dynamics)
+        };
+        let (builtin, _) = score(Builtin::Ant.task());
+        let (written, dynamics) = score(formulas);
+        assert_eq!(written, builtin);
+        for (seq, r) in actions
+            .chunks_exact(horizon * formulas.act_dim)
+            .zip(&written)
+        {
+            let (expected, steps) =
+                reference(formulas, &obs, seq, &dynamics, 0, &Regularizer::None, 0.0);
+            assert_eq!(steps, 4, "the termination formula ends the fall");
+            assert_close(*r, expected, "return of the row-by-row reading");
         }
     }
 

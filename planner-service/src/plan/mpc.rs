@@ -149,7 +149,9 @@ impl MpcPlanner {
     /// latest timed iteration (`None` before its first): the scheduler ranks plans that fit
     /// their deadline before plans that will be cut (see [`crate::sched::queue`]).
     pub fn estimated_solve(&self) -> Option<Duration> {
-        self.clock.estimate(self.search.candidates_per_solve())
+        let config = self.search.config();
+        self.clock
+            .estimate(config.candidates_scored(config.iterations))
     }
 
     /// [`MpcPlanner::plan`] on cores shared with other plans: `preempt` may pause the solve

@@ -93,18 +93,6 @@ impl Search {
         }
     }
 
-    /// Candidates a whole solve scores, summed over its iterations: with the clock's time per
-    /// candidate, the scheduler's estimate of the solve ([`super::anytime::IterationClock::estimate`]).
-    pub fn candidates_per_solve(&self) -> usize {
-        let config = self.config();
-        match self {
-            Search::Icem(_) => (0..config.iterations)
-                .map(|i| super::icem::population_at(config, i))
-                .sum(),
-            Search::Cem(_) | Search::Adam(_) => config.population * config.iterations,
-        }
-    }
-
     /// One solve within the clock's deadline, and the mean energy per imagined step of what
     /// it settled on (CEM and iCEM: their last elites; Adam: its best sequence; 0 when the
     /// deadline left no time for an iteration).

@@ -1,5 +1,6 @@
 //! A task with its code: a validated [`TaskSpec`] whose reward, termination and model transforms
-//! are ready to run row by row over a planner's population.
+//! are ready to run, one transition at a time (the simulator, an agent's checks) or for a
+//! planner's whole population at once ([`Task::rewards`], [`Task::terminations`]).
 //!
 //! Tasks are interned: [`Task::intern`] compiles a spec once per process and hands out a
 //! `&'static Task`, the same one for every equal spec. Runs, models and planners hold their
@@ -46,7 +47,7 @@ pub fn compile_expression(
     task: &TaskSpec,
     part: &'static str,
     source: &str,
-) -> Result<RowFormula, TaskError> {
+) -> Result<Formula, TaskError> {
     let error = |message: String| TaskError::Expression {
         task: task.name.clone(),
         part,
@@ -62,7 +63,7 @@ pub fn compile_expression(
             "a termination reads only s_next (the state the episode may end in)".into(),
         ));
     }
-    Ok(RowFormula {
+    Ok(Formula {
         expression,
         id: NEXT_FORMULA_ID.fetch_add(1, Ordering::Relaxed),
     })
@@ -78,16 +79,40 @@ thread_local! {
     static SCRATCH: RefCell<Vec<(usize, Scratch)>> = const { RefCell::new(Vec::new()) };
 }
 
-/// A formula evaluated one transition at a time, through the expression language's batched
-/// evaluator with a batch of one row: the value at `(s, a, s')`, and with it the gradient for
-/// planners that descend it.
+/// A compiled formula of a task: evaluated for a whole population through the expression
+/// language's block evaluator with the caller's scratch ([`Formula::values`]), or one
+/// transition at a time with a per-thread scratch ([`Formula::value`], and the gradient for
+/// planners that descend it).
 #[derive(Debug)]
-pub struct RowFormula {
+pub struct Formula {
     expression: Expression,
     id: usize,
 }
 
-impl RowFormula {
+impl Formula {
+    /// Working memory for [`Formula::values`] on any number of rows.
+    fn scratch(&self) -> Scratch {
+        self.expression.scratch()
+    }
+
+    /// The value of every row of `inputs` into `out` (one per row), in blocks of rows: the
+    /// population path, with no per-row dispatch.
+    fn values(&self, inputs: Inputs, out: &mut [f32], scratch: &mut Scratch) {
+        self.expression.eval_batch(inputs, out, scratch);
+    }
+
+    /// [`Formula::values`] and each row's gradient into `grads` (overwritten).
+    fn values_and_gradients(
+        &self,
+        inputs: Inputs,
+        out: &mut [f32],
+        grads: Gradients,
+        scratch: &mut Scratch,
+    ) {
+        self.expression.eval_grad(inputs, out, grads, scratch);
+    }
+
+    /// The one-row paths' scratch: this thread's for this formula.
     fn with_scratch<R>(&self, f: impl FnOnce(&mut Scratch) -> R) -> R {
         SCRATCH.with(|cell| {
             let mut all = cell.borrow_mut();
@@ -103,7 +128,7 @@ impl RowFormula {
     }
 }
 
-impl RowFormula {
+impl Formula {
     /// The value at `(s, a, s')`.
     pub fn value(&self, obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
         let mut out = [0.0];
@@ -163,7 +188,7 @@ enum Model {
 #[derive(Debug)]
 enum Reward {
     Builtin(&'static BuiltinCode),
-    Expression(RowFormula),
+    Expression(Formula),
     /// Observed only: the run's reward model predicts it (see [`Task::reward_is_learned`]).
     Learned,
 }
@@ -172,8 +197,21 @@ enum Reward {
 enum Termination {
     Never,
     Builtin(&'static BuiltinCode),
-    Expression(RowFormula),
+    Expression(Formula),
 }
+
+/// Working memory for evaluating a task's formulas over a population ([`Task::rewards`],
+/// [`Task::terminations`]): one per thread that evaluates, made once by
+/// [`Task::formula_scratch`] before the planning loop, so that the loop does not allocate. It
+/// holds nothing for builtin code, which needs none.
+#[derive(Debug, Default)]
+pub struct FormulaScratch {
+    reward: Option<Scratch>,
+    termination: Option<Scratch>,
+}
+
+/// Rows of a termination formula evaluated into one stack buffer before they become flags.
+const TERMINATION_ROWS: usize = 64;
 
 /// Two tasks are the same task when their specs are equal (interning makes them one object).
 impl PartialEq for Task {
@@ -193,6 +231,10 @@ impl Deref for Task {
 /// Why [`Task::reward`] cannot answer for a learned reward.
 const LEARNED_HAS_NO_FORMULA: &str =
     "a learned reward has no formula: score transitions with the run's reward model";
+
+/// Why [`Task::rewards`] or [`Task::terminations`] found no scratch for its formula.
+const SCRATCH_OF_ANOTHER_TASK: &str =
+    "formula scratch made by this task's `formula_scratch` (this one is another task's)";
 
 /// Every task this process compiled.
 static INTERNED: Mutex<Vec<&'static Task>> = Mutex::new(Vec::new());
@@ -304,6 +346,173 @@ impl Task {
             Reward::Builtin(code) => (code.reward_gradient)(obs, act, next_obs, d_act, d_next_obs),
             Reward::Expression(e) => e.gradient(obs, act, next_obs, d_act, d_next_obs),
             Reward::Learned => panic!("{}: {LEARNED_HAS_NO_FORMULA}", self.spec.name),
+        }
+    }
+
+    /// Working memory for [`Task::rewards`] and [`Task::terminations`] on any number of rows.
+    pub fn formula_scratch(&self) -> FormulaScratch {
+        FormulaScratch {
+            reward: match &self.reward {
+                Reward::Expression(f) => Some(f.scratch()),
+                Reward::Builtin(_) | Reward::Learned => None,
+            },
+            termination: match &self.termination {
+                Termination::Expression(f) => Some(f.scratch()),
+                Termination::Never | Termination::Builtin(_) => None,
+            },
+        }
+    }
+
+    /// [`Task::reward`] of every row of a population (row-major `obs`, `act`, `next_obs`) into
+    /// `out`, one per row: a formula through the block evaluator, builtin code row by row. The
+    /// values are exactly those of [`Task::reward`], row by row.
+    ///
+    /// # Panics
+    ///
+    /// For a learned reward, as [`Task::reward`]; if the inputs do not hold `out.len()` rows;
+    /// if `scratch` was made for another task.
+    pub fn rewards(
+        &self,
+        obs: &[f32],
+        act: &[f32],
+        next_obs: &[f32],
+        scratch: &mut FormulaScratch,
+        out: &mut [f32],
+    ) {
+        let (o, a, rows) = (self.spec.obs_dim, self.spec.act_dim, out.len());
+        assert_eq!(
+            (obs.len(), act.len(), next_obs.len()),
+            (rows * o, rows * a, rows * o),
+            "{}: rows of the transitions",
+            self.spec.name
+        );
+        match &self.reward {
+            Reward::Builtin(code) => {
+                let rows = obs
+                    .chunks_exact(o)
+                    .zip(act.chunks_exact(a))
+                    .zip(next_obs.chunks_exact(o));
+                for (r, ((s, u), s1)) in out.iter_mut().zip(rows) {
+                    *r = (code.reward)(s, u, s1);
+                }
+            }
+            Reward::Expression(f) => {
+                let inputs = Inputs {
+                    s: obs,
+                    a: act,
+                    s_next: next_obs,
+                };
+                let scratch = scratch.reward.as_mut().expect(SCRATCH_OF_ANOTHER_TASK);
+                f.values(inputs, out, scratch);
+            }
+            Reward::Learned => panic!("{}: {LEARNED_HAS_NO_FORMULA}", self.spec.name),
+        }
+    }
+
+    /// [`Task::rewards`] and each row's gradient: `∂r/∂obs` into `d_obs`, `∂r/∂act` into
+    /// `d_act`, `∂r/∂next_obs` into `d_next_obs` (rows × dims, all overwritten). Builtin code
+    /// reads no `obs` (its `d_obs` is 0); a formula may, and its `∂r/∂s` is exact.
+    ///
+    /// # Panics
+    ///
+    /// As [`Task::rewards`], and if a gradient does not hold `out.len()` rows.
+    #[allow(clippy::too_many_arguments)]
+    pub fn reward_gradients(
+        &self,
+        obs: &[f32],
+        act: &[f32],
+        next_obs: &[f32],
+        scratch: &mut FormulaScratch,
+        out: &mut [f32],
+        d_obs: &mut [f32],
+        d_act: &mut [f32],
+        d_next_obs: &mut [f32],
+    ) {
+        let (o, a, rows) = (self.spec.obs_dim, self.spec.act_dim, out.len());
+        assert_eq!(
+            (obs.len(), act.len(), next_obs.len()),
+            (rows * o, rows * a, rows * o),
+            "{}: rows of the transitions",
+            self.spec.name
+        );
+        assert_eq!(
+            (d_obs.len(), d_act.len(), d_next_obs.len()),
+            (rows * o, rows * a, rows * o),
+            "{}: rows of the gradients",
+            self.spec.name
+        );
+        match &self.reward {
+            Reward::Builtin(code) => {
+                d_obs.fill(0.0);
+                let inputs = obs
+                    .chunks_exact(o)
+                    .zip(act.chunks_exact(a))
+                    .zip(next_obs.chunks_exact(o));
+                let grads = d_act
+                    .chunks_exact_mut(a)
+                    .zip(d_next_obs.chunks_exact_mut(o));
+                for ((r, ((s, u), s1)), (du, ds1)) in out.iter_mut().zip(inputs).zip(grads) {
+                    *r = (code.reward_gradient)(s, u, s1, du, ds1);
+                }
+            }
+            Reward::Expression(f) => {
+                let inputs = Inputs {
+                    s: obs,
+                    a: act,
+                    s_next: next_obs,
+                };
+                let grads = Gradients {
+                    s: d_obs,
+                    a: d_act,
+                    s_next: d_next_obs,
+                };
+                let scratch = scratch.reward.as_mut().expect(SCRATCH_OF_ANOTHER_TASK);
+                f.values_and_gradients(inputs, out, grads, scratch);
+            }
+            Reward::Learned => panic!("{}: {LEARNED_HAS_NO_FORMULA}", self.spec.name),
+        }
+    }
+
+    /// [`Task::is_terminal`] of every row of `next_obs` (row-major) into `out`, one per row.
+    ///
+    /// # Panics
+    ///
+    /// If `next_obs` does not hold `out.len()` rows, or `scratch` was made for another task.
+    pub fn terminations(&self, next_obs: &[f32], scratch: &mut FormulaScratch, out: &mut [bool]) {
+        let o = self.spec.obs_dim;
+        assert_eq!(
+            next_obs.len(),
+            out.len() * o,
+            "{}: rows of the observations",
+            self.spec.name
+        );
+        match &self.termination {
+            Termination::Never => out.fill(false),
+            Termination::Builtin(code) => {
+                for (t, s1) in out.iter_mut().zip(next_obs.chunks_exact(o)) {
+                    *t = (code.is_terminal)(s1);
+                }
+            }
+            Termination::Expression(f) => {
+                let scratch = scratch.termination.as_mut().expect(SCRATCH_OF_ANOTHER_TASK);
+                let mut values = [0.0; TERMINATION_ROWS];
+                let blocks = out
+                    .chunks_mut(TERMINATION_ROWS)
+                    .zip(next_obs.chunks(TERMINATION_ROWS * o));
+                for (flags, s_next) in blocks {
+                    let values = &mut values[..flags.len()];
+                    // A termination reads `s_next` only (checked when compiled).
+                    let inputs = Inputs {
+                        s: &[],
+                        a: &[],
+                        s_next,
+                    };
+                    f.values(inputs, values, scratch);
+                    for (t, v) in flags.iter_mut().zip(values.iter()) {
+                        *t = *v != 0.0;
+                    }
+                }
+            }
         }
     }
 
@@ -419,6 +628,151 @@ mod tests {
             a.reward(&obs, &[1.0], &next),
             Builtin::Cartpole.task().reward(&obs, &[1.0], &next)
         );
+    }
+
+    /// `rows` random transitions of `task` (coordinates in ±2, actions in ±1.5) from `seed`.
+    fn population(task: &Task, rows: usize, seed: u64) -> [Vec<f32>; 3] {
+        use rand::rngs::StdRng;
+        use rand::{RngExt, SeedableRng};
+        let mut rng = StdRng::seed_from_u64(seed);
+        let mut draw = |n: usize, range: f32| -> Vec<f32> {
+            (0..n).map(|_| rng.random_range(-range..range)).collect()
+        };
+        [
+            draw(rows * task.obs_dim, 2.0),
+            draw(rows * task.act_dim, 1.5),
+            draw(rows * task.obs_dim, 2.0),
+        ]
+    }
+
+    /// The population entry points give exactly the row-by-row values, for builtin code and for
+    /// formulas (the block evaluator against the one-row path), over a population that is not
+    /// a whole number of blocks, with a NaN observation among the rows.
+    #[test]
+    fn population_rewards_and_terminations_are_the_row_by_row_ones() {
+        let mut cheetah = Builtin::HalfCheetah.spec();
+        cheetah.name = "population-cheetah-formula".into();
+        cheetah.reward = RewardKind::Expression("s_next[0] - 0.1*dot(a, a)".into());
+        let mut ant = Builtin::Ant.spec();
+        ant.name = "population-ant-formulas".into();
+        ant.reward = RewardKind::Expression("s_next[13] - 0.5*dot(a, a) + 1".into());
+        ant.termination =
+            TerminationKind::Expression("!(s_next[0] >= 0.2 && s_next[0] <= 1)".into());
+        let formulas =
+            [cheetah, ant].map(|spec| Task::intern(spec, &SpecBounds::default()).unwrap());
+        let tasks = Builtin::ALL.iter().map(|b| b.task()).chain(formulas);
+        for (seed, task) in tasks.enumerate() {
+            let (o, a, rows) = (task.obs_dim, task.act_dim, 150);
+            let [obs, act, mut next] = population(task, rows, seed as u64);
+            // Ant's healthy heights lie in [0.2, 1]: half the rows end, half do not.
+            for r in 0..rows {
+                next[r * o] = if r % 2 == 0 { 0.5 } else { 1.5 };
+            }
+            next[77 * o] = f32::NAN;
+            let mut scratch = task.formula_scratch();
+            let mut rewards = vec![f32::NAN; rows];
+            task.rewards(&obs, &act, &next, &mut scratch, &mut rewards);
+            let mut ended = vec![false; rows];
+            task.terminations(&next, &mut scratch, &mut ended);
+            let (mut values, mut d_obs, mut d_act, mut d_next) = (
+                vec![f32::NAN; rows],
+                vec![f32::NAN; rows * o],
+                vec![f32::NAN; rows * a],
+                vec![f32::NAN; rows * o],
+            );
+            task.reward_gradients(
+                &obs,
+                &act,
+                &next,
+                &mut scratch,
+                &mut values,
+                &mut d_obs,
+                &mut d_act,
+                &mut d_next,
+            );
+            assert!(
+                d_obs.iter().all(|&g| g == 0.0),
+                "{}: no reward reads s",
+                task.name()
+            );
+            let (mut want_da, mut want_dn) = (vec![0.0; a], vec![0.0; o]);
+            for r in 0..rows {
+                let (s, u, s1) = (&obs[r * o..][..o], &act[r * a..][..a], &next[r * o..][..o]);
+                let want = task.reward_gradient(s, u, s1, &mut want_da, &mut want_dn);
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    (
+                        values[r].to_bits(),
+                        bits(&d_act[r * a..][..a]),
+                        bits(&d_next[r * o..][..o])
+                    ),
+                    (want.to_bits(), bits(&want_da), bits(&want_dn)),
+                    "{} row {r}: value and gradient",
+                    task.name()
+                );
+                let want = task.reward(s, u, s1);
+                assert!(
+                    rewards[r].to_bits() == want.to_bits(),
+                    "{} row {r}: {} vs {want}",
+                    task.name(),
+                    rewards[r]
+                );
+                assert_eq!(ended[r], task.is_terminal(s1), "{} row {r}", task.name());
+            }
+        }
+        let ant = formulas[1];
+        let mut ended = vec![false; 3];
+        ant.terminations(
+            &[0.5, 0.1, f32::NAN]
+                .map(|h| {
+                    let mut row = vec![0.0; 27];
+                    row[0] = h;
+                    row
+                })
+                .concat(),
+            &mut ant.formula_scratch(),
+            &mut ended,
+        );
+        assert_eq!(ended, [false, true, true], "a NaN height is not healthy");
+    }
+
+    /// A formula that reads `s` has a gradient in `s` too, on the population path.
+    #[test]
+    fn population_gradients_include_the_previous_state() {
+        let mut spec = custom("population-reads-s");
+        spec.reward = RewardKind::Expression("s_next[0] - s[1]^2 + 0.5*a[0]*s[3]".into());
+        let task = Task::intern(spec, &SpecBounds::default()).unwrap();
+        let obs = [0.3, -0.7, 2.0, 1.5, 0.0, 0.4, 0.1, -2.0];
+        let (act, next) = ([0.5, -1.0], [1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0]);
+        let (mut out, mut d_obs, mut d_act, mut d_next) = ([0.0; 2], [9.0; 8], [9.0; 2], [9.0; 8]);
+        task.reward_gradients(
+            &obs,
+            &act,
+            &next,
+            &mut task.formula_scratch(),
+            &mut out,
+            &mut d_obs,
+            &mut d_act,
+            &mut d_next,
+        );
+        assert!(
+            (out[0] - 0.885).abs() < 1e-6 && (out[1] + 0.16).abs() < 1e-6,
+            "{out:?}"
+        );
+        assert_eq!(d_obs, [0.0, 1.4, 0.0, 0.25, 0.0, -0.8, 0.0, -0.5]);
+        assert_eq!(d_act, [0.75, -1.0]);
+        assert_eq!(d_next, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]);
+    }
+
+    /// A scratch is made by its task: another task's has no room for the formula.
+    #[test]
+    #[should_panic(expected = "formula scratch made by this task")]
+    fn a_formula_needs_its_own_tasks_scratch() {
+        let mut spec = custom("scratch-of-another");
+        spec.reward = RewardKind::Expression("-s_next[0]^2".into());
+        let task = Task::intern(spec, &SpecBounds::default()).unwrap();
+        let mut other = Builtin::Cartpole.task().formula_scratch();
+        task.rewards(&[0.0; 4], &[0.0], &[0.0; 4], &mut other, &mut [0.0]);
     }
 
     #[test]

@@ -19,7 +19,9 @@ mod spec;
 mod transforms;
 
 pub use catalog::{CatalogError, TaskCatalog, UnknownTask};
-pub use compiled::{MAX_DISTINCT_TASKS, RowFormula, Task, TaskError, compile_expression};
+pub use compiled::{
+    Formula, FormulaScratch, MAX_DISTINCT_TASKS, Task, TaskError, compile_expression,
+};
 pub use spec::{
     DeclaredTransforms, MAX_ACTION_BOUND, MAX_CONTROL_DT, MAX_EXPRESSION_BYTES, MAX_MAGNITUDE,
     MIN_CONTROL_DT, Magnitudes, ModelTransforms, ObservationBounds, RewardKind, SpecBounds,
@@ -88,6 +90,27 @@ impl Builtin {
     pub fn task(self) -> &'static Task {
         Task::intern(self.spec(), &SpecBounds::default())
             .expect("every catalog entry is a valid task (tested)")
+    }
+
+    /// This builtin's reward written in the expression language (the same numbers as its Rust
+    /// code, to within rounding; `expression::tests` checks the values and gradients), for
+    /// comparing the two on the planner's path (`planner-service bench plan --rewards`).
+    /// Reacher3d's has none here: the forward kinematics of its arm's tip, written out as a
+    /// formula, was never checked against its code.
+    pub fn reward_formula(self) -> Option<&'static str> {
+        match self {
+            Builtin::Cartpole => Some(
+                "exp(-((s_next[0] - 0.6*sin(s_next[1]))^2 + (-0.6*cos(s_next[1]) - 0.6)^2) \
+                 / (0.6*0.6)) - 0.01*dot(a, a)",
+            ),
+            Builtin::HalfCheetah => Some("s_next[0] - 0.1*dot(a, a)"),
+            Builtin::Ant => Some("s_next[13] - 0.5*dot(a, a) + 1"),
+            Builtin::Pusher => Some(
+                "-(1.25*norm1(s_next[17:20] - [0.45, -0.05, -0.25]) \
+                  + 0.5*norm1(s_next[17:20] - s_next[14:17]) + 0.1*dot(a, a))",
+            ),
+            Builtin::Reacher3d => None,
+        }
     }
 
     /// The observation and action dimensions the code indexes.

@@ -556,20 +556,12 @@ fn short_inputs_are_refused() {
 
 /// The catalog's rewards written as formulas, with the functions they must agree with.
 fn catalog_formulas() -> Vec<(Builtin, &'static str)> {
-    vec![
-        (
-            Builtin::Cartpole,
-            "exp(-((s_next[0] - 0.6*sin(s_next[1]))^2 + (-0.6*cos(s_next[1]) - 0.6)^2) / (0.6*0.6)) \
-             - 0.01*dot(a, a)",
-        ),
-        (Builtin::HalfCheetah, "s_next[0] - 0.1*dot(a, a)"),
-        (Builtin::Ant, "s_next[13] - 0.5*dot(a, a) + 1"),
-        (
-            Builtin::Pusher,
-            "-(1.25*norm1(s_next[17:20] - [0.45, -0.05, -0.25]) \
-              + 0.5*norm1(s_next[17:20] - s_next[14:17]) + 0.1*dot(a, a))",
-        ),
-    ]
+    let formulas: Vec<_> = Builtin::ALL
+        .iter()
+        .filter_map(|&b| b.reward_formula().map(|f| (b, f)))
+        .collect();
+    assert_eq!(formulas.len(), 4, "every catalog reward but reacher3d's");
+    formulas
 }
 
 fn dims_of(task: Builtin) -> Dims {
