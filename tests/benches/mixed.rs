@@ -165,10 +165,15 @@ impl Agent {
         })
     }
 
-    /// One explored episode of `steps` steps, ended by the time limit.
+    /// One explored episode of `steps` steps, ended by the time limit, one observation per
+    /// control period like the planned steps (an explorer flooding the daemon with messages
+    /// would measure the transport, not the retraining beside it).
     async fn explore(&mut self, steps: u32) -> Result<()> {
         let mut reward = None;
+        let mut tick = tokio::time::interval(self.period);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         for step in 0..steps {
+            tick.tick().await;
             let obs = Observation::new(self.episode, step, self.plant.state.clone(), reward, None);
             let action = self.client.step(&obs).await?;
             reward = Some(self.plant.step(&action.action));
