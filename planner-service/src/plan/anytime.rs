@@ -120,6 +120,22 @@ impl IterationClock {
     }
 }
 
+/// Counts the pauses a solve is offered and takes none (for tests here and in `imagine`).
+#[cfg(test)]
+#[derive(Debug, Default)]
+pub(crate) struct CountingPreempt(pub std::sync::atomic::AtomicUsize);
+
+#[cfg(test)]
+impl Preempt for CountingPreempt {
+    fn step_back(&self) {
+        self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    }
+
+    fn paused(&self) -> Duration {
+        Duration::ZERO
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -171,19 +187,6 @@ mod tests {
         clock.start(Some(Instant::now()));
         assert!(!clock.may_start(8000, true), "the deadline has passed");
         assert_eq!(clock.estimate(8000), Some(measured), "not halved");
-    }
-
-    #[derive(Debug, Default)]
-    struct CountingPreempt(std::sync::atomic::AtomicUsize);
-
-    impl Preempt for CountingPreempt {
-        fn step_back(&self) {
-            self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-        }
-
-        fn paused(&self) -> Duration {
-            Duration::ZERO
-        }
     }
 
     /// Pauses `pause` in the middle of every iteration (as the scheduler does between two

@@ -900,20 +900,6 @@ mod tests {
         );
     }
 
-    /// Counts the pauses a plan sharing the cores is offered.
-    #[derive(Debug, Default)]
-    struct CountingPreempt(std::sync::atomic::AtomicUsize);
-
-    impl Preempt for CountingPreempt {
-        fn step_back(&self) {
-            self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-        }
-
-        fn paused(&self) -> std::time::Duration {
-            std::time::Duration::ZERO
-        }
-    }
-
     #[test]
     fn a_shared_plan_may_step_back_between_imagined_steps_and_scores_exactly_the_same() {
         // Sampled transitions (each chunk's random stream) and DEEN: everything that could
@@ -927,7 +913,7 @@ mod tests {
         let config = cem(horizon, population, 2);
         let mut alone = Imagination::new(task, &config, 0.01, true, 2, 11);
         let mut shared = Imagination::new(task, &config, 0.01, true, 2, 11);
-        let preempt = CountingPreempt::default();
+        let preempt = crate::plan::anytime::CountingPreempt::default();
         for round in 1..=2 {
             let (mut a, mut b) = (vec![0.0; population], vec![0.0; population]);
             alone.evaluate(&obs, &actions, &dynamics, &energy, None, &mut a, None);

@@ -380,12 +380,7 @@ impl Task {
         out: &mut [f32],
     ) {
         let (o, a, rows) = (self.spec.obs_dim, self.spec.act_dim, out.len());
-        assert_eq!(
-            (obs.len(), act.len(), next_obs.len()),
-            (rows * o, rows * a, rows * o),
-            "{}: rows of the transitions",
-            self.spec.name
-        );
+        self.assert_rows(obs, act, next_obs, rows);
         match &self.reward {
             Reward::Builtin(code) => {
                 let rows = obs
@@ -409,6 +404,17 @@ impl Task {
         }
     }
 
+    /// Panics unless `obs`, `act` and `next_obs` hold `rows` transitions of this task.
+    fn assert_rows(&self, obs: &[f32], act: &[f32], next_obs: &[f32], rows: usize) {
+        let (o, a) = (self.spec.obs_dim, self.spec.act_dim);
+        assert_eq!(
+            (obs.len(), act.len(), next_obs.len()),
+            (rows * o, rows * a, rows * o),
+            "{}: rows of the transitions",
+            self.spec.name
+        );
+    }
+
     /// [`Task::rewards`] and each row's gradient: `∂r/∂obs` into `d_obs`, `∂r/∂act` into
     /// `d_act`, `∂r/∂next_obs` into `d_next_obs` (rows × dims, all overwritten). Builtin code
     /// reads no `obs` (its `d_obs` is 0); a formula may, and its `∂r/∂s` is exact.
@@ -429,12 +435,7 @@ impl Task {
         d_next_obs: &mut [f32],
     ) {
         let (o, a, rows) = (self.spec.obs_dim, self.spec.act_dim, out.len());
-        assert_eq!(
-            (obs.len(), act.len(), next_obs.len()),
-            (rows * o, rows * a, rows * o),
-            "{}: rows of the transitions",
-            self.spec.name
-        );
+        self.assert_rows(obs, act, next_obs, rows);
         assert_eq!(
             (d_obs.len(), d_act.len(), d_next_obs.len()),
             (rows * o, rows * a, rows * o),
