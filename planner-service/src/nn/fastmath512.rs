@@ -125,9 +125,74 @@ pub fn softplus(x: __m512) -> __m512 {
     }
 }
 
+/// Bounds on `y` in [`exp2_for_bf16`]: `2^y` stays a normal float (no denormal results, which
+/// x86 may handle in microcode) and finite.
+const EXP2_Y_LO: f32 = -125.0;
+const EXP2_Y_HI: f32 = 125.0;
+
+/// `2^y` for `y ∈ [−125, 125]` (callers clamp) to within 2⁻¹⁸·⁶ relative: the exponent's
+/// integer part goes into the result's exponent with `VSCALEFPS`, the fraction `f ∈ [−½, ½]`
+/// through a degree-4 minimax polynomial (Remez, relative error).
+#[inline(always)]
+fn exp2_for_bf16(y: __m512) -> __m512 {
+    // SAFETY: as in `fma`.
+    unsafe {
+        let n = _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(y);
+        let f = _mm512_sub_ps(y, n);
+        let p = fma(splat(9.570_102e-3), f, splat(5.591_786e-2));
+        let p = fma(p, f, splat(2.402_474_5e-1));
+        let p = fma(p, f, splat(6.931_218e-1));
+        let p = fma(p, f, splat(9.999_992_6e-1));
+        _mm512_scalef_ps(p, n)
+    }
+}
+
+/// Swish `x σ(x)` for a layer that stores its output as bf16: to within 2⁻¹³·⁸ relative
+/// (the exponential above, and the 14-bit reciprocal estimate without a Newton step), where
+/// the store that follows rounds by up to 2⁻⁹. Half the instructions of [`swish`], which a
+/// hidden bf16 layer pays once per output element against only `k/2` multiply instructions.
+#[inline(always)]
+pub fn swish_for_bf16(x: __m512) -> __m512 {
+    // SAFETY: as in `fma`.
+    unsafe {
+        // e^{−x} = 2^y, y = −x·log₂e, clamped so that 1 + 2^y and its reciprocal stay normal.
+        let y = _mm512_mul_ps(x, splat(-LOG2E));
+        let y = _mm512_max_ps(_mm512_min_ps(y, splat(EXP2_Y_HI)), splat(EXP2_Y_LO));
+        let sigma = _mm512_rcp14_ps(_mm512_add_ps(splat(1.0), exp2_for_bf16(y)));
+        _mm512_mul_ps(x, sigma)
+    }
+}
+
+/// `ln(1 + t) / t` for `t ∈ [0, 1]` to within 2⁻¹⁶·⁹ relative: a degree-5 minimax polynomial.
+#[inline(always)]
+fn ln_1p_over_t(t: __m512) -> __m512 {
+    let q = fma(splat(-2.386_915_2e-2), t, splat(1.012_222_85e-1));
+    let q = fma(q, t, splat(-2.100_486_9e-1));
+    let q = fma(q, t, splat(3.252_066_8e-1));
+    let q = fma(q, t, splat(-4.993_613_6e-1));
+    fma(q, t, splat(9.999_916e-1))
+}
+
+/// Softplus `max(x, 0) + ln(1 + e^{−|x|})` for a layer that stores its output as bf16: to
+/// within 2⁻¹⁶ relative, where the store rounds by up to 2⁻⁹; half the instructions of
+/// [`softplus`]. A NaN input gives NaN.
+#[inline(always)]
+pub fn softplus_for_bf16(x: __m512) -> __m512 {
+    // SAFETY: as in `fma`.
+    unsafe {
+        let y = _mm512_mul_ps(neg_abs(x), splat(LOG2E));
+        // `max` returns its second operand when either is NaN: here the bound (a finite `t`),
+        // and below `x`, so that NaN comes through.
+        let t = exp2_for_bf16(_mm512_max_ps(y, splat(EXP2_Y_LO)));
+        let pos = _mm512_max_ps(_mm512_setzero_ps(), x);
+        fma(t, ln_1p_over_t(t), pos)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::nn::activation::Activation;
     use crate::nn::fastmath;
     use crate::nn::simd::{SimdLevel, level};
 
@@ -146,6 +211,37 @@ mod tests {
                 back[..c.len()].to_vec()
             })
             .collect()
+    }
+
+    #[test]
+    fn the_bf16_grade_activations_are_far_inside_the_bf16_rounding() {
+        if level() < SimdLevel::Avx512 {
+            return; // the bf16 layers that use them never run on this CPU
+        }
+        let xs: Vec<f32> = (0..=400_000).map(|i| -100.0 + i as f32 * 5e-4).collect();
+        // SAFETY: the level check above guarantees AVX-512F.
+        let (sw, sp) = unsafe { (map(&xs, swish_for_bf16), map(&xs, softplus_for_bf16)) };
+        let (mut worst_sw, mut worst_sp) = (0.0f64, 0.0f64);
+        for (i, &x) in xs.iter().enumerate() {
+            let exact = |a| crate::nn::reference::activate(Some(a), f64::from(x));
+            let (want_sw, want_sp) = (exact(Activation::Swish), exact(Activation::Softplus));
+            // Relative to the value; below 1e-30 (|x| beyond about 65) the clamped tail only
+            // has to stay as small (the clamp ends it near 2⁻¹²⁵·|x|).
+            let err = |got: f32, want: f64| (f64::from(got) - want).abs() / want.abs().max(1e-30);
+            worst_sw = worst_sw.max(err(sw[i], want_sw));
+            worst_sp = worst_sp.max(err(sp[i], want_sp));
+        }
+        // The store that follows rounds by up to 2⁻⁹ relative.
+        assert!(worst_sw <= 2f64.powi(-13), "swish: {worst_sw:e}");
+        assert!(worst_sp <= 2f64.powi(-16), "softplus: {worst_sp:e}");
+        let special = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, 0.0, -0.0];
+        // SAFETY: as above.
+        let (sw, sp) = unsafe { (map(&special, swish_for_bf16), map(&special, softplus_for_bf16)) };
+        assert!(sw[0].is_nan() && sp[0].is_nan(), "NaN in, NaN out");
+        assert_eq!([sw[1], sp[1]], [f32::INFINITY; 2]);
+        assert!(sp[2] >= 0.0 && sp[2] < 1e-30, "softplus(−∞) = {}", sp[2]);
+        assert_eq!([sw[3], sw[4]], [0.0; 2]);
+        assert!((sp[3] / std::f32::consts::LN_2 - 1.0).abs() < 2f32.powi(-16), "{}", sp[3]);
     }
 
     #[test]

@@ -32,7 +32,7 @@ use super::packed::Encoding;
 use super::x86::{load_scalar, mask16};
 use crate::nn::activation::Activation;
 use crate::nn::aligned::LANES;
-use crate::nn::fastmath512::{softplus, swish};
+use crate::nn::fastmath512::{softplus, softplus_for_bf16, swish, swish_for_bf16};
 use std::arch::x86_64::*;
 
 /// One packed product in pointer form; every extent was checked by `matmul_packed`.
@@ -92,13 +92,21 @@ macro_rules! epilogue {
     ($raw:ident, $acc:ident, $mask:ident, $i0:ident, $p0:ident, $np:ident, $mr:ident; $($r:literal)+) => {
         let mut tile = [[_mm512_setzero_ps(); $np]; $mr];
         $( tile[$r] = $acc[$r]; )+
-        match $raw.act {
-            None => {}
-            Some(Activation::Swish) => {
+        // A tile stored as bf16 keeps 8 significant bits: its activation needs only as many
+        // (see `fastmath512::swish_for_bf16`), at half the instructions.
+        match ($raw.act, $raw.bf16_out) {
+            (None, _) => {}
+            (Some(Activation::Swish), false) => {
                 for v in tile.iter_mut().flatten() { *v = swish(*v); }
             }
-            Some(Activation::Softplus) => {
+            (Some(Activation::Swish), true) => {
+                for v in tile.iter_mut().flatten() { *v = swish_for_bf16(*v); }
+            }
+            (Some(Activation::Softplus), false) => {
                 for v in tile.iter_mut().flatten() { *v = softplus(*v); }
+            }
+            (Some(Activation::Softplus), true) => {
+                for v in tile.iter_mut().flatten() { *v = softplus_for_bf16(*v); }
             }
         }
         let ld_c = $raw.ld_c;
