@@ -19,8 +19,10 @@
 //!   the `Y` panel and the broadcast weight each carrying two bf16 values per 32-bit lane), and
 //!   6 rows × 3 panels where a row of panels does not divide by 4. With the activation switched
 //!   off (a local build) its layers ran at 90–100 % of the bf16 peak; what the fused layers lose
-//!   (to 73–91 %) is the activation, which costs as much as in f32 against half the multiply
-//!   time.
+//!   is the activation, which cost as much as in f32 against half the multiply time (73–91 %)
+//!   until a tile stored as bf16 took the bf16-grade activations of `fastmath512` (82–96 %;
+//!   without them 22 % of this tile's samples sat in the epilogue of a half-cheetah + DEEN
+//!   plan, with them 9 %, `perf annotate`).
 //!
 //! Both tiles share the epilogue, which stores f32 rows or, for a next layer in bf16, converts
 //! pairs of rows to bf16 pairs in registers. The two bodies differ only in their load and
