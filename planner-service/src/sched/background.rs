@@ -113,8 +113,7 @@ pub fn lower_thread_priority() {
             libc::sched_setscheduler(tid, libc::SCHED_IDLE, &param) != 0 && {
                 let current = libc::getpriority(libc::PRIO_PROCESS, tid as libc::id_t);
                 current < FALLBACK_NICE
-                    && libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, FALLBACK_NICE)
-                        != 0
+                    && libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, FALLBACK_NICE) != 0
             }
         };
         if failed {
@@ -164,14 +163,28 @@ mod tests {
             .unwrap();
         assert_eq!(own, libc::SCHED_IDLE);
         assert!(own_pool);
-        assert_eq!(helper, libc::SCHED_IDLE, "rayon work inside stays below plans");
-        assert!(helper_pool, "rayon work inside stays on the background pool");
-        assert_eq!(child, libc::SCHED_IDLE, "threads spawned by background work inherit it");
+        assert_eq!(
+            helper,
+            libc::SCHED_IDLE,
+            "rayon work inside stays below plans"
+        );
+        assert!(
+            helper_pool,
+            "rayon work inside stays on the background pool"
+        );
+        assert_eq!(
+            child,
+            libc::SCHED_IDLE,
+            "threads spawned by background work inherit it"
+        );
         assert!(!child_pool);
         assert_eq!(thread_policy(), caller, "the caller keeps its priority");
         assert!(!on_background_pool());
         assert!(may_wait_for_plans(), "a plain thread may wait for plans");
         let on_planning_pool = rayon::scope(|_| may_wait_for_plans());
-        assert!(!on_planning_pool, "a planning-pool thread never waits for plans");
+        assert!(
+            !on_planning_pool,
+            "a planning-pool thread never waits for plans"
+        );
     }
 }
