@@ -34,6 +34,9 @@ enum Command {
     Experiment(ExperimentArgs),
     /// Draw the learning curves (mean ± std over seeds per method) of an experiment folder.
     Plot(PlotArgs),
+    /// Print a Markdown table of the returns (mean ± sample std over seeds) at chosen episodes,
+    /// per method, with the planning time per step and the wall time per run.
+    Table(TableArgs),
     /// Figure 5: after some episodes of training, optimise one plan from a random population
     /// with each regulariser and compare its imagined rewards with the real ones.
     Imagination(ImaginationArgs),
@@ -77,11 +80,24 @@ struct ExperimentArgs {
 
 #[derive(Args, Debug)]
 struct PlotArgs {
-    /// An experiment folder (its episodes.csv) or an episodes.csv file.
-    path: PathBuf,
-    /// Output stem (default: learning_curves next to the CSV); .png and .svg are written.
+    /// Experiment folders (their episodes.csv) or episodes.csv files, all of one task: several
+    /// draw their methods in one figure.
+    #[arg(required = true)]
+    paths: Vec<PathBuf>,
+    /// Output stem (default: learning_curves next to the first CSV); .png and .svg are written.
     #[arg(long)]
     out: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct TableArgs {
+    /// Experiment folders (their episodes.csv) or episodes.csv files, all of one task: several
+    /// put their methods in one table.
+    #[arg(required = true)]
+    paths: Vec<PathBuf>,
+    /// Episodes to show (comma-separated; default: every episode).
+    #[arg(long, value_delimiter = ',')]
+    episodes: Vec<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -258,29 +274,61 @@ fn print_summary(rows: &[results::EpisodeRow]) {
 }
 
 fn plot_curves(csv: &Path, stem: &Path) -> Result<()> {
-    let rows = results::read_episodes(csv)?;
+    draw_curves(&results::read_episodes(csv)?, stem)
+}
+
+fn draw_curves(rows: &[results::EpisodeRow], stem: &Path) -> Result<()> {
     let task = rows.first().map(|r| r.task.clone()).unwrap_or_default();
     let figure = LearningCurves {
         title: format!("{task}: return per episode, mean ± std over seeds"),
-        curves: results::curves(&rows),
+        curves: results::curves(rows),
     };
     let [png, svg] = plot::save(&figure, stem, fonts::ensure())?;
     println!("wrote {} and {}", png.display(), svg.display());
     Ok(())
 }
 
-fn plot_command(args: PlotArgs) -> Result<()> {
-    let csv = if args.path.is_dir() {
-        args.path.join("episodes.csv")
+/// The `episodes.csv` a folder or file argument names.
+fn episodes_csv(path: &Path) -> PathBuf {
+    if path.is_dir() {
+        path.join("episodes.csv")
     } else {
-        args.path.clone()
-    };
+        path.to_path_buf()
+    }
+}
+
+/// The rows of several experiments of one task, in argument order.
+fn read_experiments(paths: &[PathBuf]) -> Result<Vec<results::EpisodeRow>> {
+    let mut rows = Vec::new();
+    for path in paths {
+        rows.extend(results::read_episodes(&episodes_csv(path))?);
+    }
+    let mut tasks: Vec<&str> = rows.iter().map(|r| r.task.as_str()).collect();
+    tasks.dedup();
+    if tasks.len() > 1 {
+        anyhow::bail!(
+            "the experiments are of different tasks ({}): compare one task at a time",
+            tasks.join(", ")
+        );
+    }
+    Ok(rows)
+}
+
+fn plot_command(args: PlotArgs) -> Result<()> {
+    let rows = read_experiments(&args.paths)?;
     let stem = args.out.unwrap_or_else(|| {
-        csv.parent()
+        episodes_csv(&args.paths[0])
+            .parent()
             .unwrap_or(Path::new("."))
             .join("learning_curves")
     });
-    plot_curves(&csv, &stem)
+    draw_curves(&rows, &stem)
+}
+
+fn table_command(args: TableArgs) -> Result<()> {
+    let rows = read_experiments(&args.paths)?;
+    print!("{}", results::markdown_table(&rows, &args.episodes));
+    Ok(())
 }
 
 fn imagination_command(args: ImaginationArgs) -> Result<()> {
@@ -407,6 +455,7 @@ fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Experiment(args) => experiment(args),
         Command::Plot(args) => plot_command(args),
+        Command::Table(args) => table_command(args),
         Command::Imagination(args) => imagination_command(args),
         Command::Toy(args) => toy_command(args),
         Command::Replan(args) => replan_command(args),

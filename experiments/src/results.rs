@@ -240,18 +240,31 @@ pub fn write_episodes(path: &Path, rows: &[EpisodeRow]) -> Result<(), ResultsErr
     std::fs::rename(&tmp, path).map_err(io)
 }
 
-/// Mean and standard deviation (population, over seeds) of the return per method and episode:
-/// the numbers behind a learning curve. Methods are in first-seen order.
+/// Mean and sample standard deviation (over seeds, `n − 1` in the denominator; 0 for a single
+/// seed) of the return per method and episode: the numbers behind a learning curve and a
+/// results table. Methods are in first-seen order.
+///
+/// A point's episode is the run's *recorded* episode count: the `k`-th row of a run in episode
+/// order. The two differ only in a resumed run, whose daemon numbers episodes by the data it
+/// holds, including an episode cut short by the interruption (see the launcher), so its CSV's
+/// episode numbers skip one; counting recorded episodes keeps every seed at every point.
 pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
     let mut order: Vec<&str> = Vec::new();
-    let mut by: BTreeMap<(&str, u32), Vec<f64>> = BTreeMap::new();
+    let mut runs: BTreeMap<(&str, u64), Vec<&EpisodeRow>> = BTreeMap::new();
     for r in rows {
         if !order.contains(&r.method.as_str()) {
             order.push(&r.method);
         }
-        by.entry((&r.method, r.episode))
-            .or_default()
-            .push(r.episode_return);
+        runs.entry((&r.method, r.seed)).or_default().push(r);
+    }
+    let mut by: BTreeMap<(&str, u32), Vec<f64>> = BTreeMap::new();
+    for ((method, _), mut run) in runs {
+        run.sort_by_key(|r| r.episode);
+        for (k, r) in run.into_iter().enumerate() {
+            by.entry((method, k as u32))
+                .or_default()
+                .push(r.episode_return);
+        }
     }
     order
         .into_iter()
@@ -261,7 +274,11 @@ pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
                 .map(|(&(_, episode), values)| {
                     let n = values.len() as f64;
                     let mean = values.iter().sum::<f64>() / n;
-                    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+                    let var = if values.len() > 1 {
+                        values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)
+                    } else {
+                        0.0
+                    };
                     CurvePoint {
                         episode,
                         mean,
@@ -276,6 +293,60 @@ pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
             }
         })
         .collect()
+}
+
+/// A Markdown table of the return at `episodes` (every episode when empty), mean ± sample std
+/// over seeds per method, with the seeds behind each method, its mean planning time per planned
+/// step and its mean wall time per run: what the README's results tables print.
+pub fn markdown_table(rows: &[EpisodeRow], episodes: &[u32]) -> String {
+    let curves = curves(rows);
+    let episodes: Vec<u32> = if episodes.is_empty() {
+        let mut all: Vec<u32> = rows.iter().map(|r| r.episode).collect();
+        all.sort_unstable();
+        all.dedup();
+        all
+    } else {
+        episodes.to_vec()
+    };
+    let mut out = String::from("| method | seeds |");
+    for e in &episodes {
+        let _ = write!(out, " {e} |");
+    }
+    out.push_str(" ms per planned step | minutes per run |\n|---|---|");
+    out.push_str(&"---|".repeat(episodes.len() + 2));
+    out.push('\n');
+    for curve in &curves {
+        let mine: Vec<&EpisodeRow> = rows.iter().filter(|r| r.method == curve.method).collect();
+        let mut seeds: Vec<u64> = mine.iter().map(|r| r.seed).collect();
+        seeds.sort_unstable();
+        seeds.dedup();
+        let _ = write!(out, "| `{}` | {} |", curve.method, seeds.len());
+        for e in &episodes {
+            match curve.points.iter().find(|p| p.episode == *e) {
+                Some(p) if p.seeds == seeds.len() => {
+                    let _ = write!(out, " {:.0} ± {:.0} |", p.mean, p.std);
+                }
+                Some(p) => {
+                    let _ = write!(out, " {:.0} ± {:.0} ({} seeds) |", p.mean, p.std, p.seeds);
+                }
+                None => out.push_str(" — |"),
+            }
+        }
+        let (planned_ms, planned_steps) = mine.iter().fold((0.0, 0u64), |(ms, n), r| {
+            (
+                ms + r.plan_ms_per_step * f64::from(r.planned_steps),
+                n + u64::from(r.planned_steps),
+            )
+        });
+        let wall: f64 = mine.iter().map(|r| r.wall_seconds).sum();
+        let _ = writeln!(
+            out,
+            " {:.1} | {:.1} |",
+            planned_ms / planned_steps.max(1) as f64,
+            wall / 60.0 / seeds.len().max(1) as f64
+        );
+    }
+    out
 }
 
 /// One method's learning curve.
@@ -407,7 +478,7 @@ mod tests {
                 CurvePoint {
                     episode: 0,
                     mean: 15.0,
-                    std: 5.0,
+                    std: 50f64.sqrt(),
                     seeds: 2
                 },
                 CurvePoint {
@@ -419,5 +490,54 @@ mod tests {
             ]
         );
         assert_eq!(c[1].points.len(), 1);
+    }
+
+    #[test]
+    fn a_results_table_gives_mean_and_sample_std_per_episode_and_says_when_seeds_are_missing() {
+        let mut rows = vec![
+            row("cem", 0, 0, 10.0),
+            row("cem", 1, 0, 20.0),
+            row("cem", 2, 0, 30.0),
+            row("cem", 0, 1, 40.0),
+            row("cem", 1, 1, 60.0),
+            row("pets", 0, 0, 5.0),
+        ];
+        for r in &mut rows {
+            r.planned_steps = 100;
+            r.plan_ms_per_step = if r.method == "cem" { 2.0 } else { 8.0 };
+            r.wall_seconds = 60.0;
+        }
+        let table = markdown_table(&rows, &[0, 1]);
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(
+            lines[0],
+            "| method | seeds | 0 | 1 | ms per planned step | minutes per run |"
+        );
+        assert_eq!(lines[1], "|---|---|---|---|---|---|");
+        // Episode 0 over 3 seeds: mean 20, sample std 10; episode 1 reached by 2 of them.
+        assert_eq!(
+            lines[2],
+            "| `cem` | 3 | 20 ± 10 | 50 ± 14 (2 seeds) | 2.0 | 1.7 |"
+        );
+        assert_eq!(lines[3], "| `pets` | 1 | 5 ± 0 | — | 8.0 | 1.0 |");
+    }
+
+    #[test]
+    fn a_resumed_runs_skipped_episode_number_does_not_split_its_curve() {
+        // Seed 1 was resumed: its daemon numbered the episode after the interruption 3.
+        let rows = vec![
+            row("cem", 0, 0, 1.0),
+            row("cem", 0, 1, 2.0),
+            row("cem", 0, 2, 3.0),
+            row("cem", 1, 0, 1.0),
+            row("cem", 1, 1, 2.0),
+            row("cem", 1, 3, 5.0),
+        ];
+        let points = &curves(&rows)[0].points;
+        assert_eq!(points.len(), 3);
+        assert_eq!(
+            (points[2].episode, points[2].seeds, points[2].mean),
+            (2, 2, 4.0)
+        );
     }
 }

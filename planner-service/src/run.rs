@@ -649,35 +649,39 @@ impl Run {
             let current = self.models();
             let preset = self.preset.clone();
             let seed = self.spec.seed;
-            let run = self.clone();
-            let task = self.task;
             let limits = self.hosting.train_limits.clone();
-            // On a thread of its own at background priority: a minibatch running when a plan
-            // arrives gives way to it (see `sched::background`).
-            let outcome = run_in_background("ebmpc-retrain".into(), move || {
-                // The snapshot waits for the buffer, which may be busy writing to a slow disk:
-                // here, on the blocking pool, that holds this run's trainer only.
-                let data = run.lock_buffer().transitions().clone();
-                run.emit(RunEventKind::TrainingStarted {
-                    transitions: data.len() as u64,
-                });
-                let trained = retrain(&current, &data, &preset, episodes, seed, &limits)?;
+            // The snapshot waits for the buffer, which may be busy writing to a slow disk: on
+            // the blocking pool that holds this run's trainer only. It and the checkpoint hold
+            // locks the serving path takes, so they run at normal priority; only the fit runs
+            // on the background pool, below every plan (see `sched::background`).
+            let snapshot = {
+                let run = self.clone();
+                tokio::task::spawn_blocking(move || run.lock_buffer().transitions().clone())
+            };
+            let outcome = match snapshot.await {
+                Err(e) => Err(format!("cannot take the buffer's snapshot: {e}")),
+                Ok(data) => {
+                    self.emit(RunEventKind::TrainingStarted {
+                        transitions: data.len() as u64,
+                    });
+                    run_in_background(move || {
+                        retrain(&current, &data, &preset, episodes, seed, &limits)
+                    })
+                    .await
+                    .map_err(|e| format!("training failed: {e}"))
+                }
+            };
+            let outcome = match outcome {
                 // Checkpoint before the swap: models in use are always on disk too, so a
                 // restart never plans with models older than the ones agents last saw. Only
-                // finite models get here: `retrain` refuses the others. A planner that lost the
-                // run writes no checkpoint over the new owner's.
-                if let Some(dir) = &run.dir {
-                    match run.check_owner() {
-                        Err(e) => tracing::warn!(error = %e, "no checkpoint written"),
-                        Ok(()) => match dir.save_models(&trained.0, task) {
-                            Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
-                            Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
-                        },
-                    }
-                }
-                Ok(trained)
-            })
-            .await;
+                // finite models get here: `retrain` refuses the others.
+                Ok(Ok((models, report))) => self
+                    .clone()
+                    .write_checkpoint(models)
+                    .await
+                    .map(|models| Ok((models, report))),
+                other => other,
+            };
             self.training.store(false, Ordering::SeqCst);
             let failure = match outcome {
                 Ok(Ok((models, report))) => {
@@ -689,7 +693,7 @@ impl Run {
                     return;
                 }
                 Ok(Err(e)) => Some(e.to_string()),
-                Err(e) => Some(format!("training failed: {e}")),
+                Err(message) => Some(message),
             };
             if let Some(message) = failure {
                 tracing::error!(run = %self.name, "training failed; keeping the previous models: {message}");
@@ -701,6 +705,26 @@ impl Run {
                 self.wake_trainer.notify_one();
             }
         }
+    }
+
+    /// Writes `models` as the run's newest checkpoint (when the run is durable and this planner
+    /// still owns it: a planner that lost the run writes nothing over the new owner's), on the
+    /// blocking pool, and hands them back. A failed write is logged; the models are used anyway.
+    async fn write_checkpoint(self: Arc<Self>, models: Models) -> Result<Models, String> {
+        tokio::task::spawn_blocking(move || {
+            if let Some(dir) = &self.dir {
+                match self.check_owner() {
+                    Err(e) => tracing::warn!(error = %e, "no checkpoint written"),
+                    Ok(()) => match dir.save_models(&models, self.task) {
+                        Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
+                        Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
+                    },
+                }
+            }
+            models
+        })
+        .await
+        .map_err(|e| format!("cannot write the checkpoint: {e}"))
     }
 
     fn install(&self, models: Models, report: TrainReport, episodes: u32) {

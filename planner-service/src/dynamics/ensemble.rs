@@ -131,21 +131,9 @@ impl Ensemble {
             let (nll, mse) = member.evaluate(&set);
             (run.loss, run.steps, nll, mse, run.stopped)
         };
-        let results: Vec<MemberFit> = if bootstrap && budget.yield_to.is_some() {
-            // Retraining in the daemon yields to plans between minibatches, which it can only
-            // do off rayon's threads (the plans need them): one scoped thread per member.
-            std::thread::scope(|scope| {
-                let fits: Vec<_> = self
-                    .members
-                    .iter_mut()
-                    .zip(plans)
-                    .map(|job| scope.spawn(|| train(job)))
-                    .collect();
-                fits.into_iter()
-                    .map(|fit| fit.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
-                    .collect()
-            })
-        } else if bootstrap {
+        // In the daemon this runs on the background pool, so the members' threads are its
+        // threads (they may wait for plans there; see `sched::background`).
+        let results: Vec<MemberFit> = if bootstrap {
             self.members.par_iter_mut().zip(plans).map(train).collect()
         } else {
             self.members.iter_mut().zip(plans).map(train).collect()

@@ -21,9 +21,9 @@ pub struct FitBudget {
     /// Set from outside (the daemon shutting down): no further minibatch starts.
     pub cancel: Option<Arc<AtomicBool>>,
     /// Plans to yield to: before each minibatch the fit waits while any holds or waits for the
-    /// cores (at most [`crate::sched::MAX_YIELD`]). Only off rayon's worker threads: a fit
-    /// running on one would hold the very thread a plan needs (so an ensemble that yields
-    /// trains its members on threads of its own).
+    /// cores (at most [`crate::sched::MAX_YIELD`]). Never on the planning pool's threads: a
+    /// fit running on one would hold the very thread a plan needs (the daemon fits on the
+    /// background pool, see [`crate::sched::background`]).
     pub yield_to: Option<Arc<crate::sched::Scheduler>>,
 }
 
@@ -143,7 +143,7 @@ pub fn run_epochs(
                 break 'epochs;
             }
             if let Some(plans) = &budget.yield_to
-                && rayon::current_thread_index().is_none()
+                && crate::sched::background::may_wait_for_plans()
             {
                 plans.wait_for_plans(crate::sched::MAX_YIELD);
             }

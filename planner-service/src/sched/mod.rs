@@ -18,8 +18,9 @@
 //!
 //! Limits: preemption happens only between imagined steps (Adam + DAE: between its gradient
 //! steps), so a waiting plan can lose up to one of those, and a minibatch already running
-//! finishes first (retraining runs on threads of lower OS priority, so that minibatch takes
-//! little from the plan meanwhile: see [`background`]). No
+//! finishes first (retraining runs on a pool of its own whose threads the OS runs only when no
+//! plan wants a core, so that minibatch takes next to nothing from the plan: see
+//! [`background`]). No
 //! schedule makes an overloaded machine fit: when the deadlines ask for more than the cores
 //! give (two half-cheetah + DEEN runs at 50 ms each on two cores), the deadlines decide how
 //! much each plan gets, and the anytime planner cuts and reports the rest.
