@@ -151,7 +151,7 @@ fn exp2_for_bf16(y: __m512) -> __m512 {
         let p = fma(splat(9.570_102e-3), f, splat(5.591_786e-2));
         let p = fma(p, f, splat(2.402_474_5e-1));
         let p = fma(p, f, splat(6.931_218e-1));
-        let p = fma(p, f, splat(9.999_992_6e-1));
+        let p = fma(p, f, splat(9.999_993e-1));
         _mm512_scalef_ps(p, n)
     }
 }
