@@ -82,6 +82,58 @@ unsafe fn store_pairs(c: *mut f32, mask: __mmask16, lo: __m512, hi: __m512) {
     }
 }
 
+/// Activates a finished tile to the precision it is stored in (see
+/// `fastmath512::swish_for_bf16`) and stores it as bf16 pairs: block rows `2q, 2q + 1` go to
+/// storage row `i0/2 + q`. One call per tile: the f32 tiles (which lack the bf16 features and so
+/// cannot inline the conversion) make one call here rather than one per pair of rows.
+///
+/// # Safety
+/// The CPU must support AVX-512 BW and BF16 (`bf16_out` is set only then); the block and the
+/// panels must be inside the extents of `raw`.
+#[inline]
+#[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+unsafe fn store_tile_as_pairs<const NP: usize, const MR: usize>(
+    raw: &PackedRaw,
+    tile: &mut [[__m512; NP]; MR],
+    mask: &[__mmask16; NP],
+    i0: usize,
+    p0: usize,
+) {
+    match raw.act {
+        None => {}
+        Some(Activation::Swish) => {
+            for v in tile.iter_mut().flatten() {
+                *v = swish_for_bf16(*v);
+            }
+        }
+        Some(Activation::Softplus) => {
+            for v in tile.iter_mut().flatten() {
+                *v = softplus_for_bf16(*v);
+            }
+        }
+    }
+    let ld_c = raw.ld_c;
+    let c = raw.c.wrapping_add(i0 / 2 * ld_c + p0 * LANES);
+    for q in (0..MR).step_by(2) {
+        for j in 0..NP {
+            let hi = if q + 1 < MR {
+                tile[q + 1][j]
+            } else {
+                _mm512_setzero_ps()
+            };
+            // SAFETY: forwarded from the caller.
+            unsafe {
+                store_pairs(
+                    c.wrapping_add(q / 2 * ld_c + j * LANES),
+                    mask[j],
+                    tile[q][j],
+                    hi,
+                )
+            };
+        }
+    }
+}
+
 /// Activates the finished accumulators and stores them, as f32 rows or as bf16 pairs.
 ///
 /// The accumulators are first copied out whole row by row (constant indices only), and the
@@ -94,34 +146,20 @@ macro_rules! epilogue {
     ($raw:ident, $acc:ident, $mask:ident, $i0:ident, $p0:ident, $np:ident, $mr:ident; $($r:literal)+) => {
         let mut tile = [[_mm512_setzero_ps(); $np]; $mr];
         $( tile[$r] = $acc[$r]; )+
-        // A tile stored as bf16 keeps 8 significant bits: its activation needs only as many
-        // (see `fastmath512::swish_for_bf16`), at half the instructions.
-        match ($raw.act, $raw.bf16_out) {
-            (None, _) => {}
-            (Some(Activation::Swish), false) => {
-                for v in tile.iter_mut().flatten() { *v = swish(*v); }
-            }
-            (Some(Activation::Swish), true) => {
-                for v in tile.iter_mut().flatten() { *v = swish_for_bf16(*v); }
-            }
-            (Some(Activation::Softplus), false) => {
-                for v in tile.iter_mut().flatten() { *v = softplus(*v); }
-            }
-            (Some(Activation::Softplus), true) => {
-                for v in tile.iter_mut().flatten() { *v = softplus_for_bf16(*v); }
-            }
-        }
-        let ld_c = $raw.ld_c;
         if $raw.bf16_out {
             // SAFETY: `bf16_out` is only set on CPUs with AVX-512 BW and BF16.
-            let c = $raw.c.wrapping_add($i0 / 2 * ld_c + $p0 * LANES);
-            for q in (0..$mr).step_by(2) {
-                for j in 0..$np {
-                    let hi = if q + 1 < $mr { tile[q + 1][j] } else { _mm512_setzero_ps() };
-                    store_pairs(c.wrapping_add(q / 2 * ld_c + j * LANES), $mask[j], tile[q][j], hi);
+            store_tile_as_pairs::<$np, $mr>($raw, &mut tile, &$mask, $i0, $p0);
+        } else {
+            match $raw.act {
+                None => {}
+                Some(Activation::Swish) => {
+                    for v in tile.iter_mut().flatten() { *v = swish(*v); }
+                }
+                Some(Activation::Softplus) => {
+                    for v in tile.iter_mut().flatten() { *v = softplus(*v); }
                 }
             }
-        } else {
+            let ld_c = $raw.ld_c;
             let c = $raw.c.wrapping_add($i0 * ld_c + $p0 * LANES);
             for (r, row) in tile.iter().enumerate() {
                 for j in 0..$np {
