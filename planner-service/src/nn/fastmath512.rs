@@ -14,7 +14,7 @@
 //! activation was what the bf16 layers lost against the bare product (a bf16 hidden layer
 //! pays it once per output element against only `k/2` multiply instructions); with these
 //! the half-cheetah + DEEN plan runs at 84–88 % of the bf16 peak per CPU second instead of
-//! 73–76 % (README, Speed).
+//! 72–76 % (README, Speed).
 
 use std::arch::x86_64::*;
 
