@@ -301,7 +301,10 @@ pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
 pub fn markdown_table(rows: &[EpisodeRow], episodes: &[u32]) -> String {
     let curves = curves(rows);
     let episodes: Vec<u32> = if episodes.is_empty() {
-        let mut all: Vec<u32> = rows.iter().map(|r| r.episode).collect();
+        let mut all: Vec<u32> = curves
+            .iter()
+            .flat_map(|c| c.points.iter().map(|p| p.episode))
+            .collect();
         all.sort_unstable();
         all.dedup();
         all

@@ -461,8 +461,8 @@ impl Run {
             tracing::warn!(run = %self.name, error = %e, "cannot compact the replay log; it keeps every record and is compacted later");
         }
         // A compaction shrinks the file: the reported size follows at once.
-        let log_bytes = self.lock_buffer().log_bytes();
-        self.lock_tally().log_bytes = log_bytes;
+        let buffer = self.lock_buffer();
+        self.lock_tally().log_bytes = buffer.log_bytes();
     }
 
     fn lock_buffer(&self) -> std::sync::MutexGuard<'_, ReplayBuffer> {
@@ -561,16 +561,17 @@ impl Run {
         let sync = (accepted.finished.is_some() || accepted.abandoned.is_some())
             .then(|| buffer.syncer())
             .flatten();
-        // Capacity may have evicted old transitions: the tally follows the buffer's length.
-        let (transitions, log_bytes) = (buffer.len(), buffer.log_bytes());
+        // Capacity may have evicted old transitions: the tally follows the buffer's length,
+        // set under the buffer's lock (the order is always buffer, then tally) so that two
+        // agents' appends cannot leave it at the earlier one's length.
+        {
+            let mut tally = self.lock_tally();
+            tally.transitions = buffer.len();
+            tally.log_bytes = buffer.log_bytes();
+        }
         drop(buffer);
         if let Some(syncer) = &sync {
             self.sync_log(syncer);
-        }
-        {
-            let mut tally = self.lock_tally();
-            tally.transitions = transitions;
-            tally.log_bytes = log_bytes;
         }
         self.compact_log();
         for summary in [&accepted.abandoned, &accepted.finished]
@@ -611,9 +612,9 @@ impl Run {
             let (agent, episode) = (summary.agent.clone(), summary.episode);
             let mut buffer = run.lock_buffer();
             buffer.append(vec![Record::from(summary)])?;
-            let (syncer, log_bytes) = (buffer.syncer(), buffer.log_bytes());
+            run.lock_tally().log_bytes = buffer.log_bytes();
+            let syncer = buffer.syncer();
             drop(buffer);
-            run.lock_tally().log_bytes = log_bytes;
             if let Some(syncer) = &syncer {
                 run.sync_log(syncer);
             }
