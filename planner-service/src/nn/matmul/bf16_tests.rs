@@ -4,7 +4,9 @@
 //! numbers is exact in f32, so the reference rounds the operands the same way and sums in f64.
 
 use super::packed::matmul_packed_at;
-use super::{Encoding, MatMut, MatRef, PackedMatrix, bf16_bits, bf16_pair, bf16_value};
+use super::{
+    Encoding, MatMut, MatRef, PackedMatrix, bf16_bits, bf16_pair, bf16_value, write_bf16_pairs,
+};
 use crate::nn::activation::Activation;
 use crate::nn::simd::{SimdLevel, bf16_dot_available};
 use rand::rngs::StdRng;
@@ -182,6 +184,66 @@ fn bf16_layers_match_the_reference_on_ragged_shapes() {
                     }
                 }
             }
+        }
+    }
+}
+
+/// The conversion a bf16 first layer's input goes through rounds every element as
+/// [`bf16_bits`] does (the AVX-512 BF16 path and the portable one alike), ties, subnormals,
+/// infinities and NaN included; pairs rows in order, pads an odd last row with zero and writes
+/// nothing past the `n` columns.
+#[test]
+fn input_conversion_to_pairs_rounds_each_element_like_bf16_bits() {
+    let mut rng = StdRng::seed_from_u64(8);
+    let special = [
+        1.0 + 2f32.powi(-8),
+        1.0 + 3.0 * 2f32.powi(-8),
+        -0.0,
+        1e-40,
+        -1e-40,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        f32::NAN,
+        f32::from_bits(0x7F80_0001),
+        f32::MAX,
+    ];
+    for (k, n) in [(1, 1), (5, 17), (24, 250), (42, 33), (7, 16)] {
+        let (ld_src, ld) = (n + 4, n + 3);
+        let mut src = vec![f32::NAN; k * ld_src];
+        for d in 0..k {
+            for j in 0..n {
+                src[d * ld_src + j] = if (d * n + j) % 7 == 3 {
+                    special[(d + j) % special.len()]
+                } else {
+                    rng.random_range(-50.0..50.0)
+                };
+            }
+        }
+        let rows = Encoding::Bf16Pairs.storage_rows(k);
+        let mut dst = vec![f32::NAN; rows * ld];
+        write_bf16_pairs(
+            MatMut::with_stride(&mut dst, rows, n, ld),
+            MatRef::with_stride(&src, k, n, ld_src),
+        );
+        for p in 0..rows {
+            for j in 0..n {
+                let at = |d: usize| if d < k { src[d * ld_src + j] } else { 0.0 };
+                let word = dst[p * ld + j].to_bits();
+                let (lo, hi) = (word as u16, (word >> 16) as u16);
+                let (want_lo, want_hi) = (bf16_bits(at(2 * p)), bf16_bits(at(2 * p + 1)));
+                assert!(
+                    lo == want_lo || (bf16_value(lo).is_nan() && bf16_value(want_lo).is_nan()),
+                    "{k}×{n} ({p},{j}) low: {lo:#06x} vs {want_lo:#06x}"
+                );
+                assert!(
+                    hi == want_hi || (bf16_value(hi).is_nan() && bf16_value(want_hi).is_nan()),
+                    "{k}×{n} ({p},{j}) high: {hi:#06x} vs {want_hi:#06x}"
+                );
+            }
+            assert!(
+                dst[p * ld + n..(p + 1) * ld].iter().all(|v| v.is_nan()),
+                "{k}×{n}: padding of row {p} written"
+            );
         }
     }
 }

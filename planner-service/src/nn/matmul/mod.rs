@@ -24,7 +24,9 @@ mod x86;
 #[cfg(target_arch = "x86_64")]
 mod x86_packed;
 
-pub use packed::{Encoding, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed};
+pub use packed::{
+    Encoding, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed, write_bf16_pairs,
+};
 
 use super::denormals;
 use super::simd::{SimdLevel, level};

@@ -92,6 +92,50 @@ pub fn bf16_pair(low: f32, high: f32) -> f32 {
     f32::from_bits(u32::from(bf16_bits(low)) | (u32::from(bf16_bits(high)) << 16))
 }
 
+/// Writes the rows of an f32 matrix `src` (`k × n`, unit column stride) into `dst` as
+/// [`Encoding::Bf16Pairs`] (`⌈k/2⌉ × n`): rows `2p` and `2p + 1` rounded to bf16 and
+/// interleaved into storage row `p`, the high half of the last word zero when `k` is odd.
+///
+/// This is how a bf16 first layer gets its input: the caller fills the normalised input in f32
+/// and one pass over it (`k · n` reads, a few dozen features) makes the pairs, where converting
+/// inside the kernel would redo it for every block of output rows. Rounds as [`bf16_bits`] does
+/// (the hardware conversion on CPUs with AVX-512 BF16). Never allocates.
+pub fn write_bf16_pairs(dst: MatMut<'_>, src: MatRef<'_>) {
+    let (k, n) = (src.rows, src.cols);
+    assert_eq!(
+        dst.rows,
+        Encoding::Bf16Pairs.storage_rows(k),
+        "{k} rows make {} pair rows, not {}",
+        Encoding::Bf16Pairs.storage_rows(k),
+        dst.rows
+    );
+    assert_eq!(dst.cols, n, "source has {n} columns, destination {}", dst.cols);
+    assert!(src.cs == 1 || n <= 1, "the source needs unit column stride");
+    #[cfg(target_arch = "x86_64")]
+    if bf16_dot_available() {
+        for p in 0..dst.rows {
+            let lo = src.row(2 * p);
+            let hi = (2 * p + 1 < k).then(|| src.row(2 * p + 1));
+            let out = &mut dst.data[p * dst.rs..p * dst.rs + n];
+            // SAFETY: the CPU has AVX-512 BW and BF16; the three rows hold `n` floats each.
+            unsafe { super::x86_packed::pair_rows(out, lo, hi) };
+        }
+        return;
+    }
+    for p in 0..dst.rows {
+        for j in 0..n {
+            let at = |r: usize| {
+                if r < k {
+                    src.data[r * src.rs + j * src.cs]
+                } else {
+                    0.0
+                }
+            };
+            dst.data[p * dst.rs + j] = bf16_pair(at(2 * p), at(2 * p + 1));
+        }
+    }
+}
+
 /// An `m × k` matrix packed for [`matmul_packed`]: with `R` its encoding's
 /// [`block_rows`](Encoding::block_rows) and `s` its depth
 /// steps (`k` in f32, `⌈k/2⌉` bf16 pairs), block `b` holds rows `Rb..Rb + mr`

@@ -82,6 +82,29 @@ unsafe fn store_pairs(c: *mut f32, mask: __mmask16, lo: __m512, hi: __m512) {
     }
 }
 
+/// Rows `lo` and `hi` (zeros where `None`) as one row of bf16 pairs in `out`, 16 columns at a
+/// time (see `packed::write_bf16_pairs`).
+///
+/// # Safety
+/// The CPU must support AVX-512 BW and BF16; `lo`, `hi` and `out` have the same length.
+#[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+pub(super) unsafe fn pair_rows(out: &mut [f32], lo: &[f32], hi: Option<&[f32]>) {
+    let n = out.len();
+    debug_assert!(lo.len() == n && hi.is_none_or(|h| h.len() == n));
+    for col in (0..n).step_by(LANES) {
+        let mask = mask16(n, col);
+        // SAFETY: the masked lanes lie inside the three rows of length `n`.
+        unsafe {
+            let low = _mm512_maskz_loadu_ps(mask, lo.as_ptr().wrapping_add(col));
+            let high = match hi {
+                Some(h) => _mm512_maskz_loadu_ps(mask, h.as_ptr().wrapping_add(col)),
+                None => _mm512_setzero_ps(),
+            };
+            store_pairs(out.as_mut_ptr().wrapping_add(col), mask, low, high);
+        }
+    }
+}
+
 /// Activates a finished tile to the precision it is stored in (see
 /// `fastmath512::swish_for_bf16`) and stores it as bf16 pairs: block rows `2q, 2q + 1` go to
 /// storage row `i0/2 + q`. One call per tile: the f32 tiles (which lack the bf16 features and so
