@@ -9,6 +9,9 @@
 //!   [`matmul_packed`] on weights packed once with the activation fused into the kernel.
 //! - **bf16 layers**: the same layer with weights and activations in bf16 pairs (f32 sums), as
 //!   the planner runs inference by default where the CPU has AVX-512 BF16.
+//! - **bf16 first layers**: a bf16 network's first layer (a few dozen input features, output
+//!   as bf16 pairs) on its f32 input through f32 weights, as it ran before, against the input
+//!   converted to bf16 pairs and the layer in bf16, as it runs now (conversion included).
 //! - **Own kernel instead of the `gemm` crate**: the general kernel against `gemm` on dense
 //!   products of the training passes' and planner's shapes. This comparison is why `gemm` is a
 //!   normal dependency of the crate although nothing else calls it: the module docs justify the
@@ -25,8 +28,8 @@ use super::peak::{Peak, percent};
 use super::timing::{BATCHES, Clock, Timing, measure_for};
 use crate::nn::Activation;
 use crate::nn::matmul::{
-    Encoding, Init, MatMut, MatRef, PackedMatrix, bf16_pair, matmul, matmul_packed, matmul_par,
-    transpose,
+    Encoding, Init, MatMut, MatRef, PackedMatrix, matmul, matmul_packed, matmul_par, transpose,
+    write_bf16_pairs,
 };
 use crate::nn::simd::{SimdLevel, bf16_dot_available, level};
 use rand::rngs::StdRng;
@@ -72,6 +75,15 @@ pub const PLANNER_LAYERS: [(Shape, Activation); 5] = [
     (Shape::new(500, 250, 500), Activation::Softplus),
 ];
 
+/// The first layers of the presets' bf16 networks (out × samples × in, 250-sample chunks):
+/// half-cheetah's dynamics (18 + 6 inputs), its energy network (18 + 6 + 18) and ant's
+/// dynamics (27 + 8).
+pub const FIRST_LAYERS: [(Shape, Activation); 3] = [
+    (Shape::new(200, 250, 24), Activation::Swish),
+    (Shape::new(500, 250, 42), Activation::Softplus),
+    (Shape::new(400, 250, 35), Activation::Swish),
+];
+
 /// Dense products of training and planning: a 500-wide layer's forward pass on a 32-sample
 /// batch, its weight gradient, a planner chunk, and the same for 200-wide layers.
 pub const PRODUCTS: [Shape; 6] = [
@@ -90,6 +102,8 @@ pub const TRANSPOSES: [(usize, usize); 1] = [(500, 32)];
 /// What `bench kernel` was asked to do.
 pub(super) struct Settings {
     pub layers: Vec<(Shape, Activation)>,
+    /// Timed only where bf16 layers can run.
+    pub first_layers: Vec<(Shape, Activation)>,
     pub products: Vec<Shape>,
     pub transposes: Vec<(usize, usize)>,
     /// About how long each timed batch lasts.
@@ -136,6 +150,17 @@ pub struct LayerTiming {
     pub packed_bf16: Option<Throughput>,
 }
 
+/// A bf16 network's first layer, output written as bf16 pairs, both ways.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FirstLayerTiming {
+    pub shape: Shape,
+    pub activation: Activation,
+    /// f32 weights on the f32 input (how the first layer ran until the input was converted).
+    pub f32_weights: Throughput,
+    /// [`write_bf16_pairs`] on the f32 input, then the layer on bf16 weights.
+    pub bf16_weights: Throughput,
+}
+
 /// One dense product through the own kernel and the `gemm` crate.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ProductTiming {
@@ -168,6 +193,8 @@ pub struct KernelReport {
     /// Threads `matmul_par` could use (it splits a product in two at most).
     pub parallel_threads: usize,
     pub layers: Vec<LayerTiming>,
+    /// Empty without AVX-512 BF16.
+    pub first_layers: Vec<FirstLayerTiming>,
     pub products: Vec<ProductTiming>,
     pub transposes: Vec<TransposeTiming>,
     /// This core's peak, measured before and after the kernels (the higher): every f32 row is
@@ -177,7 +204,11 @@ pub struct KernelReport {
 }
 
 pub(super) fn run(s: &Settings) -> Result<KernelReport, BenchError> {
-    if s.layers.is_empty() && s.products.is_empty() && s.transposes.is_empty() {
+    if s.layers.is_empty()
+        && s.first_layers.is_empty()
+        && s.products.is_empty()
+        && s.transposes.is_empty()
+    {
         return Err(BenchError::Zero("shapes"));
     }
     let peak = Peak::measure();
@@ -188,6 +219,14 @@ pub(super) fn run(s: &Settings) -> Result<KernelReport, BenchError> {
         .iter()
         .map(|&(shape, act)| time_layer(shape, act, bf16_available, s.batch, &mut rng))
         .collect();
+    let first_layers = if bf16_available {
+        s.first_layers
+            .iter()
+            .map(|&(shape, act)| time_first_layer(shape, act, s.batch, &mut rng))
+            .collect()
+    } else {
+        Vec::new()
+    };
     let products = s
         .products
         .iter()
@@ -203,6 +242,7 @@ pub(super) fn run(s: &Settings) -> Result<KernelReport, BenchError> {
         bf16_available,
         parallel_threads: rayon::current_num_threads().min(2),
         layers,
+        first_layers,
         products,
         transposes,
         peak: peak.max(Peak::measure()),
@@ -287,19 +327,70 @@ fn time_layer(
 /// Feature-major `h` (`k` rows of `n` samples, row stride `ld`) in [`Encoding::Bf16Pairs`]:
 /// feature rows `2p` and `2p + 1` share storage row `p`.
 fn to_bf16_pairs(h: &[f32], k: usize, n: usize, ld: usize) -> Vec<f32> {
-    let rows = Encoding::Bf16Pairs.storage_rows(k);
-    let mut y = vec![0.0; rows * ld];
-    for p in 0..rows {
-        for j in 0..n {
-            let high = if 2 * p + 1 < k {
-                h[(2 * p + 1) * ld + j]
-            } else {
-                0.0
-            };
-            y[p * ld + j] = bf16_pair(h[2 * p * ld + j], high);
-        }
-    }
+    let mut y = vec![0.0; Encoding::Bf16Pairs.storage_rows(k) * ld];
+    convert_to_pairs(&mut y, h, k, n, ld);
     y
+}
+
+fn convert_to_pairs(y: &mut [f32], h: &[f32], k: usize, n: usize, ld: usize) {
+    write_bf16_pairs(
+        MatMut::with_stride(y, Encoding::Bf16Pairs.storage_rows(k), n, ld),
+        MatRef::with_stride(h, k, n, ld),
+    );
+}
+
+/// Times a bf16 network's first layer both ways (see [`FirstLayerTiming`]); needs AVX-512
+/// BF16.
+fn time_first_layer(
+    shape: Shape,
+    act: Activation,
+    batch: Duration,
+    rng: &mut StdRng,
+) -> FirstLayerTiming {
+    let Shape { m, n, k } = shape;
+    let ld = n.div_ceil(16) * 16;
+    let w = random(rng, k * m);
+    let x = random(rng, k * ld);
+    let bias = random(rng, m);
+    let wt = MatRef::new(&w, k, m).t();
+    let pairs = Encoding::Bf16Pairs;
+    let c_rows = pairs.storage_rows(m);
+    let mut c = vec![0.0; c_rows * ld];
+
+    let packed = PackedMatrix::pack(wt);
+    let f32_weights = measure_for(Clock::Thread, batch, || {
+        matmul_packed(
+            MatMut::with_stride(&mut c, c_rows, n, ld),
+            pairs,
+            &packed,
+            MatRef::with_stride(&x, k, n, ld),
+            &bias,
+            Some(act),
+        );
+        black_box(&mut c);
+    });
+
+    let packed = PackedMatrix::pack_bf16(wt);
+    let mut y = vec![0.0; pairs.storage_rows(k) * ld];
+    let bf16_weights = measure_for(Clock::Thread, batch, || {
+        convert_to_pairs(&mut y, black_box(&x), k, n, ld);
+        matmul_packed(
+            MatMut::with_stride(&mut c, c_rows, n, ld),
+            pairs,
+            &packed,
+            MatRef::with_stride(&y, pairs.storage_rows(k), n, ld),
+            &bias,
+            Some(act),
+        );
+        black_box(&mut c);
+    });
+
+    FirstLayerTiming {
+        shape,
+        activation: act,
+        f32_weights: Throughput::new(f32_weights, shape),
+        bf16_weights: Throughput::new(bf16_weights, shape),
+    }
 }
 
 /// Times `C = X · Y` with all three dense and row-major.
@@ -438,6 +529,24 @@ impl fmt::Display for KernelReport {
                 )?;
             }
         }
+        if !self.first_layers.is_empty() {
+            write!(
+                f,
+                "\n\n  first layers of bf16 networks, output as bf16 pairs, one thread: f32 \
+                 input through f32 weights, or converted to bf16 pairs (timed) and through bf16 \
+                 weights"
+            )?;
+            write_header(f, "layer")?;
+            for l in &self.first_layers {
+                let label = format!(
+                    "{} {}",
+                    l.shape,
+                    format!("{:?}", l.activation).to_lowercase()
+                );
+                write_row(f, &label, "f32 weights", &l.f32_weights, f32_peak)?;
+                write_row(f, "", "input → pairs, bf16", &l.bf16_weights, bf16_peak)?;
+            }
+        }
         if !self.products.is_empty() {
             write!(
                 f,
@@ -493,6 +602,7 @@ mod tests {
                 (Shape::new(13, 20, 9), Activation::Swish),
                 (Shape::new(8, 33, 16), Activation::Softplus),
             ],
+            first_layers: vec![(Shape::new(14, 21, 5), Activation::Swish)],
             products: vec![Shape::new(7, 24, 5)],
             transposes: vec![(19, 6)],
             batch: Duration::ZERO,
@@ -509,6 +619,16 @@ mod tests {
             assert!(finite_positive(&l.packed_f32), "{l:?}");
             assert_eq!(l.packed_bf16.is_some(), report.bf16_available);
             assert!(l.packed_bf16.as_ref().is_none_or(finite_positive), "{l:?}");
+        }
+        if report.bf16_available {
+            let [l] = &report.first_layers[..] else {
+                panic!("one first layer: {:?}", report.first_layers)
+            };
+            assert_eq!((l.shape, l.activation), settings.first_layers[0]);
+            assert!(finite_positive(&l.f32_weights), "{l:?}");
+            assert!(finite_positive(&l.bf16_weights), "{l:?}");
+        } else {
+            assert!(report.first_layers.is_empty());
         }
         let [p] = &report.products[..] else {
             panic!("one product: {:?}", report.products)
@@ -536,6 +656,11 @@ mod tests {
         }
         assert_eq!(
             text.contains("packed bf16, fused"),
+            report.bf16_available,
+            "{text}"
+        );
+        assert_eq!(
+            text.contains("14×21×5 swish"),
             report.bf16_available,
             "{text}"
         );

@@ -18,7 +18,10 @@ mod timing;
 mod train;
 
 pub use expression::ExpressionReport;
-pub use kernel::{KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming};
+pub use kernel::{
+    FirstLayerTiming, KernelReport, LayerTiming, ProductTiming, Shape, Throughput,
+    TransposeTiming,
+};
 pub use peak::Peak;
 pub use plan::{BenchReward, PlanReport, RewardTiming};
 pub use train::TrainReport;
@@ -223,6 +226,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
         BenchCommand::Kernel { batch_ms, seed } => {
             let settings = kernel::Settings {
                 layers: kernel::PLANNER_LAYERS.to_vec(),
+                first_layers: kernel::FIRST_LAYERS.to_vec(),
                 products: kernel::PRODUCTS.to_vec(),
                 transposes: kernel::TRANSPOSES.to_vec(),
                 batch: Duration::from_millis(batch_ms),
