@@ -19,8 +19,7 @@ mod train;
 
 pub use expression::ExpressionReport;
 pub use kernel::{
-    FirstLayerTiming, KernelReport, LayerTiming, ProductTiming, Shape, Throughput,
-    TransposeTiming,
+    FirstLayerTiming, KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming,
 };
 pub use peak::Peak;
 pub use plan::{BenchReward, PlanReport, RewardTiming};

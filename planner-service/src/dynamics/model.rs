@@ -17,9 +17,7 @@ use crate::nn::aligned::AlignedBuf;
 use crate::nn::matmul::transpose;
 use crate::nn::train::{EpochsRun, FitBudget, run_epochs};
 use crate::nn::vecops::scale_shift;
-use crate::nn::{
-    Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape, add_weight_decay,
-};
+use crate::nn::{Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape};
 use proto::Task;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -359,8 +357,8 @@ impl ProbabilisticModel {
         ws: &mut TrainWorkspace,
     ) -> f32 {
         let loss = self.loss_and_grad(set, batch, ws);
-        add_weight_decay(&self.mlp, &mut ws.grads, self.weight_decay);
-        self.adam.step(self.mlp.params_mut(), &ws.grads);
+        self.adam
+            .step_decaying(&mut self.mlp, &ws.grads, self.weight_decay);
         self.bounds_adam
             .step(&mut self.logvar_bounds, &ws.bound_grads);
         loss

@@ -1,12 +1,16 @@
 //! The Adam optimiser (Kingma & Ba), with PyTorch's bias correction.
 //!
-//! Weight decay is not part of the optimiser: PETS adds an L2 penalty `λ/2 ‖W‖²` on the weights
-//! to the loss (so its gradient `λ W` is then normalised by Adam like any other term), and the
-//! models here do the same with [`add_weight_decay`]. Biases are not decayed.
+//! Weight decay is not a decoupled part of the optimiser: PETS adds an L2 penalty `λ/2 ‖W‖²` on
+//! the weights to the loss (so its gradient `λ W` is then normalised by Adam like any other
+//! term), and [`Adam::step_decaying`] does the same, adding `λ W` to each weight's gradient
+//! inside the update's own pass over the parameters instead of in a pass of its own (the update
+//! is bound by memory: a separate pass cost another read of every weight and gradient). Biases
+//! are not decayed.
 
 use super::denormals;
 use super::mlp::Mlp;
 use super::simd::multiversion;
+use std::ops::Range;
 
 /// Parameter vectors shorter than this are updated on one thread.
 const PARALLEL_MIN: usize = 1 << 19;
@@ -24,13 +28,13 @@ pub struct Adam {
 }
 
 multiversion! {
-    fn adam_update(params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32], k: [f32; 5]) {
-        // k = [β1, β2, step size lr / (1 − β1ᵗ), 1 / √(1 − β2ᵗ), ε]
-        let [b1, b2, step, inv_bc2, eps] = k;
+    fn adam_update(params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32], k: [f32; 6]) {
+        // k = [β1, β2, step size lr / (1 − β1ᵗ), 1 / √(1 − β2ᵗ), ε, weight decay λ]
+        let [b1, b2, step, inv_bc2, eps, lambda] = k;
         let n = params.len();
         let (grads, m, v) = (&grads[..n], &mut m[..n], &mut v[..n]);
         for i in 0..n {
-            let g = grads[i];
+            let g = grads[i] + lambda * params[i];
             m[i] = b1 * m[i] + (1.0 - b1) * g;
             v[i] = b2 * v[i] + (1.0 - b2) * g * g;
             params[i] -= step * m[i] / (v[i].sqrt() * inv_bc2 + eps);
@@ -59,8 +63,28 @@ impl Adam {
 
     /// One update of `params` along `grads`.
     pub fn step(&mut self, params: &mut [f32], grads: &[f32]) {
+        let k = self.next_step(params.len(), grads.len());
+        self.update(params, grads, 0..params.len(), k, 0.0);
+    }
+
+    /// One update of `mlp`'s parameters along `grads` plus the gradient `λ W` of the L2
+    /// penalty `λ/2 ‖W‖²` on its weight matrices (not its biases), in one pass.
+    pub fn step_decaying(&mut self, mlp: &mut Mlp, grads: &[f32], lambda: f32) {
+        let n = mlp.params().len();
+        let k = self.next_step(n, grads.len());
+        for l in 0..mlp.layers() {
+            let weights = mlp.weight_range(l);
+            let biases = weights.end..weights.end + mlp.sizes()[l + 1];
+            self.update(mlp.params_mut(), grads, weights, k, lambda);
+            self.update(mlp.params_mut(), grads, biases, k, 0.0);
+        }
+    }
+
+    /// Counts a step and returns its coefficients (without the weight decay), after checking
+    /// that `params` and `grads` have this state's length.
+    fn next_step(&mut self, params: usize, grads: usize) -> [f32; 6] {
         assert!(
-            params.len() == self.m.len() && grads.len() == self.m.len(),
+            params == self.m.len() && grads == self.m.len(),
             "Adam state for {} parameters",
             self.m.len()
         );
@@ -68,43 +92,45 @@ impl Adam {
         let t = self.steps as i32;
         let bc1 = 1.0 - self.beta1.powi(t);
         let bc2 = 1.0 - self.beta2.powi(t);
-        let k = [
+        [
             self.beta1,
             self.beta2,
             self.learning_rate / bc1,
             1.0 / bc2.sqrt(),
             self.epsilon,
-        ];
-        let n = params.len();
+            0.0,
+        ]
+    }
+
+    /// Updates the parameters in `range` with coefficients `k` and weight decay `lambda`.
+    fn update(
+        &mut self,
+        params: &mut [f32],
+        grads: &[f32],
+        range: Range<usize>,
+        mut k: [f32; 6],
+        lambda: f32,
+    ) {
+        k[5] = lambda;
+        let (p, g) = (&mut params[range.clone()], &grads[range.clone()]);
+        let (m, v) = (&mut self.m[range.clone()], &mut self.v[range]);
+        let n = p.len();
         if n < PARALLEL_MIN || rayon::current_num_threads() < 2 {
-            adam_update(params, grads, &mut self.m, &mut self.v, k);
+            adam_update(p, g, m, v, k);
             return;
         }
         // The update streams five arrays through memory: two cores move them nearly twice as
         // fast. The caller's floating-point mode is carried to the helper thread.
         let half = n / 2;
-        let (p0, p1) = params.split_at_mut(half);
-        let (g0, g1) = grads.split_at(half);
-        let (m0, m1) = self.m.split_at_mut(half);
-        let (v0, v1) = self.v.split_at_mut(half);
+        let (p0, p1) = p.split_at_mut(half);
+        let (g0, g1) = g.split_at(half);
+        let (m0, m1) = m.split_at_mut(half);
+        let (v0, v1) = v.split_at_mut(half);
         let mode = denormals::current_mode();
         rayon::join(
             || adam_update(p0, g0, m0, v0, k),
             || denormals::with_mode(mode, || adam_update(p1, g1, m1, v1, k)),
         );
-    }
-}
-
-/// Adds the gradient `λ W` of the L2 penalty `λ/2 ‖W‖²` on every weight matrix of `mlp`.
-pub fn add_weight_decay(mlp: &Mlp, grads: &mut [f32], lambda: f32) {
-    if lambda == 0.0 {
-        return;
-    }
-    for l in 0..mlp.layers() {
-        let range = mlp.weight_range(l);
-        for (g, w) in grads[range.clone()].iter_mut().zip(&mlp.params()[range]) {
-            *g += lambda * w;
-        }
     }
 }
 
@@ -152,21 +178,39 @@ mod tests {
             &grads,
             &mut m,
             &mut v,
-            [0.9, 0.999, 0.01 / bc1, 1.0 / bc2.sqrt(), 1e-8],
+            [0.9, 0.999, 0.01 / bc1, 1.0 / bc2.sqrt(), 1e-8, 0.0],
         );
         assert!(p == q, "the split update differs from the serial one");
         assert!(p.iter().any(|&x| x != 1.0));
     }
 
+    /// The decayed step is the step along the gradient with `λ W` added to every weight's
+    /// component and nothing to the biases', bit for bit, step after step.
     #[test]
-    fn weight_decay_touches_weights_only() {
-        let mlp = Mlp::from_params(
-            &[1, 2],
+    fn a_decaying_step_adds_the_penalty_gradient_of_the_weights_only() {
+        // 2 → 3 → 1: weights 0..6, biases 6..9, weights 9..12, bias 12.
+        let params: Vec<f32> = (0..13).map(|i| 0.3 * i as f32 - 1.7).collect();
+        let mut mlp = Mlp::from_params(
+            &[2, 3, 1],
             crate::nn::activation::Activation::Swish,
-            vec![3.0, -2.0, 5.0, 7.0],
+            params.clone(),
         );
-        let mut g = vec![0.0; 4];
-        add_weight_decay(&mlp, &mut g, 0.5);
-        assert_eq!(g, vec![1.5, -1.0, 0.0, 0.0]);
+        let (mut decaying, mut plain) = (Adam::new(13, 0.01), Adam::new(13, 0.01));
+        let mut reference = params;
+        let lambda = 0.5;
+        let weight = |i: usize| !(6..9).contains(&i) && i != 12;
+        for step in 0..3 {
+            let grads: Vec<f32> = (0..13).map(|i| ((i * 7 + step) % 5) as f32 - 2.0).collect();
+            let with_penalty: Vec<f32> = grads
+                .iter()
+                .zip(&reference)
+                .enumerate()
+                .map(|(i, (g, w))| if weight(i) { g + lambda * w } else { *g })
+                .collect();
+            plain.step(&mut reference, &with_penalty);
+            decaying.step_decaying(&mut mlp, &grads, lambda);
+            assert_eq!(mlp.params(), &reference[..], "step {step}");
+        }
+        assert_eq!(decaying, plain);
     }
 }

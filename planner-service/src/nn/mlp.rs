@@ -520,7 +520,11 @@ mod tests {
             Activation::Swish,
             vec![1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
         );
-        let x = [1.0 + 2f32.powi(-10), 5.0, -3.0 - 2f32.powi(-9) - 2f32.powi(-12)];
+        let x = [
+            1.0 + 2f32.powi(-10),
+            5.0,
+            -3.0 - 2f32.powi(-9) - 2f32.powi(-12),
+        ];
         assert_eq!(mlp.forward_rows(&x), vec![x[0], x[2]]);
         mlp.set_inference_precision(Precision::Bf16);
         if mlp.inference_precision() != Precision::Bf16 {

@@ -32,7 +32,7 @@ pub mod train;
 pub mod vecops;
 
 pub use activation::Activation;
-pub use adam::{Adam, add_weight_decay};
+pub use adam::Adam;
 pub use backprop::Tape;
 pub use denormals::FlushDenormals;
 pub use double_backprop::InputGradTape;

@@ -26,7 +26,6 @@ use crate::dynamics::DynamicsConfig;
 use crate::nn::train::{FitBudget, run_epochs};
 use crate::nn::{
     Activation, Adam, FitReport, FlushDenormals, ForwardScratch, Mlp, Normalizer, ShapeError, Tape,
-    add_weight_decay,
 };
 use proto::Task;
 use rand::SeedableRng;
@@ -240,8 +239,8 @@ impl RewardModel {
         let run = run_epochs(&mut order, self.batch_size, &budget, rng, |batch, _| {
             let loss = squared_error_and_grad(&self.mlp, &inputs, &targets, batch, &mut tape);
             self.mlp.backward(&mut tape, &mut grads, false);
-            add_weight_decay(&self.mlp, &mut grads, self.weight_decay);
-            self.adam.step(self.mlp.params_mut(), &grads);
+            self.adam
+                .step_decaying(&mut self.mlp, &grads, self.weight_decay);
             loss
         });
         self.trained |= run.steps > 0;

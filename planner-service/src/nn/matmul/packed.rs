@@ -109,7 +109,11 @@ pub fn write_bf16_pairs(dst: MatMut<'_>, src: MatRef<'_>) {
         Encoding::Bf16Pairs.storage_rows(k),
         dst.rows
     );
-    assert_eq!(dst.cols, n, "source has {n} columns, destination {}", dst.cols);
+    assert_eq!(
+        dst.cols, n,
+        "source has {n} columns, destination {}",
+        dst.cols
+    );
     assert!(src.cs == 1 || n <= 1, "the source needs unit column stride");
     #[cfg(target_arch = "x86_64")]
     if bf16_dot_available() {
