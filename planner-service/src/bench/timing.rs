@@ -42,6 +42,9 @@ pub const BATCHES: usize = 15;
 pub struct Timing {
     pub min_ms: f64,
     pub median_ms: f64,
+    /// Per-call wall-clock milliseconds of the median batch (by wall time): what a caller
+    /// waits, however many threads shared the work.
+    pub wall_median_ms: f64,
     /// CPU time over wall time of all timed batches: 1.0 for one thread that had its core
     /// throughout, less where other processes took it, up to the thread count for parallel
     /// work. `None` where there is no CPU clock (the figures are then wall clock).
@@ -90,6 +93,8 @@ pub struct Samples {
     clock: Clock,
     /// Per-call seconds of each run on the CPU clock, or on the wall clock without one.
     per_call: Vec<f64>,
+    /// Per-call wall-clock seconds of each run.
+    wall_per_call: Vec<f64>,
     cpu_total: Option<f64>,
     wall_total: f64,
 }
@@ -99,6 +104,7 @@ impl Samples {
         Self {
             clock,
             per_call: Vec::with_capacity(runs),
+            wall_per_call: Vec::with_capacity(runs),
             cpu_total: Some(0.0),
             wall_total: 0.0,
         }
@@ -112,6 +118,7 @@ impl Samples {
         if keep {
             self.per_call
                 .push(cpu.unwrap_or(wall) / calls.max(1) as f64);
+            self.wall_per_call.push(wall / calls.max(1) as f64);
             self.cpu_total = self.cpu_total.zip(cpu).map(|(a, b)| a + b);
             self.wall_total += wall;
         }
@@ -122,9 +129,11 @@ impl Samples {
     pub fn timing(mut self) -> Timing {
         assert!(!self.per_call.is_empty(), "no timed run");
         self.per_call.sort_by(f64::total_cmp);
+        self.wall_per_call.sort_by(f64::total_cmp);
         Timing {
             min_ms: self.per_call[0] * 1e3,
             median_ms: self.per_call[self.per_call.len() / 2] * 1e3,
+            wall_median_ms: self.wall_per_call[self.wall_per_call.len() / 2] * 1e3,
             cpu_share: self
                 .cpu_total
                 .filter(|_| self.wall_total > 0.0)
@@ -197,6 +206,7 @@ mod tests {
             std::thread::sleep(Duration::from_millis(1));
         });
         assert!(calls > BATCHES && calls <= 1 + 3 * (BATCHES + 1), "{calls}");
+        assert!(t.wall_median_ms >= 1.0, "each call slept 1 ms: {t:?}");
         // Sleeping costs no CPU time: a call is timed far below the 1 ms it lasted, and the
         // process was on a CPU for a small share of the wall time.
         if let Some(share) = t.cpu_share {

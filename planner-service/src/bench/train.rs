@@ -5,7 +5,17 @@
 //! Steps run their products on rayon's pool (`matmul_par`), so they are timed in the whole
 //! process's CPU time: every thread's time counts, spinning for work included, and the rate per
 //! CPU second compares with one core's peak however many threads took part and however loaded
-//! the machine was. The CPU share says how much of `threads × wall time` that was.
+//! the machine was. The CPU share says how much of `threads × wall time` that was, and the
+//! wall time per step what a trainer waits.
+//!
+//! The steps run on a rayon worker thread of a pool of their own, as the service's retraining
+//! runs on its background pool (`sched::background`): a product split across two threads is
+//! then a warm join, its second half pushed on the worker's own deque for the other worker to
+//! take. Timed from the main thread instead, every split product was a cold join: the calling
+//! thread handed the whole product to the pool and slept on a lock until both halves were done,
+//! two thread wake-ups per product that the service never pays (`perf record` of the
+//! half-cheetah steps: 8.8 % of the samples in the kernel's task switch, 1.5 % in a contended
+//! mutex, 1.8 % in `sched_yield`).
 
 use super::peak::{Peak, percent};
 use super::timing::{BATCHES, Clock, Samples, Timing, measure};
@@ -109,6 +119,19 @@ pub(super) fn run(
     if steps == 0 {
         return Err(BenchError::Zero("steps"));
     }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(rayon::current_num_threads())
+        .build()?;
+    pool.install(|| run_on_worker(task, steps, warmup, seed))
+}
+
+/// [`run`] on a worker thread of the pool the steps split their products over.
+fn run_on_worker(
+    task: Builtin,
+    steps: usize,
+    warmup: usize,
+    seed: u64,
+) -> Result<TrainReport, BenchError> {
     let _flush = FlushDenormals::new(); // as the trainers run
     let peak = Peak::measure();
     let preset = preset(task, RegularizerKind::Deen, false)?;
@@ -236,6 +259,7 @@ impl fmt::Display for TrainReport {
             if let Some(share) = t.time.cpu_share {
                 write!(f, "; CPU share {:.0}%", share * 100.0)?;
             }
+            write!(f, "; wall {:.3} ms median", t.time.wall_median_ms)?;
         }
         let p = &self.deen_phases;
         write!(
@@ -265,6 +289,10 @@ mod tests {
             let (best, median) = t.gflops();
             assert!(best >= median && median > 0.0 && best.is_finite(), "{t:?}");
             assert!(t.time.cpu_share.is_none_or(|s| s > 0.0), "{t:?}");
+            assert!(
+                t.time.wall_median_ms > 0.0 && t.time.wall_median_ms.is_finite(),
+                "{t:?}"
+            );
         }
         // 6·200·200 + 4·200·200 + 2·(6·200 + 200·8) flops per sample, batch 32.
         assert_eq!(
@@ -282,6 +310,7 @@ mod tests {
                 && text.contains("f32 peak")
                 && text.contains("of peak")
                 && text.contains("CPU ms")
+                && text.contains("wall")
                 && !text.contains("PyTorch"),
             "{text}"
         );
