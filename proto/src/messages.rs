@@ -46,10 +46,10 @@ pub enum RegularizerChoice {
 
 /// Number format of the planner's network inference (training is always f32).
 ///
-/// `bf16` rounds the operands of every layer after the first to bf16 (8 significant bits) and
-/// keeps f32 sums: twice the multiply-add rate on CPUs with AVX-512 BF16, a relative rounding
-/// of at most 2⁻⁸ per operand, far below a learned model's own error. Where the CPU lacks
-/// AVX-512 BF16 the planner uses f32 whatever is asked.
+/// `bf16` rounds the operands of every layer (the normalised input included) to bf16 (8
+/// significant bits) and keeps f32 sums: twice the multiply-add rate on CPUs with AVX-512
+/// BF16, a relative rounding of at most 2⁻⁸ per operand, far below a learned model's own error.
+/// Where the CPU lacks AVX-512 BF16 the planner uses f32 whatever is asked.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum InferencePrecision {
