@@ -61,6 +61,8 @@ pub struct Experiment {
     pub jobs: usize,
     /// Folder holding the `planner-service` and `sim-bridge` binaries.
     pub bin_dir: PathBuf,
+    /// First-iteration population of the `icem…` methods (default: [`scale::icem_search`]'s).
+    pub icem_population: Option<u32>,
 }
 
 /// One (method, seed) run of an experiment.
@@ -148,6 +150,7 @@ pub fn prepare(exp: &Experiment) -> Result<Manifest> {
         exp.episodes,
         exp.methods.clone(),
         exp.seeds.clone(),
+        exp.icem_population,
     )?;
     let manifest = match Manifest::load(&exp.out)? {
         Some(existing) => wanted.resume(&existing, &exp.out)?,
@@ -509,6 +512,7 @@ mod tests {
             episodes,
             methods.iter().map(|m| m.to_string()).collect(),
             seeds.to_vec(),
+            None,
         )
         .unwrap()
     }
@@ -572,6 +576,7 @@ mod tests {
             out: dir.clone(),
             jobs: 1,
             bin_dir: dir.clone(),
+            icem_population: None,
         };
         let first = prepare(&exp).unwrap();
         assert_eq!(first.methods, vec!["cem"]);

@@ -77,10 +77,11 @@ impl Manifest {
         episodes: u32,
         methods: Vec<String>,
         seeds: Vec<u64>,
+        icem_population: Option<u32>,
     ) -> Result<Self, PresetError> {
         let overrides = methods
             .iter()
-            .map(|m| Ok((m.clone(), scale.overrides(task, m)?)))
+            .map(|m| Ok((m.clone(), scale.overrides(task, m, icem_population)?)))
             .collect::<Result<_, PresetError>>()?;
         Ok(Manifest {
             task,
@@ -208,6 +209,7 @@ mod tests {
             episodes,
             methods.iter().map(|m| m.to_string()).collect(),
             seeds.to_vec(),
+            None,
         )
         .unwrap()
     }
@@ -246,7 +248,9 @@ mod tests {
     #[test]
     fn a_manifest_with_one_shared_overrides_value_still_resumes() {
         let dir = tempfile::tempdir().unwrap();
-        let shared = Scale::Small.overrides(Builtin::Cartpole, "cem").unwrap();
+        let shared = Scale::Small
+            .overrides(Builtin::Cartpole, "cem", None)
+            .unwrap();
         let old = serde_json::json!({
             "task": "cartpole", "scale": "small", "episodes": 8,
             "overrides": shared, "methods": ["cem", "cem+deen"], "seeds": [0, 1],

@@ -56,21 +56,30 @@ impl Scale {
 
     /// The preset overrides of this scale for `method` (a [`Method`] label) on `task`: none
     /// at the paper's scale for a preset, and for an `icem…` label the optimiser and its search
-    /// sizes ([`icem_search`]).
+    /// sizes ([`icem_search`], or `icem_population` candidates in the first iteration when it
+    /// is given: [`IcemSearch::with_population`]).
     ///
     /// The small scale shrinks a sampling search (CEM, iCEM) by its population and iterations;
     /// a gradient search (`adam+dae`: 16 candidates) is small already, so it keeps its
     /// candidates and takes fewer steps instead. Sizing from the method's own preset keeps a
     /// "small" Adam from growing to a CEM-sized population. `small-learning` takes the small
     /// scale's training and the paper's search.
-    pub fn overrides(self, task: Builtin, method: &str) -> Result<PlannerOverrides, PresetError> {
+    pub fn overrides(
+        self,
+        task: Builtin,
+        method: &str,
+        icem_population: Option<u32>,
+    ) -> Result<PlannerOverrides, PresetError> {
         let method = Method::parse(task, method)?;
         let mut o = self.learning_overrides(task, &method.preset)?;
         if method.is_icem() {
             let cem = Preset::new(task.task(), Some(&method.preset))?;
             let mut searched = cem.clone();
             searched.apply(&o)?;
-            let icem = icem_search(searched.cem.population);
+            let icem = match icem_population {
+                Some(population) => IcemSearch::with_population(population),
+                None => icem_search(searched.cem.population),
+            };
             o.optimizer = Some(Optimizer::Icem);
             o.population = Some(icem.population);
             o.elites = Some(icem.elites);
@@ -167,11 +176,18 @@ pub struct IcemSearch {
 /// fewer imagined transitions at the same horizon: Pinneri et al. report iCEM matching CEM
 /// with several times fewer samples, and the issue asks for ≥ 4×.
 pub fn icem_search(cem_population: usize) -> IcemSearch {
-    let population = ((cem_population * 3).div_ceil(10)).max(4) as u32;
-    IcemSearch {
-        population,
-        elites: (population / 10).max(2),
-        iterations: 3,
+    IcemSearch::with_population(((cem_population * 3).div_ceil(10)).max(4) as u32)
+}
+
+impl IcemSearch {
+    /// `population` candidates in the first of 3 iterations, a tenth of them as elites (at
+    /// least 2): how an experiment asks what iCEM needs to match CEM on a task.
+    pub fn with_population(population: u32) -> IcemSearch {
+        IcemSearch {
+            population,
+            elites: (population / 10).max(2),
+            iterations: 3,
+        }
     }
 }
 
@@ -217,10 +233,41 @@ mod tests {
     use planner_service::config::METHODS;
 
     #[test]
+    fn an_icem_population_replaces_the_default_search_of_icem_methods_only() {
+        let task = Builtin::HalfCheetah;
+        let icem = Scale::SmallLearning
+            .overrides(task, "icem+deen", Some(250))
+            .unwrap();
+        assert_eq!(icem.optimizer, Some(Optimizer::Icem));
+        assert_eq!(
+            (icem.population, icem.elites, icem.cem_iterations),
+            (Some(250), Some(25), Some(3))
+        );
+        let default = Scale::SmallLearning
+            .overrides(task, "icem+deen", None)
+            .unwrap();
+        assert_eq!(default.population, Some(150), "30 % of the paper's 500");
+        assert_eq!(
+            Scale::SmallLearning
+                .overrides(task, "cem+deen", Some(250))
+                .unwrap(),
+            Scale::SmallLearning
+                .overrides(task, "cem+deen", None)
+                .unwrap(),
+            "a CEM method keeps its search"
+        );
+        assert_eq!(
+            IcemSearch::with_population(12).elites,
+            2,
+            "at least 2 elites"
+        );
+    }
+
+    #[test]
     fn paper_scale_changes_nothing() {
         for &task in Builtin::ALL {
             for method in METHODS {
-                let paper = Scale::Paper.overrides(task, method).unwrap();
+                let paper = Scale::Paper.overrides(task, method, None).unwrap();
                 assert_eq!(paper, PlannerOverrides::default());
                 assert!(bridge_flags(&paper).is_empty());
             }
@@ -234,7 +281,7 @@ mod tests {
                 let paper = Preset::new(task.task(), Some(method)).unwrap();
                 let mut small = paper.clone();
                 small
-                    .apply(&Scale::Small.overrides(task, method).unwrap())
+                    .apply(&Scale::Small.overrides(task, method, None).unwrap())
                     .unwrap();
                 let paper_work = paper.cem.population * paper.cem.iterations;
                 let small_work = small.cem.population * small.cem.iterations;
@@ -261,8 +308,10 @@ mod tests {
     #[test]
     fn small_learning_keeps_the_papers_search_and_icem_labels_search_with_fewer_candidates() {
         let task = Builtin::HalfCheetah;
-        let cem = Scale::SmallLearning.overrides(task, "cem+deen").unwrap();
-        let small = Scale::Small.overrides(task, "cem+deen").unwrap();
+        let cem = Scale::SmallLearning
+            .overrides(task, "cem+deen", None)
+            .unwrap();
+        let small = Scale::Small.overrides(task, "cem+deen", None).unwrap();
         assert_eq!(
             (cem.population, cem.elites, cem.cem_iterations, cem.horizon),
             (None, None, None, None),
@@ -282,7 +331,9 @@ mod tests {
             ),
             "the small scale's training"
         );
-        let icem = Scale::SmallLearning.overrides(task, "icem+deen").unwrap();
+        let icem = Scale::SmallLearning
+            .overrides(task, "icem+deen", None)
+            .unwrap();
         assert_eq!(icem.optimizer, Some(Optimizer::Icem));
         assert_eq!(
             (
@@ -309,9 +360,10 @@ mod tests {
                 for label in ["icem", "icem+dae", "icem+deen"] {
                     let mut p = Preset::new(task.task(), Some(&label[1..])).unwrap();
                     let mut cem = p.clone();
-                    cem.apply(&scale.overrides(task, &label[1..]).unwrap())
+                    cem.apply(&scale.overrides(task, &label[1..], None).unwrap())
                         .unwrap();
-                    p.apply(&scale.overrides(task, label).unwrap()).unwrap();
+                    p.apply(&scale.overrides(task, label, None).unwrap())
+                        .unwrap();
                     assert!(
                         p.cem.population * p.cem.iterations
                             < cem.cem.population * cem.cem.iterations,
@@ -339,7 +391,7 @@ mod tests {
     fn flags_spell_every_override() {
         let flags = bridge_flags(
             &Scale::Small
-                .overrides(Builtin::HalfCheetah, "cem+deen")
+                .overrides(Builtin::HalfCheetah, "cem+deen", None)
                 .unwrap(),
         );
         let pairs: Vec<(&str, &str)> = flags

@@ -149,7 +149,7 @@ pub fn run(
     let task = config.task;
     let spec = task.task();
     let mut preset = Preset::new(task.task(), Some(&config.method))?;
-    preset.apply(&config.scale.overrides(task, &config.method)?)?;
+    preset.apply(&config.scale.overrides(task, &config.method, None)?)?;
     preset.inference_precision = config.inference_precision;
     let mut env = Env::new(task)?;
     let mut rng = StdRng::seed_from_u64(config.seed);
@@ -183,7 +183,7 @@ pub fn run(
 
     let (_, energy_epochs) = preset.epochs(config.train_episodes);
     let mut plan_preset = Preset::new(task.task(), Some(&config.method))?;
-    plan_preset.apply(&config.plan_scale.overrides(task, &config.method)?)?;
+    plan_preset.apply(&config.plan_scale.overrides(task, &config.method, None)?)?;
     // The three regularisers, trained once on the same data, compared from every state.
     let mut regularizers = Vec::new();
     for kind in [
