@@ -33,7 +33,7 @@ fn bf16_moves_imagined_returns_far_less_than_the_model_errs() {
     let spec = task.task();
     let mut preset = Preset::new(task.task(), Some("cem+deen")).unwrap();
     preset
-        .apply(&Scale::Small.overrides(task, "cem+deen").unwrap())
+        .apply(&Scale::Small.overrides(task, "cem+deen", None).unwrap())
         .unwrap();
     let mut env = Env::new(task).unwrap();
     let mut rng = StdRng::seed_from_u64(0);
