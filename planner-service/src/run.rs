@@ -563,11 +563,16 @@ impl Run {
             .flatten();
         // Capacity may have evicted old transitions: the tally follows the buffer's length,
         // set under the buffer's lock (the order is always buffer, then tally) so that two
-        // agents' appends cannot leave it at the earlier one's length.
+        // agents' appends cannot leave it at the earlier one's length. A finished episode is
+        // counted in the same step, so that `status` never shows an episode's last
+        // transition without its end.
         {
             let mut tally = self.lock_tally();
             tally.transitions = buffer.len();
             tally.log_bytes = buffer.log_bytes();
+            if let Some(finished) = &accepted.finished {
+                tally.finished(agent, finished.episode, finished.episode_return);
+            }
         }
         drop(buffer);
         if let Some(syncer) = &sync {
@@ -583,8 +588,6 @@ impl Run {
         let Some(finished) = &accepted.finished else {
             return Ok(Stored { must_cover: None });
         };
-        self.lock_tally()
-            .finished(agent, finished.episode, finished.episode_return);
         let stored = self.episodes_stored.fetch_add(1, Ordering::SeqCst) + 1;
         self.emit(RunEventKind::EpisodeFinished {
             agent: agent.to_string(),
@@ -871,6 +874,51 @@ mod tests {
         assert_eq!(reopened.episodes().len(), 1);
         assert_eq!(reopened.episodes()[0].end, EpisodeEnd::TimeLimit);
         assert_eq!(reopened.episodes()[0].steps, 4);
+    }
+
+    /// `status` reads the tally while agents store: an episode's last transition and its end
+    /// appear together (the old code counted the end after syncing the log, and `status`
+    /// could show every transition of a finished episode with the episode not yet counted).
+    #[tokio::test]
+    async fn the_tally_never_shows_an_episodes_last_transition_without_its_end() {
+        const STEPS: u32 = 4;
+        const EPISODES: u32 = 100;
+        let dir = tempfile::tempdir().unwrap();
+        let run = run_on_a_filling_disk(&dir.path().join("replay.log"), Default::default());
+        let done = Arc::new(AtomicBool::new(false));
+        let reader = {
+            let (run, done) = (run.clone(), done.clone());
+            std::thread::spawn(move || {
+                let mut seen_ends = 0;
+                while !done.load(Ordering::SeqCst) {
+                    let tally = run.tally();
+                    if tally.transitions > 0 && tally.transitions % STEPS as usize == 0 {
+                        assert_eq!(
+                            tally.episodes as usize,
+                            tally.transitions / STEPS as usize,
+                            "{} transitions",
+                            tally.transitions
+                        );
+                        seen_ends += 1;
+                    }
+                }
+                seen_ends
+            })
+        };
+        let mut session = AgentSession::new("a", 200);
+        for episode in 0..EPISODES {
+            for step in 0..=STEPS {
+                let end = (step == STEPS).then_some(EpisodeEnd::TimeLimit);
+                run.accept(&mut session, &obs(episode, step, end))
+                    .await
+                    .unwrap();
+                session.acted(step, &[0.5]);
+            }
+        }
+        done.store(true, Ordering::SeqCst);
+        let seen_ends = reader.join().expect("the tally stayed consistent");
+        assert!(seen_ends > 0, "the reader saw finished episodes");
+        assert_eq!(run.tally().episodes, EPISODES);
     }
 
     /// An episode that an agent abandoned (it started the next one) is stored as interrupted,
