@@ -302,12 +302,19 @@ fn episodes_csv(path: &Path) -> PathBuf {
     }
 }
 
-/// The rows of several experiments of one task, in argument order.
+/// The rows of several experiments of one task, in argument order (a method found in several is
+/// labelled with its folder's name in each).
 fn read_experiments(paths: &[PathBuf]) -> Result<Vec<results::EpisodeRow>> {
-    let mut rows = Vec::new();
+    let mut experiments = Vec::new();
     for path in paths {
-        rows.extend(results::read_episodes(&episodes_csv(path))?);
+        let csv = episodes_csv(path);
+        let name = csv.parent().and_then(Path::file_name).map_or_else(
+            || path.display().to_string(),
+            |n| n.to_string_lossy().into(),
+        );
+        experiments.push((name, results::read_episodes(&csv)?));
     }
+    let rows = results::combine_experiments(experiments);
     let mut tasks: Vec<&str> = rows.iter().map(|r| r.task.as_str()).collect();
     tasks.dedup();
     if tasks.len() > 1 {

@@ -369,9 +369,63 @@ pub struct CurvePoint {
     pub seeds: usize,
 }
 
+/// The rows of several experiments, each given as (its name, its rows), in one list: a method
+/// found in more than one of them is labelled `method (name)` in each, so that two folders'
+/// runs of one method (say iCEM at two populations) stay two curves instead of one curve that
+/// counts each seed twice.
+pub fn combine_experiments(experiments: Vec<(String, Vec<EpisodeRow>)>) -> Vec<EpisodeRow> {
+    let mut folders_of: BTreeMap<String, usize> = BTreeMap::new();
+    for (_, rows) in &experiments {
+        let mut methods: Vec<&str> = rows.iter().map(|r| r.method.as_str()).collect();
+        methods.sort_unstable();
+        methods.dedup();
+        for method in methods {
+            *folders_of.entry(method.to_string()).or_default() += 1;
+        }
+    }
+    experiments
+        .into_iter()
+        .flat_map(|(name, rows)| {
+            let repeated = folders_of.clone();
+            rows.into_iter().map(move |mut row| {
+                if repeated[&row.method] > 1 {
+                    row.method = format!("{} ({name})", row.method);
+                }
+                row
+            })
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_method_in_two_experiments_stays_two_curves_labelled_by_folder() {
+        let icem150 = vec![row("cem+deen", 0, 0, 1.0), row("icem+deen", 0, 0, 2.0)];
+        let icem250 = vec![row("icem+deen", 0, 0, 3.0), row("icem+deen", 1, 0, 5.0)];
+        let rows = combine_experiments(vec![
+            ("small-learning".into(), icem150),
+            ("icem250".into(), icem250),
+        ]);
+        let methods: Vec<&str> = rows.iter().map(|r| r.method.as_str()).collect();
+        assert_eq!(
+            methods,
+            [
+                "cem+deen",
+                "icem+deen (small-learning)",
+                "icem+deen (icem250)",
+                "icem+deen (icem250)"
+            ]
+        );
+        let curves = curves(&rows);
+        let icem250 = curves
+            .iter()
+            .find(|c| c.method == "icem+deen (icem250)")
+            .unwrap();
+        assert_eq!((icem250.points[0].seeds, icem250.points[0].mean), (2, 4.0));
+    }
 
     fn row(method: &str, seed: u64, episode: u32, ret: f64) -> EpisodeRow {
         EpisodeRow {
