@@ -1,6 +1,6 @@
 """The Gymnasium driver: a planner learns a Gymnasium environment, episode by episode.
 
-    python -m ebmpc.gym --env InvertedPendulum-v5 --run pendulum --episodes 5 \\
+    python -m ebmpc.gym --env InvertedPendulum-v5 --run pendulum --episodes 8 \\
         --connect tcp/127.0.0.1:7447 --reward-expression 1 \\
         --termination-expression 'abs(s_next[1]) > 0.2'
 
