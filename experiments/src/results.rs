@@ -6,7 +6,7 @@
 //! is renamed from `*.csv.partial` to `*.csv` only when its bridge exits successfully, so a
 //! `.csv` file is a complete run: that is what resuming relies on.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -376,25 +376,21 @@ pub struct CurvePoint {
 pub fn combine_experiments(experiments: Vec<(String, Vec<EpisodeRow>)>) -> Vec<EpisodeRow> {
     let mut folders_of: BTreeMap<String, usize> = BTreeMap::new();
     for (_, rows) in &experiments {
-        let mut methods: Vec<&str> = rows.iter().map(|r| r.method.as_str()).collect();
-        methods.sort_unstable();
-        methods.dedup();
+        let methods: BTreeSet<&str> = rows.iter().map(|r| r.method.as_str()).collect();
         for method in methods {
             *folders_of.entry(method.to_string()).or_default() += 1;
         }
     }
-    experiments
-        .into_iter()
-        .flat_map(|(name, rows)| {
-            let repeated = folders_of.clone();
-            rows.into_iter().map(move |mut row| {
-                if repeated[&row.method] > 1 {
-                    row.method = format!("{} ({name})", row.method);
-                }
-                row
-            })
-        })
-        .collect()
+    let mut combined = Vec::new();
+    for (name, rows) in experiments {
+        for mut row in rows {
+            if folders_of[&row.method] > 1 {
+                row.method = format!("{} ({name})", row.method);
+            }
+            combined.push(row);
+        }
+    }
+    combined
 }
 
 #[cfg(test)]

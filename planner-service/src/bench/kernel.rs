@@ -253,6 +253,26 @@ fn random(rng: &mut StdRng, n: usize) -> Vec<f32> {
     (0..n).map(|_| rng.random_range(-1.0..1.0)).collect()
 }
 
+/// A layer's random operands as the networks hold them: `w` is `k × m` (in × out), `h`
+/// feature-major `k × n` with rows padded to `ld`, a multiple of 16 floats, as the networks'
+/// scratch is.
+struct LayerOperands {
+    w: Vec<f32>,
+    h: Vec<f32>,
+    bias: Vec<f32>,
+    ld: usize,
+}
+
+impl LayerOperands {
+    fn random(Shape { m, n, k }: Shape, rng: &mut StdRng) -> LayerOperands {
+        let ld = n.div_ceil(16) * 16;
+        let w = random(rng, k * m);
+        let h = random(rng, k * ld);
+        let bias = random(rng, m);
+        LayerOperands { w, h, bias, ld }
+    }
+}
+
 /// Times one hidden layer: `W` is `k × m` (in × out, as the networks store it), `H` feature-major
 /// `k × n` with rows padded to a multiple of 16 floats, as the networks' scratch is.
 fn time_layer(
@@ -263,10 +283,7 @@ fn time_layer(
     rng: &mut StdRng,
 ) -> LayerTiming {
     let Shape { m, n, k } = shape;
-    let ld = n.div_ceil(16) * 16;
-    let w = random(rng, k * m);
-    let h = random(rng, k * ld);
-    let bias = random(rng, m);
+    let LayerOperands { w, h, bias, ld } = LayerOperands::random(shape, rng);
     let wt = MatRef::new(&w, k, m).t();
     let mut c = vec![0.0; m * ld];
 
@@ -348,10 +365,7 @@ fn time_first_layer(
     rng: &mut StdRng,
 ) -> FirstLayerTiming {
     let Shape { m, n, k } = shape;
-    let ld = n.div_ceil(16) * 16;
-    let w = random(rng, k * m);
-    let x = random(rng, k * ld);
-    let bias = random(rng, m);
+    let LayerOperands { w, h: x, bias, ld } = LayerOperands::random(shape, rng);
     let wt = MatRef::new(&w, k, m).t();
     let pairs = Encoding::Bf16Pairs;
     let c_rows = pairs.storage_rows(m);
