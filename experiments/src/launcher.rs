@@ -313,8 +313,9 @@ fn run_one(
         if done > seen {
             let rows = results::read_run_csv(&attempt, exp.task.name(), &run.method, run.seed)
                 .unwrap_or_default();
-            for row in rows.iter().skip(seen) {
-                progress.episode(&bar, &run.stem(), row, manifest.episodes);
+            for (index, row) in rows.iter().enumerate().skip(seen) {
+                let count = recorded + index + 1;
+                progress.episode(&bar, &run.stem(), count, row, manifest.episodes);
             }
             seen = done;
         }

@@ -168,6 +168,10 @@ struct ReplanArgs {
     /// Optimiser: cem, icem or adam (default: the run's).
     #[arg(long)]
     optimizer: Option<proto::Optimizer>,
+    /// Planning horizon in steps (default: the run's): a shorter one buys more candidates in
+    /// the same time.
+    #[arg(long)]
+    horizon: Option<u32>,
     /// Candidates per iteration (iCEM: of its first iteration; default: the run's).
     #[arg(long)]
     population: Option<u32>,
@@ -438,6 +442,7 @@ fn replan_command(args: ReplanArgs) -> Result<()> {
         run_dir: args.run,
         overrides: proto::PlannerOverrides {
             optimizer: args.optimizer,
+            horizon: args.horizon,
             population: args.population,
             elites: args.elites,
             cem_iterations: args.iterations,

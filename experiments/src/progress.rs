@@ -39,17 +39,19 @@ impl Progress {
         bar
     }
 
-    /// Records a finished episode of a run.
-    pub fn episode(&self, bar: &ProgressBar, name: &str, row: &EpisodeRow, episodes: u32) {
-        let line = format!(
-            "episode {}/{} return {:.2} ({} planned steps, {:.1} ms/plan, {:.1} s training)",
-            row.episode + 1,
-            episodes,
-            row.episode_return,
-            row.planned_steps,
-            row.plan_ms_per_step,
-            row.train_seconds
-        );
+    /// Records a run's `recorded`-th finished episode (counted from 1). It is shown by that
+    /// count, like the learning curves (`results::curves`): a resumed run's daemon numbers
+    /// episodes by the data it holds, including the one the interruption cut short, so its own
+    /// number is shown beside the count only where the two differ.
+    pub fn episode(
+        &self,
+        bar: &ProgressBar,
+        name: &str,
+        recorded: usize,
+        row: &EpisodeRow,
+        episodes: u32,
+    ) {
+        let line = episode_line(recorded, row, episodes);
         bar.set_message(line.clone());
         self.overall.inc(1);
         self.log(&format!("{name}: {line}"));
@@ -69,5 +71,54 @@ impl Progress {
     /// Leaves the overall bar in place with its final count.
     pub fn finish(&self) {
         self.overall.finish();
+    }
+}
+
+/// The line shown for a run's `recorded`-th finished episode of `episodes`.
+fn episode_line(recorded: usize, row: &EpisodeRow, episodes: u32) -> String {
+    let numbered = if row.episode as usize + 1 == recorded {
+        String::new()
+    } else {
+        format!(" (daemon's episode {})", row.episode)
+    };
+    format!(
+        "episode {recorded}/{episodes}{numbered} return {:.2} ({} planned steps, {:.1} ms/plan, {:.1} s training)",
+        row.episode_return, row.planned_steps, row.plan_ms_per_step, row.train_seconds
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(episode: u32) -> EpisodeRow {
+        EpisodeRow {
+            task: "pusher".into(),
+            method: "cem".into(),
+            seed: 1,
+            episode,
+            episode_return: -117.05,
+            steps: 150,
+            planned_steps: 150,
+            plan_ms_per_step: 49.2,
+            train_seconds: 0.0,
+            wall_seconds: 7.6,
+        }
+    }
+
+    #[test]
+    fn a_resumed_runs_episode_is_counted_by_recorded_episodes_with_the_daemons_number_beside() {
+        // An uninterrupted run: the daemon's numbers are the counts.
+        assert_eq!(
+            episode_line(14, &row(13), 15),
+            "episode 14/15 return -117.05 (150 planned steps, 49.2 ms/plan, 0.0 s training)"
+        );
+        // Resumed after an interruption cut one episode short: the 13th recorded episode is the
+        // daemon's 14th (number 13), shown beside the count; the count never passes the total
+        // (the log used to say "episode 17/15" for the last of such a run).
+        assert_eq!(
+            episode_line(13, &row(13), 15),
+            "episode 13/15 (daemon's episode 13) return -117.05 (150 planned steps, 49.2 ms/plan, 0.0 s training)"
+        );
     }
 }
