@@ -174,6 +174,10 @@ struct ReplanArgs {
     /// the same time.
     #[arg(long)]
     horizon: Option<u32>,
+    /// Weight α of the regulariser's penalty (default: the run's; 0 plans on the same models
+    /// without it: what the penalty costs or earns on them).
+    #[arg(long)]
+    energy_weight: Option<f32>,
     /// Candidates per iteration (iCEM: of its first iteration; default: the run's).
     #[arg(long)]
     population: Option<u32>,
@@ -445,6 +449,7 @@ fn replan_command(args: ReplanArgs) -> Result<()> {
         overrides: proto::PlannerOverrides {
             optimizer: args.optimizer,
             horizon: args.horizon,
+            energy_weight: args.energy_weight,
             population: args.population,
             elites: args.elites,
             cem_iterations: args.iterations,
