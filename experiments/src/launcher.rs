@@ -38,6 +38,7 @@ use crate::progress::Progress;
 use crate::results::{self, EpisodeRow};
 use crate::scale::{self, Scale};
 use anyhow::{Context, Result, bail};
+use planner_service::plan::Optimizer;
 use proto::Builtin;
 use std::collections::VecDeque;
 use std::io::Read;
@@ -61,8 +62,9 @@ pub struct Experiment {
     pub jobs: usize,
     /// Folder holding the `planner-service` and `sim-bridge` binaries.
     pub bin_dir: PathBuf,
-    /// First-iteration population of the `icem…` methods (default: [`scale::icem_search`]'s).
-    pub icem_population: Option<u32>,
+    /// Candidates per iteration of every sampling method (CEM's population, iCEM's first
+    /// iteration; default: the scale's, see [`crate::scale::Scale::overrides`]).
+    pub population: Option<u32>,
 }
 
 /// One (method, seed) run of an experiment.
@@ -139,7 +141,14 @@ pub fn collect_rows(dir: &Path, manifest: &Manifest) -> Result<Vec<EpisodeRow>> 
 /// one when resuming).
 pub fn prepare(exp: &Experiment) -> Result<Manifest> {
     for method in &exp.methods {
-        Method::parse(exp.task, method).with_context(|| format!("method `{method}`"))?;
+        let parsed =
+            Method::parse(exp.task, method).with_context(|| format!("method `{method}`"))?;
+        if exp.population.is_some() && parsed.optimizer == Optimizer::Adam {
+            bail!(
+                "--population sizes sampling searches (CEM, iCEM); method `{method}` optimises \
+                 by gradient and has no population: run it in an experiment of its own"
+            );
+        }
     }
     std::fs::create_dir_all(exp.out.join("runs"))
         .with_context(|| format!("creating {}", exp.out.display()))?;
@@ -150,7 +159,7 @@ pub fn prepare(exp: &Experiment) -> Result<Manifest> {
         exp.episodes,
         exp.methods.clone(),
         exp.seeds.clone(),
-        exp.icem_population,
+        exp.population,
     )?;
     let manifest = match Manifest::load(&exp.out)? {
         Some(existing) => wanted.resume(&existing, &exp.out)?,
@@ -577,7 +586,7 @@ mod tests {
             out: dir.clone(),
             jobs: 1,
             bin_dir: dir.clone(),
-            icem_population: None,
+            population: None,
         };
         let first = prepare(&exp).unwrap();
         assert_eq!(first.methods, vec!["cem"]);
@@ -587,6 +596,11 @@ mod tests {
         assert_eq!((merged.methods.len(), merged.seeds.len()), (2, 2));
         exp.methods = vec!["sgd".into()];
         assert!(prepare(&exp).is_err());
+        exp.methods = vec!["cem".into(), "adam+dae".into()];
+        exp.population = Some(250);
+        let err = prepare(&exp).unwrap_err();
+        assert!(format!("{err:#}").contains("adam+dae"), "{err:#}");
+        exp.population = None;
         exp.methods = vec!["cem".into()];
         exp.scale = Scale::Paper;
         let err = prepare(&exp).unwrap_err();

@@ -67,10 +67,12 @@ struct ExperimentArgs {
     /// Episodes per run (default: the scale's for the task).
     #[arg(long)]
     episodes: Option<u32>,
-    /// First-iteration population of the icem… methods (elites a tenth of it, 3 iterations),
-    /// instead of 30 % of the scale's CEM population: to find what iCEM needs to match CEM.
+    /// Candidates per iteration of every sampling method, instead of the scale's search: a
+    /// CEM method's population (elites a tenth of it, its iterations kept), an icem… method's
+    /// first iteration (elites a tenth, 3 iterations). To find the smallest search that keeps
+    /// a task's return (not for adam+dae, which has no population).
     #[arg(long, value_parser = clap::value_parser!(u32).range(4..=5000))]
-    icem_population: Option<u32>,
+    population: Option<u32>,
     /// Runs at the same time.
     #[arg(long, default_value_t = 2)]
     jobs: usize,
@@ -172,6 +174,10 @@ struct ReplanArgs {
     /// the same time.
     #[arg(long)]
     horizon: Option<u32>,
+    /// Weight α of the regulariser's penalty (default: the run's; 0 plans on the same models
+    /// without it: what the penalty costs or earns on them).
+    #[arg(long)]
+    energy_weight: Option<f32>,
     /// Candidates per iteration (iCEM: of its first iteration; default: the run's).
     #[arg(long)]
     population: Option<u32>,
@@ -231,7 +237,7 @@ fn experiment(args: ExperimentArgs) -> Result<()> {
             .out
             .unwrap_or_else(|| Path::new("results").join(args.task.name()).join(stamp())),
         jobs: args.jobs,
-        icem_population: args.icem_population,
+        population: args.population,
         bin_dir: match args.bin_dir {
             Some(dir) => dir,
             None => launcher::default_bin_dir()?,
@@ -443,6 +449,7 @@ fn replan_command(args: ReplanArgs) -> Result<()> {
         overrides: proto::PlannerOverrides {
             optimizer: args.optimizer,
             horizon: args.horizon,
+            energy_weight: args.energy_weight,
             population: args.population,
             elites: args.elites,
             cem_iterations: args.iterations,

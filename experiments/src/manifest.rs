@@ -77,11 +77,11 @@ impl Manifest {
         episodes: u32,
         methods: Vec<String>,
         seeds: Vec<u64>,
-        icem_population: Option<u32>,
+        population: Option<u32>,
     ) -> Result<Self, PresetError> {
         let overrides = methods
             .iter()
-            .map(|m| Ok((m.clone(), scale.overrides(task, m, icem_population)?)))
+            .map(|m| Ok((m.clone(), scale.overrides(task, m, population)?)))
             .collect::<Result<_, PresetError>>()?;
         Ok(Manifest {
             task,

@@ -44,6 +44,8 @@ pub struct ReplanReport {
     /// The models' version (retrainings behind the checkpoint).
     pub models_version: u64,
     pub optimizer: Optimizer,
+    /// Weight α of the regulariser's penalty the plans used.
+    pub energy_weight: f32,
     pub horizon: usize,
     pub population: usize,
     pub elites: usize,
@@ -85,12 +87,13 @@ impl fmt::Display for ReplanReport {
             .unwrap_or_default();
         write!(
             f,
-            "{} models v{}: {} (horizon {}, population {}, elites {}, {} iterations{beta}): \
+            "{} models v{}: {} (α {}, horizon {}, population {}, elites {}, {} iterations{beta}): \
              real return {:.1} over {} steps; {:.0} candidates per plan; \
              ms per plan best {:.1}, median {:.1}",
             self.task,
             self.models_version,
             self.optimizer,
+            self.energy_weight,
             self.horizon,
             self.population,
             self.elites,
@@ -163,6 +166,7 @@ pub fn run(config: &ReplanConfig) -> Result<ReplanReport> {
         task,
         models_version: models.version,
         optimizer: preset.cem.optimizer,
+        energy_weight: preset.energy_weight,
         horizon: preset.cem.horizon,
         population: preset.cem.population,
         elites: preset.cem.elites,
@@ -259,6 +263,23 @@ mod tests {
         // 30 candidates, then 24 (decay 1.25), never more.
         assert!(icem.candidates_per_plan <= 54.0, "{icem:?}");
         assert_eq!(icem.steps, 12);
+
+        // Without the penalty on the same models: the report says which α planned.
+        let paper_alpha = Preset::new(Builtin::Cartpole.task(), Some("cem+deen"))
+            .unwrap()
+            .energy_weight;
+        assert!(paper_alpha > 0.0);
+        assert_eq!(cem.energy_weight, paper_alpha);
+        let unpenalised = replan(
+            &dir,
+            PlannerOverrides {
+                energy_weight: Some(0.0),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(unpenalised.energy_weight, 0.0);
+        assert!(unpenalised.to_string().contains("(α 0,"), "{unpenalised}");
     }
 
     #[test]

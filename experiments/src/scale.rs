@@ -56,8 +56,10 @@ impl Scale {
 
     /// The preset overrides of this scale for `method` (a [`Method`] label) on `task`: none
     /// at the paper's scale for a preset, and for an `icem…` label the optimiser and its search
-    /// sizes ([`icem_search`], or `icem_population` candidates in the first iteration when it
-    /// is given: [`IcemSearch::with_population`]).
+    /// sizes ([`icem_search`]). `population`, when given, sizes every sampling search instead:
+    /// a CEM method's population (a tenth of it as elites, its iterations kept) or an iCEM
+    /// method's first iteration ([`IcemSearch::with_population`]); a gradient search
+    /// (`adam+dae`) has no population and keeps its own (the launcher refuses the pairing).
     ///
     /// The small scale shrinks a sampling search (CEM, iCEM) by its population and iterations;
     /// a gradient search (`adam+dae`: 16 candidates) is small already, so it keeps its
@@ -68,15 +70,15 @@ impl Scale {
         self,
         task: Builtin,
         method: &str,
-        icem_population: Option<u32>,
+        population: Option<u32>,
     ) -> Result<PlannerOverrides, PresetError> {
         let method = Method::parse(task, method)?;
         let mut o = self.learning_overrides(task, &method.preset)?;
+        let preset = Preset::new(task.task(), Some(&method.preset))?;
         if method.is_icem() {
-            let cem = Preset::new(task.task(), Some(&method.preset))?;
-            let mut searched = cem.clone();
+            let mut searched = preset.clone();
             searched.apply(&o)?;
-            let icem = match icem_population {
+            let icem = match population {
                 Some(population) => IcemSearch::with_population(population),
                 None => icem_search(searched.cem.population),
             };
@@ -84,6 +86,11 @@ impl Scale {
             o.population = Some(icem.population);
             o.elites = Some(icem.elites);
             o.cem_iterations = Some(icem.iterations);
+        } else if let Some(population) = population
+            && preset.cem.optimizer != Optimizer::Adam
+        {
+            o.population = Some(population);
+            o.elites = Some(elites_of(population));
         }
         Ok(o)
     }
@@ -185,10 +192,16 @@ impl IcemSearch {
     pub fn with_population(population: u32) -> IcemSearch {
         IcemSearch {
             population,
-            elites: (population / 10).max(2),
+            elites: elites_of(population),
             iterations: 3,
         }
     }
+}
+
+/// Elites of a sampling search of `population` candidates per iteration: a tenth, as in the
+/// paper's presets (500 and 50), at least 2.
+fn elites_of(population: u32) -> u32 {
+    (population / 10).max(2)
 }
 
 /// The `sim-bridge run` flags that send `o` as the run spec's overrides (regulariser and
@@ -233,7 +246,7 @@ mod tests {
     use planner_service::config::METHODS;
 
     #[test]
-    fn an_icem_population_replaces_the_default_search_of_icem_methods_only() {
+    fn a_population_sizes_every_sampling_search_and_leaves_adam_alone() {
         let task = Builtin::HalfCheetah;
         let icem = Scale::SmallLearning
             .overrides(task, "icem+deen", Some(250))
@@ -247,14 +260,31 @@ mod tests {
             .overrides(task, "icem+deen", None)
             .unwrap();
         assert_eq!(default.population, Some(150), "30 % of the paper's 500");
+        let cem = Scale::SmallLearning
+            .overrides(task, "cem+deen", Some(250))
+            .unwrap();
+        assert_eq!(
+            (
+                cem.optimizer,
+                cem.population,
+                cem.elites,
+                cem.cem_iterations
+            ),
+            (None, Some(250), Some(25), None),
+            "CEM keeps its optimiser and iterations"
+        );
+        let default = Scale::SmallLearning
+            .overrides(task, "cem+deen", None)
+            .unwrap();
+        assert_eq!(default.population, None, "the paper's search");
         assert_eq!(
             Scale::SmallLearning
-                .overrides(task, "cem+deen", Some(250))
+                .overrides(task, "adam+dae", Some(250))
                 .unwrap(),
             Scale::SmallLearning
-                .overrides(task, "cem+deen", None)
+                .overrides(task, "adam+dae", None)
                 .unwrap(),
-            "a CEM method keeps its search"
+            "a gradient search keeps its candidates"
         );
         assert_eq!(
             IcemSearch::with_population(12).elites,
