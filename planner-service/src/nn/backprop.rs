@@ -312,7 +312,14 @@ mod tests {
             let ld = tape.ld();
             let mut grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
                 let k = cols.len();
-                transpose(&x[cols.start * 5..cols.end * 5], k, 5, 5, tape.input_mut(), ld);
+                transpose(
+                    &x[cols.start * 5..cols.end * 5],
+                    k,
+                    5,
+                    5,
+                    tape.input_mut(),
+                    ld,
+                );
                 mlp.forward_train(&mut tape, k);
                 let (_, out_grad) = tape.output_and_grad_mut();
                 transpose(&c[cols.start * 3..cols.end * 3], k, 3, 3, out_grad, ld);

@@ -323,7 +323,14 @@ mod tests {
             let ld = tape.ld();
             let mut grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
                 let k = cols.len();
-                transpose(&y[cols.start * d..cols.end * d], k, d, d, tape.input_mut(), ld);
+                transpose(
+                    &y[cols.start * d..cols.end * d],
+                    k,
+                    d,
+                    d,
+                    tape.input_mut(),
+                    ld,
+                );
                 mlp.input_gradient_train(&mut tape, k);
                 let (_, _, v_in) = tape.input_score_and_grad_mut();
                 transpose(&v[cols.start * d..cols.end * d], k, d, d, v_in, ld);
