@@ -296,9 +296,10 @@ mod tests {
 
     /// The gradient of a batch is the sum of its samples' gradients, within float rounding
     /// (1e-6 of the terms' magnitude). The batch is a partial one on a tape that ran a fuller
-    /// batch before, as a trainer reuses its tape; the output layer's bias gradient is also
-    /// checked against the row sums of the output gradient. A bias row of the fused weight and
-    /// bias product that is missing, stale or misplaced fails one of the two.
+    /// batch before, as a trainer reuses its tape. The output layer's bias gradient is also
+    /// checked against the row sums of the output gradient, and the first layer's against the
+    /// gradient of the weights of an input that is 1 in every sample. A bias row of the fused
+    /// weight and bias product that is missing, scaled, stale or misplaced fails one of these.
     #[test]
     fn a_batch_gradient_is_the_sum_of_its_samples_gradients() {
         let mut rng = StdRng::seed_from_u64(11);
@@ -306,7 +307,14 @@ mod tests {
         for act in [Activation::Swish, Activation::Softplus] {
             let mlp = Mlp::new(&sizes, act, &mut rng);
             let (all, batch) = (20, 7);
-            let x: Vec<f32> = (0..all * 5).map(|_| rng.random_range(-2.0..2.0)).collect();
+            // Input feature 0 is 1 for every sample: its weights' gradient is the first
+            // layer's bias gradient.
+            let x: Vec<f32> = (0..all * 5)
+                .map(|i| match i % 5 {
+                    0 => 1.0,
+                    _ => rng.random_range(-2.0..2.0),
+                })
+                .collect();
             let c: Vec<f32> = (0..all * 3).map(|_| rng.random_range(-1.0..1.0)).collect();
             let mut tape = Tape::new(&mlp, all);
             let ld = tape.ld();
@@ -345,6 +353,12 @@ mod tests {
                     batch_grads[j],
                     sum[j]
                 );
+            }
+            let constant_input_row = &batch_grads[mlp.weight_range(0)][..sizes[1]];
+            let first_bias = &batch_grads[mlp.bias_range(0)];
+            let scale = first_bias.iter().fold(0.0f32, |m, b| m.max(b.abs()));
+            for (w, b) in constant_input_row.iter().zip(first_bias) {
+                assert!((w - b).abs() <= 1e-6 * scale, "{act:?}: {w} ≠ {b}");
             }
             for (k, &b) in batch_grads[mlp.bias_range(2)].iter().enumerate() {
                 let terms = (0..batch).map(|i| c[i * 3 + k] as f64);

@@ -307,9 +307,10 @@ mod tests {
 
     /// The double backprop's gradient of a batch is the sum of its samples' gradients within
     /// float rounding (1e-6 of the terms' magnitude), for a partial batch on a tape that ran a
-    /// fuller one before: `⟨s, v⟩` is a sum over samples. Each one-sample pass has a single term
-    /// per bias, so a bias row of the fused weight and bias product that is missing, stale or
-    /// misplaced shows.
+    /// fuller one before: `⟨s, v⟩` is a sum over samples. The first layer's bias gradient is
+    /// also checked against the gradient of the weights of an input that is 1 with no tangent
+    /// in every sample: a bias row of the fused weight and bias product that is missing,
+    /// scaled, stale or misplaced fails one of these.
     #[test]
     fn a_batch_gradient_is_the_sum_of_its_samples_gradients() {
         let mut rng = StdRng::seed_from_u64(12);
@@ -317,8 +318,20 @@ mod tests {
         for act in [Activation::Softplus, Activation::Swish] {
             let mlp = Mlp::new(&sizes, act, &mut rng);
             let (all, batch, d) = (20, 6, 4);
-            let y: Vec<f32> = (0..all * d).map(|_| rng.random_range(-2.0..2.0)).collect();
-            let v: Vec<f32> = (0..all * d).map(|_| rng.random_range(-1.0..1.0)).collect();
+            // Input feature 0 is 1 with no tangent (`v = 0`) in every sample: the gradient of
+            // its weights, `ḣ₀ δ₁ᵀ + h₀ δ̇₁ᵀ = δ̇₁ᵀ`, is the first layer's bias gradient.
+            let y: Vec<f32> = (0..all * d)
+                .map(|i| match i % d {
+                    0 => 1.0,
+                    _ => rng.random_range(-2.0..2.0),
+                })
+                .collect();
+            let v: Vec<f32> = (0..all * d)
+                .map(|i| match i % d {
+                    0 => 0.0,
+                    _ => rng.random_range(-1.0..1.0),
+                })
+                .collect();
             let mut tape = InputGradTape::new(&mlp, all);
             let ld = tape.ld();
             let mut grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
@@ -357,8 +370,13 @@ mod tests {
                     sum[j]
                 );
             }
-            let hidden_bias = mlp.bias_range(1);
-            assert!(batch_grads[hidden_bias].iter().any(|&b| b != 0.0));
+            let constant_input_row = &batch_grads[mlp.weight_range(0)][..sizes[1]];
+            let first_bias = &batch_grads[mlp.bias_range(0)];
+            assert!(first_bias.iter().any(|&b| b != 0.0));
+            let scale = first_bias.iter().fold(0.0f32, |m, b| m.max(b.abs()));
+            for (w, b) in constant_input_row.iter().zip(first_bias) {
+                assert!((w - b).abs() <= 1e-6 * scale, "{act:?}: {w} ≠ {b}");
+            }
         }
     }
 
