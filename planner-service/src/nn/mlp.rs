@@ -220,6 +220,13 @@ impl Mlp {
         w.end..w.end + self.sizes[l + 1]
     }
 
+    /// Where layer `l`'s weights and biases sit together in [`Mlp::params`]: a row-major
+    /// `(sizes[l] + 1) × sizes[l + 1]` matrix whose last row is the biases. The training passes
+    /// write a layer's whole gradient as this one block (see [`crate::nn::backprop`]).
+    pub fn layer_range(&self, l: usize) -> Range<usize> {
+        self.weight_range(l).start..self.bias_range(l).end
+    }
+
     /// Layer `l`'s weights, row-major `sizes[l] × sizes[l + 1]`.
     pub fn weight(&self, l: usize) -> &[f32] {
         &self.params[self.weight_range(l)]
