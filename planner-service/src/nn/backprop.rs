@@ -318,7 +318,7 @@ mod tests {
             let c: Vec<f32> = (0..all * 3).map(|_| rng.random_range(-1.0..1.0)).collect();
             let mut tape = Tape::new(&mlp, all);
             let ld = tape.ld();
-            let mut grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
+            let grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
                 let k = cols.len();
                 transpose(
                     &x[cols.start * 5..cols.end * 5],
@@ -335,31 +335,14 @@ mod tests {
                 mlp.backward(&mut tape, &mut grads, false);
                 grads
             };
-            grads_of(0..all);
-            let batch_grads = grads_of(0..batch);
-            let n = batch_grads.len();
-            let (mut sum, mut magnitude) = (vec![0.0f64; n], vec![0.0f64; n]);
-            for i in 0..batch {
-                for (j, g) in grads_of(i..i + 1).into_iter().enumerate() {
-                    sum[j] += g as f64;
-                    magnitude[j] += (g as f64).abs();
-                }
-            }
-            for j in 0..n {
-                let err = (batch_grads[j] as f64 - sum[j]).abs();
-                assert!(
-                    err <= 1e-6 * magnitude[j],
-                    "{act:?} parameter {j}: batch {} against the samples' sum {}",
-                    batch_grads[j],
-                    sum[j]
-                );
-            }
-            let constant_input_row = &batch_grads[mlp.weight_range(0)][..sizes[1]];
-            let first_bias = &batch_grads[mlp.bias_range(0)];
-            let scale = first_bias.iter().fold(0.0f32, |m, b| m.max(b.abs()));
-            for (w, b) in constant_input_row.iter().zip(first_bias) {
-                assert!((w - b).abs() <= 1e-6 * scale, "{act:?}: {w} ≠ {b}");
-            }
+            let what = format!("{act:?}");
+            let batch_grads = reference::assert_batch_gradient_sums_its_samples(
+                &mlp,
+                sizes[1],
+                (all, batch),
+                &what,
+                grads_of,
+            );
             for (k, &b) in batch_grads[mlp.bias_range(2)].iter().enumerate() {
                 let terms = (0..batch).map(|i| c[i * 3 + k] as f64);
                 let (want, size) = terms.fold((0.0, 0.0), |(s, a), t| (s + t, a + t.abs()));

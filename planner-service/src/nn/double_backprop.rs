@@ -334,7 +334,7 @@ mod tests {
                 .collect();
             let mut tape = InputGradTape::new(&mlp, all);
             let ld = tape.ld();
-            let mut grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
+            let grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
                 let k = cols.len();
                 transpose(
                     &y[cols.start * d..cols.end * d],
@@ -351,32 +351,14 @@ mod tests {
                 mlp.input_gradient_backward(&mut tape, &mut grads);
                 grads
             };
-            grads_of(0..all);
-            let batch_grads = grads_of(0..batch);
-            let n = batch_grads.len();
-            let (mut sum, mut magnitude) = (vec![0.0f64; n], vec![0.0f64; n]);
-            for i in 0..batch {
-                for (j, g) in grads_of(i..i + 1).into_iter().enumerate() {
-                    sum[j] += g as f64;
-                    magnitude[j] += (g as f64).abs();
-                }
-            }
-            for j in 0..n {
-                let err = (batch_grads[j] as f64 - sum[j]).abs();
-                assert!(
-                    err <= 1e-6 * magnitude[j],
-                    "{act:?} parameter {j}: batch {} against the samples' sum {}",
-                    batch_grads[j],
-                    sum[j]
-                );
-            }
-            let constant_input_row = &batch_grads[mlp.weight_range(0)][..sizes[1]];
-            let first_bias = &batch_grads[mlp.bias_range(0)];
-            assert!(first_bias.iter().any(|&b| b != 0.0));
-            let scale = first_bias.iter().fold(0.0f32, |m, b| m.max(b.abs()));
-            for (w, b) in constant_input_row.iter().zip(first_bias) {
-                assert!((w - b).abs() <= 1e-6 * scale, "{act:?}: {w} ≠ {b}");
-            }
+            let what = format!("{act:?}");
+            reference::assert_batch_gradient_sums_its_samples(
+                &mlp,
+                sizes[1],
+                (all, batch),
+                &what,
+                grads_of,
+            );
         }
     }
 

@@ -143,3 +143,49 @@ fn reference_input_gradient_matches_finite_differences() {
         assert_close(&g, &fd, 1e-6, "reference input gradient");
     }
 }
+
+/// Checks a batch gradient against its samples: `grads_of(cols)` runs the pass on the samples
+/// `cols` of a reused tape and returns the parameters' gradient. After a pass over `0..all` (as
+/// a trainer reuses its tape), the gradient of the partial batch `0..batch` must be the sum of
+/// its samples' gradients within 1e-6 of the terms' magnitude, and the first layer's bias
+/// gradient must equal the gradient of the weights of input 0, which the caller sets to 1 in
+/// every sample (`first_width`: the first layer's output count). Returns the batch's gradient
+/// for the caller's own checks.
+pub fn assert_batch_gradient_sums_its_samples(
+    mlp: &super::mlp::Mlp,
+    first_width: usize,
+    (all, batch): (usize, usize),
+    what: &str,
+    mut grads_of: impl FnMut(std::ops::Range<usize>) -> Vec<f32>,
+) -> Vec<f32> {
+    grads_of(0..all);
+    let batch_grads = grads_of(0..batch);
+    let n = batch_grads.len();
+    let (mut sum, mut magnitude) = (vec![0.0f64; n], vec![0.0f64; n]);
+    for i in 0..batch {
+        for (j, g) in grads_of(i..i + 1).into_iter().enumerate() {
+            sum[j] += g as f64;
+            magnitude[j] += (g as f64).abs();
+        }
+    }
+    for j in 0..n {
+        let err = (batch_grads[j] as f64 - sum[j]).abs();
+        assert!(
+            err <= 1e-6 * magnitude[j],
+            "{what} parameter {j}: batch {} against the samples' sum {}",
+            batch_grads[j],
+            sum[j]
+        );
+    }
+    let constant_input_row = &batch_grads[mlp.weight_range(0)][..first_width];
+    let first_bias = &batch_grads[mlp.bias_range(0)];
+    assert!(
+        first_bias.iter().any(|&b| b != 0.0),
+        "{what}: no bias gradient"
+    );
+    let scale = first_bias.iter().fold(0.0f32, |m, b| m.max(b.abs()));
+    for (w, b) in constant_input_row.iter().zip(first_bias) {
+        assert!((w - b).abs() <= 1e-6 * scale, "{what}: {w} ≠ {b}");
+    }
+    batch_grads
+}
