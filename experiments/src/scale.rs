@@ -74,9 +74,8 @@ impl Scale {
     ) -> Result<PlannerOverrides, PresetError> {
         let method = Method::parse(task, method)?;
         let mut o = self.learning_overrides(task, &method.preset)?;
-        let preset = Preset::new(task.task(), Some(&method.preset))?;
         if method.is_icem() {
-            let mut searched = preset.clone();
+            let mut searched = Preset::new(task.task(), Some(&method.preset))?;
             searched.apply(&o)?;
             let icem = match population {
                 Some(population) => IcemSearch::with_population(population),
@@ -87,7 +86,7 @@ impl Scale {
             o.elites = Some(icem.elites);
             o.cem_iterations = Some(icem.iterations);
         } else if let Some(population) = population
-            && preset.cem.optimizer != Optimizer::Adam
+            && method.optimizer != Optimizer::Adam
         {
             o.population = Some(population);
             o.elites = Some(elites_of(population));
