@@ -157,7 +157,7 @@ mod avx512 {
     }
 
     /// One pass of `f` over `z`, 16 lanes at a time, the last block masked. Generic over `f`
-    /// (a function item) and inlined, so that each activation gets a loop of its own.
+    /// (a closure of [`apply_d2`]) and inlined, so that each activation gets a loop of its own.
     #[inline]
     #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
     fn map(
