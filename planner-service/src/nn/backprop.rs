@@ -338,7 +338,6 @@ mod tests {
             let what = format!("{act:?}");
             let batch_grads = reference::assert_batch_gradient_sums_its_samples(
                 &mlp,
-                sizes[1],
                 (all, batch),
                 &what,
                 grads_of,

@@ -352,13 +352,7 @@ mod tests {
                 grads
             };
             let what = format!("{act:?}");
-            reference::assert_batch_gradient_sums_its_samples(
-                &mlp,
-                sizes[1],
-                (all, batch),
-                &what,
-                grads_of,
-            );
+            reference::assert_batch_gradient_sums_its_samples(&mlp, (all, batch), &what, grads_of);
         }
     }
 

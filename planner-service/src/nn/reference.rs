@@ -149,11 +149,9 @@ fn reference_input_gradient_matches_finite_differences() {
 /// a trainer reuses its tape), the gradient of the partial batch `0..batch` must be the sum of
 /// its samples' gradients within 1e-6 of the terms' magnitude, and the first layer's bias
 /// gradient must equal the gradient of the weights of input 0, which the caller sets to 1 in
-/// every sample (`first_width`: the first layer's output count). Returns the batch's gradient
-/// for the caller's own checks.
+/// every sample. Returns the batch's gradient for the caller's own checks.
 pub fn assert_batch_gradient_sums_its_samples(
     mlp: &super::mlp::Mlp,
-    first_width: usize,
     (all, batch): (usize, usize),
     what: &str,
     mut grads_of: impl FnMut(std::ops::Range<usize>) -> Vec<f32>,
@@ -177,7 +175,7 @@ pub fn assert_batch_gradient_sums_its_samples(
             sum[j]
         );
     }
-    let constant_input_row = &batch_grads[mlp.weight_range(0)][..first_width];
+    let constant_input_row = &batch_grads[mlp.weight_range(0)][..mlp.sizes()[1]];
     let first_bias = &batch_grads[mlp.bias_range(0)];
     assert!(
         first_bias.iter().any(|&b| b != 0.0),
