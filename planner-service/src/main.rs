@@ -53,6 +53,12 @@ struct ServeArgs {
     /// Directory for replay buffers and models.
     #[arg(long, env = "EBMPC_DATA_DIR")]
     data_dir: Option<PathBuf>,
+    /// Stop (as on SIGTERM) when standard input reaches its end. A parent that starts the
+    /// daemon with a pipe on its standard input and keeps the write end open keeps the daemon
+    /// no longer than itself: the kernel closes that end when the parent exits, also when it
+    /// is killed with SIGKILL (the Python package's `Planner.local` does this).
+    #[arg(long)]
+    exit_on_stdin_close: bool,
 }
 
 impl ServeArgs {
@@ -84,15 +90,57 @@ impl ServeArgs {
 /// How long blocking work (a plan in progress) may delay the exit after the service stopped.
 const SHUTDOWN_BLOCKING_GRACE: std::time::Duration = std::time::Duration::from_secs(2);
 
-/// Resolves when the process is asked to stop (SIGINT or SIGTERM).
-async fn shutdown_signal() {
-    match proto::shutdown::shutdown_signal().await {
-        Ok(signal) => tracing::info!("{signal} received"),
-        Err(e) => {
-            tracing::error!(error = %e, "cannot listen for stop signals; stop with SIGKILL");
+/// Resolves when the process is asked to stop (SIGINT or SIGTERM), or, with
+/// `exit_on_stdin_close`, when standard input reaches its end.
+async fn shutdown_signal(exit_on_stdin_close: bool) {
+    let signal = async {
+        match proto::shutdown::shutdown_signal().await {
+            Ok(signal) => tracing::info!("{signal} received"),
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for stop signals; stop with SIGKILL");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    let stdin_closed = async {
+        if exit_on_stdin_close {
+            stdin_closed().await;
+            tracing::info!("standard input closed: the parent process is gone");
+        } else {
             std::future::pending::<()>().await;
         }
+    };
+    tokio::select! {
+        () = signal => {}
+        () = stdin_closed => {}
     }
+}
+
+/// Resolves once standard input reaches its end (or cannot be read): the process that held
+/// the write end of its pipe closed it or died. Whatever is written is read and dropped. The
+/// blocking read runs on a thread of its own, which the process's exit ends.
+async fn stdin_closed() {
+    let (closed, on_close) = tokio::sync::oneshot::channel::<()>();
+    let spawned = std::thread::Builder::new()
+        .name("stdin-watch".into())
+        .spawn(move || {
+            let mut buf = [0u8; 256];
+            let mut stdin = std::io::stdin().lock();
+            loop {
+                match std::io::Read::read(&mut stdin, &mut buf) {
+                    Ok(0) => break,
+                    Err(e) if e.kind() != std::io::ErrorKind::Interrupted => break,
+                    Ok(_) | Err(_) => {}
+                }
+            }
+            let _ = closed.send(());
+        });
+    if let Err(e) = spawned {
+        tracing::error!(error = %e, "cannot watch standard input; stop with SIGTERM");
+        std::future::pending::<()>().await;
+    }
+    // A dropped sender (the thread ended) means the same as a sent value.
+    let _ = on_close.await;
 }
 
 fn main() -> Result<()> {
@@ -105,12 +153,14 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Serve(args) => {
+            let exit_on_stdin_close = args.exit_on_stdin_close;
             let config = args.into_config()?;
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
                 .build()
                 .context("tokio runtime")?;
-            let served = runtime.block_on(Service::serve(config, shutdown_signal()));
+            let served =
+                runtime.block_on(Service::serve(config, shutdown_signal(exit_on_stdin_close)));
             // A plan still running on the blocking pool (its worker was abandoned) must not
             // hold the exit: the replay logs are already synced.
             runtime.shutdown_timeout(SHUTDOWN_BLOCKING_GRACE);

@@ -5,7 +5,7 @@ an action at every step::
 
     from ebmpc import Planner
 
-    with Planner(connect="tcp/127.0.0.1:7447") as planner:
+    with Planner.local() as planner:                  # or Planner(connect="tcp/host:7447")
         agent = planner.attach("my-run", "cartpole", overrides={"population": 100})
         obs = env.reset()
         action = agent.act(obs)                       # the first step of an episode
@@ -15,12 +15,15 @@ an action at every step::
         obs, reward = env.step(action)
         agent.end(obs, reward, "time_limit")          # stored: the planner retrains
 
+``Planner.local()`` starts the ``planner-service`` installed with this package on a free loopback
+port (runs under :func:`ebmpc.local.default_data_dir`) and stops it with the ``with`` block.
 Errors the planner reports raise the :class:`PlannerError` subclass of their code.
 """
 
 from .agent import Agent
 from .errors import (
     ActionTimeout,
+    DataDirLockedError,
     DimensionError,
     EbmpcError,
     EventTimeout,
@@ -32,6 +35,9 @@ from .errors import (
     OutOfOrderError,
     OutOfRangeError,
     PlannerError,
+    PlannerNotFoundError,
+    PlannerStartError,
+    PortInUseError,
     ProtocolError,
     ProtocolVersionError,
     RefusedError,
@@ -55,6 +61,7 @@ __all__ = [
     "PROTOCOL_VERSION",
     "ActionTimeout",
     "Agent",
+    "DataDirLockedError",
     "DimensionError",
     "EbmpcError",
     "EpisodeEnd",
@@ -70,6 +77,9 @@ __all__ = [
     "OutOfRangeError",
     "Planner",
     "PlannerError",
+    "PlannerNotFoundError",
+    "PlannerStartError",
+    "PortInUseError",
     "ProtocolError",
     "ProtocolVersionError",
     "RefusedError",

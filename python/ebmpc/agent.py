@@ -71,6 +71,8 @@ class Agent:
         self.step: Optional[int] = None  # the last step sent in the episode in progress
         self.last_stats: Mapping[str, Any] = {}
         self._last_sent: Optional[bytes] = None
+        # (the step before, the step) of an observation submitted whose action is not collected.
+        self._pending: Optional[Tuple[Optional[int], int]] = None
         self._inbox: queue.Queue[Tuple[str, Any]] = queue.Queue()
         # Everything is declared before attaching, so no answer can arrive before we listen.
         self._token = session.liveliness().declare_token(keys.agent_alive(run, name))
@@ -193,7 +195,23 @@ class Agent:
         (clipped by the robot, overridden by a safety layer); the planner learns from that one.
         ``timeout``: seconds to wait for the action (default: ``train_timeout`` at step 0,
         where sync mode waits for retraining, ``action_timeout`` after).
+
+        :meth:`submit` and :meth:`result` are its two halves, for a caller that sends several
+        agents' observations before it waits for their actions (a vector environment).
         """
+        self.submit(obs, reward, applied)
+        return self.result(timeout)
+
+    def submit(
+        self,
+        obs: Sequence[float],
+        reward: Optional[float] = None,
+        applied: Optional[Sequence[float]] = None,
+    ) -> None:
+        """Sends an observation as :meth:`act` does, without waiting for its action: collect
+        that with :meth:`result` before the next :meth:`submit` or :meth:`end`."""
+        if self._pending is not None:
+            raise ValueError("the last observation's action was not collected: call result()")
         if self.step is None:
             if reward is not None or applied is not None:
                 raise ValueError("the first step of an episode has no reward and no applied action")
@@ -203,16 +221,27 @@ class Agent:
                 raise ValueError("every step after the first needs the reward of the last action")
             step = self.step + 1
         self._send(wire.observation(self.episode, step, obs, self.session, reward, None, applied))
-        previous, self.step = self.step, step
+        self._pending = (self.step, step)
+        self.step = step
+
+    def result(self, timeout: Optional[float] = None) -> List[float]:
+        """The planner's action for the observation of the last :meth:`submit` (``timeout``
+        as in :meth:`act`)."""
+        if self._pending is None:
+            raise ValueError("no observation awaits its action: call submit() first")
+        previous, step = self._pending
         wait = timeout if timeout is not None else (
             self.train_timeout if step == 0 else self.action_timeout
         )
         try:
-            return self._action(self.episode, step, wait)
+            action = self._action(self.episode, step, wait)
         except PlannerError:
             # The planner used nothing of a refused observation: the step can be sent again.
             self.step = previous
             raise
+        finally:
+            self._pending = None
+        return action
 
     def end(
         self,
@@ -234,6 +263,8 @@ class Agent:
         """
         if self.step is None:
             raise ValueError("no episode in progress: call act() for its first step")
+        if self._pending is not None:
+            raise ValueError("the last observation's action was not collected: call result()")
         episode, step = self.episode, self.step + 1
         self._send(wire.observation(episode, step, obs, self.session, reward, kind, applied))
         self.step = None

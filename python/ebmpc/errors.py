@@ -174,3 +174,25 @@ class EventTimeout(EbmpcError, TimeoutError):
 
 class ProtocolError(EbmpcError):
     """Something arrived from the planner that is not a valid message of this protocol."""
+
+
+class PlannerNotFoundError(EbmpcError):
+    """No ``planner-service`` binary to start a local planner with (see
+    :func:`ebmpc.local.find_planner_binary`)."""
+
+
+class PlannerStartError(EbmpcError):
+    """A local planner did not come up: it exited at start, or did not serve in time.
+    ``log_tail`` holds the last lines of its log (also in the message)."""
+
+    def __init__(self, message: str, log_tail: str) -> None:
+        self.log_tail = log_tail
+        super().__init__(f"{message}\n{log_tail}" if log_tail else message)
+
+
+class PortInUseError(PlannerStartError):
+    """The port a local planner was to listen on is taken."""
+
+
+class DataDirLockedError(PlannerStartError):
+    """Another planner serves the data directory a local planner was to use."""

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import json
+import os
+import time
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
 import zenoh
 
 from . import wire
 from .agent import Agent
-from .errors import NoPlannerError, ProtocolError
+from .errors import NoPlannerError, PlannerStartError, ProtocolError
 from .events import RunEvents
+from .local import LocalDaemon
 
 #: Where a planner listens when nothing else is said (``planner-service serve``'s default).
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -48,7 +51,80 @@ class Planner:
         self.attach_timeout = attach_timeout
         self.action_timeout = action_timeout
         self.train_timeout = train_timeout
+        #: The daemon this planner started (:meth:`local`), stopped by :meth:`close`.
+        self.daemon: Optional[LocalDaemon] = None
         self._session = zenoh.open(config)
+
+    @classmethod
+    def local(
+        cls,
+        data_dir: Union[str, "os.PathLike[str]", None] = None,
+        *,
+        port: Optional[int] = None,
+        binary: Union[str, "os.PathLike[str]", None] = None,
+        startup_timeout: float = 60.0,
+        stop_timeout: float = 30.0,
+        attach_timeout: float = 60.0,
+        action_timeout: float = 60.0,
+        train_timeout: float = 600.0,
+    ) -> Planner:
+        """A planner daemon of this machine, started for this Python process, and a session
+        to it: the ``planner-service`` installed with this package (or ``binary``) serving
+        ``data_dir`` (default :func:`ebmpc.local.default_data_dir`, the per-user data
+        directory, so a later start resumes the runs) on a free loopback port (or ``port``),
+        multicast scouting off. It returns once the daemon answers a status query.
+
+        :meth:`close` (or the end of a ``with`` block) stops it (SIGTERM, then SIGKILL after
+        ``stop_timeout`` seconds); it also stops by itself when this process ends in any way,
+        SIGKILL included. Raises :class:`~ebmpc.PlannerNotFoundError`,
+        :class:`~ebmpc.PortInUseError`, :class:`~ebmpc.DataDirLockedError` (another planner
+        serves ``data_dir``) or :class:`~ebmpc.PlannerStartError` (it exited at start: the
+        last lines of its log are in the message). The timeouts are :class:`Planner`'s.
+        """
+        daemon = LocalDaemon(
+            data_dir,
+            port=port,
+            binary=binary,
+            startup_timeout=startup_timeout,
+            stop_timeout=stop_timeout,
+        )
+        planner: Optional[Planner] = None
+        try:
+            planner = cls(
+                daemon.endpoint,
+                attach_timeout=attach_timeout,
+                action_timeout=action_timeout,
+                train_timeout=train_timeout,
+            )
+            planner.daemon = daemon
+            planner._wait_until_answering(startup_timeout)
+        except BaseException:
+            if planner is not None:
+                planner.close()  # stops the daemon too
+            else:
+                daemon.stop()
+            raise
+        return planner
+
+    def _wait_until_answering(self, timeout: float) -> None:
+        """Asks the local daemon for its status until it answers (the session may still be
+        connecting), raising its start error if it exits meanwhile."""
+        assert self.daemon is not None
+        deadline = time.monotonic() + timeout
+        while True:
+            if not self.daemon.running:
+                raise self.daemon._start_error(
+                    f"the planner exited with status {self.daemon.process.returncode} at start"
+                )
+            try:
+                self.status(self.daemon.planner_id, timeout=1.0)
+                return
+            except NoPlannerError:
+                if time.monotonic() > deadline:
+                    raise PlannerStartError(
+                        f"the local planner did not answer within {timeout:g} s",
+                        self.daemon.log_tail(),
+                    ) from None
 
     def attach(
         self,
@@ -111,8 +187,13 @@ class Planner:
         return sorted(reports, key=lambda r: str(r.get("planner_id")))
 
     def close(self) -> None:
-        """Closes the Zenoh session (agents attached through it go with it)."""
-        self._session.close()
+        """Closes the Zenoh session (agents attached through it go with it), and stops the
+        daemon of :meth:`local`."""
+        try:
+            self._session.close()
+        finally:
+            if self.daemon is not None:
+                self.daemon.stop()
 
     def __enter__(self) -> Planner:
         return self

@@ -51,6 +51,7 @@ class ScriptedAgent:
         self.ended: List[Tuple[List[float], float, str]] = []
         self.last_stats = {"source": "planned"}
         self.models_version = 3
+        self.name = "gym-0"
 
     def act(self, obs: List[float], reward: Optional[float] = None) -> List[float]:
         self.sent.append((obs, reward))
@@ -118,3 +119,52 @@ def test_a_refused_formula_exits_with_the_planners_code(
     err = capsys.readouterr().err
     assert status == driver.EXIT_STATUS["refused"], err
     assert "refused" in err and "s_next[7]" in err
+
+
+TINY = {
+    "dynamics_hidden_layers": 2, "dynamics_hidden_size": 16, "dynamics_epochs": 3,
+    "energy_hidden_layers": 2, "energy_hidden_size": 16, "energy_epochs": 3,
+    "population": 20, "elites": 4, "horizon": 5, "cem_iterations": 2,
+    "exploration_episodes": 1,
+}
+
+
+def test_learn_drives_a_vector_env_as_agents_of_one_run_and_resumes_it(daemon: Daemon) -> None:
+    import ebmpc
+
+    with ebmpc.Planner(connect=daemon.endpoint) as planner:
+        first = driver.learn(
+            "Pendulum-v1", 3, overrides=TINY, planner=planner, num_envs=2, progress=False,
+        )
+        # Pendulum's episodes all last 200 steps: the two copies end together, then one more.
+        assert sorted((r.agent, r.episode) for r in first) == [
+            ("gym-0", 0), ("gym-0", 1), ("gym-1", 0)]
+        assert all(r.steps == 200 and r.end == "time_limit" for r in first)
+        (report,) = planner.status()
+        (run,) = [r for r in report["runs"] if r["name"] == "Pendulum-v1"]
+        assert (run["episodes"], run["transitions"]) == (3, 600), report
+        # The run is named after the environment: learning it again continues it.
+        again = driver.learn("Pendulum-v1", 1, overrides=TINY, planner=planner, progress=False)
+        assert [(r.agent, r.episode, r.planned) for r in again] == [("gym-0", 2, 200)]
+
+
+def test_the_progress_line_counts_episodes_steps_and_returns() -> None:
+    import io
+
+    from ebmpc.progress import Progress
+
+    out, lines = io.StringIO(), io.StringIO()
+    with Progress(4, stream=out, enabled=True) as bar:
+        bar.step(30)
+        bar.episode(-12.5)
+        with bar.paused():
+            print("episode 0: ...", file=lines)
+        bar.step(10)
+        bar.episode(-3.0)
+        assert bar.line().startswith("[##########----------] 2/4 episodes | 40 steps | "
+                                     "return -3.0 (best -3.0)")
+    assert "2/4 episodes" in out.getvalue() and lines.getvalue() == "episode 0: ...\n"
+    quiet = io.StringIO()
+    with Progress(1, stream=quiet) as bar:  # not a terminal: draws nothing
+        bar.episode(1.0)
+    assert quiet.getvalue() == ""
