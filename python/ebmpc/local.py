@@ -1,8 +1,8 @@
 """A planner daemon of this machine, started and stopped by the package itself.
 
 The wheel of this package carries the ``planner-service`` binary (built from the Rust workspace
-by maturin, as ruff and uv ship theirs) in the environment's scripts directory, beside an
-``ebmpc-planner`` command that runs it. :class:`LocalDaemon` starts it on a free loopback port
+by maturin, as ruff and uv ship theirs) in the environment's scripts directory (on ``PATH``
+in an activated venv). :class:`LocalDaemon` starts it on a free loopback port
 with multicast scouting off (every ebmpc process has it off), waits until it serves, and stops
 it with SIGTERM and a bounded wait. The daemon never outlives the Python process that started
 it: it is started with ``--exit-on-stdin-close`` and a pipe on its standard input whose write
@@ -286,17 +286,3 @@ class LocalDaemon:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    """``ebmpc-planner``: the bundled ``planner-service`` with the given arguments
-    (``ebmpc-planner serve --listen tcp/127.0.0.1:7447``, ``ebmpc-planner --help``)."""
-    args = list(sys.argv[1:] if argv is None else argv)
-    try:
-        binary = find_planner_binary()
-    except PlannerNotFoundError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 127
-    if sys.platform == "win32":
-        return subprocess.call([str(binary), *args])
-    os.execv(binary, [str(binary), *args])

@@ -168,3 +168,18 @@ def test_the_progress_line_counts_episodes_steps_and_returns() -> None:
     with Progress(1, stream=quiet) as bar:  # not a terminal: draws nothing
         bar.episode(1.0)
     assert quiet.getvalue() == ""
+
+
+def test_the_command_drives_num_envs_copies_and_names_each_episodes_agent(
+    daemon: Daemon, capsys: pytest.CaptureFixture[str]
+) -> None:
+    overrides = [arg for key, value in TINY.items() for arg in ("--override", f"{key}={value}")]
+    status = driver.main([
+        "--env", "Pendulum-v1", "--episodes", "2", "--num-envs", "2", "--run", "cli-vector",
+        "--connect", daemon.endpoint, *overrides,
+    ])
+    out = capsys.readouterr()
+    assert status == 0, out.err
+    lines = sorted(line.split(":")[0] for line in out.out.splitlines())
+    assert lines == ["gym-0 episode 0", "gym-1 episode 0"], out.out
+    assert out.err == "", "no progress line where stderr is not a terminal"

@@ -1,9 +1,12 @@
 //! The Gymnasium driver (`python -m ebmpc.gym`) against this build's planner daemon: a planner
 //! that knows nothing of an environment but what the driver derives from its spaces learns it.
 //!
-//! - `InvertedPendulum-v5` (MuJoCo, through the PyPI `mujoco` wheel): Gymnasium's termination
-//!   rule and a centred alive bonus as formulas; the pole balances for the whole 1,000-step
-//!   episode within 8 episodes and keeps balancing. (It was 5 until the bf16 first layer
+//! - `InvertedPendulum-v5` (MuJoCo, through the PyPI `mujoco` wheel), as a Python user runs it:
+//!   `pip install './python[gym]'` in a clean venv (the wheel bundles the planner), then
+//!   `python -m ebmpc.gym` with no planner given, which starts the bundled one by itself.
+//!   Gymnasium's termination rule and a centred alive bonus as formulas; the pole balances
+//!   for the whole 1,000-step episode within 8 episodes and keeps balancing, and the same
+//!   command again resumes the run from the per-user data directory. (It was 5 until the bf16 first layer
 //!   changed the plans' rounding: the same run then balanced from its sixth episode on, and an
 //!   f32 run of the same seed had not balanced by its fifth. Where within a few episodes a
 //!   learner crosses over depends on every rounding; that it crosses and stays is the claim.)
@@ -16,8 +19,9 @@
 //! Gymnasium and MuJoCo into it (the package's `gym` extra). Without them these tests fail:
 //! they never skip.
 
-use ebmpc_e2e::python::run_gym_driver;
+use ebmpc_e2e::python::{install_package_in_clean_venv, run_gym_driver};
 use ebmpc_e2e::{Planner, TempDir};
+use std::process::Command;
 use std::time::Duration;
 
 /// A planner with no task of its own: the driver's attach carries the whole task spec.
@@ -71,48 +75,66 @@ fn drive(name: &str, args: &[&str], timeout: Duration) -> (Vec<Episode>, String)
     (episodes(&log), both)
 }
 
+/// The inverted pendulum's flags: Gymnasium's termination (InvertedPendulumEnv.step: the pole
+/// beyond ±0.2 rad or a number not finite) and its reward of 1 per step alive, less the cart's
+/// squared distance from the centre: with 1 alone the cart drifted to the end of its rail
+/// (x = ±1), where the model had no data, and the pole fell there.
+const INVERTED_PENDULUM: &[&str] = &[
+    "--env",
+    "InvertedPendulum-v5",
+    "--seed",
+    "0",
+    "--reward-expression",
+    "1 - s_next[0]^2",
+    "--termination-expression",
+    "!(abs(s_next[1]) <= 0.2 && norm1(s_next) < 1e30)",
+    // CEM without the energy term: DEEN's energy, trained on the handful of falling
+    // transitions of the first episodes, held the plans near them (3-step episodes).
+    "--preset",
+    "cem",
+    "--base-preset",
+    "cartpole",
+    // The cartpole sizes (paper Table 2: CEM 400 × 25 steps × 5 iterations) with a two-layer
+    // dynamics model of 200 units (narrower ones did not learn it in 5 episodes), a capped
+    // retraining, and every CEM iteration run (no deadline: the simulator waits, and a loaded
+    // machine plans as far as an idle one).
+    "--override",
+    "dynamics_hidden_layers=2",
+    "--override",
+    "max_gradient_steps=5000",
+    "--override",
+    "deadline_ms=0",
+];
+
 #[test]
-fn inverted_pendulum_balances_its_whole_episode_within_eight_episodes_and_keeps_balancing() {
-    let (episodes, log) = drive(
-        "gym-inverted-pendulum",
-        &[
-            "--env",
-            "InvertedPendulum-v5",
-            "--run",
-            "inverted-pendulum",
-            "--episodes",
-            "8",
-            "--seed",
-            "0",
-            // Gymnasium's termination (InvertedPendulumEnv.step): the pole beyond ±0.2 rad or a
-            // number not finite. Its reward is 1 per step alive; the planner's is that minus the
-            // cart's squared distance from the centre: with 1 alone the cart drifted to the end
-            // of its rail (x = ±1), where the model had no data, and the pole fell there.
-            "--reward-expression",
-            "1 - s_next[0]^2",
-            "--termination-expression",
-            "!(abs(s_next[1]) <= 0.2 && norm1(s_next) < 1e30)",
-            // CEM without the energy term: DEEN's energy, trained on the handful of falling
-            // transitions of the first episodes, held the plans near them (3-step episodes).
-            "--preset",
-            "cem",
-            "--base-preset",
-            "cartpole",
-            // The cartpole sizes (paper Table 2: CEM 400 × 25 steps × 5 iterations) with a
-            // two-layer dynamics model of 200 units (narrower ones did not learn it in 5
-            // episodes), a capped retraining, and every CEM iteration run (no deadline: the
-            // simulator waits, and a loaded machine plans as far as an idle one).
-            "--override",
-            "dynamics_hidden_layers=2",
-            "--override",
-            "max_gradient_steps=5000",
-            "--override",
-            "deadline_ms=0",
-        ],
-        Duration::from_secs(900),
+fn pip_installed_package_learns_the_inverted_pendulum_with_its_own_planner_and_resumes() {
+    let dir = TempDir::new("gym-inverted-pendulum");
+    let installed = install_package_in_clean_venv(dir.path(), Duration::from_secs(1200))
+        .expect("pip install './python[gym]' in a clean venv");
+    eprintln!(
+        "pip install './python[gym]' took {:.1} s",
+        installed.install_seconds
     );
-    assert_eq!(episodes.len(), 8, "{log}");
-    for (i, e) in episodes.iter().enumerate() {
+    // The wheel put the planner in the venv's bin/, on its PATH.
+    let version = Command::new(installed.bin.join("planner-service"))
+        .arg("--version")
+        .output()
+        .expect("the venv's planner-service runs");
+    assert!(version.status.success(), "{version:?}");
+    assert!(
+        String::from_utf8_lossy(&version.stdout).starts_with("planner-service "),
+        "{version:?}"
+    );
+
+    let mut args = INVERTED_PENDULUM.to_vec();
+    args.extend(["--episodes", "8"]);
+    let (status, log) = installed
+        .run_gym_driver(dir.path(), &args, Duration::from_secs(900))
+        .unwrap();
+    assert!(status.success(), "the driver failed ({status}):\n{log}");
+    let played = episodes(&log);
+    assert_eq!(played.len(), 8, "{log}");
+    for (i, e) in played.iter().enumerate() {
         assert_eq!(e.episode, i as u32, "{log}");
         // A terminated episode ends where the pole fell; only the limit ends a full one.
         let expected_end = if e.steps == 1000 {
@@ -125,7 +147,7 @@ fn inverted_pendulum_balances_its_whole_episode_within_eight_episodes_and_keeps_
         let alive = e.steps - u32::from(e.end == "terminated");
         assert_eq!(e.ret, f64::from(alive), "1 per step alive: {log}");
     }
-    for last in &episodes[6..] {
+    for last in &played[6..] {
         assert_eq!(
             last.steps, 1000,
             "the last two episodes balance to the limit: {log}"
@@ -133,6 +155,31 @@ fn inverted_pendulum_balances_its_whole_episode_within_eight_episodes_and_keeps_
         assert_eq!(last.planned, 1000, "every action of them planned: {log}");
         assert!(last.models >= 1, "planned with trained models: {log}");
     }
+    // The run lives in the per-user data directory, named after the environment ...
+    let data = dir.path().join("xdg/ebmpc");
+    assert!(
+        data.join("runs/InvertedPendulum-v5/replay.log").is_file(),
+        "{log}"
+    );
+    let planner_log = std::fs::read_to_string(data.join("planner.log")).unwrap();
+    assert!(
+        planner_log.contains("SIGTERM received"),
+        "the driver stopped its planner: {planner_log}"
+    );
+    // ... and the same command again resumes it: its next episode is the run's ninth.
+    args.truncate(INVERTED_PENDULUM.len());
+    args.extend(["--episodes", "1"]);
+    let (status, log) = installed
+        .run_gym_driver(dir.path(), &args, Duration::from_secs(600))
+        .unwrap();
+    assert!(
+        status.success(),
+        "the second invocation failed ({status}):\n{log}"
+    );
+    let resumed = episodes(&log);
+    assert_eq!(resumed.len(), 1, "{log}");
+    assert_eq!(resumed[0].episode, 8, "the run resumed: {log}");
+    assert_eq!(resumed[0].steps, 1000, "and still balances: {log}");
 }
 
 #[test]

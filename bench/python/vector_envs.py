@@ -1,0 +1,93 @@
+"""Transitions stored per wall-clock second when a Gymnasium vector env of N copies feeds one
+run (``ebmpc.gym.learn(..., num_envs=N)``), against one env, side by side in one process.
+
+Each configuration learns the same environment for the same number of episodes with its own
+local planner (``Planner.local`` on a fresh data directory, the binary of ``$EBMPC_PLANNER_BIN``
+or the installed one), so the figures differ only by the number of copies. A run first plays
+``--warmup`` episodes with one env (the planner's random exploration, and its first models),
+untimed; then the timed episodes, all planned, with N copies. It prints, per
+configuration and repeat: the transitions stored, the seconds, transitions per second, and the
+mean return of the timed episodes; then the
+ratio of each N to N = 1, best and median over the repeats::
+
+    chrt --idle 0 .venv/bin/python bench/python/vector_envs.py --env Pendulum-v1 \\
+        --episodes 16 --num-envs 1 8 --repeats 3
+
+A benchmark, not a test: it asserts nothing about speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Dict, List, Tuple
+
+from ebmpc import Planner
+from ebmpc.gym import learn, parse_override
+
+
+def one(args: argparse.Namespace, num_envs: int, repeat: int) -> Tuple[int, float, float]:
+    """(transitions, seconds, mean return of the timed episodes)."""
+    with tempfile.TemporaryDirectory(prefix="ebmpc-vector-bench-") as data:
+        with Planner.local(Path(data)) as planner:
+            common = dict(
+                preset=args.preset, overrides=dict(args.override), planner=planner,
+                run=f"bench-{num_envs}-{repeat}", mode=args.mode, progress=False,
+            )
+            learn(args.env, args.warmup, seed=args.seed, **common)
+            started = time.monotonic()
+            results = learn(
+                args.env, args.episodes, seed=args.seed + 1, num_envs=num_envs,
+                **common,
+            )
+            seconds = time.monotonic() - started
+    transitions = sum(r.steps for r in results)
+    return transitions, seconds, statistics.fmean(r.episode_return for r in results)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="Pendulum-v1", help="Gymnasium id (Pendulum-v1)")
+    p.add_argument("--episodes", type=int, default=16, help="episodes per configuration (16)")
+    p.add_argument(
+        "--num-envs", type=int, nargs="+", default=[1, 8], help="copies to compare (1 8)"
+    )
+    p.add_argument(
+        "--warmup", type=int, default=1, help="untimed episodes with one env first (1)"
+    )
+    p.add_argument("--repeats", type=int, default=3, help="runs of each configuration (3)")
+    p.add_argument("--preset", default="cem", help="planner preset (cem)")
+    p.add_argument(
+        "--override", type=parse_override, action="append", default=[], metavar="KEY=VALUE",
+        help="a preset field to change; repeatable",
+    )
+    p.add_argument("--mode", choices=("sync", "async"), default="sync", help="train mode (sync)")
+    p.add_argument("--seed", type=int, default=0, help="seed (0)")
+    args = p.parse_args()
+    rates: Dict[int, List[float]] = {n: [] for n in args.num_envs}
+    for repeat in range(args.repeats):
+        # Interleaved, so that a change of the machine's load falls on every configuration.
+        for n in args.num_envs:
+            transitions, seconds, ret = one(args, n, repeat)
+            rates[n].append(transitions / seconds)
+            print(
+                f"num_envs {n} repeat {repeat}: {transitions} transitions in {seconds:.1f} s, "
+                f"{transitions / seconds:.1f} per s, mean return {ret:.1f}",
+                flush=True,
+            )
+    base = rates[args.num_envs[0]]
+    for n in args.num_envs[1:]:
+        ratios = [r / b for r, b in zip(rates[n], base)]
+        print(
+            f"num_envs {n} / {args.num_envs[0]}: transitions per second x{max(ratios):.2f} best, "
+            f"x{statistics.median(ratios):.2f} median over {len(ratios)} paired runs"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
