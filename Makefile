@@ -26,9 +26,11 @@ demo: toolchain mujoco
 	$(CARGO) build --release --bins
 	TASK=$(TASK) EPISODES=$(EPISODES) SEED=$(SEED) METHOD=$(METHOD) bash deploy/demo.sh
 
-# The ebmpc Python package (python/) with its test dependencies (eclipse-zenoh, pytest, jsonschema,
-# mypy) and its Gymnasium driver's (gymnasium[mujoco]: Gymnasium and the PyPI mujoco wheel): its
-# tests, the Python example's and the Gymnasium driver's run through `cargo test` with it.
+# The dependencies of the ebmpc Python package (python/), of its tests (eclipse-zenoh, pytest,
+# jsonschema, mypy) and of its Gymnasium driver (gymnasium[mujoco]: Gymnasium and the PyPI mujoco
+# wheel): its tests, the Python example's and the Gymnasium driver's run through `cargo test`
+# with it, importing the package from python/. (The wheel itself, which bundles the planner, is
+# built and installed into a clean venv by tests/tests/gym_driver_e2e.rs.)
 VENV := .venv
 
 python-env:

@@ -41,7 +41,7 @@ def one(args: argparse.Namespace, num_envs: int, repeat: int) -> Tuple[int, floa
             learn(args.env, args.warmup, seed=args.seed, **common)
             started = time.monotonic()
             results = learn(
-                args.env, args.episodes, seed=args.seed + 1, num_envs=num_envs,
+                args.env, args.episodes, seed=args.seed, num_envs=num_envs,
                 **common,
             )
             seconds = time.monotonic() - started
