@@ -19,7 +19,8 @@ use serde::{Deserialize, Serialize};
 /// [`RunEventKind::ModelsUpdated`], for tasks whose reward is learned.
 pub const PROTOCOL_VERSION: u16 = 5;
 
-/// How the trainer interacts with acting agents (design.md).
+/// How the trainer interacts with acting agents: whether an agent's next episode waits for the
+/// models retrained on its last one.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum TrainMode {
