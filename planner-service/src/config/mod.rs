@@ -270,7 +270,7 @@ mod tests {
         assert!(err.contains("task short-cartpole: obs_dim = 4"), "{err}");
     }
 
-    /// The README's own-system example (`examples/tasks/balance-bot.toml`, a made-up robot)
+    /// The own-system example of docs/own-system.md (`examples/tasks/balance-bot.toml`, a made-up robot)
     /// is a valid spec file: a tasks folder with it gives its task, formulas and all.
     #[test]
     fn the_example_robot_spec_joins_the_catalog() {
