@@ -833,12 +833,11 @@ fn links_and_anchors_resolve() {
                 ));
                 continue;
             }
-            if let Some(anchor) = anchor {
-                if file.extension().is_some_and(|e| e == "md")
-                    && !heading_ids(&expanded(&file)).contains(anchor)
-                {
-                    broken.push(format!("{here}: no heading with this id"));
-                }
+            if let Some(anchor) = anchor
+                && file.extension().is_some_and(|e| e == "md")
+                && !heading_ids(&expanded(&file)).contains(anchor)
+            {
+                broken.push(format!("{here}: no heading with this id"));
             }
         }
     }
