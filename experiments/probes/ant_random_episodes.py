@@ -5,7 +5,7 @@ Runs the sim-bridge's ant model (sim-bridge/assets/ant.xml) under uniform random
 velocities (the simulator also perturbs the torso's pose), and prints, per
 seed, the step at which the torso height left the healthy band [0.2, 1.0] (proto's
 `HEALTHY_HEIGHT`), the height there and the torso's up-axis z component (-1: on its back).
-A diagnostic for the README's ant results, not part of the service; it needs the MuJoCo Python
+A diagnostic for the ant results (docs/results.md), not part of the service; it needs the MuJoCo Python
 bindings of the version the project pins:
 
     python3 -m venv /tmp/mjv && /tmp/mjv/bin/pip install mujoco==3.17.0 numpy

@@ -57,7 +57,7 @@ struct ExperimentArgs {
     /// CEM population, a tenth of that as elites and 3 iterations.
     #[arg(long, value_delimiter = ',', default_value = "cem,cem+dae,cem+deen")]
     methods: Vec<String>,
-    /// Sizes: `paper` (Table 2), `small` (fits a 2-core machine; see the README) or
+    /// Sizes: `paper` (Table 2), `small` (fits a 2-core machine; see docs/experiments.md) or
     /// `small-learning` (small's seeds, episodes and training, Table 2's planning search).
     #[arg(long, value_enum, default_value_t = Scale::Paper)]
     scale: Scale,

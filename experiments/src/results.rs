@@ -297,7 +297,7 @@ pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
 
 /// A Markdown table of the return at `episodes` (every episode when empty), mean ± sample std
 /// over seeds per method, with the seeds behind each method, its mean planning time per planned
-/// step and its mean wall time per run: what the README's results tables print.
+/// step and its mean wall time per run: what the results tables of docs/results.md print.
 pub fn markdown_table(rows: &[EpisodeRow], episodes: &[u32]) -> String {
     let curves = curves(rows);
     let episodes: Vec<u32> = if episodes.is_empty() {

@@ -50,7 +50,8 @@ struct ServeArgs {
     /// Key prefix shared with the agents.
     #[arg(long, env = "EBMPC_PREFIX")]
     prefix: Option<String>,
-    /// Directory for replay buffers and models.
+    /// Directory for replay buffers and models (default: `var/ebmpc`, relative to the
+    /// working directory).
     #[arg(long, env = "EBMPC_DATA_DIR")]
     data_dir: Option<PathBuf>,
     /// Stop (as on SIGTERM) when standard input reaches its end. A parent that starts the
@@ -59,6 +60,10 @@ struct ServeArgs {
     /// is killed with SIGKILL (the Python package's `Planner.local` does this).
     #[arg(long)]
     exit_on_stdin_close: bool,
+    /// A folder of task specs, one `NAME.toml` or `NAME.json` file each, that this planner
+    /// knows besides the built-in tasks (e.g. examples/tasks).
+    #[arg(long, env = "EBMPC_TASKS_DIR")]
+    tasks_dir: Option<PathBuf>,
 }
 
 impl ServeArgs {
@@ -81,6 +86,9 @@ impl ServeArgs {
         }
         if let Some(dir) = self.data_dir {
             config.data_dir = dir;
+        }
+        if let Some(dir) = self.tasks_dir {
+            config.tasks_dir = Some(dir);
         }
         config.validate()?;
         Ok(config)

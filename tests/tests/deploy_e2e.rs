@@ -1,4 +1,4 @@
-//! The multi-host deployment of the README's "Deploy" section, on loopback: certificates from
+//! The multi-host deployment of docs/deploy.md, on loopback: certificates from
 //! `deploy/make-certs.sh`, a router running `deploy/zenohd.json5`, and a planner and an agent
 //! (the Python example) that are its clients over mutual TLS with `deploy/zenoh-client.json5`.
 //! Only the site-specific strings of those files (certificate paths, endpoints) are replaced.

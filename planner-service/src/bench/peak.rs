@@ -1,7 +1,7 @@
 //! The machine's peak multiply-add rate per core, measured at the start of a benchmark so that
 //! every throughput can be printed as a fraction of what this CPU can do.
 //!
-//! The loop is the one of `peak.c` (the project's reference measurement): 12 independent
+//! The loop (`fma_chains`, `dpbf16_chains` below) keeps 12 independent
 //! accumulators, each updated by a 512-bit `VFMADD` (f32) or `VDPBF16PS` (bf16 pairs) per
 //! iteration, enough independent chains to hide the instruction's latency so that only the
 //! FMA ports limit the rate. A loop with fewer chains measures latency, not throughput: the
@@ -14,7 +14,7 @@
 
 use super::cputime::thread_cpu_time;
 
-/// Independent accumulators, as in `peak.c`.
+/// Independent accumulators: enough chains to hide the FMA's latency.
 const CHAINS: usize = 12;
 /// Loop iterations per trial: 12 · 16 lanes · 2 flops each, ≈ 1 ms at 230 GFLOP/s. Short
 /// trials, because on a shared machine (or a virtual CPU whose physical core is shared) the best

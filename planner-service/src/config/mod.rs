@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 /// The daemon's configuration file (`planner-service serve --config FILE`).
 ///
 /// Every field has a default, so an empty file is a valid configuration.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct ServiceConfig {
     /// This planner's id: its status key and liveliness token carry it.
@@ -57,7 +57,7 @@ pub struct ServiceConfig {
 }
 
 /// `[metrics]`: where the Prometheus text endpoint listens.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct MetricsConfig {
     /// Address of the endpoint (`GET /metrics`), e.g. `127.0.0.1:9464`. Absent: no endpoint.
@@ -66,7 +66,7 @@ pub struct MetricsConfig {
 }
 
 /// `[storage]`: how much of its experience a run keeps.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct StorageConfig {
     /// Most transitions a run's replay buffer keeps; beyond it the transitions of the oldest
@@ -96,6 +96,12 @@ impl Default for ServiceConfig {
             tasks_dir: None,
         }
     }
+}
+
+/// The JSON schema of the configuration file: every key with its doc comment and default.
+/// `docs/configuration.md`'s reference of the TOML keys is generated from it.
+pub fn schema() -> serde_json::Value {
+    proto::schema::schema_of::<ServiceConfig>()
 }
 
 /// A configuration file that could not be used.
@@ -270,7 +276,7 @@ mod tests {
         assert!(err.contains("task short-cartpole: obs_dim = 4"), "{err}");
     }
 
-    /// The README's own-system example (`examples/tasks/balance-bot.toml`, a made-up robot)
+    /// The own-system example of docs/own-system.md (`examples/tasks/balance-bot.toml`, a made-up robot)
     /// is a valid spec file: a tasks folder with it gives its task, formulas and all.
     #[test]
     fn the_example_robot_spec_joins_the_catalog() {

@@ -98,7 +98,7 @@ fn control_period_ms(task: &Task) -> u32 {
 /// still. Keeping elites across iterations and steps, which the paper measured with the true
 /// simulator as its model, makes iCEM on a *learned* half-cheetah model keep re-selecting the
 /// sequences that exploit the model's errors; without it the real return is higher. Both
-/// half-cheetah values are measured with `ebmpc-experiment replan` (see the README's iCEM
+/// half-cheetah values are measured with `ebmpc-experiment replan` (see docs/performance.md, iCEM
 /// section). Ant walks with a gait too and takes the same values by analogy (not measured);
 /// the other tasks keep [`IcemConfig::default`] (the paper's general values).
 fn icem_for(task: Builtin) -> IcemConfig {

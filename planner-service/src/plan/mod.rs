@@ -2,7 +2,8 @@
 //!
 //! - [`cem`]: CEM as PETS runs it, generic over a [`PopulationObjective`].
 //! - [`icem`]: the improved CEM of Pinneri et al. (colored noise, kept elites, decaying
-//!   population), the real-time option.
+//!   population): fewer candidates per plan; on learned models it kept CEM's return on
+//!   cartpole, not on half-cheetah or reacher3d (docs/results.md).
 //! - [`imagine`]: the objective of the paper's eq. 5, rolling the learned dynamics forward for
 //!   a whole population at once (particles, ensembles, energy, termination), in parallel chunks.
 //! - [`anytime`]: the deadline of one solve, and when the next iteration would cross it.

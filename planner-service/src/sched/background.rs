@@ -13,7 +13,7 @@
 //! imagined step), so one core losing a slice stalls the whole plan. Side by side (`bench plan
 //! --task cartpole --regularizer deen`, two busy loops beside it): 27.7 ms per plan alone, 50 ms
 //! beside nice-10 loops, 33 ms beside nice-19 loops, 28–29 ms beside `SCHED_IDLE` loops (see
-//! the README, "Sharing the cores").
+//! docs/performance.md, "Retraining beside a plan").
 //!
 //! What must not run here: anything that holds a lock the serving path takes (the replay
 //! buffer, the run's ownership). A thread of this pool can sit preempted for a whole plan, and
