@@ -16,6 +16,7 @@
 pub mod activation;
 pub mod adam;
 pub mod aligned;
+pub mod amx;
 pub mod backprop;
 pub mod denormals;
 pub mod double_backprop;
