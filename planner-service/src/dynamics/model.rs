@@ -17,7 +17,7 @@ use crate::nn::aligned::AlignedBuf;
 use crate::nn::matmul::transpose;
 use crate::nn::train::{EpochsRun, FitBudget, run_epochs};
 use crate::nn::vecops::scale_shift;
-use crate::nn::{Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape};
+use crate::nn::{Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape, TrainPath};
 use proto::Task;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -98,9 +98,17 @@ pub struct TrainWorkspace {
 }
 
 impl TrainWorkspace {
-    /// Buffers for batches of up to `batch_size` transitions.
+    /// Buffers for batches of up to `batch_size` transitions, on the training path measured
+    /// fastest for the model's network (see [`TrainPath::measured`]).
     pub fn new(model: &ProbabilisticModel, batch_size: usize) -> Self {
-        let tape = Tape::new(&model.mlp, batch_size);
+        let mlp = &model.mlp;
+        let path = TrainPath::measured(mlp.sizes(), mlp.activation(), batch_size);
+        Self::with_path(model, batch_size, path)
+    }
+
+    /// Buffers for batches of up to `batch_size` transitions, multiplying on `path`.
+    pub fn with_path(model: &ProbabilisticModel, batch_size: usize, path: TrainPath) -> Self {
+        let tape = Tape::with_path(&model.mlp, batch_size, path);
         Self {
             targets: AlignedBuf::zeros(model.task.obs_dim * tape.ld()),
             grads: vec![0.0; model.mlp.params().len()],
@@ -108,6 +116,13 @@ impl TrainWorkspace {
             terms: vec![0.0; 4 * tape.ld()],
             tape,
         }
+    }
+}
+
+impl TrainWorkspace {
+    /// The kernels this workspace's products run on.
+    pub fn path(&self) -> TrainPath {
+        self.tape.path()
     }
 }
 

@@ -3,7 +3,7 @@
 
 use super::*;
 use crate::data::Transitions;
-use crate::nn::{Activation, Normalizer, reference};
+use crate::nn::{Activation, Normalizer, TrainPath, reference};
 use proto::{Builtin, Task};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -62,8 +62,16 @@ fn small_config(epochs: usize) -> DynamicsConfig {
     }
 }
 
+/// On every training path this CPU has; the bf16 tiles within the bounds of
+/// [`reference::assert_gradient`].
 #[test]
 fn loss_gradient_matches_finite_differences() {
+    for path in TrainPath::available() {
+        loss_gradient_matches_finite_differences_on(path);
+    }
+}
+
+fn loss_gradient_matches_finite_differences_on(path: TrainPath) {
     let mut rng = StdRng::seed_from_u64(21);
     let task = cartpole();
     let config = DynamicsConfig {
@@ -85,7 +93,7 @@ fn loss_gradient_matches_finite_differences() {
         .member_bounds_mut()
         .copy_from_slice(&[0.2, -0.1, 0.3, 0.0, -1.5, -2.0, -1.0, -3.0]);
     let batch = [0, 3, 4, 6, 1];
-    let mut ws = TrainWorkspace::new(&model, 8);
+    let mut ws = TrainWorkspace::with_path(&model, 8, path);
     let loss = model.loss_and_grad(&set, &batch, &mut ws);
     let mut got = ws.grads_for_test().to_vec();
     got.extend(ws.bound_grads_for_test());
@@ -119,9 +127,18 @@ fn loss_gradient_matches_finite_differences() {
         .chain(model.min_logvar())
         .map(|&v| v as f64)
         .collect();
-    assert!((loss as f64 - reference_loss(&p)).abs() < 1e-4 * reference_loss(&p).abs());
+    let loss_tolerance = match path {
+        TrainPath::F32 => 1e-4,
+        TrainPath::AmxBf16 => reference::BF16_NORM_TOLERANCE,
+    };
+    assert!(
+        (loss as f64 - reference_loss(&p)).abs() < loss_tolerance * reference_loss(&p).abs(),
+        "{path}: loss {loss} vs {}",
+        reference_loss(&p)
+    );
     let fd = reference::finite_difference(&p, reference_loss);
-    reference::assert_close(&got, &fd, 1e-3, "dynamics loss gradient");
+    let what = format!("dynamics loss gradient on {path}");
+    reference::assert_gradient(path, &got, &fd, 1e-3, &what);
 }
 
 /// Squared error of the mean prediction on fresh noise-free transitions, per observation

@@ -10,7 +10,9 @@
 use super::config::{EnergyConfig, EnergyParts, layer_sizes};
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::train::{FitBudget, run_epochs};
-use crate::nn::{Activation, Adam, FitReport, FlushDenormals, Mlp, Normalizer, ShapeError};
+use crate::nn::{
+    Activation, Adam, FitReport, FlushDenormals, Mlp, Normalizer, ShapeError, TrainPath,
+};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -25,10 +27,12 @@ pub trait DenoisingLoss {
     type Tape: Clone + std::fmt::Debug;
     /// Outputs of the network for `dim`-dimensional inputs.
     fn outputs(dim: usize) -> usize;
-    /// A tape for minibatches of up to `batch_size` vectors.
-    fn tape(mlp: &Mlp, batch_size: usize) -> Self::Tape;
+    /// A tape for minibatches of up to `batch_size` vectors, its products on `path`.
+    fn tape(mlp: &Mlp, batch_size: usize, path: TrainPath) -> Self::Tape;
     /// Row stride of the tape's feature-major buffers.
     fn ld(tape: &Self::Tape) -> usize;
+    /// The kernels the tape's products run on.
+    fn path(tape: &Self::Tape) -> TrainPath;
     /// The loss of a minibatch (`batch`: indices into the standardised, sample-major `set`)
     /// corrupted by the noise `eps` (feature-major, [`DenoisingLoss::ld`] columns), and its
     /// parameter gradient into `grads`.
@@ -65,9 +69,17 @@ pub struct Workspace<L: DenoisingLoss> {
 }
 
 impl<L: DenoisingLoss> Workspace<L> {
-    /// Buffers for batches of up to `batch_size` vectors.
+    /// Buffers for batches of up to `batch_size` vectors, on the training path measured
+    /// fastest for the model's network (see [`TrainPath::measured`]).
     pub fn new(model: &Denoiser<L>, batch_size: usize) -> Self {
-        let tape = L::tape(&model.mlp, batch_size);
+        let mlp = &model.mlp;
+        let path = TrainPath::measured(mlp.sizes(), mlp.activation(), batch_size);
+        Self::with_path(model, batch_size, path)
+    }
+
+    /// Buffers for batches of up to `batch_size` vectors, multiplying on `path`.
+    pub fn with_path(model: &Denoiser<L>, batch_size: usize, path: TrainPath) -> Self {
+        let tape = L::tape(&model.mlp, batch_size, path);
         let eps = AlignedBuf::zeros(model.dim() * L::ld(&tape));
         Self {
             tape,
@@ -84,6 +96,11 @@ impl<L: DenoisingLoss> Workspace<L> {
     /// The gradient left by the last [`Denoiser::loss_and_grad`].
     pub fn grads(&self) -> &[f32] {
         &self.grads
+    }
+
+    /// The kernels this workspace's products run on.
+    pub fn path(&self) -> TrainPath {
+        L::path(&self.tape)
     }
 }
 
