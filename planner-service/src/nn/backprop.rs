@@ -141,9 +141,9 @@ impl Mlp {
         products: &mut Products,
     ) {
         let (n_in, n_out) = (self.sizes()[l], self.sizes()[l + 1]);
-        products.matmul(
+        products.matmul_weights(
             MatMut::with_stride(z, n_out, samples, ld),
-            MatRef::new(self.weight(l), n_in, n_out).t(),
+            (l, MatRef::new(self.weight(l), n_in, n_out), true),
             MatRef::with_stride(h, n_in, samples, ld),
             Init::RowBias(self.bias(l)),
         );
@@ -154,6 +154,7 @@ impl Mlp {
     pub fn forward_train<'t>(&self, tape: &'t mut Tape, samples: usize) -> &'t [f32] {
         tape.check(self, samples);
         tape.samples = samples;
+        tape.products.new_weights();
         tape.input_grad_in = None;
         let ld = tape.ld;
         for l in 0..self.layers() {
@@ -211,9 +212,9 @@ impl Mlp {
                 break;
             }
             // Gₗ₋₁ = (Wₗ · Gₗ) ⊙ σ'(zₗ₋₁)
-            tape.products.matmul(
+            tape.products.matmul_weights(
                 MatMut::with_stride(g_next, n_in, samples, ld),
-                MatRef::new(self.weight(l), n_in, n_out),
+                (l, MatRef::new(self.weight(l), n_in, n_out), false),
                 MatRef::with_stride(g, n_out, samples, ld),
                 Init::Zero,
             );

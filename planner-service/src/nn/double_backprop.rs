@@ -161,14 +161,15 @@ impl Mlp {
             tape.ld
         );
         tape.samples = samples;
+        tape.products.new_weights();
         let (ld, layers) = (tape.ld, self.layers());
         let sizes = self.sizes();
         for l in 0..layers {
             let (below, above) = tape.h.split_at_mut(l + 1);
             let z = above[0].as_mut_slice();
-            tape.products.matmul(
+            tape.products.matmul_weights(
                 MatMut::with_stride(z, sizes[l + 1], samples, ld),
-                MatRef::new(self.weight(l), sizes[l], sizes[l + 1]).t(),
+                (l, MatRef::new(self.weight(l), sizes[l], sizes[l + 1]), true),
                 MatRef::with_stride(below[l].as_slice(), sizes[l], samples, ld),
                 Init::RowBias(self.bias(l)),
             );
@@ -196,9 +197,13 @@ impl Mlp {
                 product2(&mut delta[span.clone()], &u_l[span.clone()], &d1[span]);
             }
             // u_{l−1} = W_{l−1} δ_l
-            tape.products.matmul(
+            tape.products.matmul_weights(
                 MatMut::with_stride(tape.u[l - 1].as_mut_slice(), sizes[l - 1], samples, ld),
-                MatRef::new(self.weight(l - 1), sizes[l - 1], sizes[l]),
+                (
+                    l - 1,
+                    MatRef::new(self.weight(l - 1), sizes[l - 1], sizes[l]),
+                    false,
+                ),
                 MatRef::with_stride(delta, sizes[l], samples, ld),
                 Init::Zero,
             );
@@ -221,9 +226,13 @@ impl Mlp {
             } else {
                 tape.hdot[l - 2].as_slice()
             };
-            tape.products.matmul(
+            tape.products.matmul_weights(
                 MatMut::with_stride(zdot, sizes[l], samples, ld),
-                MatRef::new(self.weight(l - 1), sizes[l - 1], sizes[l]).t(),
+                (
+                    l - 1,
+                    MatRef::new(self.weight(l - 1), sizes[l - 1], sizes[l]),
+                    true,
+                ),
                 MatRef::with_stride(hdot_prev, sizes[l - 1], samples, ld),
                 Init::Zero,
             );
@@ -306,9 +315,9 @@ impl Mlp {
             );
             if l > 1 {
                 // u̇_{l−1} = W_{l−1} δ̇_l
-                tape.products.matmul(
+                tape.products.matmul_weights(
                     MatMut::with_stride(udot_below, n_in, samples, ld),
-                    MatRef::new(self.weight(l - 1), n_in, n_out),
+                    (l - 1, MatRef::new(self.weight(l - 1), n_in, n_out), false),
                     MatRef::with_stride(ddot, n_out, samples, ld),
                     Init::Zero,
                 );

@@ -13,7 +13,9 @@
 //! life of the process, so an ensemble's members and every retraining reuse it.
 
 #[cfg(target_arch = "x86_64")]
-use super::matmul::tiles::{self, TileScratch, tile_matmul_par};
+use super::matmul::tiles::{
+    self, PackedLeft, TileScratch, tile_matmul_packed_par, tile_matmul_par,
+};
 use super::matmul::{Init, MatMut, MatRef, matmul_par};
 use super::mlp::Mlp;
 use super::{Activation, Tape};
@@ -178,6 +180,10 @@ pub struct Products {
     path: TrainPath,
     #[cfg(target_arch = "x86_64")]
     tiles: TileScratch,
+    /// Per layer, its weights packed as the left factor `W` (index 0) and `Wᵀ` (index 1),
+    /// and whether that packing is of the current weights (see [`Products::new_weights`]).
+    #[cfg(target_arch = "x86_64")]
+    weights: Vec<[(PackedLeft, bool); 2]>,
 }
 
 impl Clone for Products {
@@ -195,6 +201,47 @@ impl Products {
             path,
             #[cfg(target_arch = "x86_64")]
             tiles: TileScratch::default(),
+            #[cfg(target_arch = "x86_64")]
+            weights: Vec::new(),
+        }
+    }
+
+    /// Forgets the packed weights: a pass over new weights starts (a forward pass). Between
+    /// two calls every [`Products::matmul_weights`] of a layer must pass the same weights.
+    pub fn new_weights(&mut self) {
+        #[cfg(target_arch = "x86_64")]
+        for forms in &mut self.weights {
+            forms[0].1 = false;
+            forms[1].1 = false;
+        }
+    }
+
+    /// `C = init + W · Y` (or `Wᵀ · Y` if `transposed`) for the weights `w` of layer `layer`,
+    /// which the tiles pack once per [`Products::new_weights`] for each of the two forms.
+    pub fn matmul_weights(
+        &mut self,
+        c: MatMut<'_>,
+        (layer, w, transposed): (usize, MatRef<'_>, bool),
+        y: MatRef<'_>,
+        init: Init<'_>,
+    ) {
+        let x = if transposed { w.t() } else { w };
+        match self.path {
+            TrainPath::F32 => matmul_par(c, x, y, init),
+            #[cfg(target_arch = "x86_64")]
+            TrainPath::AmxBf16 => {
+                if self.weights.len() <= layer {
+                    self.weights.resize_with(layer + 1, Default::default);
+                }
+                let (packed, fresh) = &mut self.weights[layer][usize::from(transposed)];
+                if !*fresh {
+                    packed.pack(x);
+                    *fresh = true;
+                }
+                tile_matmul_packed_par(c, packed, y, init, &mut self.tiles)
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            TrainPath::AmxBf16 => unreachable!("checked in Products::new"),
         }
     }
 

@@ -120,7 +120,7 @@ pub fn tile_matmul(
     init: Init<'_>,
     scratch: &mut TileScratch,
 ) {
-    tile_matmul_threads(c, x, y, init, scratch, false)
+    tile_matmul_threads(c, Left::View(x), y, init, scratch, false)
 }
 
 /// [`tile_matmul`], with the rows of tiles of `C` split across two rayon tasks when the
@@ -132,19 +132,65 @@ pub fn tile_matmul_par(
     init: Init<'_>,
     scratch: &mut TileScratch,
 ) {
-    tile_matmul_threads(c, x, y, init, scratch, true)
+    tile_matmul_threads(c, Left::View(x), y, init, scratch, true)
+}
+
+/// A left factor packed once for several products (a layer's weights within one training
+/// step: DEEN multiplies by each `Wᵀ` and each `W` twice).
+#[derive(Debug, Default)]
+pub struct PackedLeft {
+    buf: Buf,
+    stage: Buf,
+    rows: usize,
+    depth: usize,
+}
+
+impl PackedLeft {
+    /// Packs `x` (any strides), replacing what was packed before.
+    pub fn pack(&mut self, x: MatRef<'_>) {
+        let grid = Grid::new(x.rows, 1, x.cols);
+        pack_rows_of_pairs(&mut self.buf, &mut self.stage, x, grid);
+        (self.rows, self.depth) = (x.rows, x.cols);
+    }
+}
+
+/// [`tile_matmul_par`] with the left factor packed beforehand.
+pub fn tile_matmul_packed_par(
+    c: MatMut<'_>,
+    x: &PackedLeft,
+    y: MatRef<'_>,
+    init: Init<'_>,
+    scratch: &mut TileScratch,
+) {
+    tile_matmul_threads(c, Left::Packed(x), y, init, scratch, true)
+}
+
+/// The left factor of a product: a view to pack, or packed already.
+#[derive(Clone, Copy)]
+enum Left<'a> {
+    View(MatRef<'a>),
+    Packed(&'a PackedLeft),
+}
+
+impl Left<'_> {
+    fn shape(self) -> (usize, usize) {
+        match self {
+            Left::View(x) => (x.rows, x.cols),
+            Left::Packed(p) => (p.rows, p.depth),
+        }
+    }
 }
 
 fn tile_matmul_threads(
     c: MatMut<'_>,
-    x: MatRef<'_>,
+    x: Left<'_>,
     y: MatRef<'_>,
     init: Init<'_>,
     scratch: &mut TileScratch,
     parallel: bool,
 ) {
-    let (m, n, k) = (c.rows, c.cols, x.cols);
-    assert_eq!(x.rows, m, "X has {} rows, C has {m}", x.rows);
+    let ((x_rows, k), (m, n)) = (x.shape(), (c.rows, c.cols));
+    assert_eq!(x_rows, m, "X has {x_rows} rows, C has {m}");
     assert_eq!(y.rows, k, "X has {k} columns, Y has {} rows", y.rows);
     assert_eq!(y.cols, n, "Y has {} columns, C has {n}", y.cols);
     match init {
@@ -163,7 +209,13 @@ fn tile_matmul_threads(
         stage,
         c: sums,
     } = scratch;
-    let a = pack_rows_of_pairs(a, stage, x, grid);
+    let a = match x {
+        Left::View(x) => pack_rows_of_pairs(a, stage, x, grid),
+        Left::Packed(p) => {
+            let packed = p.buf.0.as_ref().expect("a packed factor").as_slice();
+            &packed[..grid.mt * ROWS * grid.a_words()]
+        }
+    };
     let b = pack_pair_rows(b, stage, y, grid);
     let sums = sums.at_least(grid.mt * ROWS * grid.b_words());
     let job = Job {
@@ -511,6 +563,37 @@ mod tests {
         }
     }
 
+    /// A left factor packed once gives the same numbers as packed by each product, also for
+    /// a transposed view and after a larger factor was packed into the same buffer.
+    #[test]
+    fn a_packed_left_factor_gives_the_same_products() {
+        if !available() {
+            eprintln!("SKIPPED on this CPU: no AMX-BF16 tiles");
+            return;
+        }
+        let mut rng = StdRng::seed_from_u64(5);
+        let mut scratch = TileScratch::default();
+        let mut packed = PackedLeft::default();
+        for (m, n, k) in [(70, 40, 90), (37, 47, 13), (5, 3, 7)] {
+            let w: Vec<f32> = (0..m * k).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let y: Vec<f32> = (0..k * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            // X given as the transpose of a row-major `k × m` matrix, as a layer's `Wᵀ`.
+            let x = MatRef::new(&w, k, m).t();
+            packed.pack(x);
+            let (mut once, mut each) = (vec![0.0; m * n], vec![0.0; m * n]);
+            let y = MatRef::new(&y, k, n);
+            tile_matmul_packed_par(
+                MatMut::new(&mut once, m, n),
+                &packed,
+                y,
+                Init::Zero,
+                &mut scratch,
+            );
+            tile_matmul_par(MatMut::new(&mut each, m, n), x, y, Init::Zero, &mut scratch);
+            assert_eq!(once, each, "{m}×{n}×{k}");
+        }
+    }
+
     /// A product big enough to be split across two tasks gives the same numbers as on one.
     #[test]
     fn a_split_product_matches_the_unsplit_one() {
@@ -534,7 +617,7 @@ mod tests {
             pool.install(|| {
                 tile_matmul_threads(
                     MatMut::new(&mut c, m, n),
-                    MatRef::new(&x, m, k),
+                    Left::View(MatRef::new(&x, m, k)),
                     MatRef::new(&y, k, n),
                     Init::RowBias(&bias),
                     &mut scratch,
