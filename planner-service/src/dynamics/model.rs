@@ -98,11 +98,13 @@ pub struct TrainWorkspace {
 }
 
 impl TrainWorkspace {
-    /// Buffers for batches of up to `batch_size` transitions, on the training path measured
-    /// fastest for the model's network (see [`TrainPath::measured`]).
+    /// Buffers for batches of up to `batch_size` transitions, on the model's pinned training
+    /// path or else the one measured fastest for its network (see [`TrainPath::measured`]).
     pub fn new(model: &ProbabilisticModel, batch_size: usize) -> Self {
         let mlp = &model.mlp;
-        let path = TrainPath::measured(mlp.sizes(), mlp.activation(), batch_size);
+        let path = model
+            .train_path
+            .unwrap_or_else(|| TrainPath::measured(mlp.sizes(), mlp.activation(), batch_size));
         Self::with_path(model, batch_size, path)
     }
 
@@ -205,6 +207,8 @@ pub struct ProbabilisticModel {
     adam: Adam,
     bounds_adam: Adam,
     batch_size: usize,
+    /// The training path its fits use; `None`: the one measured fastest for its shape.
+    train_path: Option<TrainPath>,
     weight_decay: f32,
 }
 
@@ -225,6 +229,7 @@ impl ProbabilisticModel {
             target_norm: Normalizer::identity(task.obs_dim),
             logvar_bounds,
             batch_size: config.batch_size.max(1),
+            train_path: None,
             weight_decay: config.weight_decay,
         }
     }
@@ -271,6 +276,11 @@ impl ProbabilisticModel {
 
     pub fn task(&self) -> &'static Task {
         self.task
+    }
+
+    /// Pins the training path of its fits (`None`: measured, the default).
+    pub fn pin_train_path(&mut self, path: Option<TrainPath>) {
+        self.train_path = path;
     }
 
     /// Sets the number format of planning-time inference (see [`Mlp::set_inference_precision`]).

@@ -55,6 +55,8 @@ pub struct Denoiser<L> {
     normalizer: Normalizer,
     sigma: f32,
     batch_size: usize,
+    /// The training path its fits use; `None`: the one measured fastest for its shape.
+    train_path: Option<TrainPath>,
     adam: Adam,
     loss: PhantomData<L>,
 }
@@ -69,11 +71,13 @@ pub struct Workspace<L: DenoisingLoss> {
 }
 
 impl<L: DenoisingLoss> Workspace<L> {
-    /// Buffers for batches of up to `batch_size` vectors, on the training path measured
-    /// fastest for the model's network (see [`TrainPath::measured`]).
+    /// Buffers for batches of up to `batch_size` vectors, on the model's pinned training path
+    /// or else the one measured fastest for its network (see [`TrainPath::measured`]).
     pub fn new(model: &Denoiser<L>, batch_size: usize) -> Self {
         let mlp = &model.mlp;
-        let path = TrainPath::measured(mlp.sizes(), mlp.activation(), batch_size);
+        let path = model
+            .train_path
+            .unwrap_or_else(|| TrainPath::measured(mlp.sizes(), mlp.activation(), batch_size));
         Self::with_path(model, batch_size, path)
     }
 
@@ -105,6 +109,11 @@ impl<L: DenoisingLoss> Workspace<L> {
 }
 
 impl<L: DenoisingLoss> Denoiser<L> {
+    /// Pins the training path of its fits (`None`: measured, the default).
+    pub fn pin_train_path(&mut self, path: Option<TrainPath>) {
+        self.train_path = path;
+    }
+
     /// An untrained model of the configured size (identity normaliser).
     pub fn new(dim: usize, config: &EnergyConfig, rng: &mut StdRng) -> Self {
         assert!(
@@ -120,6 +129,7 @@ impl<L: DenoisingLoss> Denoiser<L> {
             normalizer: Normalizer::identity(dim),
             sigma: config.noise_sigma,
             batch_size: config.batch_size.max(1),
+            train_path: None,
             loss: PhantomData,
         }
     }
