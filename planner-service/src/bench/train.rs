@@ -22,7 +22,7 @@ use super::timing::{BATCHES, Clock, Samples, Timing, measure};
 use super::{BenchError, describe, preset, random_transitions};
 use crate::dynamics::{Ensemble, TrainWorkspace, TrainingSet};
 use crate::energy::{Deen, DeenWorkspace, RegularizerKind, transition_rows};
-use crate::nn::{Adam, FlushDenormals, InputGradTape, Mlp, Normalizer};
+use crate::nn::{Adam, FlushDenormals, InputGradTape, Mlp, Normalizer, TrainPath};
 use proto::Builtin;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -33,6 +33,9 @@ use std::fmt;
 pub struct StepTiming {
     pub sizes: Vec<usize>,
     pub batch: usize,
+    /// The kernels the step's products ran on (measured fastest for this shape, see
+    /// [`TrainPath::measured`]).
+    pub path: TrainPath,
     /// CPU time per step (all threads), fastest and median step.
     pub time: Timing,
     /// Floating-point operations of the step's matrix products (`2·m·n·k` each).
@@ -158,6 +161,7 @@ fn run_on_worker(
         model.train_step(&set, batch, &mut workspace);
     });
     let dynamics_sizes = model.mlp().sizes().to_vec();
+    let dynamics_path = workspace.path();
 
     let energy_batch = preset.energy.batch_size;
     let rows = transition_rows(&data);
@@ -171,6 +175,7 @@ fn run_on_worker(
     let deen_time = time_steps(&energy_batches, warmup, |batch| {
         deen.train_step(&set, batch, &mut workspace, &mut noise_rng);
     });
+    let deen_path = workspace.path();
     let deen_phases = deen_phases(deen.mlp(), &set, &energy_batches[0], steps);
 
     Ok(TrainReport {
@@ -180,11 +185,13 @@ fn run_on_worker(
             flops: dynamics_step_flops(&dynamics_sizes) * dynamics_batch as f64,
             sizes: dynamics_sizes,
             batch: dynamics_batch,
+            path: dynamics_path,
             time: dynamics_time,
         },
         deen: StepTiming {
             sizes: deen.mlp().sizes().to_vec(),
             batch: energy_batch,
+            path: deen_path,
             time: deen_time,
             flops: deen_step_flops(deen.mlp().sizes()) * energy_batch as f64,
         },
@@ -198,7 +205,7 @@ fn run_on_worker(
 /// batches of about `steps / BATCHES` calls.
 fn deen_phases(mlp: &Mlp, set: &[f32], batch: &[usize], steps: usize) -> DeenPhases {
     let (dim, samples) = (mlp.in_dim(), batch.len());
-    let mut tape = InputGradTape::new(mlp, samples);
+    let mut tape = InputGradTape::for_training(mlp, samples);
     let ld = tape.ld();
     let input = tape.input_mut();
     for (col, &idx) in batch.iter().enumerate() {
@@ -240,17 +247,18 @@ impl fmt::Display for TrainReport {
             f,
             "bench train: {} ({} timed steps each, {} thread(s); CPU ms per step, all threads' \
              time summed; GFLOP/s of the matrix products per CPU second, as a fraction of one \
-             core's f32 peak)\n  {}",
+             core's f32 peak; each network's training path measured fastest for its shape)\n  {}",
             self.task, self.steps, self.threads, self.peak
         )?;
         for (name, t) in [("dynamics", &self.dynamics), ("DEEN", &self.deen)] {
             let (best, median) = t.gflops();
             write!(
                 f,
-                "\n  {name:<9} {:<16} batch {:>3}: {:.3} ms best, {:.3} ms median; \
+                "\n  {name:<9} {:<16} batch {:>3} on {:<8}: {:.3} ms best, {:.3} ms median; \
                  {best:.1} GFLOP/s best = {} of peak, {median:.1} median = {}",
                 describe(&t.sizes),
                 t.batch,
+                t.path.name(),
                 t.time.min_ms,
                 t.time.median_ms,
                 percent(best, self.peak.f32_gflops),

@@ -17,7 +17,7 @@ use crate::nn::aligned::AlignedBuf;
 use crate::nn::matmul::transpose;
 use crate::nn::train::{EpochsRun, FitBudget, run_epochs};
 use crate::nn::vecops::scale_shift;
-use crate::nn::{Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape};
+use crate::nn::{Activation, Adam, ForwardScratch, Mlp, Normalizer, ShapeError, Tape, TrainPath};
 use proto::Task;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -98,9 +98,19 @@ pub struct TrainWorkspace {
 }
 
 impl TrainWorkspace {
-    /// Buffers for batches of up to `batch_size` transitions.
+    /// Buffers for batches of up to `batch_size` transitions, on the model's pinned training
+    /// path or else the one measured fastest for its network (see [`TrainPath::measured`]).
     pub fn new(model: &ProbabilisticModel, batch_size: usize) -> Self {
-        let tape = Tape::new(&model.mlp, batch_size);
+        let mlp = &model.mlp;
+        let path = model
+            .train_path
+            .unwrap_or_else(|| TrainPath::measured(mlp.sizes(), mlp.activation(), batch_size));
+        Self::with_path(model, batch_size, path)
+    }
+
+    /// Buffers for batches of up to `batch_size` transitions, multiplying on `path`.
+    pub fn with_path(model: &ProbabilisticModel, batch_size: usize, path: TrainPath) -> Self {
+        let tape = Tape::with_path(&model.mlp, batch_size, path);
         Self {
             targets: AlignedBuf::zeros(model.task.obs_dim * tape.ld()),
             grads: vec![0.0; model.mlp.params().len()],
@@ -108,6 +118,13 @@ impl TrainWorkspace {
             terms: vec![0.0; 4 * tape.ld()],
             tape,
         }
+    }
+}
+
+impl TrainWorkspace {
+    /// The kernels this workspace's products run on.
+    pub fn path(&self) -> TrainPath {
+        self.tape.path()
     }
 }
 
@@ -190,6 +207,8 @@ pub struct ProbabilisticModel {
     adam: Adam,
     bounds_adam: Adam,
     batch_size: usize,
+    /// The training path its fits use; `None`: the one measured fastest for its shape.
+    train_path: Option<TrainPath>,
     weight_decay: f32,
 }
 
@@ -210,6 +229,7 @@ impl ProbabilisticModel {
             target_norm: Normalizer::identity(task.obs_dim),
             logvar_bounds,
             batch_size: config.batch_size.max(1),
+            train_path: None,
             weight_decay: config.weight_decay,
         }
     }
@@ -256,6 +276,11 @@ impl ProbabilisticModel {
 
     pub fn task(&self) -> &'static Task {
         self.task
+    }
+
+    /// Pins the training path of its fits (`None`: measured, the default).
+    pub fn pin_train_path(&mut self, path: Option<TrainPath>) {
+        self.train_path = path;
     }
 
     /// Sets the number format of planning-time inference (see [`Mlp::set_inference_precision`]).

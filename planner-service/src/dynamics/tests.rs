@@ -3,7 +3,7 @@
 
 use super::*;
 use crate::data::Transitions;
-use crate::nn::{Activation, Normalizer, reference};
+use crate::nn::{Activation, Normalizer, TrainPath, reference};
 use proto::{Builtin, Task};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -62,8 +62,16 @@ fn small_config(epochs: usize) -> DynamicsConfig {
     }
 }
 
+/// On every training path this CPU has; the bf16 tiles within the bounds of
+/// [`reference::assert_gradient`].
 #[test]
 fn loss_gradient_matches_finite_differences() {
+    for path in TrainPath::available() {
+        loss_gradient_matches_finite_differences_on(path);
+    }
+}
+
+fn loss_gradient_matches_finite_differences_on(path: TrainPath) {
     let mut rng = StdRng::seed_from_u64(21);
     let task = cartpole();
     let config = DynamicsConfig {
@@ -85,7 +93,7 @@ fn loss_gradient_matches_finite_differences() {
         .member_bounds_mut()
         .copy_from_slice(&[0.2, -0.1, 0.3, 0.0, -1.5, -2.0, -1.0, -3.0]);
     let batch = [0, 3, 4, 6, 1];
-    let mut ws = TrainWorkspace::new(&model, 8);
+    let mut ws = TrainWorkspace::with_path(&model, 8, path);
     let loss = model.loss_and_grad(&set, &batch, &mut ws);
     let mut got = ws.grads_for_test().to_vec();
     got.extend(ws.bound_grads_for_test());
@@ -119,9 +127,18 @@ fn loss_gradient_matches_finite_differences() {
         .chain(model.min_logvar())
         .map(|&v| v as f64)
         .collect();
-    assert!((loss as f64 - reference_loss(&p)).abs() < 1e-4 * reference_loss(&p).abs());
+    let loss_tolerance = match path {
+        TrainPath::F32 => 1e-4,
+        TrainPath::AmxBf16 => reference::BF16_NORM_TOLERANCE,
+    };
+    assert!(
+        (loss as f64 - reference_loss(&p)).abs() < loss_tolerance * reference_loss(&p).abs(),
+        "{path}: loss {loss} vs {}",
+        reference_loss(&p)
+    );
     let fd = reference::finite_difference(&p, reference_loss);
-    reference::assert_close(&got, &fd, 1e-3, "dynamics loss gradient");
+    let what = format!("dynamics loss gradient on {path}");
+    reference::assert_gradient(path, &got, &fd, 1e-3, &what);
 }
 
 /// Squared error of the mean prediction on fresh noise-free transitions, per observation
@@ -152,8 +169,15 @@ fn held_out_error(ensemble: &Ensemble, member: usize, rng: &mut StdRng) -> [f32;
     out
 }
 
+/// On every training path this CPU has: the bf16 tiles learn the same system.
 #[test]
 fn learns_a_known_system_and_its_noise() {
+    for path in TrainPath::available() {
+        learns_a_known_system_and_its_noise_on(path);
+    }
+}
+
+fn learns_a_known_system_and_its_noise_on(path: TrainPath) {
     // The whole-data NLL after a fit moves with the fit's last minibatches: over seeds 22–39
     // one seed in 18 (23 before the fused bias gradient of session 11, 22 after it) ends the
     // second fit above the first. This seed is clear of that on both.
@@ -162,6 +186,7 @@ fn learns_a_known_system_and_its_noise() {
     let noise = 0.2;
     let data = dataset(3000, noise, &mut rng);
     let mut ensemble = Ensemble::new(task, &small_config(0), &mut rng);
+    ensemble.member_mut(0).pin_train_path(Some(path));
     let before = held_out_error(&ensemble, 0, &mut rng);
     let first = ensemble.fit(&data, 10, &mut rng);
     // Training continues from the current weights: a second call improves on the first.
@@ -175,6 +200,7 @@ fn learns_a_known_system_and_its_noise() {
         (3000, 30, 30 * 3000usize.div_ceil(32))
     );
     let after = held_out_error(&ensemble, 0, &mut rng);
+    println!("dynamics on {path}: held-out relative error {after:?}, {second:?}");
     for k in 0..4 {
         assert!(before[k] > 0.3, "untrained error {before:?}");
         assert!(

@@ -10,7 +10,7 @@
 use super::denoiser::{Denoiser, DenoisingLoss, Workspace};
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::vecops::add_squared_diff;
-use crate::nn::{ForwardScratch, Mlp, Tape};
+use crate::nn::{ForwardScratch, Mlp, Tape, TrainPath};
 
 /// The DAE's loss: the network outputs the denoised vector.
 #[derive(Clone, Copy, Debug)]
@@ -37,14 +37,18 @@ impl DenoisingLoss for DaeLoss {
         dim
     }
 
-    fn tape(mlp: &Mlp, batch_size: usize) -> DaeTape {
-        let tape = Tape::new(mlp, batch_size);
+    fn tape(mlp: &Mlp, batch_size: usize, path: TrainPath) -> DaeTape {
+        let tape = Tape::with_path(mlp, batch_size, path);
         let clean = AlignedBuf::zeros(mlp.in_dim() * tape.ld());
         DaeTape { tape, clean }
     }
 
     fn ld(tape: &DaeTape) -> usize {
         tape.tape.ld()
+    }
+
+    fn path(tape: &DaeTape) -> TrainPath {
+        tape.tape.path()
     }
 
     /// `Σᵢ ‖g(xᵢ + σεᵢ) − xᵢ‖² / n`.

@@ -14,7 +14,7 @@
 
 use super::denoiser::{Denoiser, DenoisingLoss, Workspace};
 use crate::nn::matmul::transpose;
-use crate::nn::{ForwardScratch, InputGradTape, Mlp};
+use crate::nn::{ForwardScratch, InputGradTape, Mlp, TrainPath};
 
 /// DEEN's loss: the network outputs a scalar energy whose input gradient denoises.
 #[derive(Clone, Copy, Debug)]
@@ -34,12 +34,16 @@ impl DenoisingLoss for DeenLoss {
         1
     }
 
-    fn tape(mlp: &Mlp, batch_size: usize) -> InputGradTape {
-        InputGradTape::new(mlp, batch_size)
+    fn tape(mlp: &Mlp, batch_size: usize, path: TrainPath) -> InputGradTape {
+        InputGradTape::with_path(mlp, batch_size, path)
     }
 
     fn ld(tape: &InputGradTape) -> usize {
         tape.ld()
+    }
+
+    fn path(tape: &InputGradTape) -> TrainPath {
+        tape.path()
     }
 
     /// `Σᵢ ‖xᵢ − yᵢ + σ² ∂E/∂yᵢ‖² / n` with `yᵢ = xᵢ + σεᵢ`.

@@ -10,7 +10,9 @@
 use super::config::{EnergyConfig, EnergyParts, layer_sizes};
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::train::{FitBudget, run_epochs};
-use crate::nn::{Activation, Adam, FitReport, FlushDenormals, Mlp, Normalizer, ShapeError};
+use crate::nn::{
+    Activation, Adam, FitReport, FlushDenormals, Mlp, Normalizer, ShapeError, TrainPath,
+};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -25,10 +27,12 @@ pub trait DenoisingLoss {
     type Tape: Clone + std::fmt::Debug;
     /// Outputs of the network for `dim`-dimensional inputs.
     fn outputs(dim: usize) -> usize;
-    /// A tape for minibatches of up to `batch_size` vectors.
-    fn tape(mlp: &Mlp, batch_size: usize) -> Self::Tape;
+    /// A tape for minibatches of up to `batch_size` vectors, its products on `path`.
+    fn tape(mlp: &Mlp, batch_size: usize, path: TrainPath) -> Self::Tape;
     /// Row stride of the tape's feature-major buffers.
     fn ld(tape: &Self::Tape) -> usize;
+    /// The kernels the tape's products run on.
+    fn path(tape: &Self::Tape) -> TrainPath;
     /// The loss of a minibatch (`batch`: indices into the standardised, sample-major `set`)
     /// corrupted by the noise `eps` (feature-major, [`DenoisingLoss::ld`] columns), and its
     /// parameter gradient into `grads`.
@@ -51,6 +55,8 @@ pub struct Denoiser<L> {
     normalizer: Normalizer,
     sigma: f32,
     batch_size: usize,
+    /// The training path its fits use; `None`: the one measured fastest for its shape.
+    train_path: Option<TrainPath>,
     adam: Adam,
     loss: PhantomData<L>,
 }
@@ -65,9 +71,19 @@ pub struct Workspace<L: DenoisingLoss> {
 }
 
 impl<L: DenoisingLoss> Workspace<L> {
-    /// Buffers for batches of up to `batch_size` vectors.
+    /// Buffers for batches of up to `batch_size` vectors, on the model's pinned training path
+    /// or else the one measured fastest for its network (see [`TrainPath::measured`]).
     pub fn new(model: &Denoiser<L>, batch_size: usize) -> Self {
-        let tape = L::tape(&model.mlp, batch_size);
+        let mlp = &model.mlp;
+        let path = model
+            .train_path
+            .unwrap_or_else(|| TrainPath::measured(mlp.sizes(), mlp.activation(), batch_size));
+        Self::with_path(model, batch_size, path)
+    }
+
+    /// Buffers for batches of up to `batch_size` vectors, multiplying on `path`.
+    pub fn with_path(model: &Denoiser<L>, batch_size: usize, path: TrainPath) -> Self {
+        let tape = L::tape(&model.mlp, batch_size, path);
         let eps = AlignedBuf::zeros(model.dim() * L::ld(&tape));
         Self {
             tape,
@@ -85,9 +101,19 @@ impl<L: DenoisingLoss> Workspace<L> {
     pub fn grads(&self) -> &[f32] {
         &self.grads
     }
+
+    /// The kernels this workspace's products run on.
+    pub fn path(&self) -> TrainPath {
+        L::path(&self.tape)
+    }
 }
 
 impl<L: DenoisingLoss> Denoiser<L> {
+    /// Pins the training path of its fits (`None`: measured, the default).
+    pub fn pin_train_path(&mut self, path: Option<TrainPath>) {
+        self.train_path = path;
+    }
+
     /// An untrained model of the configured size (identity normaliser).
     pub fn new(dim: usize, config: &EnergyConfig, rng: &mut StdRng) -> Self {
         assert!(
@@ -103,6 +129,7 @@ impl<L: DenoisingLoss> Denoiser<L> {
             normalizer: Normalizer::identity(dim),
             sigma: config.noise_sigma,
             batch_size: config.batch_size.max(1),
+            train_path: None,
             loss: PhantomData,
         }
     }

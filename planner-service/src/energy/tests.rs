@@ -4,7 +4,7 @@
 
 use super::mixture::{SIGMA, density_and_score, samples as mixture_samples};
 use super::*;
-use crate::nn::{Activation, reference};
+use crate::nn::{Activation, TrainPath, reference};
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 
@@ -57,12 +57,20 @@ fn toy_config(sd: f64) -> EnergyConfig {
     }
 }
 
+/// On every training path this CPU has: the bf16 tiles learn the same score.
 #[test]
 fn deen_learns_the_score_of_a_smoothed_gaussian_mixture() {
+    for path in TrainPath::available() {
+        deen_learns_the_score_on(path);
+    }
+}
+
+fn deen_learns_the_score_on(path: TrainPath) {
     let (data, sd, grid) = mixture_problem(31);
     let mut rng = StdRng::seed_from_u64(32);
     let config = toy_config(sd);
     let mut deen = Deen::new(1, &config, &mut rng);
+    deen.pin_train_path(Some(path));
     let report = deen.fit(&data, config.epochs, &mut rng);
     assert_eq!(
         (report.samples, report.steps),
@@ -72,12 +80,13 @@ fn deen_learns_the_score_of_a_smoothed_gaussian_mixture() {
     let truth: Vec<f64> = grid.iter().map(|&y| analytic_score(y as f64)).collect();
     let r = correlation(&model, &truth);
     let k = slope(&truth, &model);
+    println!("DEEN on {path}: correlation {r:.4}, slope {k:.4}");
     assert!(
         r >= 0.95,
-        "correlation of DEEN's score with the analytic score: {r}"
+        "{path}: correlation of DEEN's score with the analytic score: {r}"
     );
     // Not only the shape: the magnitude is right too.
-    assert!((0.8..1.25).contains(&k), "slope {k}");
+    assert!((0.8..1.25).contains(&k), "{path}: slope {k}");
     // The energy is low where the data is dense: the modes beat the gaps between them.
     let e = deen.energy_rows(&[-3.0, -1.5, 0.0, 1.5, 3.0, 6.0]);
     assert!(
@@ -145,11 +154,24 @@ type SampleLoss = dyn Fn(&[usize], &[f64], &[f64], &[f64], f64) -> f64;
 
 /// Checks a regulariser's minibatch loss against `per_sample` and its parameter gradient
 /// against finite differences of it.
+/// On every training path this CPU has; the bf16 tiles within the bounds of
+/// [`reference::assert_gradient`].
 fn check_loss_gradient<L: DenoisingLoss>(seed: u64, tolerance: f64, per_sample: &SampleLoss) {
+    for path in TrainPath::available() {
+        check_loss_gradient_on::<L>(seed, path, tolerance, per_sample);
+    }
+}
+
+fn check_loss_gradient_on<L: DenoisingLoss>(
+    seed: u64,
+    path: TrainPath,
+    tolerance: f64,
+    per_sample: &SampleLoss,
+) {
     let mut rng = StdRng::seed_from_u64(seed);
     let (config, set, batch) = gradient_problem(&mut rng);
     let model = Denoiser::<L>::new(3, &config, &mut rng);
-    let mut ws = denoiser::Workspace::new(&model, 8);
+    let mut ws = denoiser::Workspace::with_path(&model, 8, path);
     let ld = crate::nn::aligned::round_up(8);
     let eps = fill_noise(ws.noise_mut(), ld, 3, batch.len(), &mut rng);
     let loss = model.loss_and_grad(&set, &batch, &mut ws);
@@ -170,10 +192,18 @@ fn check_loss_gradient<L: DenoisingLoss>(seed: u64, tolerance: f64, per_sample: 
         total / batch.len() as f64
     };
     let p: Vec<f64> = model.mlp().params().iter().map(|&v| v as f64).collect();
-    assert!((loss as f64 - reference_loss(&p)).abs() < 1e-5 * reference_loss(&p).max(1.0));
+    let loss_tolerance = match path {
+        TrainPath::F32 => 1e-5,
+        TrainPath::AmxBf16 => reference::BF16_NORM_TOLERANCE,
+    };
+    assert!(
+        (loss as f64 - reference_loss(&p)).abs() < loss_tolerance * reference_loss(&p).max(1.0),
+        "{path}: loss {loss} vs {}",
+        reference_loss(&p)
+    );
     let fd = reference::finite_difference(&p, reference_loss);
-    let what = format!("{} loss gradient", L::NAME);
-    reference::assert_close(ws.grads(), &fd, tolerance, &what);
+    let what = format!("{} loss gradient on {path}", L::NAME);
+    reference::assert_gradient(path, ws.grads(), &fd, tolerance, &what);
 }
 
 #[test]

@@ -12,8 +12,9 @@
 //! feature (on cartpole's 200-wide layers those calls took about 2.5 % of a dynamics step).
 
 use super::aligned::{AlignedBuf, round_up};
-use super::matmul::{Init, MatMut, MatRef, matmul_par};
+use super::matmul::{Init, MatMut, MatRef};
 use super::mlp::{Mlp, spans};
+use super::train_path::{Products, TrainPath};
 
 /// Buffers of one training pass for batches of up to `capacity` samples.
 #[derive(Clone, Debug)]
@@ -31,13 +32,27 @@ pub struct Tape {
     /// Ping-pong buffers for `Gₗ` below the output; the input gradient ends in one of them.
     g: [AlignedBuf; 2],
     input_grad_in: Option<usize>,
-    /// `Gₗᵀ`, sample-major, the right factor of the weight gradient.
+    /// `Gₗᵀ`, sample-major, the right factor of the weight gradient (f32 kernels).
     gt: AlignedBuf,
+    products: Products,
 }
 
 impl Tape {
-    /// Buffers for `mlp` on batches of up to `capacity` samples.
+    /// Buffers for `mlp` on batches of up to `capacity` samples, multiplying in f32 (exact
+    /// f32 gradients: what planning by gradient uses).
     pub fn new(mlp: &Mlp, capacity: usize) -> Self {
+        Self::with_path(mlp, capacity, TrainPath::F32)
+    }
+
+    /// [`Tape::new`] on the training path measured fastest for this network and batch (see
+    /// [`TrainPath::measured`]): what a trainer uses.
+    pub fn for_training(mlp: &Mlp, capacity: usize) -> Self {
+        let path = TrainPath::measured(mlp.sizes(), mlp.activation(), capacity);
+        Self::with_path(mlp, capacity, path)
+    }
+
+    /// [`Tape::new`] with its products on `path`. Panics if this CPU cannot run it.
+    pub fn with_path(mlp: &Mlp, capacity: usize, path: TrainPath) -> Self {
         let ld = round_up(capacity.max(1));
         let sizes = mlp.sizes().to_vec();
         let width = mlp.max_width();
@@ -51,10 +66,16 @@ impl Tape {
             g: [AlignedBuf::zeros(width * ld), AlignedBuf::zeros(width * ld)],
             input_grad_in: None,
             gt: AlignedBuf::zeros(ld * round_up(width)),
+            products: Products::new(path),
             sizes,
             ld,
             samples: 0,
         }
+    }
+
+    /// The kernels this tape's products run on.
+    pub fn path(&self) -> TrainPath {
+        self.products.path()
     }
 
     /// Whether this tape serves `mlp` on batches of `samples`.
@@ -112,11 +133,17 @@ pub(super) fn with_ones_row(rows: usize, ld: usize) -> AlignedBuf {
 
 impl Mlp {
     /// `Z = Wₗᵀ · H + bₗ` for training: large products are split across two threads.
-    fn affine_train(&self, l: usize, h: &[f32], samples: usize, ld: usize, z: &mut [f32]) {
+    fn affine_train(
+        &self,
+        l: usize,
+        (h, samples, ld): (&[f32], usize, usize),
+        z: &mut [f32],
+        products: &mut Products,
+    ) {
         let (n_in, n_out) = (self.sizes()[l], self.sizes()[l + 1]);
-        matmul_par(
+        products.matmul_weights(
             MatMut::with_stride(z, n_out, samples, ld),
-            MatRef::new(self.weight(l), n_in, n_out).t(),
+            (l, MatRef::new(self.weight(l), n_in, n_out), true),
             MatRef::with_stride(h, n_in, samples, ld),
             Init::RowBias(self.bias(l)),
         );
@@ -127,12 +154,14 @@ impl Mlp {
     pub fn forward_train<'t>(&self, tape: &'t mut Tape, samples: usize) -> &'t [f32] {
         tape.check(self, samples);
         tape.samples = samples;
+        tape.products.new_weights();
         tape.input_grad_in = None;
         let ld = tape.ld;
         for l in 0..self.layers() {
             let (below, above) = tape.h.split_at_mut(l + 1);
             let z = above[0].as_mut_slice();
-            self.affine_train(l, below[l].as_slice(), samples, ld, z);
+            let h = (below[l].as_slice(), samples, ld);
+            self.affine_train(l, h, z, &mut tape.products);
             if l + 1 < self.layers() {
                 let d1 = tape.d1[l].as_mut_slice();
                 for span in spans(self.sizes()[l + 1], samples, ld) {
@@ -176,15 +205,16 @@ impl Mlp {
             if let Some(grads) = grads.as_deref_mut() {
                 let h_ones = MatRef::with_stride(tape.h[l].as_slice(), n_in + 1, samples, ld);
                 let g_view = MatRef::with_stride(g, n_out, samples, ld);
-                weight_and_bias_grad(self, l, h_ones, g_view, tape.gt.as_mut_slice(), grads);
+                let out = MatMut::new(&mut grads[self.layer_range(l)], n_in + 1, n_out);
+                weight_and_bias_grad(out, h_ones, g_view, &mut tape.gt, &mut tape.products);
             }
             if l == 0 && !input_grad {
                 break;
             }
             // Gₗ₋₁ = (Wₗ · Gₗ) ⊙ σ'(zₗ₋₁)
-            matmul_par(
+            tape.products.matmul_weights(
                 MatMut::with_stride(g_next, n_in, samples, ld),
-                MatRef::new(self.weight(l), n_in, n_out),
+                (l, MatRef::new(self.weight(l), n_in, n_out), false),
                 MatRef::with_stride(g, n_out, samples, ld),
                 Init::Zero,
             );
@@ -200,23 +230,27 @@ impl Mlp {
     }
 }
 
-/// `[∂L/∂Wₗ; ∂L/∂bₗᵀ] = [hₗ₋₁; 1ᵀ] · Gₗᵀ` (overwriting) for layer `l`, given the
+/// `[∂L/∂Wₗ; ∂L/∂bₗᵀ] = [hₗ₋₁; 1ᵀ] · Gₗᵀ` (overwriting `out`, `n_in + 1 × n_out`), given the
 /// feature-major `h_ones` (`n_in + 1 × samples`, its last row ones) and `g` (`n_out ×
-/// samples`). `gt` is scratch for `Gₗᵀ`.
+/// samples`). The f32 kernels need `Gᵀ` with unit column stride and get it copied into `gt`;
+/// the tiles pack the transposed view directly.
 fn weight_and_bias_grad(
-    mlp: &Mlp,
-    l: usize,
+    out: MatMut<'_>,
     h_ones: MatRef<'_>,
     g: MatRef<'_>,
-    gt: &mut [f32],
-    grads: &mut [f32],
+    gt: &mut AlignedBuf,
+    products: &mut Products,
 ) {
-    let (rows, n_out, samples) = (h_ones.rows(), g.rows(), g.cols());
+    if products.path() != TrainPath::F32 {
+        return products.matmul(out, h_ones, g.t(), Init::Zero);
+    }
+    let (n_out, samples) = (g.rows(), g.cols());
     // Rows of Gᵀ start on cache lines, so the kernel's panel loads never straddle two.
     let ld_gt = round_up(n_out);
+    let gt = gt.as_mut_slice();
     g.transpose_into(gt, ld_gt);
-    matmul_par(
-        MatMut::new(&mut grads[mlp.layer_range(l)], rows, n_out),
+    products.matmul(
+        out,
         h_ones,
         MatRef::with_stride(gt, samples, n_out, ld_gt),
         Init::Zero,
@@ -229,6 +263,7 @@ mod tests {
     use crate::nn::activation::Activation;
     use crate::nn::matmul::transpose;
     use crate::nn::reference;
+    use crate::nn::train_path::tests::paths_and_activations;
     use rand::rngs::StdRng;
     use rand::{RngExt, SeedableRng};
 
@@ -236,6 +271,13 @@ mod tests {
     /// reference gradient is a central difference of the f64 reference network.
     #[test]
     fn parameter_and_input_gradients_match_finite_differences() {
+        for path in TrainPath::available() {
+            gradients_match_finite_differences_on(path);
+        }
+    }
+
+    /// The bf16 tiles within the bounds of [`reference::assert_gradient`].
+    fn gradients_match_finite_differences_on(path: TrainPath) {
         let mut rng = StdRng::seed_from_u64(5);
         for act in [Activation::Swish, Activation::Softplus] {
             let mlp = Mlp::new(&[4, 9, 7, 3], act, &mut rng);
@@ -256,7 +298,7 @@ mod tests {
                     .sum()
             };
 
-            let mut tape = Tape::new(&mlp, samples);
+            let mut tape = Tape::with_path(&mlp, samples, path);
             let ld = tape.ld();
             transpose(&x, samples, 4, 4, tape.input_mut(), ld);
             mlp.forward_train(&mut tape, samples);
@@ -268,21 +310,23 @@ mod tests {
             let p64: Vec<f64> = mlp.params().iter().map(|&v| v as f64).collect();
             let x64: Vec<f64> = x.iter().map(|&v| v as f64).collect();
             let fd_params = reference::finite_difference(&p64, |p| loss(p, &x64));
-            reference::assert_close(
+            reference::assert_gradient(
+                path,
                 &grads,
                 &fd_params,
                 1e-4,
-                &format!("{act:?} parameter gradient"),
+                &format!("{act:?} parameter gradient on {path}"),
             );
 
             let fd_input = reference::finite_difference(&x64, |x| loss(&p64, x));
             let mut input_grad = vec![0.0; samples * 4];
             transpose(tape.input_grad(), 4, samples, ld, &mut input_grad, 4);
-            reference::assert_close(
+            reference::assert_gradient(
+                path,
                 &input_grad,
                 &fd_input,
                 1e-4,
-                &format!("{act:?} input gradient"),
+                &format!("{act:?} input gradient on {path}"),
             );
             // The input gradient alone is the same numbers.
             let (_, out_grad) = tape.output_and_grad_mut();
@@ -304,7 +348,7 @@ mod tests {
     fn a_batch_gradient_is_the_sum_of_its_samples_gradients() {
         let mut rng = StdRng::seed_from_u64(11);
         let sizes = [5, 23, 17, 3];
-        for act in [Activation::Swish, Activation::Softplus] {
+        for (act, path) in paths_and_activations() {
             let mlp = Mlp::new(&sizes, act, &mut rng);
             let (all, batch) = (20, 7);
             // Input feature 0 is 1 for every sample: its weights' gradient is the first
@@ -316,7 +360,7 @@ mod tests {
                 })
                 .collect();
             let c: Vec<f32> = (0..all * 3).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let mut tape = Tape::new(&mlp, all);
+            let mut tape = Tape::with_path(&mlp, all, path);
             let ld = tape.ld();
             let grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
                 let k = cols.len();
@@ -335,7 +379,7 @@ mod tests {
                 mlp.backward(&mut tape, &mut grads, false);
                 grads
             };
-            let what = format!("{act:?}");
+            let what = format!("{act:?} on {path}");
             let batch_grads = reference::assert_batch_gradient_sums_its_samples(
                 &mlp,
                 (all, batch),
@@ -343,7 +387,15 @@ mod tests {
                 grads_of,
             );
             for (k, &b) in batch_grads[mlp.bias_range(2)].iter().enumerate() {
-                let terms = (0..batch).map(|i| c[i * 3 + k] as f64);
+                // The tiles multiply the output gradient rounded to bf16 by the ones row.
+                let term = |v: f32| match path {
+                    TrainPath::F32 => v as f64,
+                    TrainPath::AmxBf16 => {
+                        use crate::nn::matmul::{bf16_bits, bf16_value};
+                        bf16_value(bf16_bits(v)) as f64
+                    }
+                };
+                let terms = (0..batch).map(|i| term(c[i * 3 + k]));
                 let (want, size) = terms.fold((0.0, 0.0), |(s, a), t| (s + t, a + t.abs()));
                 assert!((b as f64 - want).abs() <= 1e-6 * size, "{act:?} bias {k}");
             }

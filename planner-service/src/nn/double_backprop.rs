@@ -22,8 +22,9 @@
 //! product has the batch as its short side, like the ordinary backward pass.
 
 use super::aligned::{AlignedBuf, round_up};
-use super::matmul::{Init, MatMut, MatRef, matmul_par, transpose};
+use super::matmul::{Init, MatMut, MatRef, transpose};
 use super::mlp::{Mlp, spans};
+use super::train_path::{Products, TrainPath};
 use super::vecops::{mul_add3, product2, product3, sum};
 
 /// Buffers of one input-gradient pass and its double backpropagation, for batches of up to
@@ -54,11 +55,25 @@ pub struct InputGradTape {
     /// bias gradient.
     hcat: AlignedBuf,
     gt: AlignedBuf,
+    products: Products,
 }
 
 impl InputGradTape {
-    /// Buffers for the scalar-output `mlp` on batches of up to `capacity` samples.
+    /// Buffers for the scalar-output `mlp` on batches of up to `capacity` samples,
+    /// multiplying in f32.
     pub fn new(mlp: &Mlp, capacity: usize) -> Self {
+        Self::with_path(mlp, capacity, TrainPath::F32)
+    }
+
+    /// [`InputGradTape::new`] on the training path measured fastest for this network and
+    /// batch (see [`TrainPath::measured`]): what a trainer uses.
+    pub fn for_training(mlp: &Mlp, capacity: usize) -> Self {
+        let path = TrainPath::measured(mlp.sizes(), mlp.activation(), capacity);
+        Self::with_path(mlp, capacity, path)
+    }
+
+    /// [`InputGradTape::new`] with its products on `path`. Panics if this CPU cannot run it.
+    pub fn with_path(mlp: &Mlp, capacity: usize, path: TrainPath) -> Self {
         assert_eq!(
             mlp.out_dim(),
             1,
@@ -85,6 +100,7 @@ impl InputGradTape {
             udot: [AlignedBuf::zeros(width * ld), AlignedBuf::zeros(width * ld)],
             hcat: AlignedBuf::zeros((width + 1) * 2 * ld),
             gt: AlignedBuf::zeros(2 * ld * round_up(width)),
+            products: Products::new(path),
             sizes,
             ld,
             samples: 0,
@@ -94,6 +110,11 @@ impl InputGradTape {
     /// Row stride of every feature-major buffer (and the batch capacity).
     pub fn ld(&self) -> usize {
         self.ld
+    }
+
+    /// The kernels this tape's products run on.
+    pub fn path(&self) -> TrainPath {
+        self.products.path()
     }
 
     /// The feature-major input `y` to fill before [`Mlp::input_gradient_train`]: `in_dim × ld`.
@@ -140,14 +161,15 @@ impl Mlp {
             tape.ld
         );
         tape.samples = samples;
+        tape.products.new_weights();
         let (ld, layers) = (tape.ld, self.layers());
         let sizes = self.sizes();
         for l in 0..layers {
             let (below, above) = tape.h.split_at_mut(l + 1);
             let z = above[0].as_mut_slice();
-            matmul_par(
+            tape.products.matmul_weights(
                 MatMut::with_stride(z, sizes[l + 1], samples, ld),
-                MatRef::new(self.weight(l), sizes[l], sizes[l + 1]).t(),
+                (l, MatRef::new(self.weight(l), sizes[l], sizes[l + 1]), true),
                 MatRef::with_stride(below[l].as_slice(), sizes[l], samples, ld),
                 Init::RowBias(self.bias(l)),
             );
@@ -175,9 +197,13 @@ impl Mlp {
                 product2(&mut delta[span.clone()], &u_l[span.clone()], &d1[span]);
             }
             // u_{l−1} = W_{l−1} δ_l
-            matmul_par(
+            tape.products.matmul_weights(
                 MatMut::with_stride(tape.u[l - 1].as_mut_slice(), sizes[l - 1], samples, ld),
-                MatRef::new(self.weight(l - 1), sizes[l - 1], sizes[l]),
+                (
+                    l - 1,
+                    MatRef::new(self.weight(l - 1), sizes[l - 1], sizes[l]),
+                    false,
+                ),
                 MatRef::with_stride(delta, sizes[l], samples, ld),
                 Init::Zero,
             );
@@ -200,9 +226,13 @@ impl Mlp {
             } else {
                 tape.hdot[l - 2].as_slice()
             };
-            matmul_par(
+            tape.products.matmul_weights(
                 MatMut::with_stride(zdot, sizes[l], samples, ld),
-                MatRef::new(self.weight(l - 1), sizes[l - 1], sizes[l]).t(),
+                (
+                    l - 1,
+                    MatRef::new(self.weight(l - 1), sizes[l - 1], sizes[l]),
+                    true,
+                ),
                 MatRef::with_stride(hdot_prev, sizes[l - 1], samples, ld),
                 Init::Zero,
             );
@@ -277,7 +307,7 @@ impl Mlp {
             let ldg = round_up(n_out);
             transpose(tape.delta[l - 1].as_slice(), n_out, samples, ld, gt, ldg);
             transpose(ddot, n_out, samples, ld, &mut gt[samples * ldg..], ldg);
-            matmul_par(
+            tape.products.matmul(
                 MatMut::new(&mut grads[self.layer_range(l - 1)], n_in + 1, n_out),
                 MatRef::with_stride(hcat, n_in + 1, 2 * samples, 2 * ld),
                 MatRef::with_stride(gt, 2 * samples, n_out, ldg),
@@ -285,9 +315,9 @@ impl Mlp {
             );
             if l > 1 {
                 // u̇_{l−1} = W_{l−1} δ̇_l
-                matmul_par(
+                tape.products.matmul_weights(
                     MatMut::with_stride(udot_below, n_in, samples, ld),
-                    MatRef::new(self.weight(l - 1), n_in, n_out),
+                    (l - 1, MatRef::new(self.weight(l - 1), n_in, n_out), false),
                     MatRef::with_stride(ddot, n_out, samples, ld),
                     Init::Zero,
                 );
@@ -300,8 +330,8 @@ impl Mlp {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nn::activation::Activation;
     use crate::nn::reference;
+    use crate::nn::train_path::tests::paths_and_activations;
     use rand::rngs::StdRng;
     use rand::{RngExt, SeedableRng};
 
@@ -315,7 +345,7 @@ mod tests {
     fn a_batch_gradient_is_the_sum_of_its_samples_gradients() {
         let mut rng = StdRng::seed_from_u64(12);
         let sizes = [4, 19, 13, 1];
-        for act in [Activation::Softplus, Activation::Swish] {
+        for (act, path) in paths_and_activations() {
             let mlp = Mlp::new(&sizes, act, &mut rng);
             let (all, batch, d) = (20, 6, 4);
             // Input feature 0 is 1 with no tangent (`v = 0`) in every sample: the gradient of
@@ -332,7 +362,7 @@ mod tests {
                     _ => rng.random_range(-1.0..1.0),
                 })
                 .collect();
-            let mut tape = InputGradTape::new(&mlp, all);
+            let mut tape = InputGradTape::with_path(&mlp, all, path);
             let ld = tape.ld();
             let grads_of = |cols: std::ops::Range<usize>| -> Vec<f32> {
                 let k = cols.len();
@@ -351,7 +381,7 @@ mod tests {
                 mlp.input_gradient_backward(&mut tape, &mut grads);
                 grads
             };
-            let what = format!("{act:?}");
+            let what = format!("{act:?} on {path}");
             reference::assert_batch_gradient_sums_its_samples(&mlp, (all, batch), &what, grads_of);
         }
     }
@@ -361,14 +391,14 @@ mod tests {
     #[test]
     fn loss_on_input_gradient_matches_finite_differences() {
         let mut rng = StdRng::seed_from_u64(9);
-        for act in [Activation::Softplus, Activation::Swish] {
+        for (act, path) in paths_and_activations() {
             for sizes in [vec![3, 8, 6, 1], vec![2, 5, 1], vec![4, 1]] {
                 let mlp = Mlp::new(&sizes, act, &mut rng);
                 let (d, n, sigma2) = (sizes[0], 5, 0.3);
                 let y: Vec<f32> = (0..n * d).map(|_| rng.random_range(-2.0..2.0)).collect();
                 let x: Vec<f32> = (0..n * d).map(|_| rng.random_range(-2.0..2.0)).collect();
 
-                let mut tape = InputGradTape::new(&mlp, n);
+                let mut tape = InputGradTape::with_path(&mlp, n, path);
                 let ld = tape.ld();
                 transpose(&y, n, d, d, tape.input_mut(), ld);
                 mlp.input_gradient_train(&mut tape, n);
@@ -399,11 +429,12 @@ mod tests {
                 };
                 let p64: Vec<f64> = mlp.params().iter().map(|&v| v as f64).collect();
                 let fd = reference::finite_difference(&p64, loss);
-                reference::assert_close(
+                reference::assert_gradient(
+                    path,
                     &grads,
                     &fd,
                     1e-4,
-                    &format!("{act:?} {sizes:?} DEEN loss gradient"),
+                    &format!("{act:?} {sizes:?} DEEN loss gradient on {path}"),
                 );
 
                 // The score itself matches the reference input gradient.
@@ -413,7 +444,13 @@ mod tests {
                     let got: Vec<f32> = (0..d)
                         .map(|f| tape.input_score_and_grad_mut().1[f * ld + i])
                         .collect();
-                    reference::assert_close(&got, &want, 1e-4, "score");
+                    reference::assert_gradient(
+                        path,
+                        &got,
+                        &want,
+                        1e-4,
+                        &format!("score on {path}"),
+                    );
                 }
             }
         }

@@ -16,6 +16,7 @@
 pub mod activation;
 pub mod adam;
 pub mod aligned;
+pub mod amx;
 pub mod backprop;
 pub mod denormals;
 pub mod double_backprop;
@@ -29,6 +30,7 @@ pub mod normalizer;
 pub(crate) mod reference;
 pub mod simd;
 pub mod train;
+pub mod train_path;
 pub mod vecops;
 
 pub use activation::Activation;
@@ -40,3 +42,4 @@ pub use mlp::{ForwardScratch, Mlp, ShapeError};
 pub use normalizer::Normalizer;
 pub use proto::InferencePrecision as Precision;
 pub use train::FitReport;
+pub use train_path::TrainPath;

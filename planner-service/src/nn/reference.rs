@@ -101,6 +101,45 @@ pub fn finite_difference(p: &[f64], f: impl Fn(&[f64]) -> f64) -> Vec<f64> {
         .collect()
 }
 
+/// Asserts that a gradient computed on `path` matches the reference `want`: componentwise
+/// within `f32_tolerance` ([`assert_close`]) for the f32 products; for the bf16 tiles, whose
+/// factors are rounded to 8 significant bits (relative error up to 2⁻⁹ each, so a component
+/// that is the difference of larger terms may lose most of its digits), in norm: the error
+/// vector's length at most [`BF16_NORM_TOLERANCE`] of the reference's.
+pub fn assert_gradient(
+    path: super::TrainPath,
+    got: &[f32],
+    want: &[f64],
+    f32_tolerance: f64,
+    what: &str,
+) {
+    match path {
+        super::TrainPath::F32 => assert_close(got, want, f32_tolerance, what),
+        super::TrainPath::AmxBf16 => assert_close_in_norm(got, want, BF16_NORM_TOLERANCE, what),
+    }
+}
+
+/// See [`assert_gradient`].
+pub const BF16_NORM_TOLERANCE: f64 = 2e-2;
+
+/// Asserts `‖got − want‖ ≤ tol · ‖want‖`.
+pub fn assert_close_in_norm(got: &[f32], want: &[f64], tol: f64, what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    let norm = want.iter().map(|w| w * w).sum::<f64>().sqrt();
+    assert!(norm > 0.0, "{what}: reference gradient is identically zero");
+    let err = got
+        .iter()
+        .zip(want)
+        .map(|(&g, &w)| (g as f64 - w).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!(
+        err <= tol * norm,
+        "{what}: error norm {err:e} against reference norm {norm:e} (relative {:e})",
+        err / norm
+    );
+}
+
 /// Asserts `got ≈ want` componentwise, relative to each component's size with a floor at 1 %
 /// of the largest component (`f32` rounding makes tiny components noisy).
 pub fn assert_close(got: &[f32], want: &[f64], tol: f64, what: &str) {

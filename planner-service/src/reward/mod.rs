@@ -233,7 +233,7 @@ impl RewardModel {
         self.target_norm = Normalizer::fit(&targets, 1);
         self.input_norm.normalize_rows(&mut inputs);
         self.target_norm.normalize_rows(&mut targets);
-        let mut tape = Tape::new(&self.mlp, self.batch_size.min(n));
+        let mut tape = Tape::for_training(&self.mlp, self.batch_size.min(n));
         let mut grads = vec![0.0; self.mlp.params().len()];
         let mut order: Vec<usize> = (0..n).collect();
         let run = run_epochs(&mut order, self.batch_size, &budget, rng, |batch, _| {

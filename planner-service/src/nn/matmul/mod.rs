@@ -20,6 +20,8 @@ mod bf16_tests;
 mod packed;
 mod scalar;
 #[cfg(target_arch = "x86_64")]
+pub mod tiles;
+#[cfg(target_arch = "x86_64")]
 mod x86;
 #[cfg(target_arch = "x86_64")]
 mod x86_packed;

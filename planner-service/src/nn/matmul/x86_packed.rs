@@ -105,6 +105,28 @@ pub(super) unsafe fn pair_rows(out: &mut [f32], lo: &[f32], hi: Option<&[f32]>) 
     }
 }
 
+/// `src` rounded to bf16 (as `VCVTNEPS2BF16` rounds), consecutive elements paired into the
+/// words of `out` (word `p` holds elements `2p` low and `2p + 1` high), zero past the end of
+/// `src`: a row of a tile product's left factor (see `tiles.rs`).
+///
+/// # Safety
+/// The CPU must support AVX-512 BW and BF16; `out` holds at least `⌈len/16⌉ · 8` words.
+#[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
+pub(super) unsafe fn bf16_row(out: &mut [f32], src: &[f32]) {
+    let n = src.len();
+    let written = n.div_ceil(LANES) * LANES / 2;
+    assert!(out.len() >= written, "{} words for {n} elements", out.len());
+    for col in (0..n).step_by(LANES) {
+        // SAFETY: the masked lanes lie inside `src`; words `col/2 .. col/2 + 8` inside `out`.
+        unsafe {
+            let v = _mm512_maskz_loadu_ps(mask16(n, col), src.as_ptr().wrapping_add(col));
+            let halves: __m256i = std::mem::transmute(_mm512_cvtneps_pbh(v));
+            _mm256_storeu_si256(out.as_mut_ptr().wrapping_add(col / 2).cast(), halves);
+        }
+    }
+    out[written..].fill(0.0);
+}
+
 /// Activates a finished tile to the precision it is stored in (see
 /// `fastmath512::swish_for_bf16`) and stores it as bf16 pairs: block rows `2q, 2q + 1` go to
 /// storage row `i0/2 + q`. One call per tile: the f32 tiles (which lack the bf16 features and so
