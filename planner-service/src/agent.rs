@@ -42,7 +42,9 @@ struct Episode {
 /// episode length of `last` steps (the text of the error refusing a step past it).
 fn what_ends(episode: u32, step: u32, last: u32) -> String {
     if step + 1 == last {
-        format!("send step {last} of episode {episode} with `end` set (`time_limit`, or `terminated`)")
+        format!(
+            "send step {last} of episode {episode} with `end` set (`time_limit`, or `terminated`)"
+        )
     } else {
         format!(
             "send step {} of episode {episode} next, and end the episode (`end`) at step {last} at the latest",
@@ -370,7 +372,8 @@ mod tests {
         for end in [None, Some(EpisodeEnd::TimeLimit)] {
             let err = s.observe(&obs(0, 201, 0.0, Some(1.0), end)).unwrap_err();
             assert!(
-                err.message.contains("send step 200 of episode 0 with `end` set"),
+                err.message
+                    .contains("send step 200 of episode 0 with `end` set"),
                 "{err}"
             );
         }

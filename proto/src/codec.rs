@@ -144,8 +144,11 @@ mod tests {
             (
                 "colour",
                 Box::new(move || {
-                    decode::<AttachRequest>(attach("", r#","colour":"red""#).as_bytes(), Encoding::Json)
-                        .map(drop)
+                    decode::<AttachRequest>(
+                        attach("", r#","colour":"red""#).as_bytes(),
+                        Encoding::Json,
+                    )
+                    .map(drop)
                 }),
             ),
             (
@@ -165,7 +168,9 @@ mod tests {
             (
                 "rewrd",
                 Box::new(move || {
-                    let text = format!(r#"{{"version":{v},"episode":0,"step":1,"obs":[1,2,3,4],"rewrd":1.0}}"#);
+                    let text = format!(
+                        r#"{{"version":{v},"episode":0,"step":1,"obs":[1,2,3,4],"rewrd":1.0}}"#
+                    );
                     decode::<Observation>(text.as_bytes(), Encoding::Json).map(drop)
                 }),
             ),

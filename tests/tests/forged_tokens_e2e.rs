@@ -73,7 +73,11 @@ fn forged_lease_and_planner_tokens_change_nothing_for_a_planner_alone() {
         let agent = Client::connect(&endpoint, "forge", "a").await.unwrap();
         agent.attach(&spec()).await.unwrap();
         let mut system = ToySystem::new(1);
-        assert_eq!(play(&agent, &mut system, 0).await, STEPS, "before the forgery");
+        assert_eq!(
+            play(&agent, &mut system, 0).await,
+            STEPS,
+            "before the forgery"
+        );
         let before = rss_kib(pid);
 
         // Another client declares what a planner would: a lease of `forge` at the highest
@@ -105,7 +109,10 @@ fn forged_lease_and_planner_tokens_change_nothing_for_a_planner_alone() {
             "every observation is answered after the forgery"
         );
         let second = Client::connect(&endpoint, "forge", "b").await.unwrap();
-        let accepted = second.attach(&spec()).await.expect("a new attach to `forge`");
+        let accepted = second
+            .attach(&spec())
+            .await
+            .expect("a new attach to `forge`");
         assert_eq!(accepted.planner_id, "solo");
         let other = Client::connect(&endpoint, "forge-2", "c").await.unwrap();
         other.attach(&spec()).await.expect("a new run opens");

@@ -45,7 +45,9 @@ fn the_last_step_must_end_the_episode_and_the_agent_is_told_what_to_send() {
         .toml();
     let mut planner = Planner::start(dir.path(), &config).expect("planner starts");
     runtime().block_on(async {
-        let client = Client::connect(&planner.endpoint, "len", "a").await.unwrap();
+        let client = Client::connect(&planner.endpoint, "len", "a")
+            .await
+            .unwrap();
         client.attach(&cartpole(TrainMode::Sync)).await.unwrap();
         let token = client.session_token();
         let obs = |step: u32, reward: Option<f32>, end: Option<EpisodeEnd>, x: &[f32; 4]| {
@@ -74,7 +76,9 @@ fn the_last_step_must_end_the_episode_and_the_agent_is_told_what_to_send() {
             let report = refused(&client, &obs(201, reward, end, &state)).await;
             assert_eq!(report.code, ErrorCode::OutOfOrder);
             assert!(
-                report.message.contains("beyond this task's episode length of 200")
+                report
+                    .message
+                    .contains("beyond this task's episode length of 200")
                     && report
                         .message
                         .contains("send step 200 of episode 0 with `end` set"),

@@ -74,10 +74,7 @@ fn a_pumping_agent_is_refused_at_the_replay_budgets_and_the_restart_stays_inside
         a.attach(&spec()).await.unwrap();
         let (report, stored) = pump(&a).await;
         assert_eq!(report.code, ErrorCode::Refused, "{report}");
-        assert!(
-            report.message.contains("max_run_replay_bytes"),
-            "{report}"
-        );
+        assert!(report.message.contains("max_run_replay_bytes"), "{report}");
         assert!(stored > 200, "a few episodes fit the budget: {stored}");
         let s = status(&a.session, PLANNER).await.unwrap();
         let run = s.runs.iter().find(|r| r.name == "pump-a").unwrap();
@@ -122,11 +119,17 @@ fn a_pumping_agent_is_refused_at_the_replay_budgets_and_the_restart_stays_inside
     // Restarted, the daemon opens both runs inside the budgets and refuses beyond them.
     let mut planner = Planner::start(dir.path(), &config()).expect("planner restarts");
     runtime().block_on(async {
-        let a = Client::connect(&planner.endpoint, "pump-a", "a").await.unwrap();
+        let a = Client::connect(&planner.endpoint, "pump-a", "a")
+            .await
+            .unwrap();
         let accepted = a.attach(&spec()).await.unwrap();
         let s = status(&a.session, PLANNER).await.unwrap();
         assert_eq!(s.runs.len(), 2, "both runs are open");
-        assert!(s.budgets.replay_bytes.used <= TOTAL + 2 * ONE_STORE, "{:?}", s.budgets);
+        assert!(
+            s.budgets.replay_bytes.used <= TOTAL + 2 * ONE_STORE,
+            "{:?}",
+            s.budgets
+        );
         let token = a.session_token();
         let episode = accepted.next_episode;
         a.send(&Observation::new(episode, 0, vec![0.0; 4], None, None).in_session(token))

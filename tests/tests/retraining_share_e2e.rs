@@ -69,7 +69,9 @@ fn cartpole() -> RunSpec {
 
 /// Observation `t` of a made-up half-cheetah trajectory (17 numbers).
 fn cheetah_obs(t: u32) -> Vec<f32> {
-    (0..17).map(|i| ((t + i) as f32 * 0.1).sin() * 0.5).collect()
+    (0..17)
+        .map(|i| ((t + i) as f32 * 0.1).sin() * 0.5)
+        .collect()
 }
 
 /// One half-cheetah agent: a short explored episode (ended as terminated), then planned steps
@@ -83,7 +85,10 @@ async fn plan_without_pause(client: Client, stop: Arc<AtomicBool>, planned: Arc<
     for step in 0..3 {
         client.step(&obs(0, step, None)).await.unwrap();
     }
-    client.send(&obs(0, 3, Some(EpisodeEnd::Terminated))).await.unwrap();
+    client
+        .send(&obs(0, 3, Some(EpisodeEnd::Terminated)))
+        .await
+        .unwrap();
     // The async run plans once its first models are in; until then its actions are random.
     let mut step = 0;
     let mut episode = 1;
@@ -94,7 +99,10 @@ async fn plan_without_pause(client: Client, stop: Arc<AtomicBool>, planned: Arc<
         }
         step += 1;
         if step == 900 {
-            client.send(&obs(episode, step, Some(EpisodeEnd::Terminated))).await.unwrap();
+            client
+                .send(&obs(episode, step, Some(EpisodeEnd::Terminated)))
+                .await
+                .unwrap();
             (episode, step) = (episode + 1, 0);
         }
     }

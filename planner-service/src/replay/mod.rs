@@ -703,9 +703,7 @@ mod tests {
         let damage = reopened.damage().expect("the damage is reported");
         assert!(damage.contains("header record is damaged"), "{damage}");
         // It stores on, and opens again the same way.
-        reopened
-            .append(vec![transition("a", 1, 0, 1.0)])
-            .unwrap();
+        reopened.append(vec![transition("a", 1, 0, 1.0)]).unwrap();
         drop(reopened);
         let again = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(again.len(), 11);

@@ -75,7 +75,16 @@ impl Default for Scheduler {
 }
 
 /// How retrainings fared against the plans, for `status`.
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
 pub struct TrainingShare {
     /// The share of the cores a retraining is guaranteed while plans never stop.
     pub share: f64,
@@ -164,14 +173,20 @@ impl Scheduler {
             return None;
         }
         self.slices.fetch_add(1, Ordering::Relaxed);
-        *self.last_slice.lock().unwrap_or_else(PoisonError::into_inner) = Some(Instant::now());
+        *self
+            .last_slice
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(Instant::now());
         // A deadline of now is overdue: the most urgent class, so the holder steps back.
         Some(self.turn(Some(Instant::now()), None, &Waiting::default()))
     }
 
     /// How retrainings fared against the plans.
     pub fn training(&self) -> TrainingShare {
-        let last = *self.last_slice.lock().unwrap_or_else(PoisonError::into_inner);
+        let last = *self
+            .last_slice
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         TrainingShare {
             share: self.training_share,
             slices: self.slices.load(Ordering::Relaxed),
@@ -386,8 +401,16 @@ mod tests {
     #[test]
     fn a_retraining_takes_its_share_from_plans_that_never_stop() {
         let scheduler = Arc::new(Scheduler::new(0.5));
-        assert_eq!(scheduler.before_minibatch(Duration::from_millis(5)).map(|_| ()), None);
-        assert!(!scheduler.training().starving, "idle plans: no slice needed");
+        assert_eq!(
+            scheduler
+                .before_minibatch(Duration::from_millis(5))
+                .map(|_| ()),
+            None
+        );
+        assert!(
+            !scheduler.training().starving,
+            "idle plans: no slice needed"
+        );
         let stop = Arc::new(AtomicBool::new(false));
         let planner = std::thread::spawn({
             let (scheduler, stop) = (scheduler.clone(), stop.clone());

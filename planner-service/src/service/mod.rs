@@ -774,7 +774,9 @@ impl Service {
             };
         }
         let bounds = self.config.limits.spec_bounds();
-        task_spec.validate(&bounds).map_err(|e| refuse(e.to_string()))?;
+        task_spec
+            .validate(&bounds)
+            .map_err(|e| refuse(e.to_string()))?;
         if let Some(task) = proto::Task::interned(task_spec) {
             return Ok(SpecTask::Shared(task));
         }
