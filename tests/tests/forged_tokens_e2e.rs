@@ -45,7 +45,9 @@ fn rss_kib(pid: u32) -> u64 {
 async fn play(client: &Client, system: &mut ToySystem, from: u32) -> u32 {
     let token = client.session_token();
     let mut answered = 0;
-    let mut reward = None;
+    // The reward of the transition into step `from` (any finite value: the toy system's own
+    // was spent by the previous call).
+    let mut reward = (from > 0).then_some(0.0);
     for step in from..from + STEPS {
         let obs = Observation::new(0, step, system.state.to_vec(), reward, None).in_session(token);
         match client.step(&obs).await {
