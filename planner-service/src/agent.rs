@@ -38,6 +38,21 @@ struct Episode {
     episode_return: f32,
 }
 
+/// What an agent at `step` of `episode` must send next to end that episode within the task's
+/// episode length of `last` steps (the text of the error refusing a step past it).
+fn what_ends(episode: u32, step: u32, last: u32) -> String {
+    if step + 1 == last {
+        format!(
+            "send step {last} of episode {episode} with `end` set (`time_limit`, or `terminated`)"
+        )
+    } else {
+        format!(
+            "send step {} of episode {episode} next, and end the episode (`end`) at step {last} at the latest",
+            step + 1
+        )
+    }
+}
+
 /// One agent of a run. Cloned to try an observation before committing to it (see
 /// [`crate::run::Run::accept`]).
 #[derive(Clone, Debug)]
@@ -123,18 +138,22 @@ impl AgentSession {
                 abandoned,
             });
         }
-        if msg.step > self.episode_len {
-            return Err(out_of_order(format!(
-                "step {} is beyond this task's episode length of {} steps: end the episode (`end`) at step {} at the latest",
-                msg.step, self.episode_len, self.episode_len
-            )));
-        }
         let Some(current) = self.current.as_mut() else {
             return Err(out_of_order(format!(
                 "step {} of episode {} arrived with no episode in progress: start with step 0",
                 msg.step, msg.episode
             )));
         };
+        let last = self.episode_len;
+        if msg.step > last && msg.episode == current.number {
+            return Err(out_of_order(format!(
+                "step {} is beyond this task's episode length of {last} steps: episode {} is at step {}; {}",
+                msg.step,
+                current.number,
+                current.step,
+                what_ends(current.number, current.step, last)
+            )));
+        }
         if msg.episode != current.number || msg.step != current.step + 1 {
             return Err(out_of_order(format!(
                 "expected episode {} step {}, got episode {} step {}",
@@ -142,6 +161,14 @@ impl AgentSession {
                 current.step + 1,
                 msg.episode,
                 msg.step
+            )));
+        }
+        if msg.step == last && msg.end.is_none() {
+            return Err(out_of_order(format!(
+                "step {last} is the last of this task's episode (length {last} steps) and must end it: \
+                 send step {last} of episode {} again with `end` set (`time_limit`, or `terminated` \
+                 if the task's termination fired); nothing of this message was stored",
+                current.number
             )));
         }
         let Some(planned) = current.action.take() else {
@@ -298,7 +325,8 @@ mod tests {
         );
     }
 
-    /// No step beyond the task's episode length is accepted; the episode stays where it was.
+    /// No step beyond the task's episode length is accepted, and the last step must end the
+    /// episode; a refused step leaves the episode where it was, and the error says what to send.
     #[test]
     fn steps_beyond_the_episode_length_are_refused() {
         let mut s = AgentSession::new("a", 2);
@@ -306,15 +334,55 @@ mod tests {
         s.acted(0, &[0.0]);
         s.observe(&obs(0, 1, 0.0, Some(1.0), None)).unwrap();
         s.acted(1, &[0.0]);
-        s.observe(&obs(0, 2, 0.0, Some(1.0), None)).unwrap();
-        s.acted(2, &[0.0]);
         for step in [3, u32::MAX] {
             let err = s.observe(&obs(0, step, 0.0, Some(1.0), None)).unwrap_err();
             assert_eq!(err.code, ErrorCode::OutOfOrder);
             assert!(err.message.contains("episode length of 2"), "{err}");
+            assert!(
+                err.message.contains("send step 2 of episode 0 with `end`"),
+                "{err}"
+            );
         }
-        assert_eq!(s.position(), Some((0, 2)));
+        assert_eq!(s.position(), Some((0, 1)));
         // Ending the episode (or starting the next) is still accepted.
+        assert!(s.observe(&obs(1, 0, 0.0, None, None)).is_ok());
+    }
+
+    /// A task of 200 steps: steps 0..=199, then step 200 without `end` is refused and says to
+    /// send it again with `end`; step 201 is refused the same way; step 200 with `end` ends the
+    /// episode (the sequence that used to leave an episode that could never end).
+    #[test]
+    fn the_last_step_must_end_the_episode_and_the_error_says_how() {
+        let mut s = AgentSession::new("a", 200);
+        s.observe(&obs(0, 0, 0.0, None, None)).unwrap();
+        s.acted(0, &[0.0]);
+        for step in 1..200 {
+            s.observe(&obs(0, step, 0.0, Some(1.0), None)).unwrap();
+            s.acted(step, &[0.0]);
+        }
+        let err = s.observe(&obs(0, 200, 0.0, Some(1.0), None)).unwrap_err();
+        assert_eq!(err.code, ErrorCode::OutOfOrder);
+        assert_eq!((err.episode, err.step), (Some(0), Some(200)));
+        assert!(
+            err.message
+                .contains("send step 200 of episode 0 again with `end` set (`time_limit`"),
+            "{err}"
+        );
+        assert_eq!(s.position(), Some((0, 199)), "nothing moved");
+        for end in [None, Some(EpisodeEnd::TimeLimit)] {
+            let err = s.observe(&obs(0, 201, 0.0, Some(1.0), end)).unwrap_err();
+            assert!(
+                err.message
+                    .contains("send step 200 of episode 0 with `end` set"),
+                "{err}"
+            );
+        }
+        let last = s
+            .observe(&obs(0, 200, 0.0, Some(1.0), Some(EpisodeEnd::TimeLimit)))
+            .unwrap();
+        let summary = last.finished.expect("the episode ended");
+        assert_eq!((summary.steps, summary.end), (200, EpisodeEnd::TimeLimit));
+        assert_eq!(s.episodes_finished(), 1);
         assert!(s.observe(&obs(1, 0, 0.0, None, None)).is_ok());
     }
 

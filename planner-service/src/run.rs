@@ -5,7 +5,7 @@ use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
-use crate::replay::{self, EpisodeSummary, LogFile, LogSyncer, Record, ReplayBuffer, ReplayError};
+use crate::replay::{self, EpisodeSummary, LogFile, Record, ReplayBuffer, ReplayError};
 use crate::sched::background::run_in_background;
 use crate::service::metrics::RunHistograms;
 use crate::service::status::{LastRetraining, Latency, LatencyWindow, PlanRecord, PlanTally};
@@ -29,11 +29,72 @@ pub struct Hosting {
     pub train_limits: TrainLimits,
     /// Most transitions the run's replay buffer keeps (`[storage] replay_capacity`).
     pub replay_capacity: Option<usize>,
+    /// The replay byte budgets every run of the daemon shares (`[storage]`).
+    pub replay_budget: Arc<ReplayBudget>,
     /// How the run's replay log reaches its file.
     pub log_disk: LogDisk,
     /// Where the run times its replay log's fsyncs and its retrainings (the daemon's metrics
     /// registry serves them).
     pub histograms: RunHistograms,
+}
+
+/// The daemon's replay byte budgets: each run's log at most `per_run` bytes, all runs' logs
+/// together at most `total` (a run's replay in memory is about its log's size, so these bound
+/// memory and disk alike). At a budget a run refuses every observation that would store
+/// something, with an error naming the budget and its setting.
+#[derive(Debug)]
+pub struct ReplayBudget {
+    pub per_run: u64,
+    pub total: u64,
+    /// Bytes of the logs of every open run.
+    used: std::sync::atomic::AtomicU64,
+}
+
+impl ReplayBudget {
+    pub fn new(per_run: u64, total: u64) -> Self {
+        Self {
+            per_run,
+            total,
+            used: std::sync::atomic::AtomicU64::new(0),
+        }
+    }
+
+    /// No budget: for tests and experiments.
+    pub fn unbounded() -> Self {
+        Self::new(u64::MAX, u64::MAX)
+    }
+
+    /// Bytes of the logs of every open run.
+    pub fn used(&self) -> u64 {
+        self.used.load(Ordering::SeqCst)
+    }
+
+    /// A run's log went from `from` to `to` bytes.
+    fn moved(&self, from: u64, to: u64) {
+        if to >= from {
+            self.used.fetch_add(to - from, Ordering::SeqCst);
+        } else {
+            self.used.fetch_sub(from - to, Ordering::SeqCst);
+        }
+    }
+
+    /// Refuses a store into run `run`, whose log holds `run_bytes`, when a budget is reached.
+    fn check(&self, run: &str, run_bytes: u64) -> Result<(), String> {
+        if run_bytes >= self.per_run {
+            return Err(format!(
+                "run `{run}` holds {run_bytes} bytes of replay, its budget of {} bytes ([storage] max_run_replay_bytes): nothing more is stored; the operator raises the budget or sets [storage] replay_capacity (the oldest episodes are then evicted)",
+                self.per_run
+            ));
+        }
+        let used = self.used();
+        if used >= self.total {
+            return Err(format!(
+                "this planner's runs hold {used} bytes of replay, its budget of {} bytes ([storage] max_total_replay_bytes): nothing more is stored; the operator raises the budget, sets [storage] replay_capacity, or archives runs",
+                self.total
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// How each run's replay log reaches the disk: straight to its file (the daemon), or through
@@ -104,6 +165,8 @@ pub struct Run {
     dir: Option<RunDir>,
     /// The ownership epoch this planner holds the run at (see `crate::fleet`).
     epoch: u64,
+    /// What could not be read from the replay log when the run was opened.
+    replay_damage: Option<String>,
 }
 
 /// The counters of a run's buffer that `status` reports.
@@ -149,9 +212,32 @@ pub enum OpenError {
     Persist(#[from] PersistError),
 }
 
+impl OpenError {
+    /// Whether the failure may pass by itself (an I/O error: a disk or a mount briefly gone),
+    /// so that opening is worth trying again; damaged or foreign data is not.
+    pub fn is_transient(&self) -> bool {
+        let transient = |e: &std::io::Error| {
+            !matches!(
+                e.kind(),
+                std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
+            )
+        };
+        match self {
+            OpenError::Replay(ReplayError::Log(replay::LogError::Io { source, .. })) => {
+                transient(source)
+            }
+            OpenError::Persist(PersistError::Io { source, .. }) => transient(source),
+            _ => false,
+        }
+    }
+}
+
 /// Why an observation's results could not be stored.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
+    /// A replay budget is reached (the message names it): nothing was stored.
+    #[error("{0}")]
+    Budget(String),
     #[error("replay buffer: {0}")]
     Replay(#[from] ReplayError),
     #[error(transparent)]
@@ -188,6 +274,18 @@ pub struct Fenced {
 fn ended(next_episodes: &mut HashMap<String, u32>, agent: &str, episode: u32) {
     let next = next_episodes.entry(agent.to_string()).or_default();
     *next = (*next).max(episode.saturating_add(1));
+}
+
+impl Drop for Run {
+    /// A closed run's log no longer counts against the daemon's total replay budget.
+    fn drop(&mut self) {
+        let bytes = self
+            .tally
+            .get_mut()
+            .unwrap_or_else(PoisonError::into_inner)
+            .log_bytes;
+        self.hosting.replay_budget.moved(bytes, 0);
+    }
 }
 
 impl std::fmt::Debug for Run {
@@ -267,11 +365,13 @@ impl Run {
             .count() as u32;
         let covered = models.episodes_covered;
         let epoch = buffer.epoch();
+        let replay_damage = buffer.damage().map(str::to_string);
         let mut tally = Tally {
             transitions: buffer.len(),
             log_bytes: buffer.log_bytes(),
             ..Tally::default()
         };
+        hosting.replay_budget.moved(0, tally.log_bytes);
         let mut next_episodes = HashMap::new();
         for e in buffer.episodes() {
             if e.end != EpisodeEnd::Interrupted {
@@ -298,6 +398,7 @@ impl Run {
             next_episodes: Mutex::new(next_episodes),
             dir,
             epoch,
+            replay_damage,
         });
         if stored > covered {
             run.wake_trainer.notify_one();
@@ -399,18 +500,19 @@ impl Run {
             .record(plan);
     }
 
-    /// Forces the run's log to disk, on the calling (blocking) thread, timing it. A failure is
-    /// logged: the records were already handed to the OS, and the next sync tries again.
-    fn sync_log(&self, syncer: &LogSyncer) {
-        let started = std::time::Instant::now();
-        let synced = syncer.sync();
-        self.hosting
-            .histograms
-            .fsync_seconds
-            .observe(started.elapsed().as_secs_f64());
-        if let Err(e) = synced {
-            tracing::error!(run = %self.name, error = %e, "cannot sync the replay log to disk");
+    /// Records how long a sync of the run's log took (`None`: the run is in memory only).
+    fn observe_fsync(&self, took: Option<std::time::Duration>) {
+        if let Some(took) = took {
+            self.hosting
+                .histograms
+                .fsync_seconds
+                .observe(took.as_secs_f64());
         }
+    }
+
+    /// What could not be read from the replay log when the run was opened (`None`: nothing).
+    pub fn replay_damage(&self) -> Option<&str> {
+        self.replay_damage.as_deref()
     }
 
     /// The histograms this run records its fsyncs and retrainings in.
@@ -448,6 +550,12 @@ impl Run {
         self.episodes_stored() < self.preset.exploration_episodes || !self.models().is_trained()
     }
 
+    /// Records the log's new size in the tally and in the daemon's replay budget.
+    fn set_log_bytes(&self, tally: &mut Tally, bytes: u64) {
+        self.hosting.replay_budget.moved(tally.log_bytes, bytes);
+        tally.log_bytes = bytes;
+    }
+
     fn lock_tally(&self) -> std::sync::MutexGuard<'_, Tally> {
         self.tally.lock().unwrap_or_else(PoisonError::into_inner)
     }
@@ -462,7 +570,7 @@ impl Run {
         }
         // A compaction shrinks the file: the reported size follows at once.
         let buffer = self.lock_buffer();
-        self.lock_tally().log_bytes = buffer.log_bytes();
+        self.set_log_bytes(&mut self.lock_tally(), buffer.log_bytes());
     }
 
     fn lock_buffer(&self) -> std::sync::MutexGuard<'_, ReplayBuffer> {
@@ -503,6 +611,9 @@ impl Run {
         })?;
         let stored = stored.map_err(|e| match e {
             StoreError::Fenced(fenced) => Refused::Fenced(fenced),
+            StoreError::Budget(message) => Refused::Step(
+                ErrorReport::new(ErrorCode::Refused, message).at(msg.episode, msg.step),
+            ),
             e => {
                 tracing::error!(run = %self.name, agent = %session.name(), error = %e, "cannot store a transition; the step is refused");
                 Refused::Step(
@@ -520,8 +631,8 @@ impl Run {
 
     /// Stores what an accepted observation produced — an episode it abandoned, its
     /// transition (with `next_obs`), the episode it finished — in one append, so that either
-    /// all of it is stored or none, and syncs the log to disk when an episode ended (without
-    /// the buffer's lock). At episode boundaries (a start, an end) it first checks that this
+    /// all of it is stored or none, and syncs the log to disk when an episode ended (a failed
+    /// sync stores none of it: [`ErrorCode::Storage`] to the agent). At episode boundaries (a start, an end) it first checks that this
     /// planner still owns the run, and stores nothing if not. Blocking: called on the
     /// blocking pool.
     fn store(
@@ -535,6 +646,7 @@ impl Run {
         if accepted.transition.is_none() || accepted.finished.is_some() {
             self.check_owner()?;
         }
+
         let mut records = Vec::with_capacity(3);
         if let Some(abandoned) = &accepted.abandoned {
             records.push(Record::from(abandoned.clone()));
@@ -555,12 +667,24 @@ impl Run {
         if let Some(finished) = &accepted.finished {
             records.push(Record::from(finished.clone()));
         }
+        if !records.is_empty() {
+            let run_bytes = self.lock_tally().log_bytes;
+            self.hosting
+                .replay_budget
+                .check(&self.name, run_bytes)
+                .map_err(StoreError::Budget)?;
+        }
         let mut buffer = self.lock_buffer();
-        buffer.append(records)?;
-        // Every episode end, finished or abandoned, is synced to disk.
-        let sync = (accepted.finished.is_some() || accepted.abandoned.is_some())
-            .then(|| buffer.syncer())
-            .flatten();
+        // Every episode end, finished or abandoned, is synced to disk before it counts, under
+        // the buffer's lock: a failed sync then takes back exactly this step's records (no
+        // other agent of the run appended meanwhile), and the agent is refused with a
+        // storage error and sends the step again. Only this run's agents wait for the sync.
+        if accepted.finished.is_some() || accepted.abandoned.is_some() {
+            let took = buffer.append_synced(records)?;
+            self.observe_fsync(took);
+        } else {
+            buffer.append(records)?;
+        }
         // Capacity may have evicted old transitions: the tally follows the buffer's length,
         // set under the buffer's lock (the order is always buffer, then tally) so that two
         // agents' appends cannot leave it at the earlier one's length. A finished episode is
@@ -569,15 +693,12 @@ impl Run {
         {
             let mut tally = self.lock_tally();
             tally.transitions = buffer.len();
-            tally.log_bytes = buffer.log_bytes();
+            self.set_log_bytes(&mut tally, buffer.log_bytes());
             if let Some(finished) = &accepted.finished {
                 tally.finished(agent, finished.episode, finished.episode_return);
             }
         }
         drop(buffer);
-        if let Some(syncer) = &sync {
-            self.sync_log(syncer);
-        }
         self.compact_log();
         for summary in [&accepted.abandoned, &accepted.finished]
             .into_iter()
@@ -614,13 +735,10 @@ impl Run {
             run.check_owner()?;
             let (agent, episode) = (summary.agent.clone(), summary.episode);
             let mut buffer = run.lock_buffer();
-            buffer.append(vec![Record::from(summary)])?;
-            run.lock_tally().log_bytes = buffer.log_bytes();
-            let syncer = buffer.syncer();
+            let took = buffer.append_synced(vec![Record::from(summary)])?;
+            run.observe_fsync(took);
+            run.set_log_bytes(&mut run.lock_tally(), buffer.log_bytes());
             drop(buffer);
-            if let Some(syncer) = &syncer {
-                run.sync_log(syncer);
-            }
             run.compact_log();
             ended(&mut run.lock_next_episodes(), &agent, episode);
             Ok(())
@@ -822,6 +940,7 @@ mod tests {
             events: Arc::new(|_: &str, _: RunEventKind| {}),
             train_limits: TrainLimits::unbounded(),
             replay_capacity: None,
+            replay_budget: Arc::new(ReplayBudget::unbounded()),
             log_disk: LogDisk::direct(),
             histograms: RunHistograms::default(),
         }
@@ -873,6 +992,93 @@ mod tests {
         assert_eq!(states, vec![0.0, 1.0, 2.0, 3.0]);
         assert_eq!(reopened.episodes().len(), 1);
         assert_eq!(reopened.episodes()[0].end, EpisodeEnd::TimeLimit);
+        assert_eq!(reopened.episodes()[0].steps, 4);
+    }
+
+    /// A disk whose `fsync` fails while `failing` is set (as a device that lost the write):
+    /// writes reach the file.
+    #[derive(Debug)]
+    struct FailingSync {
+        file: std::fs::File,
+        failing: Arc<AtomicBool>,
+    }
+
+    impl LogFile for FailingSync {
+        fn append_bytes(&mut self, bytes: &[u8]) -> std::io::Result<()> {
+            self.file.append_bytes(bytes)
+        }
+
+        fn truncate_to(&mut self, len: u64) -> std::io::Result<()> {
+            self.file.truncate_to(len)
+        }
+
+        fn sync_data(&mut self) -> std::io::Result<()> {
+            if self.failing.load(Ordering::SeqCst) {
+                return Err(std::io::Error::from_raw_os_error(5)); // EIO
+            }
+            self.file.sync_data()
+        }
+    }
+
+    /// A failed `fsync` of an episode's end is a storage error to the agent: nothing of the
+    /// step counts (not in memory, not in the log), the episode stays open at the step before,
+    /// and the agent's resend stores it once.
+    #[tokio::test]
+    async fn a_failed_fsync_refuses_the_step_as_storage_and_the_resend_stores_it_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let failing = Arc::new(AtomicBool::new(false));
+        let buffer = {
+            let failing = failing.clone();
+            ReplayBuffer::open_with(&path, Builtin::Cartpole.task(), |file| {
+                Box::new(FailingSync { file, failing })
+            })
+            .unwrap()
+        };
+        let preset = small_preset();
+        let models = Models::untrained(Builtin::Cartpole.task(), &preset, 1);
+        let run = Run::with_state(
+            "r".into(),
+            RunSpec {
+                task: Builtin::Cartpole.name().into(),
+                preset: Some("cem".into()),
+                overrides: PlannerOverrides::default(),
+                mode: TrainMode::Async,
+                seed: 1,
+                task_spec: None,
+            },
+            preset,
+            buffer,
+            models,
+            None,
+            quiet_hosting(),
+        );
+        let mut session = AgentSession::new("a", 200);
+        for step in 0..4 {
+            run.accept(&mut session, &obs(0, step, None)).await.unwrap();
+            session.acted(step, &[0.5]);
+        }
+        failing.store(true, Ordering::SeqCst);
+        let last = obs(0, 4, Some(EpisodeEnd::TimeLimit));
+        let Refused::Step(err) = run.accept(&mut session, &last).await.unwrap_err() else {
+            panic!("a run in memory is never fenced");
+        };
+        assert_eq!(err.code, ErrorCode::Storage, "{err:?}");
+        assert!(err.message.contains("send it again"), "{err}");
+        assert_eq!((err.episode, err.step), (Some(0), Some(4)));
+        assert_eq!(session.position(), Some((0, 3)), "the episode stays open");
+        assert_eq!((run.tally().transitions, run.tally().episodes), (3, 0));
+        assert_eq!(run.episodes_stored(), 0);
+        assert_eq!(run.next_episode("a"), 0, "nothing ended");
+        // The disk recovers: the same observation again ends the episode, once.
+        failing.store(false, Ordering::SeqCst);
+        let (_, stored) = run.accept(&mut session, &last).await.unwrap();
+        assert_eq!(stored.must_cover, Some(1));
+        assert_eq!((run.tally().transitions, run.tally().episodes), (4, 1));
+        drop(run);
+        let reopened = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
+        assert_eq!(reopened.len(), 4);
+        assert_eq!(reopened.episodes().len(), 1);
         assert_eq!(reopened.episodes()[0].steps, 4);
     }
 

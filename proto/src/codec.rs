@@ -127,6 +127,100 @@ mod tests {
         );
     }
 
+    /// A field a message does not have is refused by name, in every message type and at every
+    /// depth: the attach request, its run spec, the overrides, the observation, and the
+    /// messages the planner sends (a client decoding them with this codec is as strict).
+    #[test]
+    fn unknown_fields_are_refused_by_name_in_every_message() {
+        let v = PROTOCOL_VERSION;
+        let attach = |extra: &str, spec_extra: &str| {
+            format!(
+                r#"{{"version":{v},"agent":"typo2","spec":{{"task":"cartpole","preset":"cem","overrides":{{"population":20,"elites":2}},"mode":"sync","seed":1{spec_extra}}}{extra}}}"#
+            )
+        };
+        // The exact message that used to be accepted, and the same well-formed without it.
+        decode::<AttachRequest>(attach("", "").as_bytes(), Encoding::Json).unwrap();
+        let cases: Vec<(&str, Box<dyn Fn() -> Result<(), CodecError>>)> = vec![
+            (
+                "colour",
+                Box::new(move || {
+                    decode::<AttachRequest>(
+                        attach("", r#","colour":"red""#).as_bytes(),
+                        Encoding::Json,
+                    )
+                    .map(drop)
+                }),
+            ),
+            (
+                "sesion",
+                Box::new(move || {
+                    decode::<AttachRequest>(attach(r#","sesion":5"#, "").as_bytes(), Encoding::Json)
+                        .map(drop)
+                }),
+            ),
+            (
+                "populaton",
+                Box::new(move || {
+                    let text = attach("", "").replace("\"population\"", "\"populaton\"");
+                    decode::<AttachRequest>(text.as_bytes(), Encoding::Json).map(drop)
+                }),
+            ),
+            (
+                "rewrd",
+                Box::new(move || {
+                    let text = format!(
+                        r#"{{"version":{v},"episode":0,"step":1,"obs":[1,2,3,4],"rewrd":1.0}}"#
+                    );
+                    decode::<Observation>(text.as_bytes(), Encoding::Json).map(drop)
+                }),
+            ),
+            (
+                "extra",
+                Box::new(move || {
+                    let mut value = serde_json::to_value(Action {
+                        version: v,
+                        episode: 0,
+                        step: 0,
+                        action: vec![0.0],
+                        stats: PlanStats {
+                            source: ActionSource::Random,
+                            planning_ms: 0.0,
+                            predicted_return: 0.0,
+                            mean_energy: 0.0,
+                            iterations: 0,
+                            models_version: 0,
+                            cut: false,
+                            missed: false,
+                        },
+                        epoch: 1,
+                    })
+                    .unwrap();
+                    value["stats"]["extra"] = 1.into();
+                    decode::<Action>(value.to_string().as_bytes(), Encoding::Json).map(drop)
+                }),
+            ),
+            (
+                "hint",
+                Box::new(move || {
+                    let mut value =
+                        serde_json::to_value(ErrorReport::new(ErrorCode::Refused, "no")).unwrap();
+                    value["hint"] = "x".into();
+                    decode::<ErrorReport>(value.to_string().as_bytes(), Encoding::Json).map(drop)
+                }),
+            ),
+        ];
+        for (field, decode) in cases {
+            let err = decode().expect_err(field);
+            let CodecError::Malformed { reason, .. } = &err else {
+                panic!("{field}: {err}");
+            };
+            assert!(
+                reason.contains(&format!("unknown field `{field}`")),
+                "{field}: {reason}"
+            );
+        }
+    }
+
     #[test]
     fn wrong_version_is_named() {
         let mut msg = observation();

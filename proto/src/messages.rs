@@ -3,6 +3,11 @@
 //! Every message starts with `version: u16`, the protocol version. The codec reads that field
 //! first, so a peer speaking another version gets a clear "wrong protocol version" error instead
 //! of a garbled decode.
+//!
+//! Every message refuses a field it does not know (`deny_unknown_fields`): a JSON message
+//! with a misspelt or invented field is refused as malformed, and the error names the field
+//! and the fields the message has, so a typo is never silently ignored. Postcard has no field
+//! names: a message longer than the fields it knows is refused as trailing bytes.
 
 use crate::task::TaskSpec;
 use schemars::JsonSchema;
@@ -126,7 +131,7 @@ impl std::str::FromStr for Optimizer {
 /// How training epochs decay with the number of finished episodes (the paper trains less as
 /// the buffer grows, to avoid overfitting it). Part of a run's preset, and overridable.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
-#[serde(rename_all = "snake_case")]
+#[serde(deny_unknown_fields, rename_all = "snake_case")]
 pub enum EpochSchedule {
     /// The configured epochs after every episode.
     Constant,
@@ -214,6 +219,7 @@ pub struct PlannerOverrides {
 /// The first agent to attach creates the run with this spec; later agents must agree on the task.
 /// Fields are only ever appended: postcard is positional.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct RunSpec {
     /// The task's name: a planner's catalog entry, or the name of `task_spec`.
     pub task: String,
@@ -235,6 +241,7 @@ pub struct RunSpec {
 
 /// Sent as the payload of a query on the run's attach key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct AttachRequest {
     pub version: u16,
     pub agent: String,
@@ -248,6 +255,7 @@ pub struct AttachRequest {
 
 /// The planner's answer to an [`AttachRequest`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct AttachReply {
     pub version: u16,
     pub outcome: AttachOutcome,
@@ -261,6 +269,7 @@ pub enum AttachOutcome {
 
 /// The run as the agent joins it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct AttachAccepted {
     pub planner_id: String,
     /// The run's task name.
@@ -299,6 +308,7 @@ pub enum EpisodeEnd {
 /// An agent's observation. `step = 0` starts an episode; step `t > 0` is the result of the
 /// action the planner sent for step `t − 1`, with the reward of that transition.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct Observation {
     pub version: u16,
     pub episode: u32,
@@ -376,6 +386,7 @@ pub enum ActionSource {
 
 /// Statistics of the plan behind an action.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct PlanStats {
     pub source: ActionSource,
     /// Wall time the planner spent on this action.
@@ -397,6 +408,7 @@ pub struct PlanStats {
 
 /// The planner's answer to an observation.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct Action {
     pub version: u16,
     pub episode: u32,
@@ -447,6 +459,7 @@ pub enum ErrorCode {
 
 /// An error reported to the sender of a bad message, on its error key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct ErrorReport {
     pub version: u16,
     pub code: ErrorCode,
@@ -509,6 +522,7 @@ impl std::fmt::Display for ErrorReport {
 
 /// Something that happened to a run, published on its events key.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub struct RunEvent {
     pub version: u16,
     pub run: String,
@@ -516,6 +530,7 @@ pub struct RunEvent {
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
 pub enum RunEventKind {
     /// An agent finished an episode; its transitions are stored.
     EpisodeFinished {

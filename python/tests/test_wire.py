@@ -45,6 +45,15 @@ def test_the_schemas_refuse_what_the_planner_refuses() -> None:
         validate("Observation", observation)
     with pytest.raises(jsonschema.ValidationError):
         validate("Observation", wire.observation(-1, 0, [0.0], 5))
+    # A field a message does not have is refused in every message, as the planner refuses it.
+    coloured = wire.attach_request("a-0", "cartpole", None, None, "sync", 0, None)
+    coloured["spec"]["colour"] = "red"
+    with pytest.raises(jsonschema.ValidationError):
+        validate("AttachRequest", coloured)
+    extra = wire.observation(0, 0, [0.0], 5)
+    extra["colour"] = "red"
+    with pytest.raises(jsonschema.ValidationError):
+        validate("Observation", extra)
 
 
 def test_every_error_code_has_its_exception() -> None:

@@ -187,7 +187,9 @@ fn fleet(
     let mut planners = Vec::new();
     for i in 0..n {
         let id = format!("p{i}");
-        planners.push(serve_data(&dir.join(&id), &data, &config(&id, &top), None)?);
+        // `[fleet]` (empty: every run may be placed on any of them) makes each a fleet member.
+        let config = format!("{}\n[fleet]\n", config(&id, &top));
+        planners.push(serve_data(&dir.join(&id), &data, &config, None)?);
     }
     runtime.block_on(async {
         let session = open_session(&endpoint).await?;

@@ -43,6 +43,8 @@ pub struct PlannerConfig {
     sizes: Sizes,
     exploration_episodes: Option<u32>,
     top_level: Vec<String>,
+    /// Whether the planner is a member of a fleet (a `[fleet]` table).
+    in_fleet: bool,
 }
 
 impl PlannerConfig {
@@ -54,7 +56,15 @@ impl PlannerConfig {
             sizes,
             exploration_episodes: None,
             top_level: Vec::new(),
+            in_fleet: false,
         }
+    }
+
+    /// Makes the planner a member of a fleet (an empty `[fleet]` table: every run may be
+    /// placed on it). Without it a planner is alone and reads no fleet token.
+    pub fn in_fleet(mut self) -> Self {
+        self.in_fleet = true;
+        self
     }
 
     /// Overrides every run's random exploration to `episodes` episodes.
@@ -84,9 +94,10 @@ impl PlannerConfig {
             .exploration_episodes
             .map(|n| format!("exploration_episodes = {n}\n"))
             .unwrap_or_default();
+        let fleet = if self.in_fleet { "[fleet]\n" } else { "" };
         format!(
             r#"planner_id = "{id}"
-{top}[overrides]
+{top}{fleet}[overrides]
 dynamics_hidden_layers = 2
 dynamics_hidden_size = {hidden_size}
 dynamics_epochs = {epochs}

@@ -31,6 +31,7 @@ fn config(id: &str, router: &str) -> String {
     PlannerConfig::new(id, Sizes::TINY)
         .exploration_episodes(1)
         .line(format!("connect = [\"{router}\"]"))
+        .in_fleet()
         .toml()
 }
 

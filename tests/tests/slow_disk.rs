@@ -107,6 +107,10 @@ impl LogFile for HeldFile {
     fn truncate_to(&mut self, len: u64) -> std::io::Result<()> {
         self.file.truncate_to(len)
     }
+
+    fn sync_data(&mut self) -> std::io::Result<()> {
+        self.file.sync_data()
+    }
 }
 
 fn spec() -> RunSpec {

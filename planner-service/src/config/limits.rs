@@ -177,6 +177,12 @@ impl Limits {
     /// Checks every size of `preset` and then its budgets. Sizes come first, so an absurd
     /// size is named as itself, and the budgets are computed from bounded sizes only.
     pub fn check(&self, preset: &Preset) -> Result<(), LimitExceeded> {
+        self.check_for(preset, preset.task)
+    }
+
+    /// As [`Limits::check`], for `preset` of `task` (a task not interned yet: see
+    /// [`Preset::unshared`]).
+    pub fn check_for(&self, preset: &Preset, task: &proto::Task) -> Result<(), LimitExceeded> {
         let (d, e, c) = (&preset.dynamics, &preset.energy, &preset.cem);
         let mut sizes = vec![
             (
@@ -303,7 +309,7 @@ impl Limits {
         for (field, value, limit, setting) in sizes {
             exceeds(field, value, limit, setting)?;
         }
-        let cost = Cost::of(preset);
+        let cost = Cost::of_task(preset, task);
         exceeds(
             "model_bytes",
             cost.model_bytes,
@@ -352,7 +358,12 @@ const BYTES_PER_PARAMETER: u64 = 5 * 4;
 impl Cost {
     /// The cost of `preset`'s networks (saturating: an absurd preset costs `u64::MAX`).
     pub fn of(preset: &Preset) -> Self {
-        let task = preset.task;
+        Self::of_task(preset, preset.task)
+    }
+
+    /// The cost of `preset`'s networks for `task` (a task not interned yet: see
+    /// [`Preset::unshared`]).
+    pub fn of_task(preset: &Preset, task: &proto::Task) -> Self {
         let dynamics = crate::dynamics::config::layer_sizes(task, &preset.dynamics);
         let energy = preset
             .regularizer

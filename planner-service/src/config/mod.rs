@@ -40,9 +40,18 @@ pub struct ServiceConfig {
     /// Overrides applied to every run's preset before the agent's own (e.g. smaller networks
     /// for a quick test), keyed like the attach message's overrides.
     pub overrides: proto::PlannerOverrides,
-    /// Pinning in a fleet of planners: the run-name patterns this planner serves (`serve`,
-    /// empty: all) or refuses (`refuse`). See `crate::fleet`.
-    pub fleet: crate::fleet::Pins,
+    /// Membership of a fleet of planners (`[fleet]`, even empty): this planner shares runs
+    /// with the planners it sees, serving the run-name patterns its pins allow (`serve`,
+    /// empty: all; `refuse`). Absent: the planner is alone, owns every run it serves and reads
+    /// no fleet token. See `crate::fleet`.
+    pub fleet: Option<crate::fleet::Pins>,
+    /// The least share of the cores a retraining gets while plans leave it no idle time, in
+    /// (0, 1]: plans come first, but a retraining that finds plans running before a
+    /// minibatch waits at most `(1 − share) / share` times as long as its last minibatch
+    /// took, then runs one minibatch while plans wait. So under continuous planning a
+    /// retraining takes about `share` of the time (and plans the rest) instead of waiting
+    /// for ever. `status` shows when a retraining is starving.
+    pub retraining_share: f64,
     /// Bounds on everything a client chooses (`[limits]`).
     pub limits: Limits,
     /// How runs keep their data on disk (`[storage]`).
@@ -66,13 +75,31 @@ pub struct MetricsConfig {
 }
 
 /// `[storage]`: how much of its experience a run keeps.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct StorageConfig {
     /// Most transitions a run's replay buffer keeps; beyond it the transitions of the oldest
     /// finished episodes are evicted whole, from memory at once and from the log by
-    /// compaction. Absent: unbounded (the paper's protocol trains on everything).
+    /// compaction. Absent: unbounded (the paper's protocol trains on everything), up to the
+    /// byte budgets below.
     pub replay_capacity: Option<usize>,
+    /// Most bytes one run's replay log may hold (its replay in memory is about as large): at
+    /// the budget the run refuses every observation that would store something, with an error
+    /// naming this setting. Default 1 GiB (over 5,000 half-cheetah episodes).
+    pub max_run_replay_bytes: u64,
+    /// Most bytes the replay logs of all open runs may hold together: at the budget every run
+    /// refuses what it would store, with an error naming this setting. Default 8 GiB.
+    pub max_total_replay_bytes: u64,
+}
+
+impl Default for StorageConfig {
+    fn default() -> Self {
+        Self {
+            replay_capacity: None,
+            max_run_replay_bytes: 1 << 30,
+            max_total_replay_bytes: 8 << 30,
+        }
+    }
 }
 
 impl Default for ServiceConfig {
@@ -88,7 +115,8 @@ impl Default for ServiceConfig {
             max_agents_per_run: 16,
             allowed_presets: Vec::new(),
             overrides: proto::PlannerOverrides::default(),
-            fleet: crate::fleet::Pins::default(),
+            fleet: None,
+            retraining_share: crate::sched::DEFAULT_TRAINING_SHARE,
             limits: Limits::default(),
             storage: StorageConfig::default(),
             metrics: MetricsConfig::default(),
@@ -123,6 +151,8 @@ pub enum ConfigError {
     Pins(#[from] crate::fleet::PinsError),
     #[error(transparent)]
     Limits(#[from] InvalidLimits),
+    #[error("retraining_share = {0} must be above 0 and at most 1")]
+    RetrainingShare(f64),
     #[error(transparent)]
     Tasks(#[from] proto::task::CatalogError),
 }
@@ -145,8 +175,13 @@ impl ServiceConfig {
     /// Checks what serde cannot, the declared tasks included.
     pub fn validate(&self) -> Result<(), ConfigError> {
         proto::validate_name(&self.planner_id)?;
-        self.fleet.validate()?;
+        if let Some(pins) = &self.fleet {
+            pins.validate()?;
+        }
         self.limits.validate()?;
+        if !(self.retraining_share > 0.0 && self.retraining_share <= 1.0) {
+            return Err(ConfigError::RetrainingShare(self.retraining_share));
+        }
         self.catalog()?;
         Ok(())
     }
@@ -188,8 +223,11 @@ mod tests {
             "#,
         )
         .unwrap();
-        assert_eq!(config.fleet.serve, vec!["ant-*".to_string()]);
-        assert!(config.fleet.refuse.is_empty());
+        let pins = config.fleet.as_ref().expect("[fleet] is configured");
+        assert_eq!(pins.serve, vec!["ant-*".to_string()]);
+        assert!(pins.refuse.is_empty());
+        let alone: ServiceConfig = toml::from_str("planner_id = \"solo\"").unwrap();
+        assert_eq!(alone.fleet, None, "no [fleet]: a planner alone");
         config.validate().unwrap();
         assert_eq!(config.planner_id, "lab-1");
         assert_eq!(config.max_runs, 4);

@@ -343,6 +343,17 @@ impl Preset {
         })
     }
 
+    /// The preset of `method` for `task`, a task compiled but not interned yet (a client's
+    /// spec, checked before anything is kept for it: see [`proto::Task::compile_unshared`]):
+    /// as [`Preset::new`], sized from the task's base preset and with its control period as
+    /// deadline. Its `task` is the base preset's catalog task until the caller, having checked
+    /// it ([`crate::config::Limits::check_for`] with `task`), interns `task` and puts it there.
+    pub fn unshared(task: &Task, method: Option<&str>) -> Result<Self, PresetError> {
+        let mut preset = Self::new(task.base_preset.task(), method)?;
+        preset.deadline_ms = Some(control_period_ms(task));
+        Ok(preset)
+    }
+
     /// The optimiser overrides: the choice and iCEM's parameters, each checked against its
     /// range ([`IcemConfig::validate`]); iCEM parameters without iCEM are refused rather than
     /// silently ignored.

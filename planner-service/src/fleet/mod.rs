@@ -22,6 +22,12 @@
 //! it is not. Zenoh's liveliness is the lease: a planner that dies or loses the router loses
 //! its tokens, and the next owner by the rule takes the run over from the shared directory.
 //! `docs/fleet.md` discusses the choice and its failure modes.
+//!
+//! A daemon with no `[fleet]` in its configuration is alone ([`Fleet::alone`]): it owns every
+//! run it serves, subscribes to no planner or lease token and declares no lease, so a token any
+//! client can declare (a forged lease of the highest epoch, thousands of forged planners) never
+//! reaches it. It still claims each run's epoch on disk, which fences a second daemon started on
+//! the same data directory by mistake.
 
 pub mod pins;
 pub mod placement;
@@ -115,8 +121,10 @@ pub struct Fleet {
     keys: Keys,
     session: zenoh::Session,
     view: Mutex<View>,
-    /// The leases this planner holds: run → (epoch, token).
-    held: Mutex<HashMap<String, (u64, LivelinessToken)>>,
+    /// The leases this planner holds: run → (epoch, token; `None` for a planner alone).
+    held: Mutex<HashMap<String, (u64, Option<LivelinessToken>)>>,
+    /// No `[fleet]` is configured: this planner owns every run it serves and reads no token.
+    alone: bool,
     events: Mutex<VecDeque<FleetEvent>>,
     /// Runs whose owner found itself fenced; the service steps down from them.
     fenced: Mutex<Vec<String>>,
@@ -136,21 +144,7 @@ impl Fleet {
         me: String,
         pins: Pins,
     ) -> Result<(Arc<Self>, Changes), FleetError> {
-        let (changed, changes) = mpsc::unbounded_channel();
-        let mut view = View::default();
-        view.planner_joined(&me);
-        view.set_pins(&me, pins.clone());
-        let fleet = Arc::new(Self {
-            me,
-            pins,
-            keys,
-            session,
-            view: Mutex::new(view),
-            held: Mutex::new(HashMap::new()),
-            events: Mutex::new(VecDeque::new()),
-            fenced: Mutex::new(Vec::new()),
-            changed,
-        });
+        let (fleet, changes) = Self::new(session, keys, me, pins, false);
         let profile = serde_json::to_vec(&fleet.pins).expect("pins serialise");
         fleet
             .session
@@ -198,6 +192,38 @@ impl Fleet {
             }
         }
         Ok((fleet, changes))
+    }
+
+    /// A planner alone (no `[fleet]` configured): it owns every run it serves, reads no
+    /// planner or lease token and declares no lease. Only the fence on disk is kept.
+    pub fn alone(session: zenoh::Session, keys: Keys, me: String) -> (Arc<Self>, Changes) {
+        Self::new(session, keys, me, Pins::default(), true)
+    }
+
+    fn new(
+        session: zenoh::Session,
+        keys: Keys,
+        me: String,
+        pins: Pins,
+        alone: bool,
+    ) -> (Arc<Self>, Changes) {
+        let (changed, changes) = mpsc::unbounded_channel();
+        let mut view = View::default();
+        view.planner_joined(&me);
+        view.set_pins(&me, pins.clone());
+        let fleet = Arc::new(Self {
+            me,
+            pins,
+            keys,
+            session,
+            view: Mutex::new(view),
+            held: Mutex::new(HashMap::new()),
+            events: Mutex::new(VecDeque::new()),
+            fenced: Mutex::new(Vec::new()),
+            changed,
+            alone,
+        });
+        (fleet, changes)
     }
 
     pub fn me(&self) -> &str {
@@ -299,7 +325,7 @@ impl Fleet {
         events.push_back(FleetEvent { at_unix_s, kind });
     }
 
-    /// Who owns `run` now, as this planner sees it.
+    /// Who owns `run` now, as this planner sees it (a planner alone sees only itself).
     pub fn owner(&self, run: &str) -> Owner {
         self.lock_view().owner(run)
     }
@@ -319,12 +345,17 @@ impl Fleet {
         let seen = dir.current_epoch()?;
         let previous = dir.epoch_holder(seen);
         let epoch = dir.claim_epoch_after(seen, &self.me)?;
-        let token = self
-            .session
-            .liveliness()
-            .declare_token(self.keys.run_lease(run, epoch, &self.me))
-            .wait()
-            .map_err(zenoh_err("declaring a run lease"))?;
+        let token = if self.alone {
+            None
+        } else {
+            let token = self
+                .session
+                .liveliness()
+                .declare_token(self.keys.run_lease(run, epoch, &self.me))
+                .wait()
+                .map_err(zenoh_err("declaring a run lease"))?;
+            Some(token)
+        };
         self.lock_view().lease_taken(run, epoch, &self.me);
         self.held
             .lock()

@@ -21,7 +21,8 @@ pub struct FitBudget {
     /// Set from outside (the daemon shutting down): no further minibatch starts.
     pub cancel: Option<Arc<AtomicBool>>,
     /// Plans to yield to: before each minibatch the fit waits while any holds or waits for the
-    /// cores (at most [`crate::sched::MAX_YIELD`]). Never on the planning pool's threads: a
+    /// cores, for a time bounded by its guaranteed share, and then takes a slice from them
+    /// ([`crate::sched::Scheduler::before_minibatch`]). Never on the planning pool's threads: a
     /// fit running on one would hold the very thread a plan needs (the daemon fits on the
     /// background pool, see [`crate::sched::background`]).
     pub yield_to: Option<Arc<crate::sched::Scheduler>>,
@@ -131,6 +132,9 @@ pub fn run_epochs(
     if order.is_empty() {
         return run;
     }
+    // How long the last minibatch took: a retraining beside plans that never stop waits a
+    // multiple of it before it takes a slice (see `crate::sched`).
+    let mut last_minibatch = std::time::Duration::ZERO;
     'epochs: for _ in 0..budget.epochs {
         let (mut total, mut count) = (0.0f64, 0usize);
         order.shuffle(rng);
@@ -142,12 +146,15 @@ pub fn run_epochs(
                 }
                 break 'epochs;
             }
-            if let Some(plans) = &budget.yield_to
-                && crate::sched::background::may_wait_for_plans()
-            {
-                plans.wait_for_plans(crate::sched::MAX_YIELD);
-            }
+            let _slice = match &budget.yield_to {
+                Some(plans) if crate::sched::background::may_wait_for_plans() => {
+                    plans.before_minibatch(last_minibatch)
+                }
+                _ => None,
+            };
+            let started = Instant::now();
             total += step(batch, rng) as f64 * batch.len() as f64;
+            last_minibatch = started.elapsed();
             count += batch.len();
             run.steps += 1;
         }

@@ -38,6 +38,7 @@ use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
 
 /// Largest record accepted when reading; anything larger is corruption.
 const MAX_RECORD: u32 = 16 << 20;
@@ -400,6 +401,9 @@ pub trait LogFile: Send + std::fmt::Debug {
     fn append_bytes(&mut self, bytes: &[u8]) -> std::io::Result<()>;
     /// Cuts the file to `len` bytes and positions the next write there.
     fn truncate_to(&mut self, len: u64) -> std::io::Result<()>;
+    /// Forces the bytes written so far to disk (`fdatasync`), or fails as a device that lost
+    /// them does.
+    fn sync_data(&mut self) -> std::io::Result<()>;
 }
 
 impl LogFile for File {
@@ -410,6 +414,10 @@ impl LogFile for File {
     fn truncate_to(&mut self, len: u64) -> std::io::Result<()> {
         self.set_len(len)?;
         self.seek(SeekFrom::Start(len)).map(|_| ())
+    }
+
+    fn sync_data(&mut self) -> std::io::Result<()> {
+        File::sync_data(self)
     }
 }
 
@@ -468,6 +476,20 @@ impl LogSyncer {
             if Arc::ptr_eq(&target.file, &file) {
                 target.directory_unsynced = false;
             }
+        }
+        Ok(())
+    }
+
+    /// Syncs the log's directory entry if a compaction renamed a new file over the log and no
+    /// sync has made the new name durable yet (see [`LogSyncer::sync`]).
+    fn sync_directory_if_swapped(&self) -> Result<(), LogError> {
+        let mut target = self.target();
+        if target.directory_unsynced {
+            sync_directory(&self.path).map_err(|source| LogError::Io {
+                path: self.path.clone(),
+                source,
+            })?;
+            target.directory_unsynced = false;
         }
         Ok(())
     }
@@ -595,6 +617,39 @@ impl ReplayLog {
         }
         self.end += bytes.len() as u64;
         Ok(())
+    }
+
+    /// Appends `records` as [`ReplayLog::append`] does and forces them to disk through the
+    /// log's writer before returning. If the sync fails they are taken back (cut off the file,
+    /// as a failed write is): after a failed `fsync` Linux may drop the pages it could not
+    /// write and report a later `fsync` of them as a success, so records whose sync failed
+    /// are never counted as stored; the caller refuses what they came from, and the records
+    /// are written afresh when it is sent again. Returns the time the sync took.
+    pub fn append_synced(&mut self, records: &[Record]) -> Result<Duration, LogError> {
+        let before = self.end;
+        self.append(records)?;
+        let started = Instant::now();
+        let synced = self
+            .file
+            .sync_data()
+            .map_err(|source| LogError::Io {
+                path: self.path.clone(),
+                source,
+            })
+            .and_then(|()| self.syncer.sync_directory_if_swapped());
+        let took = started.elapsed();
+        if let Err(e) = synced {
+            self.end = before;
+            self.dirty = true;
+            match self.file.truncate_to(before) {
+                Ok(()) => self.dirty = false,
+                Err(cut) => {
+                    tracing::error!(path = %self.path.display(), error = %cut, "cannot cut records whose sync failed off the replay log; retrying before the next write")
+                }
+            }
+            return Err(e);
+        }
+        Ok(took)
     }
 
     /// Starts rewriting the log without the records `keep` refuses (a compaction), in three
@@ -1009,6 +1064,10 @@ pub(crate) mod tests {
 
         fn truncate_to(&mut self, len: u64) -> std::io::Result<()> {
             self.file.truncate_to(len)
+        }
+
+        fn sync_data(&mut self) -> std::io::Result<()> {
+            self.file.sync_data()
         }
     }
 

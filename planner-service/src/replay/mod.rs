@@ -73,6 +73,9 @@ pub struct ReplayBuffer {
     evicted_on_disk: usize,
     /// A compaction of the log is under way (see [`compact_log`]).
     compacting: bool,
+    /// What opening the log could not read (damaged records, a damaged header, a torn tail),
+    /// said in words for `status`; `None` for a clean log.
+    damage: Option<String>,
 }
 
 impl From<EpisodeSummary> for Record {
@@ -114,6 +117,7 @@ impl ReplayBuffer {
             evicted: HashSet::new(),
             evicted_on_disk: 0,
             compacting: false,
+            damage: None,
         }
     }
 
@@ -149,20 +153,43 @@ impl ReplayBuffer {
             tracing::warn!(path = %path.display(), regions = recovered.damaged_regions, bytes = recovered.damaged_bytes, "skipped damaged records in the replay log; every intact record is kept");
         }
         let mut buffer = Self::in_memory(task);
-        let mut records = recovered.records.into_iter();
-        match records.next() {
+        let mut damage = Vec::new();
+        if recovered.damaged_regions > 0 {
+            damage.push(format!(
+                "{} damaged stretch(es) of {} bytes skipped",
+                recovered.damaged_regions, recovered.damaged_bytes
+            ));
+        }
+        if recovered.truncated_bytes > 0 {
+            damage.push(format!(
+                "a torn tail of {} bytes cut off",
+                recovered.truncated_bytes
+            ));
+        }
+        let mut records = recovered.records.into_iter().peekable();
+        match records.peek() {
             None => log.append(&[Record::Header {
                 task: task.name().to_string(),
                 obs_dim: task.obs_dim as u32,
                 act_dim: task.act_dim as u32,
             }])?,
-            Some(Record::Header { task: found, .. }) if found == task.name() => {}
+            Some(Record::Header { task: found, .. }) if found == task.name() => {
+                records.next();
+            }
             Some(Record::Header { task: found, .. }) => {
                 return Err(ReplayError::TaskMismatch {
                     path: path.display().to_string(),
-                    found,
+                    found: found.clone(),
                     expected: task.name().to_string(),
                 });
+            }
+            // The first record is not the header, and damage was skipped: the header was
+            // damaged. It only names the task, which the run's spec names too, and every
+            // record's dimensions are checked against the task below: the run resumes with
+            // every record that can be read, and says so.
+            Some(_) if recovered.damaged_regions > 0 => {
+                tracing::warn!(path = %path.display(), "the replay log's header record is damaged; resuming with every intact record");
+                damage.push("its header record is damaged".into());
             }
             Some(_) => {
                 return Err(ReplayError::MissingHeader {
@@ -170,6 +197,7 @@ impl ReplayBuffer {
                 });
             }
         }
+        buffer.damage = (!damage.is_empty()).then(|| format!("replay log: {}", damage.join("; ")));
         let mut open_episodes: BTreeMap<(String, u32), EpisodeSummary> = BTreeMap::new();
         for record in records {
             if record.epoch().is_some_and(|e| e < buffer.epoch) {
@@ -286,7 +314,26 @@ impl ReplayBuffer {
     /// the OS is concerned) and in memory; on error none of them is in either, so the caller
     /// can refuse what they came from and accept it again later. Every transition and episode
     /// end is stored under the buffer's ownership epoch, whatever epoch it was built with.
-    pub fn append(&mut self, mut records: Vec<Record>) -> Result<(), ReplayError> {
+    pub fn append(&mut self, records: Vec<Record>) -> Result<(), ReplayError> {
+        self.store(records, false).map(drop)
+    }
+
+    /// As [`ReplayBuffer::append`], and the records are forced to disk before they count: if
+    /// the sync fails they are in neither the log nor memory (see
+    /// [`super::ReplayLog::append_synced`]), and the caller refuses what they came from.
+    /// Returns the time the sync took (`None` for a buffer in memory only).
+    pub fn append_synced(
+        &mut self,
+        records: Vec<Record>,
+    ) -> Result<Option<std::time::Duration>, ReplayError> {
+        self.store(records, true)
+    }
+
+    fn store(
+        &mut self,
+        mut records: Vec<Record>,
+        synced: bool,
+    ) -> Result<Option<std::time::Duration>, ReplayError> {
         for record in &mut records {
             record.set_epoch(self.epoch);
         }
@@ -295,8 +342,13 @@ impl ReplayBuffer {
                 record: format!("{record:?}"),
             });
         }
+        let mut sync_took = None;
         if let Some(log) = &mut self.log {
-            log.append(&records)?;
+            if synced {
+                sync_took = Some(log.append_synced(&records)?);
+            } else {
+                log.append(&records)?;
+            }
         }
         for record in &records {
             self.apply(record);
@@ -307,7 +359,7 @@ impl ReplayBuffer {
         {
             self.evict()?;
         }
-        Ok(())
+        Ok(sync_took)
     }
 
     /// Takes the buffer over for `planner` at ownership `epoch` (above every earlier claim):
@@ -503,6 +555,11 @@ impl ReplayBuffer {
     pub fn is_empty(&self) -> bool {
         self.transitions.is_empty()
     }
+
+    /// What opening the log could not read, in words (`None`: nothing was lost).
+    pub fn damage(&self) -> Option<&str> {
+        self.damage.as_deref()
+    }
 }
 
 /// A compaction under way: the log's rewrite, and the evictions it removes from disk.
@@ -608,6 +665,55 @@ mod tests {
         assert_eq!(reopened.episodes(), &[summary]);
         let err = ReplayBuffer::open(&path, Builtin::Ant.task()).unwrap_err();
         assert!(err.to_string().contains("holds task cartpole"), "{err}");
+    }
+
+    /// A damaged header record costs only itself: the run resumes with every transition and
+    /// episode, says what was lost, and a log that never had a header is still refused.
+    #[test]
+    fn a_damaged_header_costs_only_the_header() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = Builtin::Cartpole.task();
+        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(buffer.damage(), None);
+        for step in 0..10 {
+            buffer.append(vec![transition("a", 0, step, 0.5)]).unwrap();
+        }
+        let summary = EpisodeSummary {
+            agent: "a".into(),
+            episode: 0,
+            steps: 10,
+            episode_return: 5.0,
+            end: EpisodeEnd::TimeLimit,
+        };
+        buffer.append(vec![summary.clone().into()]).unwrap();
+        let snapshot = buffer.transitions().clone();
+        drop(buffer);
+        // The task's name appears first in the header record: damage one of its bytes.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let at = bytes
+            .windows(b"cartpole".len())
+            .position(|w| w == b"cartpole")
+            .expect("the header names the task");
+        bytes[at + 2] ^= 0xff;
+        std::fs::write(&path, &bytes).unwrap();
+        let mut reopened = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(reopened.transitions(), &snapshot);
+        assert_eq!(reopened.episodes(), std::slice::from_ref(&summary));
+        let damage = reopened.damage().expect("the damage is reported");
+        assert!(damage.contains("header record is damaged"), "{damage}");
+        // It stores on, and opens again the same way.
+        reopened.append(vec![transition("a", 1, 0, 1.0)]).unwrap();
+        drop(reopened);
+        let again = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(again.len(), 11);
+        // A file of records with no header and no damage is not a replay log of this run.
+        let foreign = dir.path().join("foreign.log");
+        let mut log = ReplayLog::open(&foreign).unwrap().0;
+        log.append(&[transition("a", 0, 0, 0.5)]).unwrap();
+        drop(log);
+        let err = ReplayBuffer::open(&foreign, task).unwrap_err();
+        assert!(matches!(err, ReplayError::MissingHeader { .. }), "{err}");
     }
 
     #[test]

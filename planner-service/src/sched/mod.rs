@@ -12,9 +12,17 @@
 //! does count against its own deadline, which then cuts it.
 //!
 //! Retraining has minutes where a plan has milliseconds, so it yields: before each minibatch a
-//! fit waits while any plan holds or waits for the cores, at most [`MAX_YIELD`] per minibatch
-//! so that a daemon planning without pause still trains (then at one minibatch per
-//! [`MAX_YIELD`]). The wait is between minibatches, never inside one.
+//! fit waits while any plan holds or waits for the cores, and runs in the idle time plans
+//! leave. Its threads run at `SCHED_IDLE` (see [`background`]), so while plans never stop they
+//! would get no core at all and a sync run would wait forever for its models. So the wait is
+//! bounded by the retraining's guaranteed share of the cores ([`Scheduler::training_share`],
+//! `retraining_share` in the configuration): after waiting `(1 − share) / share` times as long
+//! as its last minibatch took (at most [`MAX_YIELD`]), a fit that still finds plans running
+//! takes one minibatch's *slice*: it queues as the most urgent plan, the plan holding the
+//! cores steps back at its next imagined step, and the minibatch runs while every plan waits.
+//! Under continuous planning a retraining therefore gets about `share` of the time, and plans
+//! the rest; `status` counts the slices and says while a retraining is starving (it needed a
+//! slice within [`STARVING_WINDOW`]). The wait is between minibatches, never inside one.
 //!
 //! Limits: preemption happens only between imagined steps (Adam + DAE: between its gradient
 //! steps), so a waiting plan can lose up to one of those, and a minibatch already running
@@ -37,12 +45,56 @@ use std::time::{Duration, Instant};
 /// The longest a retraining waits for plans before one minibatch.
 pub const MAX_YIELD: Duration = Duration::from_millis(200);
 
+/// The share of the cores a retraining is guaranteed while plans leave it no idle time,
+/// unless configured (`retraining_share`).
+pub const DEFAULT_TRAINING_SHARE: f64 = 0.2;
+
+/// A retraining counts as starving while it needed a slice this recently.
+pub const STARVING_WINDOW: Duration = Duration::from_secs(5);
+
 /// The daemon's plan queue; every run's plans and retrainings share one.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct Scheduler {
     queue: Mutex<PlanQueue>,
     /// Signalled whenever the holder changes or the queue empties.
     changed: Condvar,
+    /// The share of the cores a retraining gets while plans never stop, in (0, 1].
+    training_share: f64,
+    /// Minibatches retrainings ran in a slice taken from plans (plans left no idle time).
+    slices: AtomicU64,
+    /// Nanoseconds retrainings waited for plans before their minibatches.
+    training_waited_ns: AtomicU64,
+    /// When a retraining last needed a slice.
+    last_slice: Mutex<Option<Instant>>,
+}
+
+impl Default for Scheduler {
+    fn default() -> Self {
+        Self::new(DEFAULT_TRAINING_SHARE)
+    }
+}
+
+/// How retrainings fared against the plans, for `status`.
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
+pub struct TrainingShare {
+    /// The share of the cores a retraining is guaranteed while plans never stop.
+    pub share: f64,
+    /// Minibatches run in a slice taken from the plans, since the daemon started.
+    pub slices: u64,
+    /// Seconds retrainings waited for plans before their minibatches, since the daemon started.
+    pub waited_seconds: f64,
+    /// A retraining needed a slice within the last few seconds: plans leave it no idle time,
+    /// and it advances at its guaranteed share only.
+    pub starving: bool,
 }
 
 /// How many of one owner's plans (an agent's) wait for the cores now: queued, or stepped back
@@ -80,6 +132,69 @@ pub struct Turn {
 }
 
 impl Scheduler {
+    /// A scheduler that guarantees retraining `training_share` of the cores while plans never
+    /// stop (clamped into [0.01, 1]).
+    pub fn new(training_share: f64) -> Self {
+        let share = if training_share.is_finite() {
+            training_share.clamp(0.01, 1.0)
+        } else {
+            DEFAULT_TRAINING_SHARE
+        };
+        Self {
+            queue: Mutex::default(),
+            changed: Condvar::new(),
+            training_share: share,
+            slices: AtomicU64::new(0),
+            training_waited_ns: AtomicU64::new(0),
+            last_slice: Mutex::new(None),
+        }
+    }
+
+    /// The share of the cores a retraining is guaranteed while plans never stop.
+    pub fn training_share(&self) -> f64 {
+        self.training_share
+    }
+
+    /// Before a retraining's minibatch, whose previous one took `last`: waits while plans hold
+    /// or wait for the cores, at most `(1 − share) / share` times `last` (within 1 ms and
+    /// [`MAX_YIELD`]); if plans still want the cores then, blocks until the minibatch holds
+    /// them as the most urgent plan and returns that turn, to be held for the minibatch
+    /// (`None`: the plans left idle time, and the minibatch runs in it).
+    pub fn before_minibatch(self: &Arc<Self>, last: Duration) -> Option<Turn> {
+        let patience = last
+            .mul_f64((1.0 - self.training_share) / self.training_share)
+            .clamp(Duration::from_millis(1), MAX_YIELD);
+        let waited = self.wait_for_plans(patience);
+        self.training_waited_ns.fetch_add(
+            u64::try_from(waited.as_nanos()).unwrap_or(u64::MAX),
+            Ordering::Relaxed,
+        );
+        if self.lock().is_idle() {
+            return None;
+        }
+        self.slices.fetch_add(1, Ordering::Relaxed);
+        *self
+            .last_slice
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(Instant::now());
+        // A deadline of now is overdue: the most urgent class, so the holder steps back.
+        Some(self.turn(Some(Instant::now()), None, &Waiting::default()))
+    }
+
+    /// How retrainings fared against the plans.
+    pub fn training(&self) -> TrainingShare {
+        let last = *self
+            .last_slice
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        TrainingShare {
+            share: self.training_share,
+            slices: self.slices.load(Ordering::Relaxed),
+            waited_seconds: self.training_waited_ns.load(Ordering::Relaxed) as f64 * 1e-9,
+            starving: last.is_some_and(|at| at.elapsed() < STARVING_WINDOW),
+        }
+    }
+
     fn lock(&self) -> MutexGuard<'_, PlanQueue> {
         self.queue.lock().unwrap_or_else(PoisonError::into_inner)
     }
@@ -278,6 +393,53 @@ mod tests {
         ended.store(true, Ordering::SeqCst);
         drop(plan);
         waiter.join().unwrap();
+    }
+
+    /// While plans never stop, a retraining's minibatch still runs: after a wait bounded by
+    /// its share it takes the cores from the plans (the holder steps back at its next step),
+    /// and `training` says it is starving.
+    #[test]
+    fn a_retraining_takes_its_share_from_plans_that_never_stop() {
+        let scheduler = Arc::new(Scheduler::new(0.5));
+        assert_eq!(
+            scheduler
+                .before_minibatch(Duration::from_millis(5))
+                .map(|_| ()),
+            None
+        );
+        assert!(
+            !scheduler.training().starving,
+            "idle plans: no slice needed"
+        );
+        let stop = Arc::new(AtomicBool::new(false));
+        let planner = std::thread::spawn({
+            let (scheduler, stop) = (scheduler.clone(), stop.clone());
+            move || {
+                // A plan holding the cores for ever, stepping back when outranked.
+                let turn = scheduler.turn(None, None, &Waiting::default());
+                let mut stepped_back = 0;
+                while !stop.load(Ordering::SeqCst) {
+                    stepped_back += u32::from(turn.yield_to_earlier());
+                    std::thread::yield_now();
+                }
+                stepped_back
+            }
+        });
+        while scheduler.lock().is_idle() {
+            std::thread::yield_now();
+        }
+        let started = Instant::now();
+        let slice = scheduler.before_minibatch(Duration::from_millis(5));
+        assert!(slice.is_some(), "the minibatch holds the cores");
+        // It waited about as long as the minibatch takes (share 0.5), far from for ever.
+        assert!(started.elapsed() < Duration::from_secs(5));
+        let training = scheduler.training();
+        assert_eq!(training.slices, 1);
+        assert!(training.starving);
+        assert!(training.waited_seconds >= 0.004, "{training:?}");
+        drop(slice);
+        stop.store(true, Ordering::SeqCst);
+        assert!(planner.join().unwrap() >= 1, "the plan stepped back");
     }
 
     #[test]

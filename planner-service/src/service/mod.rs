@@ -201,12 +201,51 @@ enum Refusal {
     Report(ErrorReport),
     /// Not said: another planner claimed the run's next ownership epoch first (so it answers).
     Contended,
+    /// Said to the agent (it may attach again): opening the run failed on an I/O error that
+    /// may pass (a disk or a network mount that is back a moment later).
+    Transient(ErrorReport),
 }
 
 impl From<ErrorReport> for Refusal {
     fn from(report: ErrorReport) -> Self {
         Refusal::Report(report)
     }
+}
+
+/// The task of a run spec, as [`Service::task_for`] found it.
+enum SpecTask {
+    /// A task this process shares already: a catalog task, or a spec interned before.
+    Shared(&'static proto::Task),
+    /// A new spec's task, compiled but not interned: it is interned only once every check of
+    /// the attach passed.
+    Unshared(Box<proto::Task>),
+}
+
+impl SpecTask {
+    fn task(&self) -> &proto::Task {
+        match self {
+            SpecTask::Shared(task) => task,
+            SpecTask::Unshared(task) => task,
+        }
+    }
+}
+
+/// How often the daemon checks whether a stored run's next try at opening is due.
+const OPEN_RETRY_TICK: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// The first wait before a stored run whose opening failed on an I/O error is tried again;
+/// it doubles with every failure, up to [`MAX_OPEN_RETRY`].
+const FIRST_OPEN_RETRY: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// The longest wait between two tries at opening a stored run.
+const MAX_OPEN_RETRY: std::time::Duration = std::time::Duration::from_secs(300);
+
+/// A stored run whose opening failed on an I/O error that may pass.
+#[derive(Debug)]
+struct Retrying {
+    attempts: u32,
+    next_at: std::time::Instant,
+    reason: String,
 }
 
 /// Why taking a run over failed, on the blocking pool.
@@ -226,6 +265,9 @@ pub struct Service {
     /// Stored runs that could not be opened, with the reason: listed by `status`, refused at
     /// attach, left on disk untouched for the operator.
     failed: Mutex<BTreeMap<String, String>>,
+    /// Stored runs whose opening failed on an I/O error that may pass: tried again with
+    /// backoff, listed by `status` meanwhile.
+    retrying: Mutex<BTreeMap<String, Retrying>>,
     /// Held while a new run is opened (off the event loop), so that two agents attaching to
     /// the same new run at once open it once. Hosted runs are joined without it.
     opening: tokio::sync::Mutex<()>,
@@ -237,6 +279,8 @@ pub struct Service {
     plans: Arc<crate::sched::Scheduler>,
     /// How the runs' replay logs reach the disk.
     log_disk: LogDisk,
+    /// The replay byte budgets every run shares (`[storage]`).
+    replay_budget: Arc<crate::run::ReplayBudget>,
     runtime: tokio::runtime::Handle,
     started: std::time::Instant,
 }
@@ -295,13 +339,23 @@ impl Service {
         let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
         let keys = Keys::new(&config.prefix);
         let planner_id = config.planner_id.clone();
-        let (fleet, mut fleet_changes) = Fleet::join(
-            session.clone(),
-            keys.clone(),
-            planner_id.clone(),
-            config.fleet.clone(),
-        )
-        .await?;
+        let (fleet, mut fleet_changes) = match &config.fleet {
+            Some(pins) => {
+                Fleet::join(
+                    session.clone(),
+                    keys.clone(),
+                    planner_id.clone(),
+                    pins.clone(),
+                )
+                .await?
+            }
+            None => Fleet::alone(session.clone(), keys.clone(), planner_id.clone()),
+        };
+        let plans = Arc::new(crate::sched::Scheduler::new(config.retraining_share));
+        let replay_budget = Arc::new(crate::run::ReplayBudget::new(
+            config.storage.max_run_replay_bytes,
+            config.storage.max_total_replay_bytes,
+        ));
         let service = Arc::new(Service {
             outbox: Outbox {
                 session: session.clone(),
@@ -314,10 +368,12 @@ impl Service {
             catalog,
             runs: Mutex::new(HashMap::new()),
             failed: Mutex::new(BTreeMap::new()),
+            retrying: Mutex::new(BTreeMap::new()),
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             cancel_training: Arc::new(AtomicBool::new(false)),
-            plans: Arc::default(),
+            plans,
+            replay_budget,
             log_disk,
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
@@ -353,6 +409,8 @@ impl Service {
         tracing::info!(planner = %planner_id, prefix = %keys.prefix(), "planner serving");
 
         tokio::pin!(shutdown);
+        let mut retries = tokio::time::interval(OPEN_RETRY_TICK);
+        retries.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             // Biased: observations are drained before liveliness changes. Zenoh delivers an
             // agent's last observation before its token's deletion, but they arrive on two
@@ -377,6 +435,7 @@ impl Service {
                     Ok(token) => service.liveliness(token),
                     Err(e) => { tracing::error!(error = %e, "liveliness subscriber closed"); break; }
                 },
+                _ = retries.tick(), if service.open_retry_due() => service.rebalance().await,
                 Some(()) = fleet_changes.recv() => {
                     // One rebalance covers every change queued so far.
                     while fleet_changes.try_recv().is_ok() {}
@@ -534,7 +593,9 @@ impl Service {
                     Err(e) => AttachOutcome::Rejected(codec_report(&e)),
                     Ok(request) => match self.attach_agent(run, request).await {
                         Ok(accepted) => AttachOutcome::Accepted(accepted),
-                        Err(Refusal::Report(report)) => AttachOutcome::Rejected(report),
+                        Err(Refusal::Report(report) | Refusal::Transient(report)) => {
+                            AttachOutcome::Rejected(report)
+                        }
                         // Another planner is taking the run over at this moment: its answer
                         // is the one the agent must get.
                         Err(Refusal::Contended) => return,
@@ -683,14 +744,16 @@ impl Service {
         })
     }
 
-    /// The task a run spec names: its own spec (validated against `[limits]`), or the
-    /// catalog's entry of that name. A spec may not redefine a catalog task.
-    fn task_for(&self, spec: &RunSpec) -> Result<&'static proto::Task, ErrorReport> {
+    /// The task a run spec names: its own spec (validated against `[limits]`, compiled but
+    /// not interned unless this process knows it already), or the catalog's entry of that
+    /// name. A spec may not redefine a catalog task.
+    fn task_for(&self, spec: &RunSpec) -> Result<SpecTask, ErrorReport> {
         let refuse = |msg: String| ErrorReport::new(ErrorCode::Refused, msg);
         let Some(task_spec) = &spec.task_spec else {
             return self
                 .catalog
                 .get(&spec.task)
+                .map(SpecTask::Shared)
                 .map_err(|e| ErrorReport::new(ErrorCode::UnknownTask, e.to_string()));
         };
         if task_spec.name != spec.task {
@@ -702,7 +765,7 @@ impl Service {
         }
         if let Ok(known) = self.catalog.get(&spec.task) {
             return if known.spec() == task_spec {
-                Ok(known)
+                Ok(SpecTask::Shared(known))
             } else {
                 Err(refuse(format!(
                     "task `{}` is in this planner's catalog with another spec: attach by name, or name your task otherwise",
@@ -710,7 +773,15 @@ impl Service {
                 )))
             };
         }
-        proto::Task::intern(task_spec.clone(), &self.config.limits.spec_bounds())
+        let bounds = self.config.limits.spec_bounds();
+        task_spec
+            .validate(&bounds)
+            .map_err(|e| refuse(e.to_string()))?;
+        if let Some(task) = proto::Task::interned(task_spec) {
+            return Ok(SpecTask::Shared(task));
+        }
+        proto::Task::compile_unshared(task_spec.clone(), &bounds)
+            .map(|task| SpecTask::Unshared(Box::new(task)))
             .map_err(|e| refuse(e.to_string()))
     }
 
@@ -759,7 +830,11 @@ impl Service {
                 self.config.allowed_presets.join(", ")
             )));
         }
-        let mut preset = Preset::new(task, method).map_err(|e| refuse(e.to_string()))?;
+        let mut preset = match &task {
+            SpecTask::Shared(task) => Preset::new(task, method),
+            SpecTask::Unshared(task) => Preset::unshared(task, method),
+        }
+        .map_err(|e| refuse(e.to_string()))?;
         preset
             .apply(&self.config.overrides)
             .map_err(|e| refuse(format!("planner config: {e}")))?;
@@ -772,8 +847,13 @@ impl Service {
             .map_err(|e| refuse(format!("invalid planner configuration: {e}")))?;
         self.config
             .limits
-            .check(&preset)
+            .check_for(&preset, task.task())
             .map_err(|e| refuse(e.to_string()))?;
+        // Everything is checked: only now is a new task kept (interned), so a refused attach
+        // keeps nothing and takes none of the process's task slots.
+        if let SpecTask::Unshared(task) = task {
+            preset.task = proto::Task::share(*task).map_err(|e| refuse(e.to_string()))?;
+        }
         Ok(preset)
     }
 
@@ -827,6 +907,7 @@ impl Service {
                 yield_to: Some(self.plans.clone()),
             },
             replay_capacity: self.config.storage.replay_capacity,
+            replay_budget: self.replay_budget.clone(),
             log_disk: self.log_disk.clone(),
             histograms: self.outbox.metrics.for_run(name),
         };
@@ -834,6 +915,12 @@ impl Service {
             Refusal::Report(ErrorReport::new(
                 ErrorCode::Internal,
                 format!("cannot open run `{name}`: {why}"),
+            ))
+        };
+        let transient = |why: String| {
+            Refusal::Transient(ErrorReport::new(
+                ErrorCode::Storage,
+                format!("cannot open run `{name}` now ({why}): attach again later"),
             ))
         };
         let (fleet, planner, owned) = (
@@ -854,7 +941,11 @@ impl Service {
             Ok(Err(Taking::Fleet(FleetError::Persist(PersistError::EpochTaken { .. })))) => {
                 Err(Refusal::Contended)
             }
+            Ok(Err(Taking::Fleet(e @ FleetError::Persist(PersistError::Io { .. })))) => {
+                Err(transient(format!("cannot take it over: {e}")))
+            }
             Ok(Err(Taking::Fleet(e))) => Err(internal(format!("cannot take it over: {e}"))),
+            Ok(Err(Taking::Open(e))) if e.is_transient() => Err(transient(e.to_string())),
             Ok(Err(Taking::Open(e))) => Err(internal(e.to_string())),
             Err(e) => {
                 self.fleet
@@ -865,6 +956,10 @@ impl Service {
     }
 
     fn host(&self, run: Arc<Run>) {
+        self.retrying
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(run.name());
         let trainer = self.runtime.spawn(run.clone().trainer_loop());
         let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         runs.insert(
@@ -927,7 +1022,11 @@ impl Service {
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
                 .contains_key(&name);
-            if set_aside || self.is_hosted(&name) || !self.fleet.is_mine(&name) {
+            if set_aside
+                || self.is_hosted(&name)
+                || !self.fleet.is_mine(&name)
+                || self.open_retry_waits(&name)
+            {
                 continue;
             }
             let spec = match dir.read_spec() {
@@ -952,6 +1051,7 @@ impl Service {
             }
             match self.open_run(&name, spec).await {
                 Ok(run) => self.host(run),
+                Err(Refusal::Transient(report)) => self.retry_open_later(&name, report.message),
                 Err(Refusal::Report(report)) => self.set_aside(&name, report.message),
                 Err(Refusal::Contended) => {
                     tracing::info!(run = %name, "another planner took the run over first");
@@ -986,6 +1086,45 @@ impl Service {
                 .report(name, &agent, report, Encoding::Json)
                 .await;
         }
+    }
+
+    /// Whether stored run `name` waits for its next try at opening.
+    fn open_retry_waits(&self, name: &str) -> bool {
+        self.retrying
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(name)
+            .is_some_and(|r| r.next_at > std::time::Instant::now())
+    }
+
+    /// Whether a stored run's next try at opening is due.
+    fn open_retry_due(&self) -> bool {
+        let now = std::time::Instant::now();
+        self.retrying
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .values()
+            .any(|r| r.next_at <= now)
+    }
+
+    /// Opening stored run `name` failed on an I/O error that may pass: it is tried again
+    /// after a backoff that doubles with every failure, from [`FIRST_OPEN_RETRY`] up to
+    /// [`MAX_OPEN_RETRY`], and `status` lists it meanwhile.
+    fn retry_open_later(&self, name: &str, reason: String) {
+        let mut retrying = self.retrying.lock().unwrap_or_else(PoisonError::into_inner);
+        let attempts = retrying.get(name).map_or(0, |r| r.attempts) + 1;
+        let backoff = FIRST_OPEN_RETRY
+            .saturating_mul(1 << attempts.saturating_sub(1).min(16))
+            .min(MAX_OPEN_RETRY);
+        tracing::warn!(run = %name, attempts, retry_in_s = backoff.as_secs_f64(), "cannot open a stored run now, trying again later: {reason}");
+        retrying.insert(
+            name.to_string(),
+            Retrying {
+                attempts,
+                next_at: std::time::Instant::now() + backoff,
+                reason,
+            },
+        );
     }
 
     fn set_aside(&self, run: &str, reason: String) {
@@ -1040,10 +1179,13 @@ impl Service {
                     replay_fsync: run.histograms().fsync_seconds.timings(),
                     retraining: run.histograms().retraining_seconds.timings(),
                     last_retraining: run.last_retraining(),
+                    replay_damage: run.replay_damage().map(str::to_string),
                 }
             })
             .collect();
         reports.sort_by(|a, b| a.name.cmp(&b.name));
+        let hosted_runs = reports.len();
+        let fullest_run = reports.iter().map(|r| r.replay_bytes).max().unwrap_or(0);
         let failed_runs = self
             .failed
             .lock()
@@ -1054,6 +1196,19 @@ impl Service {
                 reason: reason.clone(),
             })
             .collect();
+        let now = std::time::Instant::now();
+        let retrying_runs = self
+            .retrying
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .iter()
+            .map(|(name, r)| status::RetryingRun {
+                name: name.clone(),
+                reason: r.reason.clone(),
+                attempts: r.attempts,
+                next_try_seconds: r.next_at.saturating_duration_since(now).as_secs_f64(),
+            })
+            .collect();
         status::PlannerStatus {
             planner_id: self.config.planner_id.clone(),
             protocol_version: PROTOCOL_VERSION,
@@ -1061,8 +1216,25 @@ impl Service {
             runs: reports,
             fleet: self.fleet.status(),
             failed_runs,
+            retrying_runs,
             wildcards_dropped: self.outbox.metrics.wildcards_dropped(),
             refused: self.outbox.metrics.refusals(),
+            retraining: self.plans.training(),
+            budgets: status::Budgets {
+                runs: status::Usage::of(hosted_runs as u64, self.config.max_runs as u64),
+                replay_bytes: status::Usage::of(
+                    self.replay_budget.used(),
+                    self.replay_budget.total,
+                ),
+                fullest_run_replay_bytes: status::Usage::of(
+                    fullest_run,
+                    self.replay_budget.per_run,
+                ),
+                task_slots: status::Usage::of(
+                    proto::Task::interned_count() as u64,
+                    proto::task::MAX_DISTINCT_TASKS as u64,
+                ),
+            },
         }
     }
 

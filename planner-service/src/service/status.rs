@@ -115,12 +115,54 @@ pub struct PlannerStatus {
     /// Stored runs this planner could not open, set aside with the reason.
     #[serde(default)]
     pub failed_runs: Vec<FailedRun>,
+    /// Stored runs whose opening failed on an I/O error that may pass: tried again with a
+    /// backoff that doubles with every failure.
+    #[serde(default)]
+    pub retrying_runs: Vec<RetryingRun>,
     /// Observations and attaches dropped unanswered because their key had a wildcard.
     #[serde(default)]
     pub wildcards_dropped: u64,
     /// Messages answered with an error report, by error code, since the daemon started.
     #[serde(default)]
     pub refused: std::collections::BTreeMap<String, u64>,
+    /// How retrainings fared against continuous planning: their guaranteed share of the
+    /// cores, the slices they took from plans, and whether one is starving now.
+    #[serde(default)]
+    pub retraining: crate::sched::TrainingShare,
+    /// How close the daemon is to each of its budgets.
+    #[serde(default)]
+    pub budgets: Budgets,
+}
+
+/// How much of one budget is used: `used` of `limit` (`limit` absent: unbounded).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct Usage {
+    pub used: u64,
+    pub limit: Option<u64>,
+}
+
+impl Usage {
+    pub fn of(used: u64, limit: impl Into<Option<u64>>) -> Self {
+        Self {
+            used,
+            limit: limit.into(),
+        }
+    }
+}
+
+/// The daemon's budgets: what each bounds, how much is used. A request that would go beyond
+/// one is refused with an error naming the budget and its setting.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct Budgets {
+    /// Runs hosted, of `max_runs`.
+    pub runs: Usage,
+    /// Bytes of the replay logs of every hosted run, of `[storage] max_total_replay_bytes`.
+    pub replay_bytes: Usage,
+    /// Bytes of the largest run's replay log, of `[storage] max_run_replay_bytes`.
+    pub fullest_run_replay_bytes: Usage,
+    /// Distinct task specs compiled in this process (catalog tasks included), of the most it
+    /// compiles; only runs that were opened keep one.
+    pub task_slots: Usage,
 }
 
 /// A stored run that could not be opened (it stays on disk untouched).
@@ -128,6 +170,18 @@ pub struct PlannerStatus {
 pub struct FailedRun {
     pub name: String,
     pub reason: String,
+}
+
+/// A stored run whose opening failed on an I/O error that may pass.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+pub struct RetryingRun {
+    pub name: String,
+    /// The last failure.
+    pub reason: String,
+    /// Tries that failed so far.
+    pub attempts: u32,
+    /// Seconds until the next try.
+    pub next_try_seconds: f64,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
@@ -167,6 +221,10 @@ pub struct RunStatus {
     pub retraining: Timings,
     #[serde(default)]
     pub last_retraining: Option<LastRetraining>,
+    /// What could not be read when the run was opened (damaged records, a damaged header, a
+    /// torn tail): the run resumed with everything else. `None`: nothing was lost.
+    #[serde(default)]
+    pub replay_damage: Option<String>,
 }
 
 #[cfg(test)]

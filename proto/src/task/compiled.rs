@@ -244,14 +244,43 @@ impl Task {
     /// process and shared after.
     pub fn intern(spec: TaskSpec, bounds: &SpecBounds) -> Result<&'static Task, TaskError> {
         spec.validate(bounds)?;
-        let mut interned = INTERNED.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(task) = interned.iter().find(|t| t.spec == spec) {
+        if let Some(task) = Task::interned(&spec) {
             return Ok(task);
+        }
+        Task::share(Task::compile(spec)?)
+    }
+
+    /// The task of `spec` if this process interned it already.
+    pub fn interned(spec: &TaskSpec) -> Option<&'static Task> {
+        let interned = INTERNED.lock().unwrap_or_else(|e| e.into_inner());
+        interned.iter().find(|t| t.spec == *spec).copied()
+    }
+
+    /// Distinct tasks this process interned (at most [`MAX_DISTINCT_TASKS`]).
+    pub fn interned_count() -> usize {
+        INTERNED.lock().unwrap_or_else(|e| e.into_inner()).len()
+    }
+
+    /// The task of `spec` (validated against `bounds`), compiled but not interned: a caller
+    /// that may still refuse the request it came with checks everything with it first and
+    /// interns it ([`Task::share`]) only once it keeps it, so a refused request keeps nothing
+    /// and takes none of the [`MAX_DISTINCT_TASKS`] slots. Dropping it frees it.
+    pub fn compile_unshared(spec: TaskSpec, bounds: &SpecBounds) -> Result<Task, TaskError> {
+        spec.validate(bounds)?;
+        Task::compile(spec)
+    }
+
+    /// Interns a compiled task (see [`Task::compile_unshared`]): the one already interned
+    /// for an equal spec, or this one, if a slot is free.
+    pub fn share(task: Task) -> Result<&'static Task, TaskError> {
+        let mut interned = INTERNED.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(known) = interned.iter().find(|t| t.spec == task.spec) {
+            return Ok(known);
         }
         if interned.len() >= MAX_DISTINCT_TASKS {
             return Err(TaskError::TooManyTasks);
         }
-        let task: &'static Task = Box::leak(Box::new(Task::compile(spec)?));
+        let task: &'static Task = Box::leak(Box::new(task));
         interned.push(task);
         Ok(task)
     }
