@@ -74,8 +74,7 @@ impl DenoisingLoss for DaeLoss {
         let (out, grad) = tape.output_and_grad_mut();
         let scale = 2.0 / b as f32;
         let mut total = 0.0f32;
-        for f in 0..d {
-            let w = weights[f];
+        for (f, &w) in weights.iter().enumerate().take(d) {
             for i in f * ld..f * ld + b {
                 let r = out[i] - clean[i];
                 total += w * r * r;

@@ -64,8 +64,7 @@ impl DenoisingLoss for DeenLoss {
         let (_, score, v) = tape.input_score_and_grad_mut();
         // r = x − y + σ² s = σ² s − σ ε;  L = Σ w r² / n;  ∂L/∂s = 2 w σ² r / n.
         let mut total = 0.0f32;
-        for f in 0..d {
-            let (sigma, w) = (noise[f], weights[f]);
+        for (f, (&sigma, &w)) in noise.iter().zip(weights).enumerate().take(d) {
             let (sigma2, scale) = (sigma * sigma, 2.0 * w * sigma * sigma / b as f32);
             for i in f * ld..f * ld + b {
                 let r = sigma2 * score[i] - sigma * eps[i];
