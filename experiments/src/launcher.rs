@@ -6,13 +6,25 @@
 //! <out>/experiment.json        task, scale, episodes, overrides, methods, seeds (resume check)
 //! <out>/runs/<method>-s<seed>.csv   one run's episodes; `.csv.partial` while it runs
 //! <out>/runs/<method>-s<seed>.csv.attempt   the episodes of the bridge now running
+//! <out>/runs/<method>-s<seed>.json  a finished run's record: spec, binaries' commit, machine,
+//!                              CPU path, load (provenance::RunRecord)
+//! <out>/runs/<method>-s<seed>.state.tar.gz  an unfinished run's resumable state (resume_state)
 //! <out>/episodes.csv           every run's rows with method and seed (results::HEADER)
 //! <out>/learning_curves.{png,svg}
 //! <out>/logs/, <out>/planner/  process logs and the daemon's data (not committed)
 //! ```
 //!
-//! A run counts as done when its `.csv` exists with all its episodes, so re-running the same
-//! command into the same folder skips the finished runs and **resumes** the unfinished ones.
+//! A run counts as done when its `.csv` exists with all its episodes (or, for an experiment
+//! budgeted in timesteps, with at least that many steps), so re-running the same command into
+//! the same folder skips the finished runs and **resumes** the unfinished ones: the folder is
+//! the run queue, and it survives restarts. Everything a finished run leaves under `runs/` is
+//! ready to commit the moment it finishes; `logs/` and `planner/` are not meant to be.
+//!
+//! **Budgets.** A sitting may have a wall-clock budget: then it starts runs longest first and
+//! only those whose estimated remaining cost fits the time left ([`crate::queue`]), stops what
+//! is still running at the deadline, and packs every unfinished run's replay log and newest
+//! checkpoint into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from which a later
+//! sitting — on a fresh clone too — continues it.
 //!
 //! **Resuming a half-finished run.** A run keeps one daemon run name for its whole life
 //! (`<task>-<method>-s<seed>`), and the daemon's data lives in `<out>/planner/`, so a restarted
@@ -35,12 +47,14 @@
 use crate::manifest::Manifest;
 use crate::method::Method;
 use crate::progress::Progress;
+use crate::provenance::{self, Load, Machine, RunRecord};
+use crate::queue::{self, Pending};
 use crate::results::{self, EpisodeRow};
+use crate::resume_state;
 use crate::scale::{self, Scale};
 use anyhow::{Context, Result, bail};
 use planner_service::plan::Optimizer;
 use proto::Builtin;
-use std::collections::VecDeque;
 use std::io::Read;
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
@@ -65,6 +79,18 @@ pub struct Experiment {
     /// Candidates per iteration of every sampling method (CEM's population, iCEM's first
     /// iteration; default: the scale's, see [`crate::scale::Scale::overrides`]).
     pub population: Option<u32>,
+    /// A run is complete after this many environment steps (whole episodes), or after
+    /// `episodes` episodes, whichever comes first (`None`: episodes only).
+    pub timesteps: Option<u64>,
+    /// The energy model's noise σ and its units for the methods with a regulariser (`None`:
+    /// the preset's, Table 2's σ in standardised units).
+    pub energy_noise_sigma: Option<f32>,
+    pub energy_noise_units: Option<proto::NoiseUnits>,
+    /// This sitting's wall-clock budget (`None`: run everything pending).
+    pub budget: Option<Duration>,
+    /// Start runs that are not expected to finish within the budget too (they are stopped at
+    /// the deadline and keep a resumable state).
+    pub overrun: bool,
 }
 
 /// One (method, seed) run of an experiment.
@@ -102,6 +128,33 @@ impl RunId {
     pub fn daemon_run(&self, task: Builtin) -> String {
         format!("{}-{}", task.name(), self.stem())
     }
+
+    /// The record of the finished run ([`RunRecord`]).
+    pub fn record_json(&self, dir: &Path) -> PathBuf {
+        dir.join("runs").join(format!("{}.json", self.stem()))
+    }
+
+    /// When and under what load the run's current sitting started (in `logs/`: not a result).
+    fn started_file(&self, dir: &Path) -> PathBuf {
+        dir.join("logs").join(format!("{}.started", self.stem()))
+    }
+
+    /// The unfinished run's packed resumable state.
+    pub fn state_archive(&self, dir: &Path) -> PathBuf {
+        dir.join("runs")
+            .join(format!("{}{}", self.stem(), resume_state::SUFFIX))
+    }
+
+    /// The daemon's folder of this run under the experiment's `planner/` data directory.
+    pub fn daemon_dir(&self, dir: &Path, task: Builtin) -> PathBuf {
+        dir.join("planner").join("runs").join(self.daemon_run(task))
+    }
+}
+
+/// What remains of `run` given the episodes its files record (`None`: it is complete).
+fn remaining_of(file: &Path, manifest: &Manifest) -> Option<queue::Remaining> {
+    let (episodes, steps) = results::recorded(file);
+    queue::remaining(manifest.episodes, manifest.timesteps, episodes, steps)
 }
 
 /// Every run of the manifest, methods first then seeds, with whether it is already complete.
@@ -113,7 +166,7 @@ pub fn runs(dir: &Path, manifest: &Manifest) -> Vec<(RunId, bool)> {
                 method: method.clone(),
                 seed,
             };
-            let done = results::count_rows(&run.csv(dir)) >= manifest.episodes as usize;
+            let done = run.csv(dir).exists() && remaining_of(&run.csv(dir), manifest).is_none();
             out.push((run, done));
         }
     }
@@ -153,7 +206,7 @@ pub fn prepare(exp: &Experiment) -> Result<Manifest> {
     std::fs::create_dir_all(exp.out.join("runs"))
         .with_context(|| format!("creating {}", exp.out.display()))?;
     std::fs::create_dir_all(exp.out.join("logs"))?;
-    let wanted = Manifest::new(
+    let mut wanted = Manifest::new(
         exp.task,
         exp.scale,
         exp.episodes,
@@ -161,6 +214,14 @@ pub fn prepare(exp: &Experiment) -> Result<Manifest> {
         exp.seeds.clone(),
         exp.population,
     )?;
+    wanted.timesteps = exp.timesteps;
+    for (method, overrides) in &mut wanted.overrides {
+        let preset = Method::parse(exp.task, method)?.preset;
+        if preset.contains("dae") || preset.contains("deen") {
+            overrides.energy_noise_sigma = exp.energy_noise_sigma.or(overrides.energy_noise_sigma);
+            overrides.energy_noise_units = exp.energy_noise_units.or(overrides.energy_noise_units);
+        }
+    }
     let manifest = match Manifest::load(&exp.out)? {
         Some(existing) => wanted.resume(&existing, &exp.out)?,
         None => wanted,
@@ -169,13 +230,63 @@ pub fn prepare(exp: &Experiment) -> Result<Manifest> {
     Ok(manifest)
 }
 
-/// Runs the experiment's unfinished runs, `jobs` at a time, and rebuilds `episodes.csv`.
-/// Returns the rows of all complete runs. Fails (after the other runs finished) if any run
-/// failed; its log is named in the error.
+/// Every episode recorded so far by the runs of the manifest, finished or not (for the
+/// queue's cost estimates).
+fn recorded_rows(dir: &Path, manifest: &Manifest) -> Vec<EpisodeRow> {
+    let task = manifest.task.name();
+    let mut rows = Vec::new();
+    for (run, _) in runs(dir, manifest) {
+        for file in [run.csv(dir), run.partial_csv(dir), run.attempt_csv(dir)] {
+            if let Ok(r) = results::read_run_csv(&file, task, &run.method, run.seed) {
+                rows.extend(r);
+            }
+        }
+    }
+    rows
+}
+
+/// The pending runs with their estimated remaining cost, longest first.
+fn plan_queue(dir: &Path, manifest: &Manifest, pending: &[RunId]) -> Vec<Pending<RunId>> {
+    let costs = queue::method_costs(&recorded_rows(dir, manifest));
+    let episode_len = manifest.task.task().spec().episode_len;
+    let mut out: Vec<Pending<RunId>> = pending
+        .iter()
+        .map(|run| {
+            let estimate = remaining_of(&run.partial_csv(dir), manifest)
+                .and_then(|left| queue::estimate(left, *costs.get(&run.method)?, episode_len));
+            Pending {
+                run: run.clone(),
+                estimate,
+            }
+        })
+        .collect();
+    queue::longest_first(&mut out);
+    out
+}
+
+/// Minutes, for log lines.
+fn minutes(d: Duration) -> String {
+    format!("{:.1} min", d.as_secs_f64() / 60.0)
+}
+
+/// How a run's bridge ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum RunEnd {
+    Finished,
+    /// Stopped at the sitting's deadline; its state is packed when the daemon has stopped.
+    StoppedAtDeadline,
+}
+
+/// Runs the experiment's unfinished runs, `jobs` at a time, longest first and within the
+/// budget if there is one, and rebuilds `episodes.csv`. Returns the rows of all complete
+/// runs. Fails (after the other runs finished) if any run failed; its log is named in the
+/// error. Runs left for a later sitting are not failures.
 pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
+    let started = Instant::now();
+    let deadline = exp.budget.map(|b| started + b);
     let manifest = prepare(exp)?;
     let all = runs(&exp.out, &manifest);
-    let pending: VecDeque<RunId> = all
+    let pending: Vec<RunId> = all
         .iter()
         .filter(|(_, done)| !done)
         .map(|(r, _)| r.clone())
@@ -186,16 +297,31 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
         runs = all.len(),
         skipped,
         pending = pending.len(),
-        "experiment {} ({} scale): {} episodes per run",
+        budget = ?exp.budget,
+        "experiment {} ({} scale): {} episodes per run{}",
         exp.task,
         exp.scale.name(),
-        exp.episodes
+        exp.episodes,
+        exp.timesteps
+            .map(|t| format!(" or {t} steps"))
+            .unwrap_or_default()
     );
     let episodes_csv = exp.out.join("episodes.csv");
     if pending.is_empty() {
         let rows = collect_rows(&exp.out, &manifest)?;
         results::write_episodes(&episodes_csv, &rows)?;
+        remove_finished_states(&exp.out, &manifest)?;
         return Ok(rows);
+    }
+    // A fresh clone has the unfinished runs' packed states but no daemon folder.
+    for run in &pending {
+        let archive = run.state_archive(&exp.out);
+        if archive.exists()
+            && resume_state::unpack(&archive, &run.daemon_dir(&exp.out, exp.task))
+                .with_context(|| format!("unpacking {}", archive.display()))?
+        {
+            tracing::info!(run = %run.stem(), "resuming from {}", archive.display());
+        }
     }
 
     let planner = Daemon::start(
@@ -203,28 +329,63 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
         &exp.out.join("planner"),
         &exp.out.join("logs").join("planner.log"),
     )?;
+    let machine = Machine::this();
+    let commit = provenance::binaries_commit(&exp.bin_dir);
     let progress = Progress::new(pending.len(), exp.episodes);
-    let queue = Mutex::new(pending);
+    let queue = Mutex::new(plan_queue(&exp.out, &manifest, &pending));
     let failures = Mutex::new(Vec::new());
     let csv_lock = Mutex::new(());
     std::thread::scope(|scope| {
         for _ in 0..exp.jobs.max(1) {
             scope.spawn(|| {
                 loop {
-                    let next = queue
-                        .lock()
-                        .unwrap_or_else(std::sync::PoisonError::into_inner)
-                        .pop_front();
-                    let Some(run) = next else { break };
-                    let outcome = run_one(exp, &manifest, &planner.endpoint, &run, &progress);
+                    let next = {
+                        let mut q = queue
+                            .lock()
+                            .unwrap_or_else(std::sync::PoisonError::into_inner);
+                        let left = deadline.map(|d| d.saturating_duration_since(Instant::now()));
+                        queue::next(&mut q, left, exp.overrun)
+                    };
+                    let Some((pending, start)) = next else { break };
+                    let run = pending.run;
+                    let estimate = pending
+                        .estimate
+                        .map_or_else(|| "not yet measured".to_string(), minutes);
+                    progress.log(&format!(
+                        "run {} starts ({start:?}; estimated {estimate})",
+                        run.stem()
+                    ));
+                    let context = RunContext {
+                        exp,
+                        manifest: &manifest,
+                        endpoint: &planner.endpoint,
+                        progress: &progress,
+                        deadline,
+                    };
+                    let outcome = run_one(&context, &run);
                     match outcome {
-                        Ok(()) => {
+                        Ok(RunEnd::Finished) => {
                             let _guard = csv_lock.lock();
+                            if let Err(e) = write_record(exp, &manifest, &run, &machine, &commit) {
+                                progress.log(&format!("cannot write {}'s record: {e:#}", run.stem()));
+                            }
                             if let Err(e) = collect_rows(&exp.out, &manifest)
                                 .and_then(|rows| Ok(results::write_episodes(&episodes_csv, &rows)?))
                             {
                                 progress.log(&format!("cannot update episodes.csv: {e:#}"));
                             }
+                            // The finished run measured its method: re-estimate what is left.
+                            let mut q = queue
+                                .lock()
+                                .unwrap_or_else(std::sync::PoisonError::into_inner);
+                            let left: Vec<RunId> = q.iter().map(|p| p.run.clone()).collect();
+                            *q = plan_queue(&exp.out, &manifest, &left);
+                        }
+                        Ok(RunEnd::StoppedAtDeadline) => {
+                            progress.log(&format!(
+                                "run {} stopped at the budget's deadline; it resumes in a later sitting",
+                                run.stem()
+                            ));
                         }
                         Err(e) => {
                             progress.log(&format!("run {} failed: {e:#}", run.stem()));
@@ -239,7 +400,20 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
         }
     });
     progress.finish();
+    for left in queue
+        .into_inner()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+    {
+        tracing::info!(
+            run = %left.run.stem(),
+            estimate = %left.estimate.map_or_else(|| "unknown".into(), minutes),
+            "left for a later sitting: it does not fit the budget's remaining time"
+        );
+    }
+    // The daemon syncs its data when it stops; only then are the runs' folders complete.
     drop(planner);
+    pack_unfinished_states(&exp.out, &manifest)?;
+    remove_finished_states(&exp.out, &manifest)?;
     let rows = collect_rows(&exp.out, &manifest)?;
     results::write_episodes(&episodes_csv, &rows)?;
     let failures = failures.into_inner().unwrap_or_default();
@@ -253,20 +427,95 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
     Ok(rows)
 }
 
-/// Runs one bridge to completion, showing its episodes as they finish.
-fn run_one(
+/// Packs the resumable state of every unfinished run the daemon holds data for.
+fn pack_unfinished_states(dir: &Path, manifest: &Manifest) -> Result<()> {
+    for (run, done) in runs(dir, manifest) {
+        if done {
+            continue;
+        }
+        let archive = run.state_archive(dir);
+        let daemon_dir = run.daemon_dir(dir, manifest.task);
+        if daemon_dir.is_dir()
+            && let Some(bytes) = resume_state::pack(&daemon_dir, &archive)
+                .with_context(|| format!("packing {}", archive.display()))?
+        {
+            tracing::info!(
+                run = %run.stem(),
+                "resumable state: {} ({:.1} MB)",
+                archive.display(),
+                bytes as f64 / 1e6
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Removes the packed state of every finished run (its episodes and record are what remain).
+fn remove_finished_states(dir: &Path, manifest: &Manifest) -> Result<()> {
+    for (run, done) in runs(dir, manifest) {
+        let archive = run.state_archive(dir);
+        if done && archive.exists() {
+            std::fs::remove_file(&archive)
+                .with_context(|| format!("removing {}", archive.display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// Writes a finished run's record beside its episodes.
+fn write_record(
     exp: &Experiment,
     manifest: &Manifest,
-    endpoint: &str,
     run: &RunId,
-    progress: &Progress,
+    machine: &Machine,
+    commit: &str,
 ) -> Result<()> {
+    let rows = results::read_run_csv(&run.csv(&exp.out), exp.task.name(), &run.method, run.seed)?;
+    let spec = std::fs::read_to_string(run.daemon_dir(&exp.out, exp.task).join("run.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok());
+    let started = std::fs::read_to_string(run.started_file(&exp.out))
+        .ok()
+        .and_then(|t| serde_json::from_str::<(String, Load)>(&t).ok());
+    let (started, load_at_start) = started.unwrap_or_else(|| ("unknown".into(), Load::now()));
+    let record = RunRecord {
+        task: exp.task.name().into(),
+        method: run.method.clone(),
+        seed: run.seed,
+        scale: manifest.scale.name().into(),
+        episodes: rows.len(),
+        steps: rows.iter().map(|r| u64::from(r.steps)).sum(),
+        spec,
+        binaries_commit: commit.to_string(),
+        machine: machine.clone(),
+        load_at_start,
+        load_at_end: Load::now(),
+        started,
+        finished: provenance::utc_now(),
+        episode_wall_seconds: rows.iter().map(|r| r.wall_seconds).sum(),
+    };
+    record.save(&run.record_json(&exp.out))?;
+    let _ = std::fs::remove_file(run.started_file(&exp.out));
+    Ok(())
+}
+
+/// What every run of a sitting shares.
+struct RunContext<'a> {
+    exp: &'a Experiment,
+    manifest: &'a Manifest,
+    endpoint: &'a str,
+    progress: &'a Progress,
+    deadline: Option<Instant>,
+}
+
+/// Runs one bridge to completion (or to the deadline), showing its episodes as they finish.
+fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
+    let (exp, manifest, progress) = (ctx.exp, ctx.manifest, ctx.progress);
     let partial = run.partial_csv(&exp.out);
     let attempt = run.attempt_csv(&exp.out);
     // A launcher killed while a bridge ran left that bridge's rows unmerged.
     merge_attempt(&attempt, &partial)?;
     let recorded = results::count_rows(&partial);
-    let remaining = (manifest.episodes as usize).saturating_sub(recorded);
     let log_path = exp.out.join("logs").join(format!("{}.log", run.stem()));
     let log = std::fs::OpenOptions::new()
         .create(true)
@@ -276,17 +525,23 @@ fn run_one(
     let run_name = run.daemon_run(exp.task);
     // An `icem…` label attaches with its CEM preset; the optimiser is among the overrides.
     let preset = Method::parse(exp.task, &run.method)?.preset;
-    if remaining == 0 {
+    let Some(left) = remaining_of(&partial, manifest) else {
         // Every episode was recorded before the last launcher stopped.
         std::fs::rename(&partial, run.csv(&exp.out))?;
-        return Ok(());
-    }
+        return Ok(RunEnd::Finished);
+    };
     if recorded > 0 {
         progress.log(&format!(
-            "run {} resumes after {recorded} recorded episodes: {remaining} to go",
-            run.stem()
+            "run {} resumes after {recorded} recorded episodes: {} to go",
+            run.stem(),
+            left.steps.map_or_else(
+                || format!("{} episodes", left.episodes),
+                |s| format!("{s} steps (at most {} episodes)", left.episodes)
+            )
         ));
     }
+    let started = serde_json::to_string(&(provenance::utc_now(), Load::now()))?;
+    std::fs::write(run.started_file(&exp.out), started)?;
     let mut cmd = Command::new(exp.bin_dir.join("sim-bridge"));
     cmd.arg("run")
         .args([
@@ -297,10 +552,10 @@ fn run_one(
             "--agent",
             "bridge",
         ])
-        .args(["--episodes", &remaining.to_string()])
+        .args(["--episodes", &left.episodes.to_string()])
         .args(["--seed", &run.seed.to_string()])
         .args(["--preset", &preset])
-        .args(["--connect", endpoint])
+        .args(["--connect", ctx.endpoint])
         .args(["--train-timeout", "86400"])
         .arg("--out")
         .arg(&attempt)
@@ -309,6 +564,9 @@ fn run_one(
         .stdin(Stdio::null())
         .stdout(log.try_clone()?)
         .stderr(log);
+    if let Some(steps) = left.steps {
+        cmd.args(["--timesteps", &steps.to_string()]);
+    }
     stop_with_launcher(&mut cmd);
     let mut child = Guard(
         cmd.spawn()
@@ -316,6 +574,7 @@ fn run_one(
     );
     let bar = progress.start_run(&run.stem());
     let mut seen = 0;
+    let mut stopped_at_deadline = false;
     let status = loop {
         let status = child.0.try_wait()?;
         let done = results::count_rows(&attempt);
@@ -331,26 +590,45 @@ fn run_one(
         if let Some(status) = status {
             break status;
         }
+        if !stopped_at_deadline && ctx.deadline.is_some_and(|d| Instant::now() >= d) {
+            // SIGTERM: the bridge tells the planner the open episode was interrupted.
+            stopped_at_deadline = true;
+            terminate(&child.0);
+        }
         std::thread::sleep(Duration::from_millis(500));
     };
     progress.end_run(bar);
     merge_attempt(&attempt, &partial)?;
-    if !status.success() {
+    let left = remaining_of(&partial, manifest);
+    if stopped_at_deadline && left.is_some() {
+        return Ok(RunEnd::StoppedAtDeadline);
+    }
+    if !status.success() && left.is_some() {
         bail!(
             "sim-bridge exited with {status}; see {}",
             log_path.display()
         );
     }
-    let rows = results::count_rows(&partial);
-    if rows < manifest.episodes as usize {
+    if left.is_some() {
         bail!(
-            "sim-bridge finished with {rows} of {} episodes; see {}",
+            "sim-bridge finished with {} of {} episodes; see {}",
+            results::count_rows(&partial),
             manifest.episodes,
             log_path.display()
         );
     }
     std::fs::rename(&partial, run.csv(&exp.out))?;
-    Ok(())
+    Ok(RunEnd::Finished)
+}
+
+/// Sends SIGTERM to `child` (its clean stop).
+fn terminate(child: &Child) {
+    if let Ok(pid) = libc::pid_t::try_from(child.id()) {
+        // SAFETY: kill with a pid of our own child and a valid signal touches no memory.
+        unsafe {
+            libc::kill(pid, libc::SIGTERM);
+        }
+    }
 }
 
 /// Appends the complete rows of a bridge's `attempt` file to the run's `partial` file (which
@@ -587,6 +865,11 @@ mod tests {
             jobs: 1,
             bin_dir: dir.clone(),
             population: None,
+            timesteps: None,
+            energy_noise_sigma: None,
+            energy_noise_units: None,
+            budget: None,
+            overrun: false,
         };
         let first = prepare(&exp).unwrap();
         assert_eq!(first.methods, vec!["cem"]);

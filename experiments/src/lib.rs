@@ -2,7 +2,9 @@
 //!
 //! - [`launcher`]: `experiment` runs a task with several methods and seeds through the real
 //!   deployment path (a `planner-service` daemon and one `sim-bridge` process per run, over
-//!   Zenoh on loopback), resumable, with progress, into `results/<task>/<stamp>/`.
+//!   Zenoh on loopback), resumable, with progress, into `results/<task>/<stamp>/`; [`queue`]
+//!   orders its runs within a wall-clock budget, [`resume_state`] packs what an unfinished run
+//!   needs to continue elsewhere, and [`provenance`] records where each finished run ran.
 //! - [`plot`]: learning curves from an experiment's `episodes.csv` (the paper's Figure 4).
 //! - [`figures`]: the paper's Figure 3 (DEEN vs DAE on a 1-D mixture) and Figure 5
 //!   (imagination against reality), computed in-process with the planner's library and the
@@ -20,6 +22,9 @@ pub mod manifest;
 pub mod method;
 pub mod plot;
 pub mod progress;
+pub mod provenance;
+pub mod queue;
 pub mod replan;
 pub mod results;
+pub mod resume_state;
 pub mod scale;

@@ -64,9 +64,35 @@ struct ExperimentArgs {
     /// Seeds per method (0, 1, …; default: 5 at paper scale, 2 at small).
     #[arg(long)]
     seeds: Option<u32>,
-    /// Episodes per run (default: the scale's for the task).
+    /// Episodes per run (default: the scale's for the task; with --timesteps, as many as the
+    /// steps need).
     #[arg(long)]
     episodes: Option<u32>,
+    /// Environment steps per run: a run is complete after the episode in which its steps
+    /// reach this many (or after --episodes episodes, if given, whichever comes first). The
+    /// paper counts ant and half-cheetah in timesteps ("walks within 4,000 timesteps").
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=100_000_000))]
+    timesteps: Option<u64>,
+    /// Noise σ of the energy model (DEEN, DAE) instead of Table 2's, for the methods that
+    /// have one.
+    #[arg(long)]
+    energy_noise_sigma: Option<f32>,
+    /// Units of the energy model's σ: standardised (the default: each dimension of the
+    /// transitions scaled to unit variance) or raw (the transitions' own units, as the paper
+    /// corrupts its replay buffer).
+    #[arg(long)]
+    energy_noise_units: Option<proto::NoiseUnits>,
+    /// Wall-clock budget of this sitting (e.g. 90m, 6h, 1h30m): runs start longest first and
+    /// only when their estimated remaining time fits what is left; at the deadline what still
+    /// runs is stopped and every unfinished run keeps a resumable state under runs/. Re-run the
+    /// same command (on any machine, from a clone with the folder) to continue.
+    #[arg(long, value_parser = ebmpc_experiments::queue::parse_duration)]
+    budget: Option<std::time::Duration>,
+    /// With --budget, start runs that are not expected to finish in the time left too (runs
+    /// longer than any one sitting, e.g. PETS on half-cheetah on a small machine); they are
+    /// stopped at the deadline and resume in the next sitting.
+    #[arg(long, requires = "budget")]
+    overrun: bool,
     /// Candidates per iteration of every sampling method, instead of the scale's search: a
     /// CEM method's population (elites a tenth of it, its iterations kept), an icem… method's
     /// first iteration (elites a tenth, 3 iterations). To find the smallest search that keeps
@@ -205,16 +231,7 @@ fn stamp() -> String {
         .map(|d| d.as_secs())
         .unwrap_or(0);
     let (days, rem) = ((secs / 86_400) as i64, secs % 86_400);
-    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
+    let (year, month, day) = ebmpc_experiments::provenance::civil_from_days(days);
     format!(
         "{year:04}{month:02}{day:02}-{:02}{:02}{:02}",
         rem / 3600,
@@ -229,9 +246,17 @@ fn experiment(args: ExperimentArgs) -> Result<()> {
         task: args.task,
         methods: args.methods,
         seeds: (0..u64::from(seeds)).collect(),
-        episodes: args
-            .episodes
-            .unwrap_or(args.scale.default_episodes(args.task)),
+        episodes: match (args.episodes, args.timesteps) {
+            (Some(e), _) => e,
+            // Every episode has at least one step: the step budget bounds the count.
+            (None, Some(t)) => u32::try_from(t).unwrap_or(u32::MAX),
+            (None, None) => args.scale.default_episodes(args.task),
+        },
+        timesteps: args.timesteps,
+        energy_noise_sigma: args.energy_noise_sigma,
+        energy_noise_units: args.energy_noise_units,
+        budget: args.budget,
+        overrun: args.overrun,
         scale: args.scale,
         out: args
             .out

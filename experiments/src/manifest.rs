@@ -17,6 +17,9 @@ pub struct Manifest {
     pub task: Builtin,
     pub scale: Scale,
     pub episodes: u32,
+    /// A run is also complete once it has this many environment steps (whole episodes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub timesteps: Option<u64>,
     /// The preset overrides each method's runs sent (the scale's, which depend on the method).
     /// Manifests written before overrides depended on the method hold one value for all.
     #[serde(deserialize_with = "overrides_per_method")]
@@ -87,6 +90,7 @@ impl Manifest {
             task,
             scale,
             episodes,
+            timesteps: None,
             overrides,
             methods,
             seeds,
@@ -147,6 +151,14 @@ impl Manifest {
                 "episodes",
                 existing.episodes.to_string(),
                 self.episodes.to_string(),
+            ));
+        }
+        if existing.timesteps != self.timesteps {
+            let show = |t: Option<u64>| t.map_or_else(|| "none".to_string(), |t| t.to_string());
+            return Err(mismatch(
+                "timesteps",
+                show(existing.timesteps),
+                show(self.timesteps),
             ));
         }
         for m in self.methods.iter().filter(|m| existing.methods.contains(m)) {
@@ -232,6 +244,18 @@ mod tests {
             .resume(&loaded, &dir)
             .unwrap_err();
         assert!(err.to_string().contains("episodes: 10 there, 12"), "{err}");
+        // A step budget is part of what the experiment is.
+        let mut budgeted = manifest(10, &["cem"], &[0]);
+        budgeted.timesteps = Some(4000);
+        let err = budgeted.resume(&loaded, &dir).unwrap_err();
+        assert!(
+            err.to_string().contains("timesteps: none there, 4000"),
+            "{err}"
+        );
+        budgeted.save(&dir).unwrap();
+        let text = std::fs::read_to_string(dir.join(FILE)).unwrap();
+        assert!(text.contains("\"timesteps\": 4000"), "{text}");
+        assert_eq!(Manifest::load(&dir).unwrap().unwrap(), budgeted);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -168,6 +168,13 @@ pub fn count_rows(path: &Path) -> usize {
         .unwrap_or(0)
 }
 
+/// The episodes and steps a run file records ((0, 0) if it does not exist or cannot be read).
+pub fn recorded(path: &Path) -> (usize, u64) {
+    read_run_csv(path, "", "", 0)
+        .map(|rows| (rows.len(), rows.iter().map(|r| u64::from(r.steps)).sum()))
+        .unwrap_or((0, 0))
+}
+
 /// Formats rows as `episodes.csv` (header included).
 pub fn to_csv(rows: &[EpisodeRow]) -> String {
     let mut out = String::with_capacity(64 * (rows.len() + 1));

@@ -232,6 +232,14 @@ pub fn bridge_flags(o: &PlannerOverrides) -> Vec<String> {
         flags.push("--energy-weight".into());
         flags.push(w.to_string());
     }
+    if let Some(sigma) = o.energy_noise_sigma {
+        flags.push("--energy-noise-sigma".into());
+        flags.push(sigma.to_string());
+    }
+    if let Some(units) = o.energy_noise_units {
+        flags.push("--energy-noise-units".into());
+        flags.push(units.to_string());
+    }
     if let Some(optimizer) = o.optimizer {
         flags.push("--optimizer".into());
         flags.push(optimizer.to_string());
@@ -437,5 +445,19 @@ mod tests {
             "{pairs:?}"
         );
         assert_eq!(pairs.len(), 9);
+        let noise = PlannerOverrides {
+            energy_noise_sigma: Some(0.25),
+            energy_noise_units: Some(proto::NoiseUnits::Raw),
+            ..Default::default()
+        };
+        assert_eq!(
+            bridge_flags(&noise),
+            [
+                "--energy-noise-sigma",
+                "0.25",
+                "--energy-noise-units",
+                "raw"
+            ]
+        );
     }
 }

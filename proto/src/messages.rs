@@ -85,6 +85,48 @@ impl std::str::FromStr for InferencePrecision {
     }
 }
 
+/// The units in which the energy model's noise scale `σ` is given.
+///
+/// The paper trains DEEN "by corrupting the transitions in the replay buffer using additive
+/// Gaussian noise": `σ` in the transitions' own units, the same for a joint angle, a velocity
+/// and an object's position. `standardised` applies `σ` to each dimension after scaling it to
+/// unit variance over the buffer instead, so a dimension that barely varies in the data (an
+/// object that random actions seldom touch) is corrupted by a tiny amount, and its energy
+/// rises steeply as soon as an imagined transition moves it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum NoiseUnits {
+    /// `σ` in standard deviations of each dimension of the training transitions.
+    #[default]
+    Standardised,
+    /// `σ` in the transitions' own units, as the paper corrupts the replay buffer.
+    Raw,
+}
+
+impl std::fmt::Display for NoiseUnits {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            NoiseUnits::Standardised => "standardised",
+            NoiseUnits::Raw => "raw",
+        })
+    }
+}
+
+impl std::str::FromStr for NoiseUnits {
+    type Err = String;
+
+    /// `standardised` or `raw`, as in the JSON attach message.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "standardised" => Ok(NoiseUnits::Standardised),
+            "raw" => Ok(NoiseUnits::Raw),
+            other => Err(format!(
+                "unknown noise units `{other}` (known: standardised, raw)"
+            )),
+        }
+    }
+}
+
 /// The optimiser that searches action sequences in planning.
 ///
 /// `cem` is the paper's (PETS-style CEM with Table 2's settings); `icem` is the improved CEM of
@@ -188,7 +230,7 @@ pub struct PlannerOverrides {
     pub energy_hidden_size: Option<u32>,
     pub energy_batch_size: Option<u32>,
     pub energy_learning_rate: Option<f32>,
-    /// Standard deviation `σ` of the energy model's corrupting noise (standardised units).
+    /// Standard deviation `σ` of the energy model's corrupting noise (in `energy_noise_units`).
     pub energy_noise_sigma: Option<f32>,
     /// How training epochs change as episodes accumulate.
     pub epoch_schedule: Option<EpochSchedule>,
@@ -212,6 +254,8 @@ pub struct PlannerOverrides {
     /// iteration runs, as a simulator that waits for its action wants); absent: the task's
     /// control period.
     pub deadline_ms: Option<u32>,
+    /// The units of `energy_noise_sigma` (the preset's: `standardised`).
+    pub energy_noise_units: Option<NoiseUnits>,
 }
 
 /// What an agent asks for when it attaches: which task it is and how its run should plan.

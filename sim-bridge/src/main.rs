@@ -54,6 +54,11 @@ struct RunArgs {
     /// Number of episodes to run.
     #[arg(long, env = "EBMPC_EPISODES")]
     episodes: u32,
+    /// Stop after the episode in which this many control steps have been run (whole episodes;
+    /// --episodes still bounds the count): budgets in timesteps, like the paper's "4,000
+    /// timesteps".
+    #[arg(long, env = "EBMPC_TIMESTEPS", value_parser = clap::value_parser!(u64).range(1..))]
+    timesteps: Option<u64>,
     /// Seed: episode e starts from the state drawn with seed + e; also the run's model seed
     /// unless --planner-seed is given.
     #[arg(long, env = "EBMPC_SEED", default_value_t = 0)]
@@ -161,6 +166,14 @@ struct SpecArgs {
     /// Width of the energy model's hidden layers.
     #[arg(long)]
     energy_hidden_size: Option<u32>,
+    /// Standard deviation σ of the energy model's training noise (Table 2's per task by
+    /// default), in --energy-noise-units.
+    #[arg(long)]
+    energy_noise_sigma: Option<f32>,
+    /// Units of σ: standardised (each dimension of the transitions scaled to unit variance,
+    /// the default) or raw (the transitions' own units, as the paper corrupts its buffer).
+    #[arg(long)]
+    energy_noise_units: Option<proto::NoiseUnits>,
     /// Number format of the planner's network inference: bf16 (the default; twice the
     /// multiply-add rate on CPUs with AVX-512 BF16) or f32.
     #[arg(long)]
@@ -230,13 +243,15 @@ impl SpecArgs {
                 energy_epochs: self.energy_epochs,
                 energy_hidden_layers: self.energy_hidden_layers,
                 energy_hidden_size: self.energy_hidden_size,
+                energy_noise_sigma: self.energy_noise_sigma,
+                energy_noise_units: self.energy_noise_units,
                 inference_precision: self.inference_precision,
                 optimizer: self.optimizer,
                 icem_noise_beta: self.icem_noise_beta,
                 icem_keep_elites: self.icem_keep_elites,
                 icem_population_decay: self.icem_population_decay,
                 deadline_ms: Some(self.deadline_ms),
-                // The other overrides (batch sizes, learning rates, σ, CEM smoothing, the
+                // The other overrides (batch sizes, learning rates, CEM smoothing, the
                 // epoch schedule, the gradient-step cap) have no flag here: the planner's
                 // `[overrides]` or a controller's attach message sets them.
                 ..PlannerOverrides::default()
@@ -280,6 +295,7 @@ impl RunArgs {
             run: self.run,
             agent: self.agent,
             episodes: self.episodes,
+            timesteps: self.timesteps,
             seed: self.seed,
             attach_timeout: seconds("attach-timeout", self.attach_timeout)?,
             action_timeout: seconds("action-timeout", self.action_timeout)?,

@@ -172,6 +172,12 @@ impl MjSim {
         self.data.site_xpos()[id]
     }
 
+    /// Mass of every body (the world first), as MuJoCo computed it from the geoms.
+    #[cfg(test)]
+    pub fn body_masses(&self) -> Vec<f64> {
+        self.data.model().body_mass().to_vec()
+    }
+
     /// Cartesian position of the named site (valid after [`MjSim::set_state`] or a step).
     #[cfg(test)]
     pub fn site_position(&self, name: &str) -> Option<[f64; 3]> {

@@ -196,6 +196,7 @@ fn config(endpoint: &str, episodes: u32) -> BridgeConfig {
             task_spec: None,
         },
         episodes,
+        timesteps: None,
         seed: 100,
         attach_timeout: Duration::from_secs(20),
         action_timeout: Duration::from_secs(20),
@@ -278,6 +279,24 @@ async fn episodes_run_step_by_step_and_report_the_simulators_rewards() {
         }
         assert_eq!(record.episode_return, total);
     }
+}
+
+/// A step budget ends the run after the episode that reaches it: 250 steps of cartpole's
+/// 200-step episodes are two whole episodes, though five were allowed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_step_budget_stops_after_the_episode_that_reaches_it() {
+    let endpoint = free_endpoint();
+    let (_planner, seen) = start_planner(&endpoint, Script::default()).await;
+    let mut config = config(&endpoint, 5);
+    config.timesteps = Some(250);
+    let records = sim_bridge::bridge::run(&config, |_| {}).await.unwrap();
+    assert_eq!(records.len(), 2);
+    assert!(records.iter().all(|r| r.steps == 200));
+    assert_eq!(seen.lock().unwrap().observations.len(), 2 * 201);
+    // A budget met exactly by an episode's end stops there too.
+    config.timesteps = Some(200);
+    let records = sim_bridge::bridge::run(&config, |_| {}).await.unwrap();
+    assert_eq!(records.len(), 1);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -67,6 +67,7 @@ pub fn run(config: &ToyConfig) -> ToyResult {
         epochs: config.epochs,
         batch_size: 32,
         noise_sigma: (SIGMA / sd) as f32,
+        noise_units: Default::default(),
         learning_rate: 1e-3,
     };
     let mut deen = Deen::new(1, &energy, &mut rng);

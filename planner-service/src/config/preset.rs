@@ -314,6 +314,7 @@ impl Preset {
                 epochs: t.energy_epochs,
                 batch_size: t.energy_batch,
                 noise_sigma: t.sigma,
+                noise_units: Default::default(),
                 learning_rate: 1e-3,
             },
             reward: RewardConfig::default(),
@@ -516,6 +517,9 @@ impl Preset {
             "energy_noise_sigma",
             MIN_NOISE_SIGMA..=MAX_NOISE_SIGMA,
         )?;
+        if let Some(units) = o.energy_noise_units {
+            e.noise_units = units;
+        }
         if let Some(sample) = o.sample_dynamics {
             self.sample_dynamics = sample;
         }
@@ -858,6 +862,7 @@ mod tests {
             energy_batch_size: Some(16),
             energy_learning_rate: Some(3e-3),
             energy_noise_sigma: Some(0.2),
+            energy_noise_units: Some(proto::NoiseUnits::Raw),
             epoch_schedule: Some(schedule.clone()),
             max_gradient_steps: Some(1000),
             inference_precision: Some(InferencePrecision::F32),
@@ -900,6 +905,7 @@ mod tests {
             (14, 1, 15, 16)
         );
         assert_eq!((e.learning_rate, e.noise_sigma), (3e-3, 0.2));
+        assert_eq!(e.noise_units, proto::NoiseUnits::Raw);
         assert_eq!((p.reward.hidden_layers, p.reward.hidden_size), (3, 17));
         assert_eq!(
             (c.particles, c.horizon, c.population, c.elites, c.iterations),

@@ -1,6 +1,7 @@
 //! Sizes and training settings of an energy model (the paper's Table 2, "DEEN" rows; the DAE
 //! uses the same).
 
+pub use proto::NoiseUnits;
 use serde::{Deserialize, Serialize};
 
 /// How a DEEN or DAE is built and trained.
@@ -13,9 +14,13 @@ pub struct EnergyConfig {
     /// Passes over the data per retraining (the trainer's schedule may override it per call).
     pub epochs: usize,
     pub batch_size: usize,
-    /// Standard deviation `σ` of the corrupting noise, in *standardised* units: every
-    /// dimension of the transition is scaled to unit variance first, so one `σ` fits all.
+    /// Standard deviation `σ` of the corrupting noise, in `noise_units`.
     pub noise_sigma: f32,
+    /// What `σ` is measured in: standard deviations of each dimension (every dimension of the
+    /// transition scaled to unit variance first, so one `σ` fits all), or the transitions' own
+    /// units, as the paper corrupts its replay buffer (see [`NoiseUnits`]).
+    #[serde(default)]
+    pub noise_units: NoiseUnits,
     /// Adam's step size.
     pub learning_rate: f32,
 }
@@ -29,6 +34,7 @@ impl Default for EnergyConfig {
             epochs: 500,
             batch_size: 32,
             noise_sigma: 0.1,
+            noise_units: NoiseUnits::Standardised,
             learning_rate: 1e-3,
         }
     }

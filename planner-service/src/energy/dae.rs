@@ -51,7 +51,9 @@ impl DenoisingLoss for DaeLoss {
         tape.tape.path()
     }
 
-    /// `Σᵢ ‖g(xᵢ + σεᵢ) − xᵢ‖² / n`.
+    /// `Σᵢ ‖g(xᵢ + σεᵢ) − xᵢ‖² / n`, per dimension with its own `σ_f` and weight (see
+    /// [`Denoiser`]'s noise units; `σ` and 1 in standardised units). Its penalty at planning
+    /// time is in standardised coordinates in either units.
     fn loss_and_grad(
         dae: &Dae,
         set: &[f32],
@@ -60,7 +62,8 @@ impl DenoisingLoss for DaeLoss {
         eps: &[f32],
         grads: &mut [f32],
     ) -> f32 {
-        let (d, b, sigma) = (dae.dim(), batch.len(), dae.sigma());
+        let (d, b) = (dae.dim(), batch.len());
+        let (noise, weights) = (dae.noise_scales(), dae.loss_weights());
         let DaeTape { tape, clean } = tape;
         let ld = tape.ld();
         let clean = clean.as_mut_slice();
@@ -68,18 +71,18 @@ impl DenoisingLoss for DaeLoss {
         for (col, &idx) in batch.iter().enumerate() {
             for (f, &x) in set[idx * d..(idx + 1) * d].iter().enumerate() {
                 clean[f * ld + col] = x;
-                y[f * ld + col] = x + sigma * eps[f * ld + col];
+                y[f * ld + col] = x + noise[f] * eps[f * ld + col];
             }
         }
         dae.mlp().forward_train(tape, b);
         let (out, grad) = tape.output_and_grad_mut();
         let scale = 2.0 / b as f32;
         let mut total = 0.0f32;
-        for f in 0..d {
+        for (f, &w) in weights.iter().enumerate().take(d) {
             for i in f * ld..f * ld + b {
                 let r = out[i] - clean[i];
-                total += r * r;
-                grad[i] = scale * r;
+                total += w * r * r;
+                grad[i] = scale * w * r;
             }
         }
         dae.mlp().backward(tape, grads, false);

@@ -46,7 +46,8 @@ impl DenoisingLoss for DeenLoss {
         tape.path()
     }
 
-    /// `Σᵢ ‖xᵢ − yᵢ + σ² ∂E/∂yᵢ‖² / n` with `yᵢ = xᵢ + σεᵢ`.
+    /// `Σᵢ ‖xᵢ − yᵢ + σ² ∂E/∂yᵢ‖² / n` with `yᵢ = xᵢ + σεᵢ`, per dimension with its own `σ_f`
+    /// and weight (see [`Denoiser`]'s noise units; `σ` and 1 in standardised units).
     fn loss_and_grad(
         deen: &Deen,
         set: &[f32],
@@ -55,22 +56,23 @@ impl DenoisingLoss for DeenLoss {
         eps: &[f32],
         grads: &mut [f32],
     ) -> f32 {
-        let (d, b, ld, sigma) = (deen.dim(), batch.len(), tape.ld(), deen.sigma());
+        let (d, b, ld) = (deen.dim(), batch.len(), tape.ld());
+        let (noise, weights) = (deen.noise_scales(), deen.loss_weights());
         let y = tape.input_mut();
         for (col, &idx) in batch.iter().enumerate() {
             for (f, &x) in set[idx * d..(idx + 1) * d].iter().enumerate() {
-                y[f * ld + col] = x + sigma * eps[f * ld + col];
+                y[f * ld + col] = x + noise[f] * eps[f * ld + col];
             }
         }
         deen.mlp().input_gradient_train(tape, b);
         let (_, score, v) = tape.input_score_and_grad_mut();
-        // r = x − y + σ² s = σ² s − σ ε;  ∂L/∂s = 2 σ² r / n.
-        let (sigma2, scale) = (sigma * sigma, 2.0 * sigma * sigma / b as f32);
+        // r = x − y + σ² s = σ² s − σ ε;  L = Σ w r² / n;  ∂L/∂s = 2 w σ² r / n.
         let mut total = 0.0f32;
-        for f in 0..d {
+        for (f, (&sigma, &w)) in noise.iter().zip(weights).enumerate().take(d) {
+            let (sigma2, scale) = (sigma * sigma, 2.0 * w * sigma * sigma / b as f32);
             for i in f * ld..f * ld + b {
                 let r = sigma2 * score[i] - sigma * eps[i];
-                total += r * r;
+                total += w * r * r;
                 v[i] = scale * r;
             }
         }

@@ -1,13 +1,23 @@
 //! What the two regularisers share: a softplus MLP on standardised vectors, trained with Adam
 //! to undo Gaussian corruption `y = x + σε` of its training data.
 //!
+//! **Noise units.** With [`NoiseUnits::Standardised`] `σ` is applied to every dimension after
+//! it has been scaled to unit variance. With [`NoiseUnits::Raw`] it is in the data's own
+//! units, as the paper corrupts its replay buffer: dimension `f` with standard deviation `s_f`
+//! gets `σ_f = σ / s_f` in standardised coordinates, and each dimension's residual is weighted
+//! by `s_f²` (over their mean), which makes the loss the raw-coordinate one up to a constant
+//! factor. A dimension that varies less than `σ` is scaled by `σ` instead of `s_f` (so
+//! `σ_f ≤ 1` and the network never sees inputs blown up by a tiny scale): the noise smooths it
+//! out either way. The energy is a log-density up to a constant in any affine coordinates, so
+//! planning reads it in the model's own standardised coordinates whatever the units.
+//!
 //! Both estimate the score of the smoothed data density (Miyasawa: the optimal denoiser is
 //! `y + σ² ∇ log p_σ(y)`); they differ only in what the network outputs and so in their loss.
 //! A [`DenoisingLoss`] names that difference — the DAE's network outputs the clean vector, the
 //! DEEN's a scalar energy whose input gradient is the score — and [`Denoiser`] does everything
 //! else once: construction, stored parts, the normaliser, the epoch loop and the Adam step.
 
-use super::config::{EnergyConfig, EnergyParts, layer_sizes};
+use super::config::{EnergyConfig, EnergyParts, NoiseUnits, layer_sizes};
 use crate::nn::aligned::AlignedBuf;
 use crate::nn::train::{FitBudget, run_epochs};
 use crate::nn::{
@@ -54,6 +64,11 @@ pub struct Denoiser<L> {
     mlp: Mlp,
     normalizer: Normalizer,
     sigma: f32,
+    units: NoiseUnits,
+    /// The noise's standard deviation per dimension, in standardised coordinates.
+    noise: Vec<f32>,
+    /// Each dimension's weight in the loss (1 in standardised units).
+    weights: Vec<f32>,
     batch_size: usize,
     /// The training path its fits use; `None`: the one measured fastest for its shape.
     train_path: Option<TrainPath>,
@@ -123,14 +138,35 @@ impl<L: DenoisingLoss> Denoiser<L> {
         );
         let sizes = layer_sizes(dim, config, L::outputs(dim));
         let mlp = Mlp::new(&sizes, Activation::Softplus, rng);
-        Self {
+        let mut model = Self {
             adam: Adam::new(mlp.params().len(), config.learning_rate),
             mlp,
             normalizer: Normalizer::identity(dim),
             sigma: config.noise_sigma,
+            units: config.noise_units,
+            noise: Vec::new(),
+            weights: Vec::new(),
             batch_size: config.batch_size.max(1),
             train_path: None,
             loss: PhantomData,
+        };
+        model.derive_noise();
+        model
+    }
+
+    /// Sets the per-dimension noise and loss weights from `σ`, the units and the normaliser.
+    fn derive_noise(&mut self) {
+        let std = self.normalizer.std();
+        match self.units {
+            NoiseUnits::Standardised => {
+                self.noise = vec![self.sigma; std.len()];
+                self.weights = vec![1.0; std.len()];
+            }
+            NoiseUnits::Raw => {
+                self.noise = std.iter().map(|s| self.sigma / s).collect();
+                let mean = std.iter().map(|s| s * s).sum::<f32>() / std.len().max(1) as f32;
+                self.weights = std.iter().map(|s| s * s / mean).collect();
+            }
         }
     }
 
@@ -149,6 +185,7 @@ impl<L: DenoisingLoss> Denoiser<L> {
         ShapeError::check("energy statistics", dim, parts.normalizer.dim())?;
         model.mlp.params_mut().copy_from_slice(&parts.params);
         model.normalizer = parts.normalizer;
+        model.derive_noise();
         Ok(model)
     }
 
@@ -164,9 +201,24 @@ impl<L: DenoisingLoss> Denoiser<L> {
         self.mlp.in_dim()
     }
 
-    /// The noise scale, in standardised units.
+    /// The noise scale `σ`, in [`Denoiser::noise_units`].
     pub fn sigma(&self) -> f32 {
         self.sigma
+    }
+
+    pub fn noise_units(&self) -> NoiseUnits {
+        self.units
+    }
+
+    /// The noise's standard deviation per dimension in the model's standardised coordinates
+    /// (`σ` everywhere in standardised units).
+    pub fn noise_scales(&self) -> &[f32] {
+        &self.noise
+    }
+
+    /// Each dimension's weight in the denoising loss (1 everywhere in standardised units).
+    pub fn loss_weights(&self) -> &[f32] {
+        &self.weights
     }
 
     /// Sets the number format of planning-time inference (see [`Mlp::set_inference_precision`]).
@@ -200,6 +252,10 @@ impl<L: DenoisingLoss> Denoiser<L> {
         }
         let _flush = FlushDenormals::new();
         self.normalizer = Normalizer::fit(rows, self.dim());
+        if self.units == NoiseUnits::Raw {
+            self.normalizer = self.normalizer.clone().with_min_std(self.sigma);
+        }
+        self.derive_noise();
         let mut set = rows.to_vec();
         self.normalizer.normalize_rows(&mut set);
         let mut order: Vec<usize> = (0..n).collect();

@@ -25,7 +25,7 @@ pub mod deen;
 pub mod denoiser;
 pub mod mixture;
 
-pub use config::{EnergyConfig, EnergyParts};
+pub use config::{EnergyConfig, EnergyParts, NoiseUnits};
 pub use dae::{Dae, DaeWorkspace};
 pub use deen::{Deen, DeenWorkspace};
 pub use denoiser::{Denoiser, DenoisingLoss};

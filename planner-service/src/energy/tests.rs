@@ -53,6 +53,7 @@ fn toy_config(sd: f64) -> EnergyConfig {
         epochs: 1000,
         batch_size: 32,
         noise_sigma: (SIGMA / sd) as f32,
+        noise_units: Default::default(),
         learning_rate: 1e-3,
     }
 }
@@ -130,6 +131,7 @@ fn gradient_problem(rng: &mut StdRng) -> (EnergyConfig, Vec<f32>, Vec<usize>) {
         epochs: 1,
         batch_size: 8,
         noise_sigma: 0.4,
+        noise_units: Default::default(),
         learning_rate: 1e-3,
     };
     let set: Vec<f32> = (0..10 * 3).map(|_| rng.random_range(-2.0..2.0)).collect();
@@ -252,6 +254,7 @@ fn regularizers_score_real_transitions_as_more_familiar_than_impossible_ones() {
         epochs: 30,
         batch_size: 32,
         noise_sigma: 0.2,
+        noise_units: Default::default(),
         learning_rate: 1e-3,
     };
     let test = oscillator(300, &mut rng);
@@ -311,6 +314,7 @@ fn parts_restore_identical_energies() {
         epochs: 2,
         batch_size: 32,
         noise_sigma: 0.2,
+        noise_units: Default::default(),
         learning_rate: 1e-3,
     };
     for kind in RegularizerKind::ALL.iter().copied() {
@@ -357,6 +361,7 @@ fn fitting_nothing_changes_nothing() {
         epochs: 1,
         batch_size: 16,
         noise_sigma: 0.2,
+        noise_units: Default::default(),
         learning_rate: 1e-3,
     };
     for kind in [RegularizerKind::Dae, RegularizerKind::Deen] {
@@ -434,6 +439,7 @@ fn planning_gradients_match_finite_differences() {
         hidden_layers: 2,
         hidden_size: 16,
         noise_sigma: 0.3,
+        noise_units: Default::default(),
         ..Default::default()
     };
     let random = |n: usize, rng: &mut StdRng| -> Vec<f32> {

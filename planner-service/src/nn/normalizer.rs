@@ -80,6 +80,15 @@ impl Normalizer {
         &self.std
     }
 
+    /// The same normaliser with every scale raised to at least `floor`: a dimension that
+    /// varies less than `floor` in the data is then only centred and divided by `floor`.
+    pub fn with_min_std(mut self, floor: f32) -> Self {
+        for s in &mut self.std {
+            *s = s.max(floor);
+        }
+        self
+    }
+
     /// Dimension `d` of `x`, standardised.
     #[inline]
     pub fn normalize(&self, d: usize, x: f32) -> f32 {

@@ -692,6 +692,7 @@ mod tests {
                 hidden_layers: 2,
                 hidden_size: 16,
                 noise_sigma: 0.3,
+                noise_units: Default::default(),
                 ..Default::default()
             };
             let mut reg =

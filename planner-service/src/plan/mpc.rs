@@ -338,6 +338,7 @@ mod tests {
             hidden_layers: 2,
             hidden_size: 64,
             noise_sigma: 0.2,
+            noise_units: Default::default(),
             ..Default::default()
         };
         let mut rng = StdRng::seed_from_u64(5);

@@ -1,18 +1,28 @@
 //! Ant: a quadruped with 8 actuated joints, rewarded for walking forward and for staying up.
 //!
-//! The model is `assets/ant.xml` (our own MJCF, written from the task's published facts):
-//! 0.01 s RK4 steps, five per 0.05 s control step, eight motors (hip and ankle of each leg) with
-//! ctrlrange ±1 and gear 150, a free-floating spherical torso. Deviations from gym's ant:
-//! - the torso's radius is 0.18 m (gym 0.25 m), below the 0.2 m termination height, so an ant
-//!   that has fallen onto its back or side ends its episode; gym's rests on its back at 0.25 m
-//!   and collects the survive bonus lying there, which is not what the band was meant to say;
-//! - the legs are straight thigh–shin pairs of 0.3 m and 0.5 m attached at the torso's surface
-//!   (gym: a 0.28 m hip stub, a 0.28 m thigh and a 0.57 m shin), and every ankle has the same
-//!   range of 0.6–1.3 rad downwards (gym mixes ±30–70° by leg); no collision margin.
+//! The model is `assets/ant.xml`, our own MJCF of gym's Ant (the environment MBPO and the paper
+//! used) written from its published facts: a spherical torso of radius 0.25 m starting 0.75 m up;
+//! four legs of capsules (radius 0.08 m) at 45° to the axes, each a 0.283 m hip stub, a 0.283 m
+//! thigh on a vertical hip hinge (±30°) and a 0.566 m shin on an ankle hinge bent 30°–70°
+//! downwards; density 5 (the published masses: torso 327.25 g, 145.91 g per leg), armature and
+//! damping 1 on the joints, friction (1, 0.5, 0.5) and a 0.01 m contact margin on the geoms;
+//! eight motors with ctrlrange ±1 and gear 150 in gym's action order (the +x−y leg first, see
+//! the MJCF); 0.01 s RK4 steps, five per 0.05 s control step. Its random-action episodes match
+//! Gymnasium's `Ant-v5` in length and return within noise
+//! (`experiments/probes/ant_vs_gymnasium.py`, results in docs/results.md): under random
+//! torques the light ant is kicked off the floor, and most episodes end with the torso above
+//! 1 m within a few hundred steps, in Gymnasium's ant as in this one.
 //!
-//! The torso starts at 0.75 m as in gym and settles at about 0.36 m on its shins. Density,
-//! armature, damping and friction are gym's, so the dynamics have the same scale and the paper's
-//! hyperparameters apply. The termination band [0.2, 1.0] comes from proto.
+//! Deviations from gym: the reward is the paper's (MBPO's) `forward velocity − 0.5 ‖a‖² + 1` in
+//! proto, a function of the observation: the forward velocity is the torso's x velocity after
+//! the step (gym: its displacement over the step divided by 0.05 s), there is no contact cost
+//! (the truncated observation has no contact forces, and the mujoco-py of MBPO's time reported
+//! them as zero), and the survive bonus is paid on the terminating step too. The floor is an
+//! infinite plane. The termination band [0.2, 1.0] comes from proto: an ant on its back rests
+//! at about 0.27 m, inside the band, and keeps collecting the bonus there, as in gym.
+//!
+//! The torso starts at 0.75 m and settles at about 0.5 m on its legs (0.54 m from the built
+//! pose, 0.48 m from seed 0's noisy start).
 //!
 //! The observation (proto's [`proto::task::ant`] layout, MBPO's truncated one without contact
 //! forces) is `[qpos[2..15], qvel[0..14]]`: torso height, orientation quaternion (w, x, y, z),
@@ -178,10 +188,27 @@ mod tests {
         }
         let obs = env.observation();
         let z = obs[TORSO_HEIGHT];
-        assert!((0.3..0.45).contains(&z), "torso at {z}");
-        // Upright (w dominates the quaternion) and at rest.
+        assert!((0.45..0.6).contains(&z), "torso at {z}");
+        // Upright (w dominates the quaternion) and nearly at rest (legs that landed against a
+        // joint limit still creep by a few cm/s).
         assert!(obs[1].abs() > 0.95, "orientation {:?}", &obs[1..5]);
-        assert!(obs[OBS_Q..].iter().all(|v| v.abs() < 0.05), "{obs:?}");
+        assert!(obs[OBS_Q..].iter().all(|v| v.abs() < 0.2), "{obs:?}");
+    }
+
+    /// The published masses of gym's ant follow from its geometry at density 5: the torso
+    /// 327.25 g, each leg (stub, thigh, shin) 145.91 g, 910.88 g in all.
+    #[test]
+    fn bodies_weigh_what_gyms_do() {
+        let ant = Ant::new().unwrap();
+        let masses = ant.sim.body_masses();
+        assert_eq!(masses.len(), 14, "world, torso and three bodies per leg");
+        assert!((masses[1] - 0.32725).abs() < 1e-5, "torso {}", masses[1]);
+        for leg in masses[2..].chunks(3) {
+            let m: f64 = leg.iter().sum();
+            assert!((m - 0.14591).abs() < 1e-5, "leg {m}");
+        }
+        let total: f64 = masses.iter().sum();
+        assert!((total - 0.91088).abs() < 1e-4, "total {total}");
     }
 
     #[test]
@@ -238,8 +265,44 @@ mod tests {
         }
     }
 
+    /// Random torques kick the light ant off the floor: as in Gymnasium's `Ant-v5` (200
+    /// episodes: median 66 steps, 185 ended above 1 m, 15 at the time limit, none on the floor;
+    /// `experiments/probes/ant_vs_gymnasium.py`), episodes end by the torso rising above 1 m
+    /// after tens to hundreds of steps, never by the ant lying on the floor.
     #[test]
-    fn falling_or_flying_off_terminates() {
+    fn random_actions_end_episodes_like_gyms_ant() {
+        let mut env = Env::new(Builtin::Ant).unwrap();
+        let mut lengths = Vec::new();
+        let (mut above, mut below) = (0, 0);
+        for seed in 0..40 {
+            env.reset(seed);
+            let mut rng = StdRng::seed_from_u64(1000 + seed);
+            let mut steps = 0;
+            loop {
+                let out = env.step(&random_action(&mut rng)).unwrap();
+                steps += 1;
+                if out.terminated {
+                    if out.obs[TORSO_HEIGHT] > HEALTHY_HEIGHT.1 {
+                        above += 1;
+                    } else {
+                        below += 1;
+                    }
+                }
+                if out.done() {
+                    break;
+                }
+            }
+            lengths.push(steps);
+        }
+        lengths.sort_unstable();
+        let median = lengths[lengths.len() / 2];
+        assert!((30..=200).contains(&median), "median {median}: {lengths:?}");
+        assert_eq!(below, 0, "episodes ended on the floor: {lengths:?}");
+        assert!(above >= 30, "{above} of 40 ended above 1 m: {lengths:?}");
+    }
+
+    #[test]
+    fn lying_on_its_back_is_healthy_and_flying_off_terminates() {
         let mut env = Env::new(Builtin::Ant).unwrap();
         let standing = settled(&mut env);
         env.set_state(&standing).unwrap();
@@ -247,14 +310,17 @@ mod tests {
             assert!(!env.step(&[0.0; 8]).unwrap().done(), "standing is healthy");
         }
 
-        // Turned upside down half a metre up: it drops onto its back, where the torso lies on
-        // the floor below the healthy band, and the episode ends there.
+        // Turned upside down half a metre up: it drops onto its back, where the torso rests on
+        // the floor inside the healthy band (radius 0.25 m), and stays healthy there, as gym's.
         let mut flipped = standing.clone();
         flipped[TORSO_HEIGHT] = 0.5;
         flipped[1..5].copy_from_slice(&[0.0, 1.0, 0.0, 0.0]);
-        let last = run_until_done(&mut env, &flipped, 40);
-        assert!(last.terminated, "{:?}", last.obs);
-        assert!(last.obs[TORSO_HEIGHT] < HEALTHY_HEIGHT.0, "{:?}", last.obs);
+        env.set_state(&flipped).unwrap();
+        for _ in 0..60 {
+            assert!(!env.step(&[0.0; 8]).unwrap().done(), "lying on its back");
+        }
+        let z = env.observation()[TORSO_HEIGHT];
+        assert!((HEALTHY_HEIGHT.0..0.3).contains(&z), "torso at {z}");
 
         // Launched upwards at 4 m/s: it rises through 1 m within a few steps and terminates.
         let mut launched = standing.clone();

@@ -1,0 +1,186 @@
+//! A run's compact resumable state: what a later sitting, on this machine or another, needs to
+//! continue an unfinished run.
+//!
+//! The daemon keeps a run in `<out>/planner/runs/<run>/` (see `planner_service::persist`):
+//! its spec (`run.json`), its replay log and its newest two model checkpoints, plus ownership
+//! epochs that only matter to the daemon that wrote them. The resumable state is the spec, the
+//! replay log and the newest checkpoint, in one gzip-compressed tar file beside the run's
+//! episode file, `runs/<stem>.state.tar.gz` (a few MB for the paper's largest runs), so that
+//! it can be committed with the experiment folder while `planner/` is not. A sitting packs it
+//! for every run it leaves unfinished, unpacks it before the daemon starts when the daemon's
+//! folder lacks the run (a fresh clone), and removes it when the run completes.
+//!
+//! What the episodes already recorded say stays in `runs/<stem>.csv.partial`, which the
+//! launcher merges as for any resumed run.
+
+use flate2::Compression;
+use flate2::read::GzDecoder;
+use flate2::write::GzEncoder;
+use std::fs::File;
+use std::io;
+use std::path::{Path, PathBuf};
+
+/// File name suffix of a run's packed state.
+pub const SUFFIX: &str = ".state.tar.gz";
+
+/// The files of the run directory `run_dir` that make up its resumable state: the spec, the
+/// replay log and the newest checkpoint (by version number), whichever exist.
+pub fn state_files(run_dir: &Path) -> io::Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for name in ["run.json", "replay.log"] {
+        let path = run_dir.join(name);
+        if path.is_file() {
+            files.push(path);
+        }
+    }
+    let newest = std::fs::read_dir(run_dir)?
+        .filter_map(|e| {
+            let name = e.ok()?.file_name().into_string().ok()?;
+            let version: u64 = name
+                .strip_prefix("models-")?
+                .strip_suffix(".safetensors")?
+                .parse()
+                .ok()?;
+            Some((version, name))
+        })
+        .max();
+    if let Some((_, name)) = newest {
+        files.push(run_dir.join(name));
+    }
+    Ok(files)
+}
+
+/// Packs the resumable state of `run_dir` into `archive` (written to a temporary file and
+/// renamed, so an interrupted pack leaves the previous archive). Returns the archive's size in
+/// bytes, or `None` when the run directory holds no replay log (nothing to resume from).
+pub fn pack(run_dir: &Path, archive: &Path) -> io::Result<Option<u64>> {
+    if !run_dir.join("replay.log").is_file() {
+        return Ok(None);
+    }
+    let tmp = archive.with_extension("tmp");
+    {
+        let file = File::create(&tmp)?;
+        let mut tar = tar::Builder::new(GzEncoder::new(file, Compression::default()));
+        for path in state_files(run_dir)? {
+            let name = path.file_name().expect("a file in the run directory");
+            tar.append_path_with_name(&path, name)?;
+        }
+        let file = tar.into_inner()?.finish()?;
+        file.sync_all()?;
+    }
+    std::fs::rename(&tmp, archive)?;
+    Ok(Some(std::fs::metadata(archive)?.len()))
+}
+
+/// Unpacks `archive` into `run_dir` (created) unless `run_dir` already holds a replay log:
+/// the daemon's own copy is at least as new as any archive it was packed from. Returns whether
+/// it unpacked. Only plain files directly in the run directory are accepted.
+pub fn unpack(archive: &Path, run_dir: &Path) -> io::Result<bool> {
+    if run_dir.join("replay.log").is_file() {
+        return Ok(false);
+    }
+    std::fs::create_dir_all(run_dir)?;
+    let mut tar = tar::Archive::new(GzDecoder::new(File::open(archive)?));
+    for entry in tar.entries()? {
+        let mut entry = entry?;
+        let path = entry.path()?.into_owned();
+        let plain = entry.header().entry_type().is_file()
+            && path.components().count() == 1
+            && matches!(
+                path.components().next(),
+                Some(std::path::Component::Normal(_))
+            );
+        if !plain {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidData,
+                format!(
+                    "{}: unexpected entry `{}` (a run's state holds plain files only)",
+                    archive.display(),
+                    path.display()
+                ),
+            ));
+        }
+        entry.unpack(run_dir.join(&path))?;
+    }
+    Ok(true)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(path: &Path, bytes: &[u8]) {
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(path, bytes).unwrap();
+    }
+
+    #[test]
+    fn the_state_is_the_spec_the_log_and_the_newest_checkpoint() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = dir.path().join("planner/runs/ant-cem-s0");
+        write(&run.join("run.json"), b"{\"task\":\"ant\"}");
+        let log: Vec<u8> = (0..200_000u32)
+            .flat_map(|i| (i % 97).to_le_bytes())
+            .collect();
+        write(&run.join("replay.log"), &log);
+        write(&run.join("models-00000009.safetensors"), b"older");
+        write(&run.join("models-00000010.safetensors"), b"newest");
+        write(&run.join("epochs/00000000000000000003"), b"planner-1");
+        let archive = dir.path().join("runs/ant-cem-s0.state.tar.gz");
+        std::fs::create_dir_all(archive.parent().unwrap()).unwrap();
+        let size = pack(&run, &archive).unwrap().unwrap();
+        assert!(size < log.len() as u64 / 4, "compressed: {size} bytes");
+
+        // A fresh clone: no daemon folder. The state comes back without the old checkpoint
+        // and the epochs.
+        let fresh = dir.path().join("clone/planner/runs/ant-cem-s0");
+        assert!(unpack(&archive, &fresh).unwrap());
+        let mut names: Vec<String> = std::fs::read_dir(&fresh)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        names.sort();
+        assert_eq!(
+            names,
+            ["models-00000010.safetensors", "replay.log", "run.json"]
+        );
+        assert_eq!(std::fs::read(fresh.join("replay.log")).unwrap(), log);
+        assert_eq!(
+            std::fs::read(fresh.join("models-00000010.safetensors")).unwrap(),
+            b"newest"
+        );
+        // The daemon's own copy is never overwritten by an archive.
+        write(&fresh.join("replay.log"), b"newer");
+        assert!(!unpack(&archive, &fresh).unwrap());
+        assert_eq!(std::fs::read(fresh.join("replay.log")).unwrap(), b"newer");
+    }
+
+    #[test]
+    fn a_run_without_a_replay_log_has_no_state() {
+        let dir = tempfile::tempdir().unwrap();
+        write(&dir.path().join("run/run.json"), b"{}");
+        let archive = dir.path().join("x.state.tar.gz");
+        assert_eq!(pack(&dir.path().join("run"), &archive).unwrap(), None);
+        assert!(!archive.exists());
+    }
+
+    #[test]
+    fn an_archive_with_paths_outside_the_run_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let archive = dir.path().join("evil.state.tar.gz");
+        {
+            let file = File::create(&archive).unwrap();
+            let mut tar = tar::Builder::new(GzEncoder::new(file, Compression::default()));
+            let mut header = tar::Header::new_gnu();
+            header.set_size(3);
+            header.set_mode(0o644);
+            header.set_cksum();
+            tar.append_data(&mut header, "sub/escape", &b"bad"[..])
+                .unwrap();
+            tar.into_inner().unwrap().finish().unwrap();
+        }
+        let err = unpack(&archive, &dir.path().join("run")).unwrap_err();
+        assert!(err.to_string().contains("plain files only"), "{err}");
+        assert!(!dir.path().join("run/sub").exists());
+    }
+}
