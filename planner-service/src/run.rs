@@ -34,6 +34,12 @@ pub struct Hosting {
     /// Where the run times its replay log's fsyncs and its retrainings (the daemon's metrics
     /// registry serves them).
     pub histograms: RunHistograms,
+    /// Acknowledge a step only once it is on stable storage (`[storage] sync_every_step`):
+    /// every store is followed by a group commit ([`crate::replay::LogSyncer::sync_through`]).
+    pub sync_every_step: bool,
+    /// Other planners share the run's directory (a fleet): its replay log is never cut nor
+    /// compacted in place (see [`crate::replay::ReplayLog::share`]).
+    pub shared_dir: bool,
 }
 
 /// How each run's replay log reaches the disk: straight to its file (the daemon), or through
@@ -218,6 +224,9 @@ impl Run {
         let disk = hosting.log_disk.clone();
         let mut buffer =
             ReplayBuffer::open_with(&dir.replay_log(), task, |file| disk.open(&name, file))?;
+        if hosting.shared_dir {
+            buffer.share_log();
+        }
         buffer.claim(epoch, planner)?;
         buffer.set_capacity(hosting.replay_capacity)?;
         buffer.compact_if_due()?;
@@ -557,10 +566,18 @@ impl Run {
         }
         let mut buffer = self.lock_buffer();
         buffer.append(records)?;
-        // Every episode end, finished or abandoned, is synced to disk.
-        let sync = (accepted.finished.is_some() || accepted.abandoned.is_some())
-            .then(|| buffer.syncer())
+        // With `sync_every_step`, this store is durable before it is acknowledged: the
+        // appends so far (this one among them) are synced in a group commit below.
+        let durable = self
+            .hosting
+            .sync_every_step
+            .then(|| buffer.syncer().map(|s| (s.appended(), s)))
             .flatten();
+        // Every episode end, finished or abandoned, is synced to disk.
+        let sync = (durable.is_none()
+            && (accepted.finished.is_some() || accepted.abandoned.is_some()))
+        .then(|| buffer.syncer())
+        .flatten();
         // Capacity may have evicted old transitions: the tally follows the buffer's length,
         // set under the buffer's lock (the order is always buffer, then tally) so that two
         // agents' appends cannot leave it at the earlier one's length. A finished episode is
@@ -575,6 +592,15 @@ impl Run {
             }
         }
         drop(buffer);
+        if let Some((appends, syncer)) = &durable {
+            let started = std::time::Instant::now();
+            let synced = syncer.sync_through(*appends);
+            self.hosting
+                .histograms
+                .fsync_seconds
+                .observe(started.elapsed().as_secs_f64());
+            synced.map_err(ReplayError::from)?;
+        }
         if let Some(syncer) = &sync {
             self.sync_log(syncer);
         }
@@ -824,6 +850,8 @@ mod tests {
             replay_capacity: None,
             log_disk: LogDisk::direct(),
             histograms: RunHistograms::default(),
+            sync_every_step: false,
+            shared_dir: false,
         }
     }
 

@@ -40,9 +40,9 @@ pub struct ServiceConfig {
     /// Overrides applied to every run's preset before the agent's own (e.g. smaller networks
     /// for a quick test), keyed like the attach message's overrides.
     pub overrides: proto::PlannerOverrides,
-    /// Pinning in a fleet of planners: the run-name patterns this planner serves (`serve`,
-    /// empty: all) or refuses (`refuse`). See `crate::fleet`.
-    pub fleet: crate::fleet::Pins,
+    /// Membership of a fleet of planners (`[fleet]`: etcd endpoints, lease, pins). Absent: a
+    /// single daemon that owns every run in its data directory and needs no etcd.
+    pub fleet: Option<FleetConfig>,
     /// Bounds on everything a client chooses (`[limits]`).
     pub limits: Limits,
     /// How runs keep their data on disk (`[storage]`).
@@ -65,6 +65,62 @@ pub struct MetricsConfig {
     pub listen: Option<std::net::SocketAddr>,
 }
 
+/// `[fleet]`: this planner is one of several sharing a data directory, and etcd decides which
+/// of them owns each run (see `crate::fleet`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FleetConfig {
+    /// The etcd cluster's client endpoints, e.g. `["http://10.0.0.5:2379"]` (at least one).
+    pub etcd: Vec<String>,
+    /// Seconds an etcd lease lives without renewal: how long a dead owner's runs wait before
+    /// another planner may take them, and the bound on how long a planner cut off from etcd
+    /// may keep acknowledging (it stops a fifth of this, at least 1 s, earlier).
+    #[serde(default = "FleetConfig::default_lease_ttl")]
+    pub lease_ttl_seconds: u64,
+    /// Run-name patterns this planner serves (empty: all): a preference, see `crate::fleet`.
+    #[serde(default)]
+    pub serve: Vec<String>,
+    /// Run-name patterns this planner never serves, whatever `serve` says.
+    #[serde(default)]
+    pub refuse: Vec<String>,
+}
+
+impl FleetConfig {
+    fn default_lease_ttl() -> u64 {
+        10
+    }
+
+    /// Shortest and longest lease accepted: below 3 s a renewal has no room for a retry;
+    /// beyond 5 minutes a dead owner's runs wait too long.
+    pub const LEASE_TTL_SECONDS: std::ops::RangeInclusive<u64> = 3..=300;
+
+    /// The pins: `serve` and `refuse`.
+    pub fn pins(&self) -> crate::fleet::Pins {
+        crate::fleet::Pins {
+            serve: self.serve.clone(),
+            refuse: self.refuse.clone(),
+        }
+    }
+
+    fn validate(&self) -> Result<(), ConfigError> {
+        self.pins().validate()?;
+        if self.etcd.is_empty() {
+            return Err(ConfigError::Fleet(
+                "`etcd` must list at least one endpoint (a fleet's ownership lives in etcd)".into(),
+            ));
+        }
+        if !Self::LEASE_TTL_SECONDS.contains(&self.lease_ttl_seconds) {
+            return Err(ConfigError::Fleet(format!(
+                "lease_ttl_seconds = {} is outside {}..={}",
+                self.lease_ttl_seconds,
+                Self::LEASE_TTL_SECONDS.start(),
+                Self::LEASE_TTL_SECONDS.end()
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// `[storage]`: how much of its experience a run keeps.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -73,6 +129,18 @@ pub struct StorageConfig {
     /// finished episodes are evicted whole, from memory at once and from the log by
     /// compaction. Absent: unbounded (the paper's protocol trains on everything).
     pub replay_capacity: Option<usize>,
+    /// Acknowledge a step only once it is on stable storage (one `fdatasync` per batch of
+    /// appends, shared by the agents storing at the same moment), so a host's power loss
+    /// loses nothing acknowledged. Absent: on in a fleet (`[fleet]`), off for a single daemon
+    /// (which syncs at every episode end and hands every step to the OS before answering).
+    pub sync_every_step: Option<bool>,
+}
+
+impl ServiceConfig {
+    /// Whether steps are synced to stable storage before they are acknowledged.
+    pub fn sync_every_step(&self) -> bool {
+        self.storage.sync_every_step.unwrap_or(self.fleet.is_some())
+    }
 }
 
 impl Default for ServiceConfig {
@@ -88,7 +156,7 @@ impl Default for ServiceConfig {
             max_agents_per_run: 16,
             allowed_presets: Vec::new(),
             overrides: proto::PlannerOverrides::default(),
-            fleet: crate::fleet::Pins::default(),
+            fleet: None,
             limits: Limits::default(),
             storage: StorageConfig::default(),
             metrics: MetricsConfig::default(),
@@ -115,6 +183,8 @@ pub enum ConfigError {
     PlannerId(#[from] proto::keys::InvalidName),
     #[error("[fleet]: {0}")]
     Pins(#[from] crate::fleet::PinsError),
+    #[error("[fleet]: {0}")]
+    Fleet(String),
     #[error(transparent)]
     Limits(#[from] InvalidLimits),
     #[error(transparent)]
@@ -139,7 +209,9 @@ impl ServiceConfig {
     /// Checks what serde cannot, the declared tasks included.
     pub fn validate(&self) -> Result<(), ConfigError> {
         proto::validate_name(&self.planner_id)?;
-        self.fleet.validate()?;
+        if let Some(fleet) = &self.fleet {
+            fleet.validate()?;
+        }
         self.limits.validate()?;
         self.catalog()?;
         Ok(())
@@ -178,12 +250,16 @@ mod tests {
             population = 50
             inference_precision = "f32"
             [fleet]
+            etcd = ["http://127.0.0.1:2379"]
             serve = ["ant-*"]
             "#,
         )
         .unwrap();
-        assert_eq!(config.fleet.serve, vec!["ant-*".to_string()]);
-        assert!(config.fleet.refuse.is_empty());
+        let fleet = config.fleet.as_ref().unwrap();
+        assert_eq!(fleet.serve, vec!["ant-*".to_string()]);
+        assert!(fleet.refuse.is_empty());
+        assert_eq!(fleet.lease_ttl_seconds, 10);
+        assert!(ServiceConfig::default().fleet.is_none());
         config.validate().unwrap();
         assert_eq!(config.planner_id, "lab-1");
         assert_eq!(config.max_runs, 4);
@@ -214,13 +290,21 @@ mod tests {
 
     #[test]
     fn rejects_bad_pins() {
-        let config: ServiceConfig = toml::from_str("[fleet]\nrefuse = [\"a/b\"]").unwrap();
+        let config: ServiceConfig =
+            toml::from_str("[fleet]\netcd = [\"http://e:2379\"]\nrefuse = [\"a/b\"]").unwrap();
         let err = config.validate().unwrap_err();
         assert!(
             err.to_string()
                 .starts_with("[fleet]: invalid run-name pattern"),
             "{err}"
         );
+        for bad in [
+            "[fleet]\netcd = []",
+            "[fleet]\netcd = [\"e\"]\nlease_ttl_seconds = 1",
+        ] {
+            let config: ServiceConfig = toml::from_str(bad).unwrap();
+            assert!(config.validate().is_err(), "{bad}");
+        }
     }
 
     /// The shipped example listens on loopback only, and its `[limits]` block states the

@@ -128,6 +128,12 @@ pub struct PlannerStatus {
 pub struct FailedRun {
     pub name: String,
     pub reason: String,
+    /// Failed tries to open it so far.
+    #[serde(default)]
+    pub attempts: u32,
+    /// Seconds until the next try (0: at the next look).
+    #[serde(default)]
+    pub retry_in_seconds: f64,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
