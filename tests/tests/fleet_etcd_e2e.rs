@@ -320,7 +320,7 @@ fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
         let victim = planners.get_mut(owner.as_str()).unwrap();
         victim.wait(Duration::from_secs(10)).unwrap();
         let id = ids.iter().find(|p| **p == owner).unwrap();
-        planners.insert(id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+        planners.insert(*id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
     }
     eprintln!(
         "{kills} kills in {:.0} s, owners {owners_seen:?}, {} actions",
