@@ -231,6 +231,8 @@ impl Agent {
                 }
                 let msg = Observation::new(self.episode, step, next.clone(), Some(reward), None);
                 let Some(next_action) = self.exchange(&msg, wait, ledger).await else {
+                    // The episode is left unfinished: the next play starts a new one.
+                    self.episode += 1;
                     return actions;
                 };
                 actions += 1;
@@ -239,6 +241,7 @@ impl Agent {
                 obs = next;
                 action = next_action;
                 if stop(actions) {
+                    self.episode += 1;
                     return actions;
                 }
             }
