@@ -293,9 +293,15 @@ fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
     let mut last_token = 0;
     let mut owners_seen = BTreeMap::new();
     let started = Instant::now();
+    // The last planner killed: restarted once another planner took the run over, so the run
+    // moves between planners rather than back to the one it prefers.
+    let mut dead: Option<&str> = None;
     for round in 0..kills {
         let (owner, token) = rt.block_on(async {
             let (mut agent, accepted) = Agent::new(&endpoint, run, episode, round as u32).await;
+            if let Some(id) = dead.take() {
+                planners.insert(id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+            }
             assert!(
                 accepted.epoch > last_token,
                 "round {round}: token {} after {last_token}",
@@ -322,8 +328,10 @@ fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
         *owners_seen.entry(owner.clone()).or_insert(0) += 1;
         let victim = planners.get_mut(owner.as_str()).unwrap();
         victim.wait(Duration::from_secs(10)).unwrap();
-        let id = ids.iter().find(|p| **p == owner).unwrap();
-        planners.insert(*id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+        dead = ids.iter().find(|p| **p == owner).copied();
+    }
+    if let Some(id) = dead {
+        planners.insert(id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
     }
     eprintln!(
         "{kills} kills in {:.0} s, owners {owners_seen:?}, {} actions",
