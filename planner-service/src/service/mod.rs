@@ -994,7 +994,7 @@ impl Service {
                 tracing::info!(run = %name, error = %e, "cannot take the run over now");
                 return Err(Refusal::Contended);
             }
-            Err(e @ crate::fleet::FleetError::Persist(PersistError::Io { .. })) => {
+            Err(e @ crate::fleet::FleetError::Persist(crate::persist::PersistError::Io { .. })) => {
                 return Err(transient(format!("cannot take it over: {e}")));
             }
             Err(e) => return Err(internal(format!("cannot take it over: {e}"))),
