@@ -322,6 +322,7 @@ impl Service {
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
+        crate::bench::peak::measure_in_background();
         // Resume the stored runs that are ours (all of them for a planner without peers).
         service.rebalance().await;
         let _alive = session
@@ -1040,6 +1041,7 @@ impl Service {
                     replay_fsync: run.histograms().fsync_seconds.timings(),
                     retraining: run.histograms().retraining_seconds.timings(),
                     last_retraining: run.last_retraining(),
+                    kernels: run.models().kernels(run.preset().inference_precision),
                 }
             })
             .collect();
@@ -1063,6 +1065,7 @@ impl Service {
             failed_runs,
             wildcards_dropped: self.outbox.metrics.wildcards_dropped(),
             refused: self.outbox.metrics.refusals(),
+            kernels: status::KernelStatus::now(),
         }
     }
 

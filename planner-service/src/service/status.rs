@@ -121,6 +121,77 @@ pub struct PlannerStatus {
     /// Messages answered with an error report, by error code, since the daemon started.
     #[serde(default)]
     pub refused: std::collections::BTreeMap<String, u64>,
+    /// Kernel paths: measured peaks and per-network measurements.
+    #[serde(default)]
+    pub kernels: KernelStatus,
+}
+
+/// The matrix kernels of this machine: each path's measured peak and the paths' measured times
+/// on the networks planned so far (see `nn::kernel_path`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct KernelStatus {
+    /// One core's measured peak in GFLOP/s per kernel path (`amx-bf16`, `avx512-bf16`,
+    /// `avx512-f32`, `avx2-f32`), measured once in the background after the daemon starts;
+    /// empty until then.
+    #[serde(default)]
+    pub peak_gflops: std::collections::BTreeMap<String, f64>,
+    /// Every network shape whose path was chosen by measurement, with each path's time.
+    #[serde(default)]
+    pub measured: Vec<NetworkKernels>,
+}
+
+/// One network shape's measured forward pass through each candidate path.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct NetworkKernels {
+    /// `[inputs, hidden…, outputs]`.
+    pub sizes: Vec<usize>,
+    /// The fastest path, which networks of this shape run under `auto`.
+    pub chosen: String,
+    /// Best time of one forward pass of `samples` samples, in microseconds, per path.
+    pub microseconds: std::collections::BTreeMap<String, f64>,
+    pub samples: usize,
+}
+
+impl KernelStatus {
+    /// The peak measured so far and every measurement this process made.
+    pub fn now() -> Self {
+        use crate::nn::KernelPath;
+        let peak_gflops = crate::bench::peak::background_peak()
+            .map(|peak| {
+                KernelPath::ALL
+                    .into_iter()
+                    .filter_map(|p| Some((p.name().to_string(), peak.for_path(p)?)))
+                    .collect()
+            })
+            .unwrap_or_default();
+        let measured = crate::nn::kernel_path::measurements()
+            .into_iter()
+            .map(|m| NetworkKernels {
+                chosen: m.fastest().name().to_string(),
+                microseconds: m
+                    .timings
+                    .iter()
+                    .map(|t| (t.path.name().to_string(), t.seconds * 1e6))
+                    .collect(),
+                sizes: m.sizes,
+                samples: crate::nn::kernel_path::BATCH,
+            })
+            .collect();
+        Self {
+            peak_gflops,
+            measured,
+        }
+    }
+}
+
+/// The kernel path each of a run's networks runs (`None`: not packed yet, or no such network).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct RunKernels {
+    /// The number format the run's preset asks for (`auto`, `bf16` or `f32`).
+    pub precision: String,
+    pub dynamics: Option<String>,
+    pub energy: Option<String>,
+    pub reward: Option<String>,
 }
 
 /// A stored run that could not be opened (it stays on disk untouched).
@@ -167,6 +238,9 @@ pub struct RunStatus {
     pub retraining: Timings,
     #[serde(default)]
     pub last_retraining: Option<LastRetraining>,
+    /// The kernel path each of the run's current networks runs.
+    #[serde(default)]
+    pub kernels: RunKernels,
 }
 
 #[cfg(test)]
