@@ -65,6 +65,30 @@ impl Models {
         }
     }
 
+    /// The kernel path of each network, for the status report (networks not yet packed show
+    /// none: reading the path does not pack or measure).
+    pub fn kernels(
+        &self,
+        precision: proto::InferencePrecision,
+    ) -> crate::service::status::RunKernels {
+        let name = |p: Option<crate::nn::KernelPath>| p.map(|p| p.name().to_string());
+        let energy = match &self.regularizer {
+            Regularizer::None => None,
+            Regularizer::Dae(m) => m.mlp().packed_kernel_path(),
+            Regularizer::Deen(m) => m.mlp().packed_kernel_path(),
+        };
+        crate::service::status::RunKernels {
+            precision: precision.to_string(),
+            dynamics: name(self.dynamics.member(0).mlp().packed_kernel_path()),
+            energy: name(energy),
+            reward: name(
+                self.reward
+                    .as_ref()
+                    .and_then(|r| r.mlp().packed_kernel_path()),
+            ),
+        }
+    }
+
     /// Packs every network's weights into the inference layout now, so that the first plan
     /// with these models neither pays for the packing nor allocates. The trainer calls it
     /// before a new version is swapped in.

@@ -19,6 +19,7 @@
 use planner_service::data::Transitions;
 use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
+use planner_service::nn::KernelPath;
 use planner_service::plan::anytime::Preempt;
 use planner_service::plan::{CemConfig, IcemConfig, MpcPlanner, Optimizer};
 use planner_service::reward::{RewardConfig, RewardModel};
@@ -117,8 +118,10 @@ fn pack(dynamics: &Ensemble, regularizer: &Regularizer, reward: Option<&RewardMo
     }
 }
 
-/// Both number formats (bf16 is f32 where the CPU lacks AVX-512 BF16), one after the other:
-/// the allocation counter is global, so no other test may run beside this one.
+/// Every number format (bf16 is f32 where the CPU lacks AVX-512 BF16; auto measures the
+/// paths when the networks are packed, before the count) and every kernel path this CPU has
+/// (AMX tiles, AVX-512 BF16, AVX-512 / AVX2 f32, scalar), one after the other: the
+/// allocation counter is global, so no other test may run beside this one.
 #[test]
 fn planning_allocates_nothing_after_warm_up() {
     // Ant: the task with termination, so that path is exercised too; ant with its reward
@@ -136,9 +139,48 @@ fn planning_allocates_nothing_after_warm_up() {
     let formulas = Task::intern(formulas, &SpecBounds::default()).unwrap();
     for spec in [Builtin::Ant.task(), learned, formulas] {
         for optimizer in [Optimizer::Cem, Optimizer::Icem, Optimizer::Adam] {
-            for precision in [InferencePrecision::F32, InferencePrecision::Bf16] {
-                allocates_nothing_after_warm_up_in(spec, optimizer, precision);
+            let precisions = [
+                InferencePrecision::F32,
+                InferencePrecision::Bf16,
+                InferencePrecision::Auto,
+            ];
+            let settings = precisions
+                .into_iter()
+                .map(Inference::Precision)
+                .chain(KernelPath::available().into_iter().map(Inference::Path));
+            for setting in settings {
+                allocates_nothing_after_warm_up_in(spec, optimizer, setting);
             }
+        }
+    }
+}
+
+/// How the networks run inference: a number format (its path chosen, by measurement for
+/// `auto`, when the networks are packed) or each kernel path this CPU has, forced.
+#[derive(Clone, Copy, Debug)]
+enum Inference {
+    Precision(InferencePrecision),
+    Path(KernelPath),
+}
+
+impl Inference {
+    fn apply(self, dynamics: &mut Ensemble, regularizer: &mut Regularizer) {
+        match self {
+            Inference::Precision(p) => {
+                dynamics.set_inference_precision(p);
+                regularizer.set_inference_precision(p);
+            }
+            Inference::Path(p) => {
+                dynamics.set_kernel_path(p);
+                regularizer.set_kernel_path(p);
+            }
+        }
+    }
+
+    fn apply_to_reward(self, model: &mut RewardModel) {
+        match self {
+            Inference::Precision(p) => model.set_inference_precision(p),
+            Inference::Path(p) => model.set_kernel_path(p),
         }
     }
 }
@@ -147,7 +189,7 @@ fn planning_allocates_nothing_after_warm_up() {
 fn reward_model(
     spec: &'static Task,
     data: &Transitions,
-    precision: InferencePrecision,
+    inference: Inference,
     rng: &mut StdRng,
 ) -> Option<RewardModel> {
     spec.reward_is_learned().then(|| {
@@ -157,7 +199,7 @@ fn reward_model(
         };
         let mut model = RewardModel::new(spec, &sizes, &DynamicsConfig::default(), rng);
         model.fit(data, 1, rng);
-        model.set_inference_precision(precision);
+        inference.apply_to_reward(&mut model);
         model
     })
 }
@@ -165,7 +207,7 @@ fn reward_model(
 fn allocates_nothing_after_warm_up_in(
     spec: &'static Task,
     optimizer: Optimizer,
-    precision: InferencePrecision,
+    inference: Inference,
 ) {
     let mut rng = StdRng::seed_from_u64(0);
     let data = random_transitions(spec, 256, &mut rng);
@@ -190,9 +232,8 @@ fn allocates_nothing_after_warm_up_in(
         &mut rng,
     );
     deen.fit(&data, 1, &mut rng);
-    dynamics.set_inference_precision(precision);
-    deen.set_inference_precision(precision);
-    let reward = reward_model(spec, &data, precision, &mut rng);
+    inference.apply(&mut dynamics, &mut deen);
+    let reward = reward_model(spec, &data, inference, &mut rng);
     let reward = reward.as_ref();
 
     let cem = CemConfig {
@@ -264,9 +305,8 @@ fn allocates_nothing_after_warm_up_in(
         &mut rng,
     );
     deen.fit(&data, 2, &mut rng);
-    dynamics.set_inference_precision(precision);
-    deen.set_inference_precision(precision);
-    let reward = reward_model(spec, &data, precision, &mut rng);
+    inference.apply(&mut dynamics, &mut deen);
+    let reward = reward_model(spec, &data, inference, &mut rng);
     let reward = reward.as_ref();
     pack(&dynamics, &deen, reward);
     let (allocations, outcome) = pool.install(|| {

@@ -140,7 +140,8 @@ mod tests {
         };
         // The exact message that used to be accepted, and the same well-formed without it.
         decode::<AttachRequest>(attach("", "").as_bytes(), Encoding::Json).unwrap();
-        let cases: Vec<(&str, Box<dyn Fn() -> Result<(), CodecError>>)> = vec![
+        type Decode<'a> = Box<dyn Fn() -> Result<(), CodecError> + 'a>;
+        let cases: Vec<(&str, Decode<'_>)> = vec![
             (
                 "colour",
                 Box::new(move || {

@@ -52,15 +52,19 @@ pub enum RegularizerChoice {
 
 /// Number format of the planner's network inference (training is always f32).
 ///
-/// `bf16` rounds the operands of every layer (the normalised input included) to bf16 (8
-/// significant bits) and keeps f32 sums: twice the multiply-add rate on CPUs with AVX-512
-/// BF16, a relative rounding of at most 2⁻⁸ per operand, far below a learned model's own error.
-/// Where the CPU lacks AVX-512 BF16 the planner uses f32 whatever is asked.
+/// `auto` (the default) times every kernel this CPU has on each network's own layer shapes
+/// when the network is first used and runs the fastest: AMX tiles or AVX-512 BF16 dot
+/// products (bf16 operands, f32 sums) or f32 FMA, whichever this CPU does best. `bf16` rounds
+/// the operands of every layer (the normalised input included) to bf16 (8 significant bits)
+/// and keeps f32 sums, a relative rounding of at most 2⁻⁸ per operand, far below a learned
+/// model's own error; it runs the faster of the bf16 kernels, or f32 where the CPU has none.
+/// `f32` plans in exact f32.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum InferencePrecision {
     F32,
     Bf16,
+    Auto,
 }
 
 impl std::fmt::Display for InferencePrecision {
@@ -68,6 +72,7 @@ impl std::fmt::Display for InferencePrecision {
         f.write_str(match self {
             InferencePrecision::F32 => "f32",
             InferencePrecision::Bf16 => "bf16",
+            InferencePrecision::Auto => "auto",
         })
     }
 }
@@ -75,12 +80,15 @@ impl std::fmt::Display for InferencePrecision {
 impl std::str::FromStr for InferencePrecision {
     type Err = String;
 
-    /// `f32` or `bf16`, as in the TOML configuration and the JSON attach message.
+    /// `auto`, `f32` or `bf16`, as in the TOML configuration and the JSON attach message.
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "f32" => Ok(InferencePrecision::F32),
             "bf16" => Ok(InferencePrecision::Bf16),
-            other => Err(format!("unknown precision `{other}` (known: f32, bf16)")),
+            "auto" => Ok(InferencePrecision::Auto),
+            other => Err(format!(
+                "unknown precision `{other}` (known: auto, f32, bf16)"
+            )),
         }
     }
 }

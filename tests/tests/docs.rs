@@ -210,7 +210,14 @@ fn resolve<'a>(root: &'a Value, schema: &'a Value) -> &'a Value {
             let name = r.rsplit('/').next().unwrap_or(r);
             &root["$defs"][name]
         }
-        None => schema,
+        // An optional table (`Option<T>`): `anyOf: [{$ref: T}, {type: null}]` documents T.
+        None => match schema.get("anyOf").and_then(Value::as_array) {
+            Some(variants) => variants
+                .iter()
+                .find(|v| v.get("$ref").is_some())
+                .map_or(schema, |v| resolve(root, v)),
+            None => schema,
+        },
     }
 }
 

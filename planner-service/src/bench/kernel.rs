@@ -148,6 +148,8 @@ pub struct LayerTiming {
     /// [`matmul_packed`] on bf16 weights, bf16-pair input and output; `None` without
     /// AVX-512 BF16.
     pub packed_bf16: Option<Throughput>,
+    /// The same on weights packed as AMX tiles; `None` without AMX-BF16.
+    pub packed_amx: Option<Throughput>,
 }
 
 /// A bf16 network's first layer, output written as bf16 pairs, both ways.
@@ -313,8 +315,7 @@ fn time_layer(
         black_box(&mut c);
     });
 
-    let packed_bf16 = bf16.then(|| {
-        let packed = PackedMatrix::pack_bf16(wt);
+    let bf16_layer = |packed: PackedMatrix| {
         let pairs = Encoding::Bf16Pairs;
         let (y_rows, c_rows) = (pairs.storage_rows(k), pairs.storage_rows(m));
         let y = to_bf16_pairs(&h, k, n, ld);
@@ -330,7 +331,10 @@ fn time_layer(
             );
             black_box(&mut c);
         })
-    });
+    };
+    let packed_bf16 = bf16.then(|| bf16_layer(PackedMatrix::pack_bf16(wt)));
+    let packed_amx = (bf16 && crate::nn::amx::available())
+        .then(|| bf16_layer(PackedMatrix::pack_bf16_tiles(wt)));
 
     LayerTiming {
         shape,
@@ -338,6 +342,7 @@ fn time_layer(
         general: Throughput::new(general, shape),
         packed_f32: Throughput::new(packed_f32, shape),
         packed_bf16: packed_bf16.map(|t| Throughput::new(t, shape)),
+        packed_amx: packed_amx.map(|t| Throughput::new(t, shape)),
     }
 }
 
@@ -534,6 +539,9 @@ impl fmt::Display for KernelReport {
                 write_row(f, "", "packed f32, fused", &l.packed_f32, f32_peak)?;
                 if let Some(t) = &l.packed_bf16 {
                     write_row(f, "", "packed bf16, fused", t, bf16_peak)?;
+                }
+                if let Some(t) = &l.packed_amx {
+                    write_row(f, "", "AMX tiles bf16, fused", t, self.peak.amx_gflops)?;
                 }
             }
             if !self.bf16_available {

@@ -12,7 +12,7 @@
 mod cputime;
 mod expression;
 mod kernel;
-mod peak;
+pub mod peak;
 mod plan;
 mod timing;
 mod train;
@@ -67,9 +67,10 @@ pub enum BenchCommand {
         /// Population chunks planned in parallel; default: one per thread.
         #[arg(long)]
         chunks: Option<usize>,
-        /// Number format of inference: bf16 (the service's default; f32 where the CPU lacks
-        /// AVX-512 BF16) or f32.
-        #[arg(long, default_value = "bf16")]
+        /// Number format of inference: auto (the service's default: every kernel path this
+        /// CPU has is timed on each network's layers and the fastest runs), bf16 (the faster
+        /// bf16 path; f32 where the CPU lacks AVX-512 BF16) or f32.
+        #[arg(long, default_value = "auto")]
         precision: InferencePrecision,
         /// Seed of the random transitions the models are fitted on and of the planner.
         #[arg(long, default_value_t = 0)]

@@ -4,7 +4,10 @@
 //! The loop (`fma_chains`, `dpbf16_chains` below) keeps 12 independent
 //! accumulators, each updated by a 512-bit `VFMADD` (f32) or `VDPBF16PS` (bf16 pairs) per
 //! iteration, enough independent chains to hide the instruction's latency so that only the
-//! FMA ports limit the rate. A loop with fewer chains measures latency, not throughput: the
+//! FMA ports limit the rate; the same with 256-bit FMAs for the AVX2 path. The AMX loop
+//! keeps four 16 × 16 f32 accumulator tiles and two operand tiles of each kind in registers
+//! and issues `TDPBF16PS` on them round-robin (16 · 16 · 32 multiply-adds each), the matrix
+//! unit's own limit. A loop with fewer chains measures latency, not throughput: the
 //! project's earlier "85 % of the FMA peak" rested on such a loop and was half the real peak.
 //!
 //! The time is the calling thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), not wall time, so
@@ -13,6 +16,7 @@
 //! `None`: the kernels then run a different instruction mix and no 512-bit peak applies.
 
 use super::cputime::thread_cpu_time;
+use crate::nn::KernelPath;
 
 /// Independent accumulators: enough chains to hide the FMA's latency.
 const CHAINS: usize = 12;
@@ -32,6 +36,10 @@ pub struct Peak {
     pub f32_gflops: Option<f64>,
     /// 512-bit `VDPBF16PS`; `None` without AVX-512 BF16.
     pub bf16_gflops: Option<f64>,
+    /// AMX `TDPBF16PS`; `None` without AMX-BF16 tiles.
+    pub amx_gflops: Option<f64>,
+    /// 256-bit f32 FMA; `None` without AVX2 and FMA.
+    pub avx2_gflops: Option<f64>,
 }
 
 impl Peak {
@@ -42,14 +50,34 @@ impl Peak {
         // SAFETY (both closures): each runs only where its instructions were detected above.
         let mut f32_peak = Best::new(f32_ok);
         let mut bf16_peak = Best::new(bf16_ok);
+        let mut amx_peak = Best::new(KernelPath::AmxBf16.is_available());
+        let mut avx2_peak = Best::new(KernelPath::Avx2F32.is_available());
         for trial in 0..=TRIALS {
             let warm_up = trial == 0; // clock ramp-up, the 512-bit units powering on
             f32_peak.run(warm_up, || unsafe { x86::fma_chains(ITERATIONS) });
             bf16_peak.run(warm_up, || unsafe { x86::dpbf16_chains(ITERATIONS) });
+            avx2_peak.run(warm_up, || unsafe { x86::fma256_chains(ITERATIONS) });
+            // A tile product is 16 · 16 · 32 multiply-adds: a sixth of the loop's rounds
+            // takes about as long as the vector loops.
+            amx_peak.run(warm_up, || unsafe { x86::amx_tiles(ITERATIONS / 6) });
         }
         Self {
             f32_gflops: f32_peak.rate,
             bf16_gflops: bf16_peak.rate,
+            amx_gflops: amx_peak.rate,
+            avx2_gflops: avx2_peak.rate,
+        }
+    }
+
+    /// The peak of one core on a kernel path (`None` where unmeasured; the scalar path has
+    /// none).
+    pub fn for_path(&self, path: KernelPath) -> Option<f64> {
+        match path {
+            KernelPath::AmxBf16 => self.amx_gflops,
+            KernelPath::Avx512Bf16 => self.bf16_gflops,
+            KernelPath::Avx512F32 => self.f32_gflops,
+            KernelPath::Avx2F32 => self.avx2_gflops,
+            KernelPath::ScalarF32 => None,
         }
     }
 
@@ -63,14 +91,8 @@ impl Peak {
         Self {
             f32_gflops: max(self.f32_gflops, other.f32_gflops),
             bf16_gflops: max(self.bf16_gflops, other.bf16_gflops),
-        }
-    }
-
-    /// The peak of one core for inference in `precision` (`None` where unmeasured).
-    pub fn for_precision(&self, precision: proto::InferencePrecision) -> Option<f64> {
-        match precision {
-            proto::InferencePrecision::F32 => self.f32_gflops,
-            proto::InferencePrecision::Bf16 => self.bf16_gflops,
+            amx_gflops: max(self.amx_gflops, other.amx_gflops),
+            avx2_gflops: max(self.avx2_gflops, other.avx2_gflops),
         }
     }
 }
@@ -80,12 +102,36 @@ impl std::fmt::Display for Peak {
         let show = |g: Option<f64>| g.map_or("unavailable".to_string(), |g| format!("{g:.1}"));
         write!(
             f,
-            "measured peak per core: f32 FMA {} GFLOP/s, bf16 dot {} GFLOP/s \
-             ({CHAINS} independent 512-bit accumulators, thread CPU time)",
+            "measured peak per core: AMX bf16 tiles {} GFLOP/s, bf16 dot {} GFLOP/s, \
+             f32 FMA {} GFLOP/s, AVX2 f32 FMA {} GFLOP/s ({CHAINS} independent 512-bit or \
+             256-bit accumulators, 4 accumulator tiles; thread CPU time)",
+            show(self.amx_gflops),
+            show(self.bf16_gflops),
             show(self.f32_gflops),
-            show(self.bf16_gflops)
+            show(self.avx2_gflops)
         )
     }
+}
+
+static BACKGROUND: std::sync::OnceLock<Peak> = std::sync::OnceLock::new();
+
+/// Measures the peaks once on a low-priority background thread (the daemon's start; about a
+/// second of one core), for [`background_peak`]. Later calls do nothing.
+pub fn measure_in_background() {
+    static STARTED: std::sync::Once = std::sync::Once::new();
+    STARTED.call_once(|| {
+        let spawned = std::thread::Builder::new().name("peak".into()).spawn(|| {
+            let _ = BACKGROUND.set(Peak::measure());
+        });
+        if let Err(e) = spawned {
+            tracing::warn!("could not start the peak measurement: {e}");
+        }
+    });
+}
+
+/// The peaks [`measure_in_background`] measured, once it has.
+pub fn background_peak() -> Option<Peak> {
+    BACKGROUND.get().copied()
 }
 
 /// Whether this CPU runs AVX-512 F (the kernels' widest level).
@@ -169,6 +215,69 @@ mod x86 {
         black_box(sum);
         (iterations * CHAINS as u64 * 32 * 2) as f64
     }
+
+    /// `iterations` rounds of one 256-bit FMA on each of [`CHAINS`] accumulators.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn fma256_chains(iterations: u64) -> f64 {
+        let a = _mm256_set1_ps(black_box(1.000_000_1));
+        let b = _mm256_set1_ps(black_box(0.999_999_9));
+        let mut acc: [__m256; CHAINS] = std::array::from_fn(|i| _mm256_set1_ps(0.001 * i as f32));
+        for _ in 0..iterations {
+            for x in &mut acc {
+                *x = _mm256_fmadd_ps(*x, a, b);
+            }
+        }
+        let mut lanes = [0.0f32; 8];
+        for x in acc {
+            let mut v = [0.0f32; 8];
+            // SAFETY: 8 floats of stack memory.
+            unsafe { _mm256_storeu_ps(v.as_mut_ptr(), x) };
+            for (l, v) in lanes.iter_mut().zip(v) {
+                *l += v;
+            }
+        }
+        black_box(lanes);
+        (iterations * CHAINS as u64 * 8 * 2) as f64
+    }
+
+    /// `iterations` rounds of four `TDPBF16PS` on accumulator tiles 0–3 from operand tiles
+    /// 4, 5 (`A`) and 6, 7 (`B`), every tile full (16 × 64 bytes); returns the flops.
+    ///
+    /// # Safety
+    /// AMX-BF16 tiles must be available (`amx::available`).
+    pub(super) unsafe fn amx_tiles(iterations: u64) -> f64 {
+        use crate::nn::amx::{TileConfig, tile};
+        let mut config = TileConfig::new();
+        for t in 0..8 {
+            config = config.with_tile(t, 16, 64);
+        }
+        #[repr(align(64))]
+        struct Operand([u32; 256]);
+        let ones = Operand([0x3f80_3f80; 256]); // bf16 1.0 pairs
+        let mut out = Operand([0; 256]);
+        // SAFETY: tiles available (the caller's contract); loads and stores cover 1 KiB arrays.
+        unsafe {
+            tile::load_config(&config);
+            tile::zero::<0>();
+            tile::zero::<1>();
+            tile::zero::<2>();
+            tile::zero::<3>();
+            tile::load::<4>(ones.0.as_ptr().cast(), 64);
+            tile::load::<5>(ones.0.as_ptr().cast(), 64);
+            tile::load::<6>(ones.0.as_ptr().cast(), 64);
+            tile::load::<7>(ones.0.as_ptr().cast(), 64);
+            for _ in 0..black_box(iterations) {
+                tile::dpbf16ps::<0, 4, 6>();
+                tile::dpbf16ps::<1, 4, 7>();
+                tile::dpbf16ps::<2, 5, 6>();
+                tile::dpbf16ps::<3, 5, 7>();
+            }
+            tile::store::<0>(out.0.as_mut_ptr().cast(), 64);
+            tile::release();
+        }
+        black_box(&out);
+        (iterations * 4 * 16 * 16 * 32 * 2) as f64
+    }
 }
 
 #[cfg(not(target_arch = "x86_64"))]
@@ -178,6 +287,12 @@ mod x86 {
     }
     pub(super) unsafe fn dpbf16_chains(_: u64) -> f64 {
         unreachable!("AVX-512 BF16 is never detected off x86-64")
+    }
+    pub(super) unsafe fn fma256_chains(_: u64) -> f64 {
+        unreachable!("AVX2 is never detected off x86-64")
+    }
+    pub(super) unsafe fn amx_tiles(_: u64) -> f64 {
+        unreachable!("AMX is never detected off x86-64")
     }
 }
 
@@ -200,17 +315,23 @@ mod tests {
             assert!(g.is_finite() && g > 0.0, "{peak:?}");
         }
         assert_eq!(
-            peak.for_precision(proto::InferencePrecision::Bf16),
-            peak.bf16_gflops
+            peak.amx_gflops.is_some(),
+            KernelPath::AmxBf16.is_available() && thread_cpu_time().is_some()
         );
+        assert_eq!(peak.for_path(KernelPath::Avx512Bf16), peak.bf16_gflops);
+        assert_eq!(peak.for_path(KernelPath::AmxBf16), peak.amx_gflops);
         assert!(peak.to_string().contains("measured peak per core"));
         let low = Peak {
             f32_gflops: Some(1.0),
             bf16_gflops: None,
+            amx_gflops: None,
+            avx2_gflops: Some(0.5),
         };
         let high = Peak {
             f32_gflops: Some(2.0),
             bf16_gflops: Some(3.0),
+            amx_gflops: Some(30.0),
+            avx2_gflops: Some(1.0),
         };
         assert_eq!(low.max(high), high);
         assert_eq!(high.max(low), high);
@@ -227,6 +348,10 @@ mod tests {
         if crate::nn::simd::bf16_dot_available() {
             // SAFETY: AVX-512 BF16 detected.
             assert_eq!(unsafe { x86::dpbf16_chains(10) }, (10 * 12 * 32 * 2) as f64);
+        }
+        if KernelPath::AmxBf16.is_available() {
+            // SAFETY: AMX detected.
+            assert_eq!(unsafe { x86::amx_tiles(10) }, (10 * 4 * 8192 * 2) as f64);
         }
         // A CPU without either instruction reports no peak for it (checked above).
         assert!(avx512() || Peak::measure().f32_gflops.is_none());

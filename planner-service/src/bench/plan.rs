@@ -11,6 +11,8 @@ use super::peak::{Peak, percent};
 use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
 use crate::dynamics::Ensemble;
 use crate::energy::{Regularizer, RegularizerKind};
+use crate::nn::KernelPath;
+use crate::nn::kernel_path::Measurement;
 use crate::plan::MpcPlanner;
 use crate::reward::RewardModel;
 use proto::task::{RewardKind, SpecBounds};
@@ -77,8 +79,15 @@ pub struct PlanReport {
     pub threads: usize,
     /// Population chunks planned in parallel.
     pub chunks: usize,
-    /// The number format inference actually ran in.
+    /// The number format inference actually ran in (the dynamics model's).
     pub precision: InferencePrecision,
+    /// The number format asked for (`auto`: the kernel paths were chosen by measurement).
+    pub asked: InferencePrecision,
+    /// The kernel path each network ran: the dynamics model's, and the regulariser's.
+    pub dynamics_path: KernelPath,
+    pub energy_path: Option<KernelPath>,
+    /// The kernel-path measurements this process made (each network shape's candidates).
+    pub measurements: Vec<Measurement>,
     /// Planning calls timed per reward.
     pub calls: usize,
     /// One entry per reward asked for, in the order asked.
@@ -206,6 +215,12 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     dynamics.set_inference_precision(s.precision);
     regularizer.set_inference_precision(s.precision);
     let precision = dynamics.member(0).mlp().inference_precision();
+    let dynamics_path = dynamics.member(0).mlp().kernel_path();
+    let energy_path = match &regularizer {
+        Regularizer::None => None,
+        Regularizer::Dae(m) => Some(m.mlp().kernel_path()),
+        Regularizer::Deen(m) => Some(m.mlp().kernel_path()),
+    };
     let peak = Peak::measure();
     let obs = data.row(0).0.to_vec();
 
@@ -342,6 +357,10 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         threads,
         chunks,
         precision,
+        asked: s.precision,
+        dynamics_path,
+        energy_path,
+        measurements: crate::nn::kernel_path::measurements(),
         calls: s.timed,
         rewards,
         cpu_share,
@@ -379,9 +398,27 @@ impl fmt::Display for PlanReport {
         )?;
         writeln!(
             f,
-            "  parallel   {} thread(s), {} population chunk(s), {} inference",
-            self.threads, self.chunks, self.precision
+            "  parallel   {} thread(s), {} population chunk(s), {} inference (asked: {})",
+            self.threads, self.chunks, self.precision, self.asked
         )?;
+        write!(f, "  kernels    dynamics {}", self.dynamics_path)?;
+        if let Some(p) = self.energy_path {
+            write!(f, ", energy {p}")?;
+        }
+        writeln!(f)?;
+        for m in &self.measurements {
+            writeln!(
+                f,
+                "    measured {}: {} per forward of {} samples (best)",
+                describe(&m.sizes),
+                m.timings
+                    .iter()
+                    .map(|t| format!("{} {:.1} µs", t.path, t.seconds * 1e6))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                crate::nn::kernel_path::BATCH
+            )?;
+        }
         if let Some(share) = self.cpu_share {
             writeln!(
                 f,
@@ -394,7 +431,7 @@ impl fmt::Display for PlanReport {
                 }
             )?;
         }
-        let peak = self.peak.for_precision(self.precision);
+        let peak = self.peak.for_path(self.dynamics_path);
         let all_cores = peak.map(|p| p * self.threads as f64);
         writeln!(f, "  peak       {}", self.peak)?;
         for t in &self.rewards {
@@ -423,7 +460,7 @@ impl fmt::Display for PlanReport {
                 percent(t.best_gflops, all_cores),
                 percent(t.gflops, all_cores),
                 self.threads,
-                self.precision
+                self.dynamics_path
             )?;
             if let Some(g) = t.cpu_gflops {
                 write!(
@@ -520,8 +557,10 @@ mod tests {
         assert!(timing.cpu_gflops.is_none_or(|g| g.is_finite() && g > 0.0));
         assert_eq!(
             report.peak.bf16_gflops.is_some(),
-            report.precision == InferencePrecision::Bf16
+            crate::nn::simd::bf16_dot_available() && report.peak.f32_gflops.is_some()
         );
+        assert_eq!(report.precision, report.dynamics_path.precision());
+        assert!(text_has_paths(&report.to_string(), &report));
         let text = report.to_string();
         assert!(
             text.contains("6→3×200→8")
@@ -536,6 +575,10 @@ mod tests {
     /// The three ways of giving the reward plan side by side on the same models; the formula
     /// is the builtin reward's, the reward model has the preset's sizes, and its products
     /// count in the throughput.
+    fn text_has_paths(text: &str, report: &PlanReport) -> bool {
+        text.contains(&format!("kernels    dynamics {}", report.dynamics_path))
+    }
+
     #[test]
     fn times_each_reward_in_turns() {
         let report = run(&Settings {

@@ -113,7 +113,7 @@ fn icem_for(task: Builtin) -> IcemConfig {
 }
 
 fn default_precision() -> InferencePrecision {
-    InferencePrecision::Bf16
+    InferencePrecision::Auto
 }
 
 impl Preset {
@@ -736,7 +736,7 @@ mod tests {
     #[test]
     fn overrides_apply_and_are_checked() {
         let mut p = Preset::new(Builtin::Cartpole.task(), None).unwrap();
-        assert_eq!(p.inference_precision, InferencePrecision::Bf16);
+        assert_eq!(p.inference_precision, InferencePrecision::Auto);
         let o = PlannerOverrides {
             regularizer: Some(RegularizerChoice::Dae),
             population: Some(50),

@@ -88,6 +88,13 @@ impl Ensemble {
         }
     }
 
+    /// Runs every member's inference on one kernel path, unmeasured.
+    pub fn set_kernel_path(&mut self, path: crate::nn::KernelPath) {
+        for member in &mut self.members {
+            member.set_kernel_path(path);
+        }
+    }
+
     /// Trains every member for the budget's epochs on `data` (or until it says stop),
     /// continuing from the current weights after refitting the input and target statistics
     /// on `data`. Members train in parallel. Without data or epochs the ensemble is left

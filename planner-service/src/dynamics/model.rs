@@ -288,6 +288,11 @@ impl ProbabilisticModel {
         self.mlp.set_inference_precision(precision);
     }
 
+    /// Runs inference on one kernel path, unmeasured (benchmarks and tests of every path).
+    pub fn set_kernel_path(&mut self, path: crate::nn::KernelPath) {
+        self.mlp.set_kernel_path(path);
+    }
+
     /// The network: `state_feature_dim + act_dim` inputs, `2 · obs_dim` outputs (means, then
     /// raw log-variances).
     pub fn mlp(&self) -> &Mlp {

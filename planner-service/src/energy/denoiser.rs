@@ -226,6 +226,11 @@ impl<L: DenoisingLoss> Denoiser<L> {
         self.mlp.set_inference_precision(precision);
     }
 
+    /// Runs inference on one kernel path, unmeasured (benchmarks and tests of every path).
+    pub fn set_kernel_path(&mut self, path: crate::nn::KernelPath) {
+        self.mlp.set_kernel_path(path);
+    }
+
     pub fn mlp(&self) -> &Mlp {
         &self.mlp
     }

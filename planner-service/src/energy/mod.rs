@@ -232,6 +232,24 @@ impl Regularizer {
         }
     }
 
+    /// Runs the network's inference on one kernel path, unmeasured.
+    pub fn set_kernel_path(&mut self, path: crate::nn::KernelPath) {
+        match self {
+            Regularizer::None => {}
+            Regularizer::Dae(m) => m.set_kernel_path(path),
+            Regularizer::Deen(m) => m.set_kernel_path(path),
+        }
+    }
+
+    /// The kernel path the network's inference runs (`None` without a network).
+    pub fn kernel_path(&self) -> Option<crate::nn::KernelPath> {
+        match self {
+            Regularizer::None => None,
+            Regularizer::Dae(m) => Some(m.mlp().kernel_path()),
+            Regularizer::Deen(m) => Some(m.mlp().kernel_path()),
+        }
+    }
+
     pub fn parts(&self) -> Option<EnergyParts> {
         match self {
             Regularizer::None => None,

@@ -16,7 +16,7 @@ use super::simd::{SimdLevel, level};
 use serde::{Deserialize, Serialize};
 
 /// The nonlinearity applied after every hidden layer (the output layer is linear).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Activation {
     /// `x σ(x)` (SiLU), as in the PETS dynamics models.

@@ -12,8 +12,10 @@
 //! the first inference after the network is built or its parameters were handed out mutably
 //! ([`Mlp::params_mut`] drops it), so a planner packs once per model, never per call.
 //!
-//! The network's [`Precision`] picks the packing: `F32` (the default) packs every layer in
-//! f32; `Bf16`, on CPUs with AVX-512 BF16, packs every layer as bf16 pairs: the f32 input is
+//! The network's [`Precision`] picks the kernel path ([`KernelPath`], measured per network
+//! shape for `Auto` and `Bf16`, see [`kernel_path`](super::kernel_path)) and so the packing:
+//! an f32 path (the default for a bare network) packs every layer in f32; a bf16 path (AMX
+//! tiles or AVX-512 BF16 dot products) packs every layer as bf16 pairs: the f32 input is
 //! converted to pairs in one pass, hidden activations travel between layers as bf16, and the
 //! output comes back in f32. The first layer was once kept in f32 for its raw input; with only
 //! 24–62 input features its f32 tiles did half the multiply-adds per instruction for little
@@ -24,8 +26,8 @@
 use super::Precision;
 use super::activation::Activation;
 use super::aligned::{AlignedBuf, round_up};
-use super::matmul::{Encoding, MatMut, MatRef, PackedMatrix, matmul_packed, write_bf16_pairs};
-use super::simd::bf16_dot_available;
+use super::kernel_path::{self, KernelPath};
+use super::matmul::{Encoding, MatMut, MatRef, PackedMatrix, matmul_packed_at, write_bf16_pairs};
 use rand::RngExt;
 use rand::rngs::StdRng;
 use std::ops::Range;
@@ -42,18 +44,33 @@ pub struct Mlp {
     packed: PackedCache,
 }
 
-/// The packed weights: a cache of `params` in the chosen precision, so it takes no part in
+/// The packed weights: a cache of `params` for the chosen kernel path, so it takes no part in
 /// equality.
 #[derive(Clone)]
 struct PackedCache {
-    precision: Precision,
-    layers: OnceLock<Vec<PackedMatrix>>,
+    request: Request,
+    layers: OnceLock<Packed>,
+}
+
+/// What inference was asked to run in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Request {
+    /// A number format; the path is chosen for it (see [`kernel_path::choose`]).
+    Precision(Precision),
+    /// One path (measurements and tests).
+    Path(KernelPath),
+}
+
+#[derive(Clone)]
+struct Packed {
+    path: KernelPath,
+    layers: Vec<PackedMatrix>,
 }
 
 impl PackedCache {
-    fn empty(precision: Precision) -> Self {
+    fn empty(request: Request) -> Self {
         Self {
-            precision,
+            request,
             layers: OnceLock::new(),
         }
     }
@@ -61,7 +78,7 @@ impl PackedCache {
 
 impl Default for PackedCache {
     fn default() -> Self {
-        Self::empty(Precision::F32)
+        Self::empty(Request::Precision(Precision::F32))
     }
 }
 
@@ -78,7 +95,7 @@ impl std::fmt::Debug for PackedCache {
         } else {
             "not packed"
         };
-        write!(f, "{state} ({:?})", self.precision)
+        write!(f, "{state} ({:?})", self.request)
     }
 }
 
@@ -158,25 +175,43 @@ impl Mlp {
     /// Mutable parameters (training). Drops the packed inference weights: the next
     /// [`Mlp::forward`] packs the new values.
     pub fn params_mut(&mut self) -> &mut [f32] {
-        self.packed = PackedCache::empty(self.packed.precision);
+        self.packed = PackedCache::empty(self.packed.request);
         &mut self.params
     }
 
-    /// Sets the number format of inference (f32 until set); the next [`Mlp::forward`] packs
-    /// the weights for it. Training is unaffected: it always runs in f32.
+    /// Sets the number format of inference (f32 until set); the next [`Mlp::forward`] chooses
+    /// the kernel path for it and packs the weights. Training is unaffected: it always runs in
+    /// f32.
     pub fn set_inference_precision(&mut self, precision: Precision) {
-        if precision != self.packed.precision {
-            self.packed = PackedCache::empty(precision);
+        self.request(Request::Precision(precision));
+    }
+
+    /// Runs inference on one kernel path (which must be available), unmeasured.
+    pub fn set_kernel_path(&mut self, path: KernelPath) {
+        assert!(path.is_available(), "{path} is not available on this CPU");
+        self.request(Request::Path(path));
+    }
+
+    fn request(&mut self, request: Request) {
+        if request != self.packed.request {
+            self.packed = PackedCache::empty(request);
         }
     }
 
-    /// The number format inference runs in: the one asked for, except that bf16 falls back to
-    /// f32 on CPUs without AVX-512 BF16.
+    /// The number format inference runs in: that of its kernel path (f32 where bf16 was asked
+    /// on a CPU without AVX-512 BF16; `Auto` resolved by measurement).
     pub fn inference_precision(&self) -> Precision {
-        match self.packed.precision {
-            Precision::Bf16 if bf16_dot_available() => Precision::Bf16,
-            _ => Precision::F32,
-        }
+        self.kernel_path().precision()
+    }
+
+    /// The kernel path inference runs (chosen, and the weights packed, on first use).
+    pub fn kernel_path(&self) -> KernelPath {
+        self.packed().path
+    }
+
+    /// The kernel path, if the weights are packed already (never packs or measures).
+    pub fn packed_kernel_path(&self) -> Option<KernelPath> {
+        self.packed.layers.get().map(|p| p.path)
     }
 
     /// Packs the weights for inference now (what the first [`Mlp::forward`] would do), e.g.
@@ -185,21 +220,24 @@ impl Mlp {
         self.packed_weights();
     }
 
-    /// Each layer's `Wᵀ` in the kernel's layout, packed on first use.
+    /// Each layer's `Wᵀ` in the kernel path's layout, packed on first use.
     fn packed_weights(&self) -> &[PackedMatrix] {
+        &self.packed().layers
+    }
+
+    fn packed(&self) -> &Packed {
         self.packed.layers.get_or_init(|| {
-            let bf16 = self.inference_precision() == Precision::Bf16;
-            (0..self.layers())
+            let path = match self.packed.request {
+                Request::Path(path) => path,
+                Request::Precision(p) => kernel_path::choose(p, &self.sizes, self.activation),
+            };
+            let layers = (0..self.layers())
                 .map(|l| {
                     let (n_in, n_out) = (self.sizes[l], self.sizes[l + 1]);
-                    let wt = MatRef::new(self.weight(l), n_in, n_out).t();
-                    if bf16 {
-                        PackedMatrix::pack_bf16(wt)
-                    } else {
-                        PackedMatrix::pack(wt)
-                    }
+                    path.pack(MatRef::new(self.weight(l), n_in, n_out).t())
                 })
-                .collect()
+                .collect();
+            Packed { path, layers }
         })
     }
 
@@ -257,7 +295,11 @@ impl Mlp {
             scratch.width
         );
         let ld = scratch.ld;
-        let packed = self.packed_weights();
+        let Packed {
+            path,
+            layers: packed,
+        } = self.packed();
+        let lvl = path.level();
         let ForwardScratch {
             input,
             input_pairs,
@@ -298,7 +340,8 @@ impl Mlp {
             } else {
                 Encoding::F32
             };
-            matmul_packed(
+            matmul_packed_at(
+                lvl,
                 MatMut::with_stride(dst, out.storage_rows(n_out), samples, ld),
                 out,
                 weights,
@@ -491,7 +534,7 @@ mod tests {
                 .collect();
             let exact = mlp.forward_rows(&x);
             mlp.set_inference_precision(Precision::Bf16);
-            if !super::bf16_dot_available() {
+            if !crate::nn::simd::bf16_dot_available() {
                 // Without AVX-512 BF16 the request falls back to f32, exactly.
                 assert_eq!(mlp.inference_precision(), Precision::F32);
                 assert_eq!(mlp.forward_rows(&x), exact);

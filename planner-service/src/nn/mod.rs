@@ -23,6 +23,7 @@ pub mod double_backprop;
 pub mod fastmath;
 #[cfg(target_arch = "x86_64")]
 pub mod fastmath512;
+pub mod kernel_path;
 pub mod matmul;
 pub mod mlp;
 pub mod normalizer;
@@ -38,6 +39,7 @@ pub use adam::Adam;
 pub use backprop::Tape;
 pub use denormals::FlushDenormals;
 pub use double_backprop::InputGradTape;
+pub use kernel_path::KernelPath;
 pub use mlp::{ForwardScratch, Mlp, ShapeError};
 pub use normalizer::Normalizer;
 pub use proto::InferencePrecision as Precision;

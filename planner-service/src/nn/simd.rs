@@ -91,8 +91,9 @@ pub fn level() -> SimdLevel {
 }
 
 /// Whether this CPU multiplies bf16 pairs into f32 (`VDPBF16PS`, AVX-512 BF16) at the level
-/// in use: then packed inference layers may run in bf16 at twice the multiply-add rate of f32
-/// (see [`Precision`](crate::nn::Precision)).
+/// in use: then packed inference layers may run in bf16. Whether that is faster than f32 is
+/// the CPU's business (twice the f32 rate on AMD Zen 5, half of it on Intel's AMX Xeons):
+/// [`kernel_path`](crate::nn::kernel_path) measures it rather than assuming.
 #[inline]
 pub fn bf16_dot_available() -> bool {
     static BF16: std::sync::OnceLock<bool> = std::sync::OnceLock::new();

@@ -198,6 +198,11 @@ impl RewardModel {
         self.mlp.set_inference_precision(precision);
     }
 
+    /// Runs inference on one kernel path, unmeasured (benchmarks and tests of every path).
+    pub fn set_kernel_path(&mut self, path: crate::nn::KernelPath) {
+        self.mlp.set_kernel_path(path);
+    }
+
     /// The raw model inputs `[features(s), a, features(s')]` of every transition, sample-major.
     fn raw_inputs(&self, data: &Transitions) -> Vec<f32> {
         let (f, a) = (self.task.state_feature_dim, self.task.act_dim);

@@ -372,6 +372,7 @@ impl Service {
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
+        crate::bench::peak::measure_in_background();
         // Resume the stored runs that are ours (all of them for a planner without peers).
         service.rebalance().await;
         let _alive = session
@@ -1273,6 +1274,7 @@ impl Service {
                     retraining: run.histograms().retraining_seconds.timings(),
                     last_retraining: run.last_retraining(),
                     replay_damage: run.replay_damage().map(str::to_string),
+                    kernels: run.models().kernels(run.preset().inference_precision),
                 }
             })
             .collect();
@@ -1319,6 +1321,7 @@ impl Service {
                     proto::task::MAX_DISTINCT_TASKS as u64,
                 ),
             },
+            kernels: status::KernelStatus::now(),
         }
     }
 

@@ -128,6 +128,9 @@ pub struct PlannerStatus {
     /// How close the daemon is to each of its budgets.
     #[serde(default)]
     pub budgets: Budgets,
+    /// Kernel paths: measured peaks and per-network measurements.
+    #[serde(default)]
+    pub kernels: KernelStatus,
 }
 
 /// How much of one budget is used: `used` of `limit` (`limit` absent: unbounded).
@@ -146,6 +149,64 @@ impl Usage {
     }
 }
 
+/// The matrix kernels of this machine: each path's measured peak and the paths' measured times
+/// on the networks planned so far (see `nn::kernel_path`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct KernelStatus {
+    /// One core's measured peak in GFLOP/s per kernel path (`amx-bf16`, `avx512-bf16`,
+    /// `avx512-f32`, `avx2-f32`), measured once in the background after the daemon starts;
+    /// empty until then.
+    #[serde(default)]
+    pub peak_gflops: std::collections::BTreeMap<String, f64>,
+    /// Every network shape whose path was chosen by measurement, with each path's time.
+    #[serde(default)]
+    pub measured: Vec<NetworkKernels>,
+}
+
+/// One network shape's measured forward pass through each candidate path.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct NetworkKernels {
+    /// `[inputs, hidden…, outputs]`.
+    pub sizes: Vec<usize>,
+    /// The fastest path, which networks of this shape run under `auto`.
+    pub chosen: String,
+    /// Best time of one forward pass of `samples` samples, in microseconds, per path.
+    pub microseconds: std::collections::BTreeMap<String, f64>,
+    pub samples: usize,
+}
+
+impl KernelStatus {
+    /// The peak measured so far and every measurement this process made.
+    pub fn now() -> Self {
+        use crate::nn::KernelPath;
+        let peak_gflops = crate::bench::peak::background_peak()
+            .map(|peak| {
+                KernelPath::ALL
+                    .into_iter()
+                    .filter_map(|p| Some((p.name().to_string(), peak.for_path(p)?)))
+                    .collect()
+            })
+            .unwrap_or_default();
+        let measured = crate::nn::kernel_path::measurements()
+            .into_iter()
+            .map(|m| NetworkKernels {
+                chosen: m.fastest().name().to_string(),
+                microseconds: m
+                    .timings
+                    .iter()
+                    .map(|t| (t.path.name().to_string(), t.seconds * 1e6))
+                    .collect(),
+                sizes: m.sizes,
+                samples: crate::nn::kernel_path::BATCH,
+            })
+            .collect();
+        Self {
+            peak_gflops,
+            measured,
+        }
+    }
+}
+
 /// The daemon's budgets: what each bounds, how much is used. A request that would go beyond
 /// one is refused with an error naming the budget and its setting.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -159,6 +220,16 @@ pub struct Budgets {
     /// Distinct task specs compiled in this process (catalog tasks included), of the most it
     /// compiles; only runs that were opened keep one.
     pub task_slots: Usage,
+}
+
+/// The kernel path each of a run's networks runs (`None`: not packed yet, or no such network).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct RunKernels {
+    /// The number format the run's preset asks for (`auto`, `bf16` or `f32`).
+    pub precision: String,
+    pub dynamics: Option<String>,
+    pub energy: Option<String>,
+    pub reward: Option<String>,
 }
 
 /// A stored run that could not be opened (it stays on disk untouched).
@@ -215,6 +286,9 @@ pub struct RunStatus {
     /// torn tail): the run resumed with everything else. `None`: nothing was lost.
     #[serde(default)]
     pub replay_damage: Option<String>,
+    /// The kernel path each of the run's current networks runs.
+    #[serde(default)]
+    pub kernels: RunKernels,
 }
 
 #[cfg(test)]

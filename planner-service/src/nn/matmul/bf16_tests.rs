@@ -125,12 +125,31 @@ fn bf16_layers_match_the_reference_on_ragged_shapes() {
         return; // nothing else can run on this CPU
     }
     let mut rng = StdRng::seed_from_u64(7);
-    for &(m, n, k) in &super::RAGGED_SHAPES {
-        for (weights, out) in [
-            (Encoding::Bf16Pairs, Encoding::F32),
-            (Encoding::Bf16Pairs, Encoding::Bf16Pairs),
-            (Encoding::F32, Encoding::Bf16Pairs),
+    let tiles = crate::nn::amx::available();
+    if !tiles {
+        eprintln!("no AMX-BF16 tiles on this CPU or kernel: the tile kernel is not tested");
+    }
+    // The AMX kernel's edges lie at 16 and 32 rows, columns and pairs and at groups of 128
+    // columns: the extra shapes cross each (several row-block pairs and a lone block, whole
+    // and ragged depth chunks, several column groups with a ragged last panel).
+    let shapes = super::RAGGED_SHAPES.iter().chain(&[
+        (17, 16, 32),
+        (33, 145, 70),
+        (64, 256, 64),
+        (48, 129, 33),
+        (80, 300, 130),
+    ]);
+    for &(m, n, k) in shapes {
+        for (weights, amx, out) in [
+            (Encoding::Bf16Pairs, false, Encoding::F32),
+            (Encoding::Bf16Pairs, false, Encoding::Bf16Pairs),
+            (Encoding::F32, false, Encoding::Bf16Pairs),
+            (Encoding::Bf16Pairs, true, Encoding::F32),
+            (Encoding::Bf16Pairs, true, Encoding::Bf16Pairs),
         ] {
+            if amx && !tiles {
+                continue;
+            }
             for act in [None, Some(Activation::Swish), Some(Activation::Softplus)] {
                 let a: Vec<f32> = (0..m * k).map(|_| rng.random_range(-2.0..2.0)).collect();
                 let y: Vec<f32> = (0..k * n).map(|_| rng.random_range(-2.0..2.0)).collect();
@@ -144,6 +163,10 @@ fn bf16_layers_match_the_reference_on_ragged_shapes() {
                         }
                         (PackedMatrix::pack(MatRef::new(&a, m, k)), y_ld)
                     }
+                    Encoding::Bf16Pairs if amx => (
+                        PackedMatrix::pack_bf16_tiles(MatRef::new(&a, m, k)),
+                        to_pairs(&y, k, n, ld),
+                    ),
                     Encoding::Bf16Pairs => (
                         PackedMatrix::pack_bf16(MatRef::new(&a, m, k)),
                         to_pairs(&y, k, n, ld),
@@ -162,7 +185,7 @@ fn bf16_layers_match_the_reference_on_ragged_shapes() {
                     act,
                 );
                 let want = reference(&a, &y, &bias, act, (m, n, k), weights == Encoding::F32);
-                let what = format!("{weights:?}→{out:?} {act:?} {m}×{n}×{k}");
+                let what = format!("{weights:?} (tiles: {amx})→{out:?} {act:?} {m}×{n}×{k}");
                 for i in 0..m {
                     for j in 0..n {
                         let (got, e) = (element(&c, out, ld_c, i, j) as f64, want[i * n + j]);

@@ -15,6 +15,8 @@
 //! `f · ld + i`): then the forward pass is `Z = Wᵀ · H`, the backward pass `G' = W · G`, and only
 //! the weight gradient needs a (small) transpose of its right factor.
 
+#[cfg(target_arch = "x86_64")]
+mod amx_packed;
 #[cfg(test)]
 mod bf16_tests;
 mod packed;
@@ -26,6 +28,7 @@ mod x86;
 #[cfg(target_arch = "x86_64")]
 mod x86_packed;
 
+pub(crate) use packed::matmul_packed_at;
 pub use packed::{
     Encoding, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed, write_bf16_pairs,
 };

@@ -15,8 +15,12 @@
 //! are still in L1.
 //!
 //! **bf16 layers** ([`Encoding::Bf16Pairs`]). On CPUs with AVX-512 BF16 one `VDPBF16PS` does
-//! 32 multiply-adds (bf16 products, f32 sums) where an f32 FMA does 16: measured 230 against
-//! 117 GFLOP/s per core on the project's machine. A matrix packed with
+//! 32 multiply-adds (bf16 products, f32 sums) where an f32 FMA does 16, but its rate depends on
+//! the CPU: measured 230 against 117 GFLOP/s per core on an AMD Zen 5, and 85 against
+//! 162 GFLOP/s — half the f32 rate — on an Intel Xeon with AMX, whose tile unit
+//! (`TDPBF16PS`, `amx_packed.rs`, [`PackedMatrix::pack_bf16_tiles`]) does 2.7–3.0 TFLOP/s.
+//! Which kernel a network runs is therefore measured, not assumed
+//! ([`kernel_path`](crate::nn::kernel_path)). A matrix packed with
 //! [`PackedMatrix::pack_bf16`] holds its weights rounded to bf16, two consecutive depth
 //! elements per 32-bit word, and multiplies activations stored the same way: feature rows
 //! `2p` and `2p + 1` of a sample share word `p` of its column, the even one in the low half.
@@ -149,6 +153,9 @@ pub struct PackedMatrix {
     rows: usize,
     depth: usize,
     encoding: Encoding,
+    /// Packed as AMX tiles (bf16 only, see [`PackedMatrix::pack_bf16_tiles`]) rather than in
+    /// the vector kernels' row blocks.
+    tiles: bool,
     data: AlignedBuf,
 }
 
@@ -156,8 +163,11 @@ impl std::fmt::Debug for PackedMatrix {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "PackedMatrix({}×{}, {:?})",
-            self.rows, self.depth, self.encoding
+            "PackedMatrix({}×{}, {:?}{})",
+            self.rows,
+            self.depth,
+            self.encoding,
+            if self.tiles { ", AMX tiles" } else { "" }
         )
     }
 }
@@ -182,6 +192,43 @@ impl PackedMatrix {
         })
     }
 
+    /// Packs any `m × k` view as bf16 pairs in AMX tiles: blocks of 16 output rows, depth
+    /// chunks of 16 pairs, each a zero-padded 16 × 16-word tile (see `amx_packed.rs`).
+    /// Multiplied by [`matmul_packed`] only where [`amx::available`](crate::nn::amx::available).
+    pub fn pack_bf16_tiles(a: MatRef<'_>) -> Self {
+        let (m, k) = (a.rows, a.cols);
+        let steps = Encoding::Bf16Pairs.storage_rows(k);
+        let (blocks, chunks) = (m.div_ceil(16), steps.div_ceil(16));
+        let mut data = AlignedBuf::zeros(blocks * chunks * 256);
+        let out = data.as_mut_slice();
+        let at = |i: usize, d: usize| {
+            if d < k {
+                a.data[i * a.rs + d * a.cs]
+            } else {
+                0.0
+            }
+        };
+        for i in 0..m {
+            for p in 0..steps {
+                let (b, r, c, q) = (i / 16, i % 16, p / 16, p % 16);
+                out[(b * chunks + c) * 256 + r * 16 + q] =
+                    bf16_pair(at(i, 2 * p), at(i, 2 * p + 1));
+            }
+        }
+        Self {
+            rows: m,
+            depth: k,
+            encoding: Encoding::Bf16Pairs,
+            tiles: true,
+            data,
+        }
+    }
+
+    /// Whether this matrix is packed as AMX tiles.
+    pub fn is_tiles(&self) -> bool {
+        self.tiles
+    }
+
     fn pack_with(
         a: MatRef<'_>,
         encoding: Encoding,
@@ -204,6 +251,7 @@ impl PackedMatrix {
             rows: m,
             depth: k,
             encoding,
+            tiles: false,
             data,
         }
     }
@@ -251,7 +299,7 @@ pub fn matmul_packed(
     matmul_packed_at(level(), c, out, a, y, bias, act)
 }
 
-pub(super) fn matmul_packed_at(
+pub(crate) fn matmul_packed_at(
     lvl: SimdLevel,
     c: MatMut<'_>,
     out: Encoding,
@@ -280,6 +328,10 @@ pub(super) fn matmul_packed_at(
         !bf16 || (lvl == SimdLevel::Avx512 && bf16_dot_available()),
         "bf16 layers need AVX-512 BF16"
     );
+    assert!(
+        !a.tiles || crate::nn::amx::available(),
+        "a matrix packed as AMX tiles needs AMX-BF16"
+    );
     if m == 0 || n == 0 {
         return;
     }
@@ -299,9 +351,15 @@ pub(super) fn matmul_packed_at(
             bias: bias.as_ptr(),
             act,
         };
-        // SAFETY: the level guarantees AVX-512F (and BF16 where a bf16 operand is involved,
-        // asserted above); the views and the packing checked every extent.
-        unsafe { super::x86_packed::drive(&raw) };
+        if a.tiles {
+            // SAFETY: AMX and AVX-512 BF16 were asserted above; the views and the packing
+            // checked every extent.
+            unsafe { super::amx_packed::drive(&raw) };
+        } else {
+            // SAFETY: the level guarantees AVX-512F (and BF16 where a bf16 operand is
+            // involved, asserted above); the views and the packing checked every extent.
+            unsafe { super::x86_packed::drive(&raw) };
+        }
         return;
     }
     // Other levels: the general kernel on each block, then the block's rows activated while

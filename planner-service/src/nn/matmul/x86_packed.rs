@@ -72,7 +72,7 @@ const INTERLEAVE: [i16; 32] = {
 /// Stores two finished rows of 16 lanes as one row of bf16 pairs.
 #[inline]
 #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
-unsafe fn store_pairs(c: *mut f32, mask: __mmask16, lo: __m512, hi: __m512) {
+pub(super) unsafe fn store_pairs(c: *mut f32, mask: __mmask16, lo: __m512, hi: __m512) {
     // SAFETY: the caller passes a row segment valid for the masked lanes.
     unsafe {
         let halves: __m512i = std::mem::transmute(_mm512_cvtne2ps_pbh(hi, lo));
