@@ -205,7 +205,9 @@ fn a_light_run_keeps_its_deadline_while_a_heavy_run_plans_and_a_third_retrains()
         // then often let a light plan through anyway, so the light run's tally alone does not
         // tell the two apart on every machine).
         assert!(heavy_run.plan_tally.stepped_back >= 1, "{heavy_run:?}");
-        assert_eq!(light_run.plan_tally.stepped_back, 0, "{light_run:?}");
+        // The light run may step back too, but only for a retraining's guaranteed slice
+        // (`retraining_share`: a retraining that plans leave no idle time runs a minibatch while
+        // every plan waits), never past its deadline, which the tally below checks.
         // The light run kept every deadline: no plan cut, none missed, every iteration ran.
         let l = light_run.plan_tally;
         assert_eq!(
