@@ -1096,7 +1096,10 @@ mod tests {
             let (run, done) = (run.clone(), done.clone());
             std::thread::spawn(move || {
                 let mut seen_ends = 0;
-                while !done.load(Ordering::SeqCst) {
+                // One look after the writer is done as well: the final tally (whole episodes
+                // only) is always sampled, however the threads were scheduled.
+                loop {
+                    let last_look = done.load(Ordering::SeqCst);
                     let tally = run.tally();
                     if tally.transitions > 0 && tally.transitions % STEPS as usize == 0 {
                         assert_eq!(
@@ -1106,6 +1109,9 @@ mod tests {
                             tally.transitions
                         );
                         seen_ends += 1;
+                    }
+                    if last_look {
+                        break;
                     }
                 }
                 seen_ends

@@ -67,9 +67,9 @@ fn cartpole() -> RunSpec {
     }
 }
 
-/// Observation `t` of a made-up half-cheetah trajectory (17 numbers).
+/// Observation `t` of a made-up half-cheetah trajectory (18 numbers, the task's observation).
 fn cheetah_obs(t: u32) -> Vec<f32> {
-    (0..17)
+    (0..18)
         .map(|i| ((t + i) as f32 * 0.1).sin() * 0.5)
         .collect()
 }
