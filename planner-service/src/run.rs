@@ -907,30 +907,40 @@ mod tests {
         preset
     }
 
-    /// A run whose replay log writes through a disk that fills up while `full` is set.
-    fn run_on_a_filling_disk(path: &std::path::Path, full: Arc<AtomicBool>) -> Arc<Run> {
-        let spec = RunSpec {
+    /// The spec every test run here has: cartpole, the `cem` preset, async, seed 1.
+    fn cartpole_spec() -> RunSpec {
+        RunSpec {
             task: Builtin::Cartpole.name().into(),
             preset: Some("cem".into()),
             overrides: PlannerOverrides::default(),
             mode: TrainMode::Async,
             seed: 1,
             task_spec: None,
-        };
-        let task = Builtin::Cartpole.task();
-        let buffer =
-            ReplayBuffer::open_with(path, task, |file| Box::new(FillingDisk { file, full }))
-                .unwrap();
+        }
+    }
+
+    /// A cartpole run with untrained small models over `buffer`.
+    fn run_on(buffer: ReplayBuffer) -> Arc<Run> {
         let preset = small_preset();
-        let models = Models::untrained(task, &preset, 1);
+        let models = Models::untrained(Builtin::Cartpole.task(), &preset, 1);
         Run::with_state(
             "r".into(),
-            spec,
+            cartpole_spec(),
             preset,
             buffer,
             models,
             None,
             quiet_hosting(),
+        )
+    }
+
+    /// A run whose replay log writes through a disk that fills up while `full` is set.
+    fn run_on_a_filling_disk(path: &std::path::Path, full: Arc<AtomicBool>) -> Arc<Run> {
+        run_on(
+            ReplayBuffer::open_with(path, Builtin::Cartpole.task(), |file| {
+                Box::new(FillingDisk { file, full })
+            })
+            .unwrap(),
         )
     }
 
@@ -1035,24 +1045,7 @@ mod tests {
             })
             .unwrap()
         };
-        let preset = small_preset();
-        let models = Models::untrained(Builtin::Cartpole.task(), &preset, 1);
-        let run = Run::with_state(
-            "r".into(),
-            RunSpec {
-                task: Builtin::Cartpole.name().into(),
-                preset: Some("cem".into()),
-                overrides: PlannerOverrides::default(),
-                mode: TrainMode::Async,
-                seed: 1,
-                task_spec: None,
-            },
-            preset,
-            buffer,
-            models,
-            None,
-            quiet_hosting(),
-        );
+        let run = run_on(buffer);
         let mut session = AgentSession::new("a", 200);
         for step in 0..4 {
             run.accept(&mut session, &obs(0, step, None)).await.unwrap();
@@ -1159,14 +1152,7 @@ mod tests {
     }
 
     fn open(dir: &RunDir, planner: &str) -> Arc<Run> {
-        let spec = RunSpec {
-            task: Builtin::Cartpole.name().into(),
-            preset: Some("cem".into()),
-            overrides: Default::default(),
-            mode: TrainMode::Async,
-            seed: 1,
-            task_spec: None,
-        };
+        let spec = cartpole_spec();
         let preset = small_preset();
         let epoch = dir
             .claim_epoch_after(dir.current_epoch().unwrap(), planner)

@@ -640,12 +640,13 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_reopened_buffer_holds_everything_stored() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
-        let task = Builtin::Cartpole.task();
-        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+    /// Stores one finished 10-step episode of agent `a` in the log at `path` and closes it;
+    /// returns what the buffer held and the episode's summary.
+    fn store_one_episode(
+        path: &std::path::Path,
+        task: &'static Task,
+    ) -> (Transitions, EpisodeSummary) {
+        let mut buffer = ReplayBuffer::open(path, task).unwrap();
         for step in 0..10 {
             buffer.append(vec![transition("a", 0, step, 0.5)]).unwrap();
         }
@@ -657,8 +658,15 @@ mod tests {
             end: EpisodeEnd::TimeLimit,
         };
         buffer.append(vec![summary.clone().into()]).unwrap();
-        let snapshot = buffer.transitions().clone();
-        drop(buffer);
+        (buffer.transitions().clone(), summary)
+    }
+
+    #[test]
+    fn a_reopened_buffer_holds_everything_stored() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.log");
+        let task = Builtin::Cartpole.task();
+        let (snapshot, summary) = store_one_episode(&path, task);
 
         let reopened = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(reopened.transitions(), &snapshot);
@@ -674,21 +682,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("replay.log");
         let task = Builtin::Cartpole.task();
-        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
-        assert_eq!(buffer.damage(), None);
-        for step in 0..10 {
-            buffer.append(vec![transition("a", 0, step, 0.5)]).unwrap();
-        }
-        let summary = EpisodeSummary {
-            agent: "a".into(),
-            episode: 0,
-            steps: 10,
-            episode_return: 5.0,
-            end: EpisodeEnd::TimeLimit,
-        };
-        buffer.append(vec![summary.clone().into()]).unwrap();
-        let snapshot = buffer.transitions().clone();
-        drop(buffer);
+        assert_eq!(ReplayBuffer::open(&path, task).unwrap().damage(), None);
+        let (snapshot, summary) = store_one_episode(&path, task);
         // The task's name appears first in the header record: damage one of its bytes.
         let mut bytes = std::fs::read(&path).unwrap();
         let at = bytes
