@@ -262,7 +262,8 @@ pub struct PlannerOverrides {
     /// iteration runs, as a simulator that waits for its action wants); absent: the task's
     /// control period.
     pub deadline_ms: Option<u32>,
-    /// The units of `energy_noise_sigma` (the preset's: `standardised`).
+    /// The units of `energy_noise_sigma` (the preset's: `raw` for pusher, `standardised` for
+    /// the other built-in tasks).
     pub energy_noise_units: Option<NoiseUnits>,
 }
 
