@@ -378,7 +378,7 @@ impl Service {
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
-        crate::bench::peak::measure_in_background();
+        crate::nn::peak::measure_in_background();
         // Resume the stored runs that are ours (all of them for a planner without peers).
         service.rebalance().await;
         let _alive = session

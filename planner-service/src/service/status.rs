@@ -183,7 +183,7 @@ impl KernelStatus {
     /// The peak measured so far and every measurement this process made.
     pub fn now() -> Self {
         use crate::nn::KernelPath;
-        let peak_gflops = crate::bench::peak::background_peak()
+        let peak_gflops = crate::nn::peak::background_peak()
             .map(|peak| {
                 KernelPath::ALL
                     .into_iter()
