@@ -135,3 +135,69 @@ fn a_restart_opens_stored_runs_only_within_max_runs_and_the_replay_budget() {
         assert!(stored(run).exists(), "run {run} is kept on disk");
     }
 }
+
+/// A stored run whose opening fails on an I/O error that may pass (here its replay log is
+/// briefly a directory) is not set aside: `status` lists it as retrying, and once the error
+/// passes the daemon opens it by itself, with nothing lost.
+#[test]
+fn a_transient_open_error_is_retried_until_the_run_opens() {
+    let dir = TempDir::new("transient-open");
+    let mut planner = Planner::start(dir.path(), &config(3, None)).expect("planner starts");
+    runtime().block_on(async {
+        let client = Client::connect(&planner.endpoint, "t", "a").await.unwrap();
+        client.attach(&spec()).await.unwrap();
+    });
+    planner.stop().unwrap();
+    let log = planner.data_dir.join("runs").join("t").join("replay.log");
+    let aside = log.with_extension("aside");
+    let bytes = std::fs::metadata(&log).unwrap().len();
+    std::fs::rename(&log, &aside).unwrap();
+    std::fs::create_dir(&log).unwrap();
+
+    let mut planner = Planner::start(dir.path(), &config(3, None)).expect("planner restarts");
+    runtime().block_on(async {
+        let client = Client::connect(&planner.endpoint, "other", "a")
+            .await
+            .unwrap();
+        client
+            .attach(&spec())
+            .await
+            .expect("the daemon serves others");
+        let deadline = std::time::Instant::now() + Duration::from_secs(30);
+        let retrying = loop {
+            let s = status(&client.session, PLANNER).await.unwrap();
+            if let Some(r) = s.retrying_runs.iter().find(|r| r.name == "t") {
+                break r.clone();
+            }
+            assert!(
+                std::time::Instant::now() < deadline,
+                "never retrying: {s:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        };
+        assert!(retrying.attempts >= 1, "{retrying:?}");
+        let s = status(&client.session, PLANNER).await.unwrap();
+        assert!(
+            s.failed_runs.iter().all(|f| f.name != "t"),
+            "set aside: {s:?}"
+        );
+
+        // The error passes: the next try opens the run.
+        std::fs::remove_dir(&log).unwrap();
+        std::fs::rename(&aside, &log).unwrap();
+        let deadline = std::time::Instant::now() + Duration::from_secs(60);
+        loop {
+            let s = status(&client.session, PLANNER).await.unwrap();
+            if s.runs.iter().any(|r| r.name == "t") {
+                assert!(s.retrying_runs.is_empty(), "{s:?}");
+                break;
+            }
+            assert!(std::time::Instant::now() < deadline, "never opened: {s:?}");
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        let t = Client::connect(&planner.endpoint, "t", "a").await.unwrap();
+        t.attach(&spec()).await.expect("the reopened run is served");
+    });
+    planner.stop().unwrap();
+    assert!(std::fs::metadata(&log).unwrap().len() >= bytes);
+}
