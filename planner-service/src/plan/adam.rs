@@ -45,7 +45,8 @@
 //! [`AdamPlanner::optimize`] allocates nothing.
 
 use super::anytime::IterationClock;
-use super::cem::{CemConfig, CemOutcome, ConfigError, SequenceBox};
+use super::sequence::{CemOutcome, SequenceBox};
+use super::settings::{CemConfig, ConfigError};
 use crate::dynamics::{Ensemble, MeanTape};
 use crate::energy::{EnergyGradScratch, Regularizer};
 use crate::reward::{RewardModel, RewardTape};
@@ -54,37 +55,6 @@ use proto::task::FormulaScratch;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
-use serde::{Deserialize, Serialize};
-
-/// Adam planning's own parameter (the rest are [`CemConfig`]'s: `horizon`, `population` =
-/// candidates optimised together, `iterations` = Adam steps, `particles`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AdamConfig {
-    /// Step size as a fraction of each action's half-range `(ub − lb)/2`.
-    pub learning_rate: f32,
-}
-
-impl Default for AdamConfig {
-    fn default() -> Self {
-        Self { learning_rate: 0.1 }
-    }
-}
-
-/// Largest accepted [`AdamConfig::learning_rate`]: a step of one half-range already crosses
-/// the whole box in two steps.
-pub const MAX_LEARNING_RATE: f32 = 1.0;
-
-impl AdamConfig {
-    /// Checks the learning rate: finite, positive, at most [`MAX_LEARNING_RATE`].
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        let lr = self.learning_rate;
-        if lr.is_finite() && lr > 0.0 && lr <= MAX_LEARNING_RATE {
-            Ok(())
-        } else {
-            Err(ConfigError::Adam("learning_rate", lr))
-        }
-    }
-}
 
 const BETA1: f32 = 0.9;
 const BETA2: f32 = 0.999;
@@ -606,6 +576,7 @@ mod tests {
     use crate::data::Transitions;
     use crate::dynamics::DynamicsConfig;
     use crate::energy::{EnergyConfig, RegularizerKind};
+    use crate::plan::settings::{AdamConfig, MAX_LEARNING_RATE};
     use crate::plan::{IcemConfig, Optimizer};
     use proto::Builtin;
 

@@ -29,7 +29,7 @@
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
 use crate::plan::anytime::Preempt;
-use crate::plan::cem::CemConfig;
+use crate::plan::settings::CemConfig;
 use crate::reward::{RewardModel, RewardScratch};
 use proto::Task;
 use proto::task::FormulaScratch;

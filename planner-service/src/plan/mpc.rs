@@ -4,9 +4,9 @@
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
 use crate::plan::anytime::{IterationClock, Preempt};
-use crate::plan::cem::{CemConfig, ConfigError};
 use crate::plan::imagine::Imagination;
 use crate::plan::search::{Imagined, Search};
+use crate::plan::settings::{CemConfig, ConfigError};
 use crate::reward::RewardModel;
 use proto::Task;
 use std::sync::Arc;

@@ -4,9 +4,11 @@
 use super::adam::AdamPlanner;
 use super::anytime::IterationClock;
 use super::anytime::Preempt;
-use super::cem::{Cem, CemConfig, CemOutcome, ConfigError, Optimizer, PopulationObjective};
+use super::cem::Cem;
 use super::icem::Icem;
 use super::imagine::Imagination;
+use super::sequence::{CemOutcome, PopulationObjective};
+use super::settings::{CemConfig, ConfigError, Optimizer};
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
 use crate::reward::RewardModel;

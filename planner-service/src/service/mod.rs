@@ -268,6 +268,10 @@ pub struct Service {
     /// Stored runs whose opening failed on an I/O error that may pass: tried again with
     /// backoff, listed by `status` meanwhile.
     retrying: Mutex<BTreeMap<String, Retrying>>,
+    /// Stored runs left closed because opening them would go beyond a budget (`max_runs`,
+    /// `[storage] max_total_replay_bytes`), with the budget: listed by `status`, opened when an
+    /// agent attaches once the budget allows, refused with the reason until then.
+    dormant: Mutex<BTreeMap<String, String>>,
     /// Held while a new run is opened (off the event loop), so that two agents attaching to
     /// the same new run at once open it once. Hosted runs are joined without it.
     opening: tokio::sync::Mutex<()>,
@@ -369,6 +373,7 @@ impl Service {
             runs: Mutex::new(HashMap::new()),
             failed: Mutex::new(BTreeMap::new()),
             retrying: Mutex::new(BTreeMap::new()),
+            dormant: Mutex::new(BTreeMap::new()),
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             cancel_training: Arc::new(AtomicBool::new(false)),
@@ -378,7 +383,7 @@ impl Service {
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
-        crate::bench::peak::measure_in_background();
+        crate::nn::peak::measure_in_background();
         // Resume the stored runs that are ours (all of them for a planner without peers).
         service.rebalance().await;
         let _alive = session
@@ -876,20 +881,52 @@ impl Service {
             ))
             .into());
         }
+        let stored = RunDir::new(&self.config.data_dir, name)
+            .replay_log()
+            .exists();
+        if let Err(budget) = self.opening_budget(stored) {
+            if !stored {
+                return Err(refuse(budget).into());
+            }
+            let reason = format!(
+                "run `{name}` is stored here but not open: {budget}; it stays on disk untouched \
+                 (the operator raises the budget, or archives runs with `planner-service runs archive`)"
+            );
+            self.dormant
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .insert(name.to_string(), budget);
+            return Err(refuse(reason).into());
+        }
+        let run = self.open_run(name, spec.clone()).await?;
+        self.host(run);
+        Ok(())
+    }
+
+    /// Whether one more run may be opened now: fewer than `max_runs` are hosted and, for a
+    /// stored run (opening reads its whole replay into memory), the open runs' replay logs
+    /// are below `[storage] max_total_replay_bytes`. These two bound the daemon's memory:
+    /// `max_runs` runs' models, and replay of at most that budget plus the last run opened.
+    /// The budget that is reached otherwise, named by its setting.
+    fn opening_budget(&self, stored: bool) -> Result<(), String> {
         let hosted = self
             .runs
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .len();
         if hosted >= self.config.max_runs {
-            return Err(refuse(format!(
-                "this planner already hosts its limit of {} runs",
+            return Err(format!(
+                "this planner already hosts its limit of {} runs (max_runs)",
                 self.config.max_runs
-            ))
-            .into());
+            ));
         }
-        let run = self.open_run(name, spec.clone()).await?;
-        self.host(run);
+        let (used, total) = (self.replay_budget.used(), self.replay_budget.total);
+        if stored && used >= total {
+            return Err(format!(
+                "the open runs' replay logs hold {used} bytes, this planner's budget of {total} \
+                 bytes ([storage] max_total_replay_bytes)"
+            ));
+        }
         Ok(())
     }
 
@@ -961,6 +998,10 @@ impl Service {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .remove(run.name());
+        self.dormant
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(run.name());
         let trainer = self.runtime.spawn(run.clone().trainer_loop());
         let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         runs.insert(
@@ -978,8 +1019,12 @@ impl Service {
     /// by a worker), then takes over every stored run that is free and placed here. At start
     /// this resumes a restarted daemon's runs (all stored runs, for a planner without peers):
     /// status lists them at once, their trainers catch up with episodes stored after the last
-    /// checkpoint, and agents re-attach to them. Stored runs are taken even beyond `max_runs`
-    /// (the limit is on creating runs, never on keeping data). A run that cannot be opened
+    /// checkpoint, and agents re-attach to them. Runs are opened newest first (by their replay
+    /// log's last write) while the budgets allow ([`Service::opening_budget`]: `max_runs`, the
+    /// total replay bytes), so that a restart stays inside the memory a running daemon may
+    /// use; the others stay dormant, on disk untouched, listed by `status`, and open on an
+    /// agent's attach once a budget allows (refused with the budget's name until then). A run
+    /// that cannot be opened
     /// (over today's limits, damaged, even one whose opening panics) is set aside: logged,
     /// listed by `status` as failed with the reason, refused at attach, not tried again by
     /// this daemon, and left on disk untouched; the daemon serves the others.
@@ -1010,13 +1055,21 @@ impl Service {
         for (name, reason) in lost {
             self.step_down(&name, reason).await;
         }
-        let stored = match persist::stored_runs(&self.config.data_dir) {
+        let mut stored = match persist::stored_runs(&self.config.data_dir) {
             Ok(stored) => stored,
             Err(e) => {
                 tracing::error!(error = %e, "cannot list stored runs; none taken over");
                 return;
             }
         };
+        // Newest first: the runs in use resume before the long finished ones.
+        let last_written = |dir: &RunDir| {
+            std::fs::metadata(dir.replay_log())
+                .and_then(|m| m.modified())
+                .ok()
+        };
+        stored.sort_by_cached_key(|(_, dir)| std::cmp::Reverse(last_written(dir)));
+        let mut dormant = BTreeMap::new();
         for (name, dir) in stored {
             let set_aside = self
                 .failed
@@ -1050,6 +1103,10 @@ impl Service {
                 self.set_aside(&name, reason);
                 continue;
             }
+            if let Err(budget) = self.opening_budget(true) {
+                dormant.insert(name, budget);
+                continue;
+            }
             match self.open_run(&name, spec).await {
                 Ok(run) => self.host(run),
                 Err(Refusal::Transient(report)) => self.retry_open_later(&name, report.message),
@@ -1059,6 +1116,14 @@ impl Service {
                 }
             }
         }
+        if !dormant.is_empty() {
+            tracing::warn!(
+                runs = dormant.len(),
+                "stored runs left closed at a budget (see status: dormant_runs): {}",
+                dormant.values().next().map_or("", String::as_str)
+            );
+        }
+        *self.dormant.lock().unwrap_or_else(PoisonError::into_inner) = dormant;
     }
 
     /// Gives up run `name`: its trainer and workers stop, its lease goes, and each attached
@@ -1198,6 +1263,18 @@ impl Service {
                 reason: reason.clone(),
             })
             .collect();
+        let (dormant_runs, dormant_run_count) = {
+            let dormant = self.dormant.lock().unwrap_or_else(PoisonError::into_inner);
+            let listed = dormant
+                .iter()
+                .take(status::DORMANT_LISTED)
+                .map(|(name, budget)| status::DormantRun {
+                    name: name.clone(),
+                    budget: budget.clone(),
+                })
+                .collect();
+            (listed, dormant.len() as u64)
+        };
         let now = std::time::Instant::now();
         let retrying_runs = self
             .retrying
@@ -1219,6 +1296,8 @@ impl Service {
             fleet: self.fleet.status(),
             failed_runs,
             retrying_runs,
+            dormant_runs,
+            dormant_run_count,
             wildcards_dropped: self.outbox.metrics.wildcards_dropped(),
             refused: self.outbox.metrics.refusals(),
             retraining: self.plans.training(),

@@ -119,6 +119,14 @@ pub struct PlannerStatus {
     /// backoff that doubles with every failure.
     #[serde(default)]
     pub retrying_runs: Vec<RetryingRun>,
+    /// Stored runs left closed because opening them would go beyond a budget (`max_runs`, or
+    /// `[storage] max_total_replay_bytes`): on disk untouched, opened on an agent's attach
+    /// once the budget allows. The first [`DORMANT_LISTED`] by name; see `dormant_run_count`.
+    #[serde(default)]
+    pub dormant_runs: Vec<DormantRun>,
+    /// How many stored runs are dormant (also those beyond the list).
+    #[serde(default)]
+    pub dormant_run_count: u64,
     /// Observations and attaches dropped unanswered because their key had a wildcard.
     #[serde(default)]
     pub wildcards_dropped: u64,
@@ -183,7 +191,7 @@ impl KernelStatus {
     /// The peak measured so far and every measurement this process made.
     pub fn now() -> Self {
         use crate::nn::KernelPath;
-        let peak_gflops = crate::bench::peak::background_peak()
+        let peak_gflops = crate::nn::peak::background_peak()
             .map(|peak| {
                 KernelPath::ALL
                     .into_iter()
@@ -241,6 +249,18 @@ pub struct RunKernels {
 pub struct FailedRun {
     pub name: String,
     pub reason: String,
+}
+
+/// Most dormant runs [`PlannerStatus::dormant_runs`] names: a data directory may hold
+/// thousands, and the report stays small.
+pub const DORMANT_LISTED: usize = 100;
+
+/// A stored run left closed at a budget.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+pub struct DormantRun {
+    pub name: String,
+    /// The budget that kept it closed, named by its setting.
+    pub budget: String,
 }
 
 /// A stored run whose opening failed on an I/O error that may pass.

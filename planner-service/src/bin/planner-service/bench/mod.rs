@@ -9,26 +9,21 @@
 //! floating-point operations per linear layer per row (the matrix products; activations and
 //! the per-row reward are extra work not counted).
 
-mod cputime;
 mod expression;
 mod kernel;
-pub mod peak;
 mod plan;
 mod timing;
 mod train;
 
 pub use expression::ExpressionReport;
-pub use kernel::{
-    FirstLayerTiming, KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming,
-};
-pub use peak::Peak;
-pub use plan::{BenchReward, PlanReport, RewardTiming};
+pub use kernel::KernelReport;
+pub use plan::{BenchReward, PlanReport};
 pub use train::TrainReport;
 
-use crate::config::{Preset, PresetError};
-use crate::data::Transitions;
-use crate::energy::RegularizerKind;
-use crate::plan::ConfigError;
+use planner_service::config::{Preset, PresetError};
+use planner_service::data::Transitions;
+use planner_service::energy::RegularizerKind;
+use planner_service::plan::ConfigError;
 use proto::{Builtin, InferencePrecision};
 use rand::RngExt;
 use rand::rngs::StdRng;

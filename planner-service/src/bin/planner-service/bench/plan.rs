@@ -6,15 +6,15 @@
 //! load on a shared machine; the report puts them side by side and states the formula's cost
 //! on the planner's path as the difference from the builtin code.
 
-use super::cputime::process_cpu_time;
-use super::peak::{Peak, percent};
 use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
-use crate::dynamics::Ensemble;
-use crate::energy::{Regularizer, RegularizerKind};
-use crate::nn::KernelPath;
-use crate::nn::kernel_path::Measurement;
-use crate::plan::MpcPlanner;
-use crate::reward::RewardModel;
+use planner_service::dynamics::Ensemble;
+use planner_service::energy::{Regularizer, RegularizerKind};
+use planner_service::nn::KernelPath;
+use planner_service::nn::cputime::process_cpu_time;
+use planner_service::nn::kernel_path::Measurement;
+use planner_service::nn::peak::{Peak, percent};
+use planner_service::plan::MpcPlanner;
+use planner_service::reward::RewardModel;
 use proto::task::{RewardKind, SpecBounds};
 use proto::{Builtin, InferencePrecision, Task};
 use rand::SeedableRng;
@@ -360,7 +360,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         asked: s.precision,
         dynamics_path,
         energy_path,
-        measurements: crate::nn::kernel_path::measurements(),
+        measurements: planner_service::nn::kernel_path::measurements(),
         calls: s.timed,
         rewards,
         cpu_share,
@@ -416,7 +416,7 @@ impl fmt::Display for PlanReport {
                     .map(|t| format!("{} {:.1} µs", t.path, t.seconds * 1e6))
                     .collect::<Vec<_>>()
                     .join(", "),
-                crate::nn::kernel_path::BATCH
+                planner_service::nn::kernel_path::BATCH
             )?;
         }
         if let Some(share) = self.cpu_share {
@@ -557,7 +557,7 @@ mod tests {
         assert!(timing.cpu_gflops.is_none_or(|g| g.is_finite() && g > 0.0));
         assert_eq!(
             report.peak.bf16_gflops.is_some(),
-            crate::nn::simd::bf16_dot_available() && report.peak.f32_gflops.is_some()
+            planner_service::nn::simd::bf16_dot_available() && report.peak.f32_gflops.is_some()
         );
         assert_eq!(report.precision, report.dynamics_path.precision());
         assert!(text_has_paths(&report.to_string(), &report));
