@@ -40,7 +40,7 @@ CONFIGS = [
     ("ant", "ant", "none"),
     ("ant + DEEN", "ant", "deen"),
 ]
-EBMPC_PRECISIONS = ("auto", "bf16", "f32")
+OUR_PRECISIONS = ("auto", "bf16", "f32")
 TORCH_PRECISIONS = ("f32", "bf16")
 # The presets' alpha, elites and CEM iterations (planner-service/src/config/preset.rs, Table 2):
 # bench plan does not print them, and the cost does not depend on alpha.
@@ -171,12 +171,12 @@ def main():
     rows = []
     for label, task, regularizer in configs:
         load_before = load_average()
-        ours = {(who, pr): [] for who, _ in planners for pr in EBMPC_PRECISIONS}
+        ours = {(who, pr): [] for who, _ in planners for pr in OUR_PRECISIONS}
         theirs = {pr: [] for pr in TORCH_PRECISIONS}
         shape = None
         for _ in range(args.rounds):
             for who, path in planners:
-                for pr in EBMPC_PRECISIONS:
+                for pr in OUR_PRECISIONS:
                     r = ebmpc(path, task, regularizer, pr, args.calls, args.warmup, args.threads)
                     ours[(who, pr)].append(r)
                     if pr == "f32" and shape is None:
@@ -199,7 +199,7 @@ def main():
           f"warm-up; ebmpc at {commits}; PyTorch {torch_version}, oneDNN ISA {isa!r}, bf16 matmuls ran "
           f"{', '.join(kinds) or '?'}. Per planning call: median ms (best ms).")
     print()
-    ebmpc_cols = [(who, pr) for who, _ in planners for pr in EBMPC_PRECISIONS]
+    ebmpc_cols = [(who, pr) for who, _ in planners for pr in OUR_PRECISIONS]
     name = lambda who, pr: f"{who} {pr}" if len(planners) > 1 or who != "ebmpc" else f"ebmpc {pr}"
     print("| per planning call | PyTorch f32 | PyTorch bf16 | "
           + " | ".join(name(*c) for c in ebmpc_cols) + " | kernels (auto) | load |")
@@ -234,7 +234,7 @@ def main():
             ours = row["ours"]
             print(f"- {row['label']}: " + ", ".join(
                 f"{pr} {ours[(base, pr)]['median_ms'] / ours[(last, pr)]['median_ms']:.2f}× "
-                f"({ours[(base, pr)]['best_ms'] / ours[(last, pr)]['best_ms']:.2f}×)" for pr in EBMPC_PRECISIONS))
+                f"({ours[(base, pr)]['best_ms'] / ours[(last, pr)]['best_ms']:.2f}×)" for pr in OUR_PRECISIONS))
     if args.json:
         for row in rows:
             row["ours"] = {f"{who} {pr}": {k: v for k, v in r.items() if k != "text"}
