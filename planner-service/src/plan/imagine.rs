@@ -83,6 +83,8 @@ struct Chunk {
     alive: Vec<bool>,
     /// Per candidate: the particles' mean return and mean energy per step.
     candidate_energy: Vec<f32>,
+    /// The first time step the chunk has not imagined yet in the evaluation in hand.
+    next_step: usize,
     /// The task's formulas' working memory (made with the chunk: it depends on the task only).
     formulas: FormulaScratch,
     scratch: Option<Scratch>,
@@ -142,10 +144,13 @@ impl Imagination {
     /// the last chunks short or idle). `reward` is the run's reward model, exactly when the
     /// task's reward is learned.
     ///
-    /// With `preempt` (a plan sharing the cores), the chunks meet after every imagined time
-    /// step, outside rayon's jobs, where a more urgent plan may take the cores (see
-    /// [`crate::sched`]); the chunks' random streams and arithmetic are the same either way, so
-    /// the returns are too.
+    /// With `preempt` (a plan sharing the cores), each chunk looks after every imagined time
+    /// step whether a more urgent plan waits ([`Preempt::outranked`], without blocking); only
+    /// then do the chunks meet, outside rayon's jobs, where that plan may take the cores (see
+    /// [`crate::sched`]). While nobody waits they run through the horizon and meet once, as a
+    /// plan alone does: a fork-join of every thread per imagined step costs more, the more
+    /// threads share a step's work. The chunks are independent, their random streams and
+    /// arithmetic the same either way, so the returns are too.
     #[allow(clippy::too_many_arguments)]
     pub fn evaluate(
         &mut self,
@@ -173,32 +178,50 @@ impl Imagination {
         };
         self.split = chunk_len;
         let horizon = ctx.horizon;
-        let stride = if preempt.is_some() { 1 } else { horizon };
-        for start in (0..horizon).step_by(stride) {
-            if start > 0
-                && let Some(preempt) = preempt
-            {
-                preempt.step_back();
-            }
-            let steps = start..(start + stride).min(horizon);
-            self.chunks
+        // Chunks that hold candidates this time (a smaller population may leave some idle).
+        let active = n.div_ceil(chunk_len);
+        for chunk in &mut self.chunks[..active] {
+            chunk.next_step = 0;
+        }
+        loop {
+            self.chunks[..active]
                 .par_iter_mut()
                 .zip(returns.par_chunks_mut(chunk_len))
                 .zip(actions.par_chunks(chunk_len * seq))
                 .for_each(|((chunk, returns), actions)| {
-                    chunk.imagine(
-                        &ctx,
-                        obs,
-                        actions,
-                        returns.len(),
-                        (dynamics, regularizer, reward),
-                        None,
-                        steps.clone(),
-                    );
-                    if steps.end == horizon {
+                    let first = chunk.next_step;
+                    let mut t = first;
+                    while t < horizon {
+                        // Alone on the cores the chunk runs the whole horizon; shared, it
+                        // stops after the step at which a more urgent plan waits.
+                        let last = match preempt {
+                            None => horizon,
+                            Some(_) => t + 1,
+                        };
+                        chunk.imagine(
+                            &ctx,
+                            obs,
+                            actions,
+                            returns.len(),
+                            (dynamics, regularizer, reward),
+                            None,
+                            t..last,
+                        );
+                        t = last;
+                        if t < horizon && preempt.is_some_and(|p| p.outranked()) {
+                            break;
+                        }
+                    }
+                    chunk.next_step = t;
+                    if first < horizon && t == horizon {
                         chunk.write_returns(&ctx, returns);
                     }
                 });
+            let done = self.chunks[..active].iter().all(|c| c.next_step == horizon);
+            match preempt {
+                Some(preempt) if !done => preempt.step_back(),
+                _ => break,
+            }
         }
     }
 
@@ -316,6 +339,7 @@ impl Chunk {
             energy_sum: vec![0.0; rows],
             alive: vec![true; rows],
             candidate_energy: vec![0.0; capacity],
+            next_step: 0,
             formulas: task.formula_scratch(),
             scratch: None,
             rng: StdRng::seed_from_u64(seed),
@@ -934,6 +958,69 @@ mod tests {
                 round * (horizon - 1)
             );
         }
+    }
+
+    /// A shared plan whose rival waits exactly once: at the `at`-th look (counting from 1)
+    /// after an imagined step; counts the plan's step-backs.
+    #[derive(Debug, Default)]
+    struct RivalOnce {
+        at: usize,
+        looks: std::sync::atomic::AtomicUsize,
+        step_backs: std::sync::atomic::AtomicUsize,
+    }
+
+    impl Preempt for RivalOnce {
+        fn step_back(&self) {
+            self.step_backs
+                .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        }
+
+        fn paused(&self) -> std::time::Duration {
+            std::time::Duration::ZERO
+        }
+
+        fn outranked(&self) -> bool {
+            self.looks.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1 == self.at
+        }
+    }
+
+    #[test]
+    fn shared_chunks_meet_only_when_a_rival_waits_and_score_exactly_the_same() {
+        let task = Builtin::Cartpole.task();
+        let obs = [0.1, 2.0, 0.0, 0.3];
+        let (horizon, population) = (6, 9);
+        let actions = random_sequences(task, population, horizon, 3);
+        let dynamics = ensemble(Builtin::Cartpole, 2, 5);
+        let energy = deen(Builtin::Cartpole, 6);
+        let config = cem(horizon, population, 2);
+        let mut alone = Imagination::new(task, &config, 0.01, true, 3, 11);
+        let mut a = vec![0.0; population];
+        alone.evaluate(&obs, &actions, &dynamics, &energy, None, &mut a, None);
+        // Nobody waits: every chunk looks after each of its steps but the last, nobody meets.
+        // A rival at the 4th look: one step-back, the stopped chunk then finishes its steps.
+        for at in [0, 4] {
+            let mut shared = Imagination::new(task, &config, 0.01, true, 3, 11);
+            let rival = RivalOnce {
+                at,
+                ..Default::default()
+            };
+            let mut b = vec![0.0; population];
+            shared.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                &energy,
+                None,
+                &mut b,
+                Some(&rival),
+            );
+            assert_eq!(a, b, "rival at look {at}");
+            let step_backs = rival.step_backs.load(std::sync::atomic::Ordering::SeqCst);
+            let looks = rival.looks.load(std::sync::atomic::Ordering::SeqCst);
+            assert_eq!(step_backs, usize::from(at > 0), "rival at look {at}");
+            assert_eq!(looks, 3 * (horizon - 1), "rival at look {at}");
+        }
+        assert!(a.iter().all(|r| r.is_finite()), "{a:?}");
     }
 
     #[test]

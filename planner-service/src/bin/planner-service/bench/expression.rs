@@ -62,6 +62,7 @@ pub(super) fn run(s: &Settings) -> Result<ExpressionReport, BenchError> {
         pets: false,
         threads: None,
         chunks: None,
+        shared: false,
         precision: InferencePrecision::Bf16,
         seed: s.seed,
         optimizer: proto::Optimizer::Cem,

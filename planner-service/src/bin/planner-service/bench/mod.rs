@@ -62,6 +62,11 @@ pub enum BenchCommand {
         /// Population chunks planned in parallel; default: one per thread.
         #[arg(long)]
         chunks: Option<usize>,
+        /// Plan as the daemon does, on cores shared through its scheduler (each call takes a
+        /// turn; with no rival plan, nothing pauses it): times the scheduler's checks between
+        /// iterations and imagined steps along with the plan.
+        #[arg(long)]
+        shared: bool,
         /// Number format of inference: auto (the service's default: every kernel path this
         /// CPU has is timed on each network's layers and the fastest runs), bf16 (the faster
         /// bf16 path; f32 where the CPU lacks AVX-512 BF16) or f32.
@@ -187,6 +192,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
             pets,
             threads,
             chunks,
+            shared,
             precision,
             seed,
             optimizer,
@@ -207,6 +213,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
                 pets,
                 threads,
                 chunks,
+                shared,
                 precision,
                 seed,
             };
@@ -362,6 +369,7 @@ mod tests {
                 pets: false,
                 threads: None,
                 chunks: None,
+                shared: false,
                 precision: InferencePrecision::F32,
                 seed: 0,
                 optimizer: proto::Optimizer::Cem,

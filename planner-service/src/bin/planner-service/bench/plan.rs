@@ -33,6 +33,8 @@ pub(super) struct Settings {
     pub pets: bool,
     pub threads: Option<usize>,
     pub chunks: Option<usize>,
+    /// Plan through the daemon's scheduler (a turn per call, no rival).
+    pub shared: bool,
     pub precision: InferencePrecision,
     pub seed: u64,
     pub optimizer: proto::Optimizer,
@@ -79,6 +81,8 @@ pub struct PlanReport {
     pub threads: usize,
     /// Population chunks planned in parallel.
     pub chunks: usize,
+    /// Whether the plans took turns through the daemon's scheduler.
+    pub shared: bool,
     /// The number format inference actually ran in (the dynamics model's).
     pub precision: InferencePrecision,
     /// The number format asked for (`auto`: the kernel paths were chosen by measurement).
@@ -270,22 +274,41 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
+    let scheduler = std::sync::Arc::new(crate::sched::Scheduler::new(0.0));
+    let turn = || -> Option<std::sync::Arc<dyn crate::plan::anytime::Preempt>> {
+        s.shared.then(|| {
+            let turn = scheduler.turn(None, None, &crate::sched::Waiting::default());
+            std::sync::Arc::new(turn) as std::sync::Arc<dyn crate::plan::anytime::Preempt>
+        })
+    };
     let (cpu_share, contenders) = pool.install(|| {
         for c in &mut contenders {
             for _ in 0..s.warmup {
-                c.planner
-                    .plan(&obs, &dynamics, &regularizer, c.model.as_ref(), None);
+                c.planner.plan_shared(
+                    &obs,
+                    &dynamics,
+                    &regularizer,
+                    c.model.as_ref(),
+                    None,
+                    turn(),
+                );
             }
         }
         let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
         // In turns, call by call: every reward sees the same load.
         for _ in 0..s.timed {
             for c in &mut contenders {
+                let shared = turn();
                 let cpu_start = process_cpu_time();
                 let start = Instant::now();
-                let outcome = c
-                    .planner
-                    .plan(&obs, &dynamics, &regularizer, c.model.as_ref(), None);
+                let outcome = c.planner.plan_shared(
+                    &obs,
+                    &dynamics,
+                    &regularizer,
+                    c.model.as_ref(),
+                    None,
+                    shared,
+                );
                 c.times.push(start.elapsed());
                 c.cpu = c
                     .cpu
@@ -356,6 +379,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         particles: cem.particles,
         threads,
         chunks,
+        shared: s.shared,
         precision,
         asked: s.precision,
         dynamics_path,
@@ -398,8 +422,16 @@ impl fmt::Display for PlanReport {
         )?;
         writeln!(
             f,
-            "  parallel   {} thread(s), {} population chunk(s), {} inference (asked: {})",
-            self.threads, self.chunks, self.precision, self.asked
+            "  parallel   {} thread(s), {} population chunk(s), {} inference (asked: {}){}",
+            self.threads,
+            self.chunks,
+            self.precision,
+            self.asked,
+            if self.shared {
+                ", shared through the scheduler"
+            } else {
+                ""
+            }
         )?;
         write!(f, "  kernels    dynamics {}", self.dynamics_path)?;
         if let Some(p) = self.energy_path {
@@ -502,6 +534,7 @@ mod tests {
             pets: false,
             threads: Some(2),
             chunks: None,
+            shared: false,
             precision: InferencePrecision::Bf16,
             seed: 1,
             optimizer: proto::Optimizer::Cem,
@@ -509,6 +542,25 @@ mod tests {
             elites: None,
             iterations: None,
         }
+    }
+
+    #[test]
+    fn plans_through_the_scheduler_as_the_daemon_does() {
+        let report = run(&Settings {
+            shared: true,
+            ..settings()
+        })
+        .unwrap();
+        assert!(report.shared);
+        let [timing] = &report.rewards[..] else {
+            panic!("one reward asked for")
+        };
+        assert!(timing.min_ms > 0.0 && timing.median_ms >= timing.min_ms);
+        assert!(timing.mean_iterations >= 1.0, "{timing:?}");
+        assert!(
+            report.to_string().contains("shared through the scheduler"),
+            "{report}"
+        );
     }
 
     #[test]
