@@ -24,4 +24,5 @@ pub mod reward;
 pub mod run;
 pub mod sched;
 pub mod service;
+pub mod termination;
 pub mod trainer;

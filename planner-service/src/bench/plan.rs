@@ -273,8 +273,13 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let (cpu_share, contenders) = pool.install(|| {
         for c in &mut contenders {
             for _ in 0..s.warmup {
-                c.planner
-                    .plan(&obs, &dynamics, &regularizer, c.model.as_ref(), None);
+                c.planner.plan(
+                    &obs,
+                    &dynamics,
+                    &regularizer,
+                    crate::plan::Learned::reward(c.model.as_ref()),
+                    None,
+                );
             }
         }
         let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
@@ -283,9 +288,13 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             for c in &mut contenders {
                 let cpu_start = process_cpu_time();
                 let start = Instant::now();
-                let outcome = c
-                    .planner
-                    .plan(&obs, &dynamics, &regularizer, c.model.as_ref(), None);
+                let outcome = c.planner.plan(
+                    &obs,
+                    &dynamics,
+                    &regularizer,
+                    crate::plan::Learned::reward(c.model.as_ref()),
+                    None,
+                );
                 c.times.push(start.elapsed());
                 c.cpu = c
                     .cpu
