@@ -880,6 +880,7 @@ impl Run {
             termination_accuracy = report.termination_accuracy.map(|a| a.accuracy),
             termination_recall = report.termination_accuracy.map(|a| a.recall),
             termination_held_out = report.termination_accuracy.map(|a| a.held_out),
+            termination_held_out_ends = report.termination_accuracy.map(|a| a.terminations),
             seconds = report.seconds,
             "models updated"
         );

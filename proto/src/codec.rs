@@ -245,7 +245,7 @@ mod tests {
         for bad in [
             &bytes[..bytes.len() - 3],
             &[][..],
-            &[5, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
+            &[PROTOCOL_VERSION as u8, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
         ] {
             assert!(
                 matches!(
