@@ -215,3 +215,33 @@ def test_a_learned_termination_and_a_step_budget_for_an_environment_that_ends_ea
     assert (run["episodes"], run["transitions"]) == (len(results), sum(steps)), run
     # Models trained now would not be used: retraining waits for the exploration steps.
     assert run["models_version"] == 0 and run.get("last_retraining") is None, run
+
+
+def test_status_and_events_report_the_learned_terminations_held_out_accuracy(
+    daemon: Daemon,
+) -> None:
+    import ebmpc
+
+    with ebmpc.Planner(connect=daemon.endpoint) as planner:
+        with planner.events("pendulum-ends") as events:
+            results = driver.learn(
+                # Every CEM iteration run: the episodes do not depend on the machine's load.
+                "InvertedPendulum-v5", steps=80, overrides={**TINY, "deadline_ms": 0},
+                planner=planner, run="pendulum-ends", progress=False,
+            )
+            (report,) = planner.status()
+            updates = []
+            while True:
+                try:
+                    event = events.next(timeout=0.5)
+                except ebmpc.EventTimeout:
+                    break
+                if isinstance(event, ebmpc.ModelsUpdated):
+                    updates.append(event)
+    assert sum(r.steps for r in results) >= 80
+    (run,) = [r for r in report["runs"] if r["name"] == "pendulum-ends"]
+    held = run["last_retraining"]["termination_accuracy"]
+    assert held["held_out"] > 0 and held["terminations"] >= 0, held
+    assert 0.0 <= held["accuracy"] <= 1.0 and 0.0 <= held["recall"] <= 1.0, held
+    # The retrainings report it in their events too (once an end was in the training data).
+    assert any(u.termination_accuracy is not None for u in updates), updates
