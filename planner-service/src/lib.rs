@@ -23,4 +23,5 @@ pub mod reward;
 pub mod run;
 pub mod sched;
 pub mod service;
+pub mod termination;
 pub mod trainer;

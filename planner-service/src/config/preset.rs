@@ -68,6 +68,9 @@ pub struct Preset {
     pub sample_dynamics: bool,
     /// Episodes of uniformly random actions before planning starts.
     pub exploration_episodes: u32,
+    /// Transitions of uniformly random actions before planning starts, on top of the
+    /// episodes (both must be reached; 0: the episodes alone, as the paper's presets).
+    pub exploration_steps: u64,
     /// How the number of training epochs changes as episodes accumulate.
     pub schedule: EpochSchedule,
     /// Most gradient steps per model in one retraining; `None` (the paper's presets) trains
@@ -349,6 +352,7 @@ impl Preset {
             },
             sample_dynamics: pets,
             exploration_episodes: t.exploration_episodes,
+            exploration_steps: 0,
             schedule: t.schedule,
             max_gradient_steps: None,
             inference_precision: default_precision(),
@@ -537,6 +541,9 @@ impl Preset {
         }
         if let Some(e) = o.exploration_episodes {
             self.exploration_episodes = e;
+        }
+        if let Some(steps) = o.exploration_steps {
+            self.exploration_steps = steps;
         }
         if let Some(schedule) = &o.epoch_schedule {
             check_schedule(schedule)?;
@@ -864,6 +871,7 @@ mod tests {
             cem_min_variance: Some(0.01),
             sample_dynamics: Some(true),
             exploration_episodes: Some(2),
+            exploration_steps: Some(500),
             dynamics_epochs: Some(11),
             dynamics_hidden_layers: Some(2),
             dynamics_hidden_size: Some(12),
@@ -929,7 +937,7 @@ mod tests {
         );
         assert_eq!((c.smoothing, c.min_variance), (0.3, 0.01));
         assert!(p.sample_dynamics);
-        assert_eq!(p.exploration_episodes, 2);
+        assert_eq!((p.exploration_episodes, p.exploration_steps), (2, 500));
         assert_eq!(p.schedule, schedule);
         assert_eq!(p.max_gradient_steps, Some(1000));
         assert_eq!(p.inference_precision, InferencePrecision::F32);
@@ -946,6 +954,7 @@ mod tests {
             cem: _,
             sample_dynamics: _,
             exploration_episodes: _,
+            exploration_steps: _,
             schedule: _,
             max_gradient_steps: _,
             inference_precision: _,

@@ -36,3 +36,49 @@ pub use imagine::Imagination;
 pub use mpc::{ImaginedPlan, MpcPlanner, PlanOutcome};
 pub use sequence::{CemOutcome, PopulationObjective};
 pub use settings::{AdamConfig, CemConfig, ConfigError, IcemConfig, Optimizer};
+
+use crate::reward::RewardModel;
+use crate::termination::TerminationModel;
+
+/// The parts of a task that a run learns instead of being told, which imagination scores with
+/// beside the dynamics and the regulariser: the reward model exactly when the task's reward is
+/// learned, the termination model exactly when its termination is
+/// ([`crate::models::Models::learned`]). The service builds it from the run's models, so a
+/// mismatch with the task is a bug, not an input (checked by [`Learned::assert_matches`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Learned<'a> {
+    pub reward: Option<&'a RewardModel>,
+    pub termination: Option<&'a TerminationModel>,
+}
+
+impl<'a> Learned<'a> {
+    /// Nothing learned: the task's own reward and termination.
+    pub const NONE: Learned<'static> = Learned {
+        reward: None,
+        termination: None,
+    };
+
+    /// A learned reward only.
+    pub fn reward(reward: Option<&'a RewardModel>) -> Self {
+        Self {
+            reward,
+            termination: None,
+        }
+    }
+
+    /// Panics unless each model is given exactly when the task learns that part.
+    pub fn assert_matches(&self, task: &proto::Task) {
+        assert_eq!(
+            self.reward.is_some(),
+            task.reward_is_learned(),
+            "task {}: a reward model is given exactly when the reward is learned",
+            task.name()
+        );
+        assert_eq!(
+            self.termination.is_some(),
+            task.termination_is_learned(),
+            "task {}: a termination model is given exactly when the termination is learned",
+            task.name()
+        );
+    }
+}

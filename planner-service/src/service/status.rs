@@ -94,6 +94,10 @@ pub struct LastRetraining {
     pub dynamics_loss: Option<f32>,
     /// The regulariser's (DEEN or DAE) loss over its last epoch.
     pub energy_loss: Option<f32>,
+    /// A learned termination's accuracy on the transitions held out of its training (absent
+    /// unless the task's termination is learned and an episode has ended as `terminated`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub termination_accuracy: Option<proto::TerminationAccuracy>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]

@@ -274,11 +274,11 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    let scheduler = std::sync::Arc::new(crate::sched::Scheduler::new(0.0));
-    let turn = || -> Option<std::sync::Arc<dyn crate::plan::anytime::Preempt>> {
+    let scheduler = std::sync::Arc::new(planner_service::sched::Scheduler::new(0.0));
+    let turn = || -> Option<std::sync::Arc<dyn planner_service::plan::anytime::Preempt>> {
         s.shared.then(|| {
-            let turn = scheduler.turn(None, None, &crate::sched::Waiting::default());
-            std::sync::Arc::new(turn) as std::sync::Arc<dyn crate::plan::anytime::Preempt>
+            let turn = scheduler.turn(None, None, &planner_service::sched::Waiting::default());
+            std::sync::Arc::new(turn) as std::sync::Arc<dyn planner_service::plan::anytime::Preempt>
         })
     };
     let (cpu_share, contenders) = pool.install(|| {
@@ -288,7 +288,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
                     &obs,
                     &dynamics,
                     &regularizer,
-                    c.model.as_ref(),
+                    planner_service::plan::Learned::reward(c.model.as_ref()),
                     None,
                     turn(),
                 );
@@ -305,7 +305,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
                     &obs,
                     &dynamics,
                     &regularizer,
-                    c.model.as_ref(),
+                    planner_service::plan::Learned::reward(c.model.as_ref()),
                     None,
                     shared,
                 );
