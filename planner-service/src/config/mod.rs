@@ -2,9 +2,11 @@
 //! command line) and the per-task presets of the paper's Table 2.
 
 mod limits;
+mod pins;
 mod preset;
 
 pub use limits::{Cost, InvalidLimits, LimitExceeded, Limits};
+pub use pins::{Pins, PinsError};
 pub use preset::{DEFAULT_METHOD, METHODS, Preset, PresetError};
 pub use proto::EpochSchedule;
 
@@ -47,7 +49,7 @@ pub struct ServiceConfig {
     /// with the planners it sees, serving the run-name patterns its pins allow (`serve`,
     /// empty: all; `refuse`). Absent: the planner is alone, owns every run it serves and reads
     /// no fleet token. See `crate::fleet`.
-    pub fleet: Option<crate::fleet::Pins>,
+    pub fleet: Option<Pins>,
     /// The least share of the cores a retraining gets while plans leave it no idle time, in
     /// (0, 1]: plans come first, but a retraining that finds plans running before a
     /// minibatch waits at most `(1 − share) / share` times as long as its last minibatch
@@ -151,7 +153,7 @@ pub enum ConfigError {
     #[error("invalid planner id: {0}")]
     PlannerId(#[from] proto::keys::InvalidName),
     #[error("[fleet]: {0}")]
-    Pins(#[from] crate::fleet::PinsError),
+    Pins(#[from] PinsError),
     #[error(transparent)]
     Limits(#[from] InvalidLimits),
     #[error("retraining_share = {0} must be above 0 and at most 1")]

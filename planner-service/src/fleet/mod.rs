@@ -11,7 +11,7 @@
 //! Every planner watches the planner and lease tokens (a liveliness subscriber plus an
 //! initial `get`) and applies the same rule ([`view`]): the live holder of a run's newest
 //! lease owns it; a free run goes to the planner that rendezvous hashing ([`placement`])
-//! picks among the live planners its pins ([`pins`]) allow. Only the owner answers the run's
+//! picks among the live planners its pins ([`crate::config::Pins`]) allow. Only the owner answers the run's
 //! attach queries and handles its observations; the others stay silent, so an agent's query
 //! gets exactly one answer.
 //!
@@ -29,11 +29,10 @@
 //! reaches it. It still claims each run's epoch on disk, which fences a second daemon started on
 //! the same data directory by mistake.
 
-pub mod pins;
 pub mod placement;
 pub mod view;
 
-pub use pins::{Pins, PinsError};
+use crate::config::Pins;
 pub use view::{Owner, View};
 
 use crate::persist::{PersistError, RunDir};

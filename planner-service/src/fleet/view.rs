@@ -7,8 +7,8 @@
 //! planners whose pins allow it.** A planner that comes back therefore takes nothing from a
 //! live holder; runs only move when their holder goes (dies, stops, or steps down).
 
-use super::pins::Pins;
 use super::placement;
+use crate::config::Pins;
 use std::collections::BTreeMap;
 
 /// Who owns a run, as this planner sees it.
