@@ -871,6 +871,53 @@ mod tests {
         }
     }
 
+    /// A deadline cuts only its own request: the agent whose deadline has passed answers its
+    /// warm start (no iteration, cut), and the others of the batch plan exactly as alone.
+    #[test]
+    fn a_passed_deadline_in_a_batch_cuts_that_agent_only() {
+        let dynamics = learned_cart();
+        let task = Builtin::Cartpole.task();
+        let models = (&dynamics, &Regularizer::None, Learned::NONE);
+        let obs = [
+            [0.5, PI, 0.0, 0.0],
+            [-0.5, PI, 0.0, 0.0],
+            [0.2, PI, 0.0, 0.0],
+        ];
+        let make = |k: u64| MpcPlanner::with_chunks(task, config(), 0.0, false, k, 2).unwrap();
+        let mut alone: Vec<MpcPlanner> = (0..3).map(make).collect();
+        let mut batched: Vec<MpcPlanner> = (0..3).map(make).collect();
+        let expected: Vec<Vec<f32>> = alone
+            .iter_mut()
+            .zip(&obs)
+            .map(|(p, o)| {
+                p.plan(o, models.0, models.1, models.2, None)
+                    .action
+                    .to_vec()
+            })
+            .collect();
+        let warm_start = batched[1].search.mean()[0];
+        let passed = Some(Instant::now() - Duration::from_millis(1));
+        let later = Some(Instant::now() + Duration::from_secs(3600));
+        let mut workspace = Workspace::new();
+        let [a, b, c] = &mut batched[..] else {
+            unreachable!()
+        };
+        let mut requests = [
+            PlanRequest::new(a, &obs[0], later),
+            PlanRequest::new(b, &obs[1], passed),
+            PlanRequest::new(c, &obs[2], None),
+        ];
+        MpcPlanner::plan_batch(&mut requests, &mut workspace, models, None);
+        let late = requests[1].outcome();
+        assert_eq!((late.iterations, late.cut), (0, true));
+        assert_eq!(late.action, &[warm_start]);
+        for k in [0, 2] {
+            let outcome = requests[k].outcome();
+            assert_eq!((outcome.iterations, outcome.cut), (5, false), "agent {k}");
+            assert_eq!(outcome.action, &expected[k][..], "agent {k}");
+        }
+    }
+
     #[test]
     fn refuses_a_bad_energy_weight() {
         let task = Builtin::Cartpole.task();
