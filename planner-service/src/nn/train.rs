@@ -196,6 +196,25 @@ pub fn fit_minibatches(
     })
 }
 
+/// Copies the minibatch `batch` of the sample-major `inputs` (one row of `mlp.in_dim()` values
+/// per sample) into the tape's inputs, one column per sample, and runs the training forward
+/// pass; the loss then reads the outputs and seeds their gradient in the tape.
+pub fn forward_minibatch(
+    mlp: &super::Mlp,
+    inputs: &[f32],
+    batch: &[usize],
+    tape: &mut super::Tape,
+) {
+    let (dim, ld) = (mlp.in_dim(), tape.ld());
+    let input = tape.input_mut();
+    for (col, &idx) in batch.iter().enumerate() {
+        for (k, &v) in inputs[idx * dim..(idx + 1) * dim].iter().enumerate() {
+            input[k * ld + col] = v;
+        }
+    }
+    mlp.forward_train(tape, batch.len());
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -23,7 +23,7 @@
 
 use crate::data::Transitions;
 use crate::dynamics::DynamicsConfig;
-use crate::nn::train::{FitBudget, Minibatches, fit_minibatches};
+use crate::nn::train::{FitBudget, Minibatches, fit_minibatches, forward_minibatch};
 use crate::nn::{
     Activation, Adam, FitReport, FlushDenormals, ForwardScratch, Mlp, Normalizer, ShapeError, Tape,
 };
@@ -459,14 +459,8 @@ fn squared_error_and_grad(
     batch: &[usize],
     tape: &mut Tape,
 ) -> f32 {
-    let (dim, ld, b) = (mlp.in_dim(), tape.ld(), batch.len());
-    let input = tape.input_mut();
-    for (col, &idx) in batch.iter().enumerate() {
-        for (k, &v) in inputs[idx * dim..(idx + 1) * dim].iter().enumerate() {
-            input[k * ld + col] = v;
-        }
-    }
-    mlp.forward_train(tape, b);
+    let b = batch.len();
+    forward_minibatch(mlp, inputs, batch, tape);
     let (out, grad) = tape.output_and_grad_mut();
     let mut total = 0.0f32;
     for (col, &idx) in batch.iter().enumerate() {
