@@ -30,7 +30,7 @@ struct Cli {
 enum Command {
     /// Learn a task from scratch with several methods and seeds: one planner daemon, one
     /// sim-bridge per (method, seed) run over Zenoh. Re-running into the same --out folder
-    /// skips the runs already complete.
+    /// skips the runs already complete; a sitting works only on the runs its command names.
     Experiment(ExperimentArgs),
     /// Draw the learning curves (mean ± std over seeds per method) of an experiment folder.
     Plot(PlotArgs),
