@@ -6,7 +6,7 @@
 //! with `r` the task's own reward (the function the simulator uses, evaluated for the whole
 //! chunk per step by [`proto::Task::rewards`]: a formula through the expression language's
 //! block evaluator) or, for a task whose reward is learned, the run's reward model (one batched
-//! forward pass per step for the whole chunk, [`RewardModel::predict`]), `E` the regulariser's
+//! forward pass per step for the whole chunk, [`crate::reward::RewardModel::predict`]), `E` the regulariser's
 //! energy and `α` the energy weight.
 //!
 //! - **Particles (PETS TS∞).** Each candidate is imagined `P` times; particle `p` follows
@@ -40,9 +40,9 @@
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
 use crate::plan::Learned;
-use crate::plan::anytime::Preempt;
 use crate::plan::settings::CemConfig;
 use crate::reward::RewardScratch;
+use crate::sched::Preempt;
 use crate::termination::{TerminationModel, TerminationScratch};
 use proto::Task;
 use proto::task::FormulaScratch;
@@ -96,7 +96,7 @@ impl Stream {
     }
 }
 
-/// The memory rows are imagined in: one [`WorkChunk`] per chunk. One agent's imagination or a
+/// The memory rows are imagined in: one work chunk per chunk. One agent's imagination or a
 /// batch of agents' (of one task and configuration) uses it; it grows to the largest batch.
 #[derive(Default)]
 pub struct Workspace {

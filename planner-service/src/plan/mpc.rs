@@ -4,11 +4,12 @@
 use super::Learned;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use crate::plan::anytime::{IterationClock, Preempt};
+use crate::plan::anytime::IterationClock;
 use crate::plan::imagine::{Imagination, Rollout, Rollouts, Workspace, evaluate_batch};
 use crate::plan::search::Search;
 use crate::plan::sequence::{Lockstep, LockstepMember, SteppedSearch, solve_lockstep};
 use crate::plan::settings::{CemConfig, ConfigError};
+use crate::sched::Preempt;
 use proto::Task;
 use std::sync::Arc;
 use std::time::{Duration, Instant};

@@ -146,7 +146,7 @@ impl Contender {
         &mut self,
         observations: &[Vec<f32>],
         (dynamics, regularizer): (&Ensemble, &Regularizer),
-        shared: Option<std::sync::Arc<dyn planner_service::plan::anytime::Preempt>>,
+        shared: Option<std::sync::Arc<dyn planner_service::sched::Preempt>>,
     ) -> Vec<u32> {
         let learned = planner_service::plan::Learned::reward(self.model.as_ref());
         if self.batched == Some(true) {
@@ -339,10 +339,10 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         .num_threads(threads)
         .build()?;
     let scheduler = std::sync::Arc::new(planner_service::sched::Scheduler::new(0.0));
-    let turn = || -> Option<std::sync::Arc<dyn planner_service::plan::anytime::Preempt>> {
+    let turn = || -> Option<std::sync::Arc<dyn planner_service::sched::Preempt>> {
         s.shared.then(|| {
             let turn = scheduler.turn(None, None, &planner_service::sched::Waiting::default());
-            std::sync::Arc::new(turn) as std::sync::Arc<dyn planner_service::plan::anytime::Preempt>
+            std::sync::Arc::new(turn) as std::sync::Arc<dyn planner_service::sched::Preempt>
         })
     };
     let (cpu_share, contenders) = pool.install(|| {
