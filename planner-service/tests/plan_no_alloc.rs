@@ -21,7 +21,7 @@ use planner_service::data::Transitions;
 use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
 use planner_service::nn::KernelPath;
-use planner_service::plan::{CemConfig, IcemConfig, Learned, MpcPlanner, Optimizer};
+use planner_service::plan::{CemConfig, IcemConfig, Learned, MpcPlanner, Optimizer, PlanRequest};
 use planner_service::reward::{RewardConfig, RewardModel};
 use planner_service::sched::Preempt;
 use planner_service::termination::TerminationModel;
@@ -327,6 +327,52 @@ fn allocates_nothing_after_warm_up_in(
         allocations,
         0,
         "{}: allocations during 5 planning calls",
+        spec.name()
+    );
+
+    // A batch of agents planning together in a shared workspace: once it has served a batch
+    // of three, batches of three and of fewer allocate nothing either.
+    let mut agents: Vec<MpcPlanner> = (0..3)
+        .map(|k| MpcPlanner::with_chunks(spec, planner.config().clone(), 0.05, true, 20 + k, 2))
+        .collect::<Result<_, _>>()
+        .unwrap();
+    let mut workspace = planner_service::plan::Workspace::new();
+    let (allocations, checksum) = pool.install(|| {
+        let mut batch_of = |agents: &mut [MpcPlanner]| -> f32 {
+            let [a, b, c] = agents else {
+                unreachable!("three agents")
+            };
+            let mut requests = [
+                PlanRequest::new(a, &obs, None),
+                PlanRequest::new(b, &obs, None),
+                PlanRequest::new(c, &obs, None),
+            ];
+            let models = (&dynamics, &deen, learned);
+            MpcPlanner::plan_batch(&mut requests, &mut workspace, models, None);
+            let mut sum = 0.0;
+            for r in &requests {
+                sum += r.outcome().action[0] + r.outcome().predicted_return;
+            }
+            MpcPlanner::plan_batch(&mut requests[..2], &mut workspace, models, None);
+            sum + requests[1].outcome().action[0]
+        };
+        for _ in 0..3 {
+            batch_of(&mut agents);
+        }
+        ALLOCATIONS.store(0, Ordering::SeqCst);
+        COUNTING.store(true, Ordering::SeqCst);
+        let mut checksum = 0.0;
+        for _ in 0..3 {
+            checksum += batch_of(&mut agents);
+        }
+        COUNTING.store(false, Ordering::SeqCst);
+        (ALLOCATIONS.load(Ordering::SeqCst), checksum)
+    });
+    assert!(checksum.is_finite(), "the batches were real: {checksum}");
+    assert_eq!(
+        allocations,
+        0,
+        "{}: allocations during batched planning calls",
         spec.name()
     );
 

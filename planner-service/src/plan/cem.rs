@@ -18,7 +18,7 @@
 //! All buffers are allocated in [`Cem::new`]; [`Cem::optimize`] allocates nothing.
 
 use super::anytime::IterationClock;
-use super::sequence::{CemOutcome, PopulationObjective, SequenceBox};
+use super::sequence::{CemOutcome, PopulationObjective, SequenceBox, SteppedSearch, solve_alone};
 use super::settings::{CemConfig, ConfigError};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -43,6 +43,9 @@ pub struct Cem {
     returns: Vec<f32>,
     order: Vec<usize>,
     rng: StdRng,
+    /// The solve in hand: iterations run, and the last one's elites' mean score.
+    done: usize,
+    elite_return: f32,
 }
 
 impl Cem {
@@ -73,6 +76,8 @@ impl Cem {
             returns: vec![0.0; population],
             order: (0..population).collect(),
             rng: StdRng::seed_from_u64(seed),
+            done: 0,
+            elite_return: f32::NEG_INFINITY,
             lower,
             upper,
             init_mean,
@@ -133,29 +138,7 @@ impl Cem {
         objective: &mut O,
         clock: &mut IterationClock,
     ) -> CemOutcome {
-        self.var.copy_from_slice(&self.init_var);
-        let mut iterations = 0;
-        let mut elite_return = f32::NEG_INFINITY;
-        let mut cut = false;
-        let population = self.config.population;
-        while iterations < self.config.iterations
-            && (iterations == 0 || self.max_variance() > self.config.min_variance)
-        {
-            if !clock.may_start(population, iterations == 0) {
-                cut = true;
-                break;
-            }
-            self.sample();
-            objective.evaluate(&self.samples, &mut self.returns);
-            elite_return = self.refit();
-            clock.finished(population);
-            iterations += 1;
-        }
-        CemOutcome {
-            iterations: iterations as u32,
-            elite_return,
-            cut,
-        }
+        solve_alone(self, objective, clock)
     }
 
     fn max_variance(&self) -> f32 {
@@ -195,7 +178,7 @@ impl Cem {
     }
 
     /// Selects the elites and moves the distribution towards them; returns their mean score.
-    fn refit(&mut self) -> f32 {
+    fn refit_to_elites(&mut self) -> f32 {
         for r in &mut self.returns {
             if !r.is_finite() {
                 *r = f32::NEG_INFINITY;
@@ -233,6 +216,41 @@ impl Cem {
             .map(|&e| returns[e])
             .sum::<f32>()
             * inv
+    }
+}
+
+/// One solve, iteration by iteration: every iteration scores the whole population, and the
+/// solve stops after the configured iterations or once every variance is below
+/// `min_variance` (the first iteration always runs).
+impl SteppedSearch for Cem {
+    fn begin(&mut self) {
+        self.var.copy_from_slice(&self.init_var);
+        self.done = 0;
+        self.elite_return = f32::NEG_INFINITY;
+    }
+
+    fn next_population(&self) -> Option<usize> {
+        (self.done < self.config.iterations
+            && (self.done == 0 || self.max_variance() > self.config.min_variance))
+            .then_some(self.config.population)
+    }
+
+    fn draw(&mut self, n: usize) {
+        debug_assert_eq!(n, self.config.population);
+        self.sample();
+    }
+
+    fn drawn(&mut self) -> (&[f32], &mut [f32]) {
+        (&self.samples, &mut self.returns)
+    }
+
+    fn refit(&mut self) {
+        self.elite_return = self.refit_to_elites();
+        self.done += 1;
+    }
+
+    fn progress(&self) -> (u32, f32) {
+        (self.done as u32, self.elite_return)
     }
 }
 

@@ -25,7 +25,7 @@
 //! All buffers are allocated in [`Icem::new`]; [`Icem::optimize`] allocates nothing.
 
 use super::anytime::IterationClock;
-use super::sequence::{CemOutcome, PopulationObjective, SequenceBox};
+use super::sequence::{CemOutcome, PopulationObjective, SequenceBox, SteppedSearch, solve_alone};
 use super::settings::{CemConfig, ConfigError, IcemConfig};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -117,6 +117,9 @@ pub struct Icem {
     /// Candidates of the last iteration (the population decays).
     last_population: usize,
     rng: StdRng,
+    /// The solve in hand: iterations run, and the last one's elites' mean score.
+    done: usize,
+    elite_return: f32,
 }
 
 impl Icem {
@@ -153,6 +156,8 @@ impl Icem {
             best_return: f32::NEG_INFINITY,
             last_population: population,
             rng: StdRng::seed_from_u64(seed),
+            done: 0,
+            elite_return: f32::NEG_INFINITY,
             lower,
             upper,
             init_mean,
@@ -217,43 +222,7 @@ impl Icem {
         objective: &mut O,
         clock: &mut IterationClock,
     ) -> CemOutcome {
-        self.std.copy_from_slice(&self.init_std);
-        self.best_return = f32::NEG_INFINITY;
-        let dim = self.mean.len();
-        let iterations = self.config.iterations;
-        let mut done = 0;
-        let mut elite_return = f32::NEG_INFINITY;
-        let mut cut = false;
-        while done < iterations && (done == 0 || self.max_variance() > self.config.min_variance) {
-            let n = self.population_at(done);
-            if !clock.may_start(n, done == 0) {
-                cut = true;
-                break;
-            }
-            self.sample(n);
-            // Kept elites (shifted ones keep the fresh sample's last action) lead the population.
-            let kept = self.kept_count.min(n);
-            let carry = if done == 0 { dim - self.act_dim } else { dim };
-            for (row, elite) in self.samples[..kept * dim]
-                .chunks_exact_mut(dim)
-                .zip(self.kept.chunks_exact(dim))
-            {
-                row[..carry].copy_from_slice(&elite[..carry]);
-            }
-            if done + 1 == iterations && n > kept {
-                let last = &mut self.samples[(n - 1) * dim..n * dim];
-                last.copy_from_slice(&self.mean);
-            }
-            objective.evaluate(&self.samples[..n * dim], &mut self.returns[..n]);
-            elite_return = self.refit(n);
-            clock.finished(n);
-            done += 1;
-        }
-        CemOutcome {
-            iterations: done as u32,
-            elite_return,
-            cut,
-        }
+        solve_alone(self, objective, clock)
     }
 
     fn max_variance(&self) -> f32 {
@@ -283,7 +252,7 @@ impl Icem {
 
     /// Ranks the `n` candidates, keeps the best ones and the best so far, and moves the
     /// distribution towards the elites; returns the elites' mean score.
-    fn refit(&mut self, n: usize) -> f32 {
+    fn refit_to_elites(&mut self, n: usize) -> f32 {
         let returns = &mut self.returns[..n];
         for r in returns.iter_mut() {
             if !r.is_finite() {
@@ -331,6 +300,59 @@ impl Icem {
             self.std[j] = alpha * self.std[j] + (1.0 - alpha) * (sq * inv).sqrt();
         }
         order[..elites].iter().map(|&e| returns[e]).sum::<f32>() * inv
+    }
+}
+
+/// One solve, iteration by iteration: iteration `i` scores [`Icem::population_at`]`(i)`
+/// candidates, the kept elites leading them and (in the last iteration) the mean closing them.
+impl SteppedSearch for Icem {
+    fn begin(&mut self) {
+        self.std.copy_from_slice(&self.init_std);
+        self.best_return = f32::NEG_INFINITY;
+        self.done = 0;
+        self.elite_return = f32::NEG_INFINITY;
+    }
+
+    fn next_population(&self) -> Option<usize> {
+        (self.done < self.config.iterations
+            && (self.done == 0 || self.max_variance() > self.config.min_variance))
+            .then(|| self.population_at(self.done))
+    }
+
+    fn draw(&mut self, n: usize) {
+        let dim = self.mean.len();
+        self.sample(n);
+        // Kept elites (shifted ones keep the fresh sample's last action) lead the population.
+        let kept = self.kept_count.min(n);
+        let carry = if self.done == 0 {
+            dim - self.act_dim
+        } else {
+            dim
+        };
+        for (row, elite) in self.samples[..kept * dim]
+            .chunks_exact_mut(dim)
+            .zip(self.kept.chunks_exact(dim))
+        {
+            row[..carry].copy_from_slice(&elite[..carry]);
+        }
+        if self.done + 1 == self.config.iterations && n > kept {
+            let last = &mut self.samples[(n - 1) * dim..n * dim];
+            last.copy_from_slice(&self.mean);
+        }
+    }
+
+    fn drawn(&mut self) -> (&[f32], &mut [f32]) {
+        let n = self.last_population;
+        (&self.samples[..n * self.mean.len()], &mut self.returns[..n])
+    }
+
+    fn refit(&mut self) {
+        self.elite_return = self.refit_to_elites(self.last_population);
+        self.done += 1;
+    }
+
+    fn progress(&self) -> (u32, f32) {
+        (self.done as u32, self.elite_return)
     }
 }
 

@@ -24,9 +24,18 @@
 //!   each chunk owns its buffers and scratch and runs single-threaded kernels. Within a chunk
 //!   the rows are ordered particle-major with particles grouped by ensemble member, so each
 //!   member sees one contiguous block of rows.
-//! - **No allocation.** Every buffer, the task's formula scratch included, is allocated when
-//!   the imagination is built; the network scratch space is allocated on the first call with a
-//!   model (and again only if a model of another shape arrives).
+//! - **Several agents at once** ([`evaluate_batch`]). The populations of several agents of one
+//!   run (each with its own observation) are stacked: chunk `c` holds every agent's chunk `c`,
+//!   and each ensemble member's rows of all agents form one block, so one matrix product per
+//!   layer and member serves them all. An agent's rows get the noise of its own random stream
+//!   in the order it draws it alone, and every operation is row by row, so each agent's
+//!   returns are exactly those of evaluating it alone: [`Imagination::evaluate`] is the batch
+//!   of one.
+//! - **What is whose.** An [`Imagination`] is one agent's: its random streams (one per chunk)
+//!   and what it scored last. The buffers the rows are imagined in are a [`Workspace`], which a
+//!   batch of agents shares (an imagination keeps one of its own for its solo evaluations).
+//! - **No allocation.** Every buffer, the task's formula scratch included, is allocated on the
+//!   first evaluation (and again only for a larger batch, or a model of another shape).
 
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
@@ -43,22 +52,25 @@ use rand_distr::StandardNormal;
 use rayon::prelude::*;
 use std::ops::Range;
 
-/// Scores populations of action sequences with a learned model; owns all working memory.
+/// One agent's imagination: its random streams and what its last evaluation scored. The rows
+/// themselves are imagined in a [`Workspace`].
 pub struct Imagination {
     ctx: Context,
     /// Candidates scored per call at most.
     population: usize,
-    /// Candidates per chunk for the full population (the last chunk may use fewer); every
-    /// chunk has room for this many.
+    /// Candidates per chunk for the full population (the last chunk may use fewer).
     chunk_len: usize,
-    /// Candidates per chunk in the last [`Imagination::evaluate`]: a smaller population (iCEM's
-    /// decay) is spread evenly over the chunks, so that every thread keeps working.
+    /// Candidates per chunk in the last evaluation: a smaller population (iCEM's decay) is
+    /// spread evenly over the chunks, so that every thread keeps working.
     split: usize,
-    chunks: Vec<Chunk>,
+    /// One per chunk: the chunk's noise and its candidates' energies.
+    streams: Vec<Stream>,
+    /// The workspace of this imagination's solo evaluations, made on the first.
+    own: Option<Workspace>,
 }
 
 /// What every chunk needs to know, shared read-only across threads.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, PartialEq)]
 struct Context {
     task: &'static Task,
     horizon: usize,
@@ -67,10 +79,63 @@ struct Context {
     sample: bool,
 }
 
-/// One thread's share of the population and all the memory it works in.
-struct Chunk {
-    /// Candidates this chunk holds.
-    capacity: usize,
+/// One agent's share of one chunk that outlives an evaluation.
+struct Stream {
+    rng: StdRng,
+    /// Per candidate of the chunk: the particles' mean energy per step in the last evaluation.
+    candidate_energy: Vec<f32>,
+}
+
+impl Stream {
+    /// A stand-in that a workspace holds while no agent's stream is lent to it.
+    fn placeholder() -> Self {
+        Self {
+            rng: StdRng::seed_from_u64(0),
+            candidate_energy: Vec::new(),
+        }
+    }
+}
+
+/// The memory rows are imagined in: one work chunk per chunk. One agent's imagination or a
+/// batch of agents' (of one task and configuration) uses it; it grows to the largest batch.
+#[derive(Default)]
+pub struct Workspace {
+    chunks: Vec<WorkChunk>,
+}
+
+impl std::fmt::Debug for Workspace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Workspace")
+            .field("chunks", &self.chunks.len())
+            .field("rows", &self.chunks.first().map_or(0, |c| c.rows))
+            .finish()
+    }
+}
+
+/// One agent's candidates within one chunk of a batch.
+#[derive(Clone, Copy, Debug, Default)]
+struct Segment {
+    /// The agent's first candidate in this chunk, and how many it has here.
+    first: usize,
+    len: usize,
+    /// Candidates of the agents before it in this chunk.
+    offset: usize,
+}
+
+/// One thread's share of the batch and all the memory it works in.
+struct WorkChunk {
+    /// Rows every buffer has room for.
+    rows: usize,
+    /// Candidates of the batch in hand (all agents), and each agent's segment.
+    candidates: usize,
+    segments: Vec<Segment>,
+    /// The agents' streams of this chunk, lent for the evaluation in hand.
+    streams: Vec<Stream>,
+    /// Per agent: its observation (`obs_dim`).
+    obs: Vec<f32>,
+    /// Per candidate: its action sequence (`horizon × act_dim`) and its return.
+    seqs: Vec<f32>,
+    out: Vec<f32>,
     /// Rows are `particles × candidates`: states before and after the step, the step's actions,
     /// Gaussian noise for sampling, and the step's reward and energy per row.
     state: Vec<f32>,
@@ -85,14 +150,14 @@ struct Chunk {
     ret: Vec<f32>,
     energy_sum: Vec<f32>,
     alive: Vec<bool>,
-    /// Per candidate: the particles' mean return and mean energy per step.
-    candidate_energy: Vec<f32>,
     /// The first time step the chunk has not imagined yet in the evaluation in hand.
     next_step: usize,
-    /// The task's formulas' working memory (made with the chunk: it depends on the task only).
+    /// Ensemble members of the models last imagined with.
+    members: usize,
+    /// The task's formulas' working memory (it depends on the task only).
     formulas: FormulaScratch,
+    task: &'static Task,
     scratch: Option<Scratch>,
-    rng: StdRng,
 }
 
 /// Network working memory, tied to the shapes of the models it was made for.
@@ -103,6 +168,31 @@ struct Scratch {
     reward: Option<RewardScratch>,
     /// For a learned termination only.
     termination: Option<TerminationScratch>,
+}
+
+/// One agent's part of a batched evaluation: `actions` holds `returns.len()` candidates
+/// (`n × horizon × act_dim`) to imagine from `obs`, scored into `returns`.
+pub struct Rollouts<'a> {
+    pub imagination: &'a mut Imagination,
+    pub obs: &'a [f32],
+    pub actions: &'a [f32],
+    pub returns: &'a mut [f32],
+}
+
+/// A member of a batched evaluation: its part, or `None` when it sits this evaluation out.
+pub trait Rollout {
+    fn rollouts(&mut self) -> Option<Rollouts<'_>>;
+}
+
+impl Rollout for Rollouts<'_> {
+    fn rollouts(&mut self) -> Option<Rollouts<'_>> {
+        Some(Rollouts {
+            imagination: &mut *self.imagination,
+            obs: self.obs,
+            actions: self.actions,
+            returns: &mut *self.returns,
+        })
+    }
 }
 
 impl Imagination {
@@ -120,8 +210,11 @@ impl Imagination {
         let population = config.population.max(1);
         let chunks = chunks.clamp(1, population);
         let chunk_len = population.div_ceil(chunks);
-        let chunks = (0..population.div_ceil(chunk_len))
-            .map(|c| Chunk::new(task, config.particles, chunk_len, seed_for_chunk(seed, c)))
+        let streams = (0..population.div_ceil(chunk_len))
+            .map(|c| Stream {
+                rng: StdRng::seed_from_u64(seed_for_chunk(seed, c)),
+                candidate_energy: vec![0.0; chunk_len],
+            })
             .collect();
         let ctx = Context {
             task,
@@ -135,7 +228,8 @@ impl Imagination {
             population,
             chunk_len,
             split: chunk_len,
-            chunks,
+            streams,
+            own: None,
         }
     }
 
@@ -146,9 +240,9 @@ impl Imagination {
 
     /// Scores every candidate of `actions` (`n × horizon × act_dim`) from `obs` into `returns`
     /// (`n`), for any `n` up to [`Imagination::population`] (iCEM's population shrinks from one
-    /// iteration to the next; the chunks are filled in order, so a smaller population leaves
-    /// the last chunks short or idle). `learned`: the run's reward and termination models,
-    /// each exactly when the task learns that part.
+    /// iteration to the next): [`evaluate_batch`] of this agent alone, in its own workspace.
+    /// `learned`: the run's reward and termination models, each exactly when the task learns
+    /// that part.
     ///
     /// With `preempt` (a plan sharing the cores), each chunk looks after every imagined time
     /// step whether a more urgent plan waits ([`Preempt::outranked`], without blocking); only
@@ -168,73 +262,27 @@ impl Imagination {
         returns: &mut [f32],
         preempt: Option<&dyn Preempt>,
     ) {
-        let ctx = self.ctx;
-        let seq = ctx.horizon * ctx.task.act_dim;
-        assert_eq!(obs.len(), ctx.task.obs_dim, "observation dimension");
-        assert!(returns.len() <= self.population(), "population");
-        assert_eq!(actions.len(), returns.len() * seq, "action sequences");
-        self.prepare(dynamics, regularizer, learned);
-        // The full population keeps its fixed split; a smaller one is spread evenly, which fits
-        // every chunk (⌈n/c⌉ ≤ chunk_len, the room of each).
-        let n = returns.len();
-        let chunk_len = if n == self.population() {
-            self.chunk_len
-        } else {
-            n.div_ceil(self.chunks.len()).max(1)
-        };
-        self.split = chunk_len;
-        let horizon = ctx.horizon;
-        // Chunks that hold candidates this time (a smaller population may leave some idle).
-        let active = n.div_ceil(chunk_len);
-        for chunk in &mut self.chunks[..active] {
-            chunk.next_step = 0;
-        }
-        loop {
-            self.chunks[..active]
-                .par_iter_mut()
-                .zip(returns.par_chunks_mut(chunk_len))
-                .zip(actions.par_chunks(chunk_len * seq))
-                .for_each(|((chunk, returns), actions)| {
-                    let first = chunk.next_step;
-                    let mut t = first;
-                    while t < horizon {
-                        // Alone on the cores the chunk runs the whole horizon; shared, it
-                        // stops after the step at which a more urgent plan waits.
-                        let last = match preempt {
-                            None => horizon,
-                            Some(_) => t + 1,
-                        };
-                        chunk.imagine(
-                            &ctx,
-                            obs,
-                            actions,
-                            returns.len(),
-                            (dynamics, regularizer, learned),
-                            None,
-                            t..last,
-                        );
-                        t = last;
-                        if t < horizon && preempt.is_some_and(|p| p.outranked()) {
-                            break;
-                        }
-                    }
-                    chunk.next_step = t;
-                    if first < horizon && t == horizon {
-                        chunk.write_returns(&ctx, returns);
-                    }
-                });
-            let done = self.chunks[..active].iter().all(|c| c.next_step == horizon);
-            match preempt {
-                Some(preempt) if !done => preempt.step_back(),
-                _ => break,
-            }
-        }
+        let mut workspace = self.take_workspace();
+        evaluate_batch(
+            &mut workspace,
+            &mut [Rollouts {
+                imagination: self,
+                obs,
+                actions,
+                returns,
+            }],
+            dynamics,
+            regularizer,
+            learned,
+            preempt,
+        );
+        self.own = Some(workspace);
     }
 
-    /// Mean energy per imagined step of candidate `i` in the last [`Imagination::evaluate`]
-    /// (averaged over particles; 0 without a regulariser).
+    /// Mean energy per imagined step of candidate `i` in the last evaluation (averaged over
+    /// particles; 0 without a regulariser).
     pub fn candidate_energy(&self, i: usize) -> f32 {
-        self.chunks[i / self.split].candidate_energy[i % self.split]
+        self.streams[i / self.split].candidate_energy[i % self.split]
     }
 
     /// Imagines one action sequence (`horizon × act_dim`) from `obs` and writes, per step, the
@@ -263,30 +311,228 @@ impl Imagination {
             (ctx.horizon, ctx.horizon),
             "per-step outputs"
         );
-        self.prepare(dynamics, regularizer, learned);
-        let chunk = &mut self.chunks[0];
+        let mut workspace = self.take_workspace();
+        workspace.reserve(&ctx, 1, 1);
+        workspace.chunks[0].candidates = 1;
+        workspace.prepare(&ctx, 1, (dynamics, regularizer, learned));
+        let chunk = &mut workspace.chunks[0];
+        chunk.segments.clear();
+        chunk.lay_out(&ctx, 0, 0, obs, actions, 0..1);
+        std::mem::swap(&mut chunk.streams[0], &mut self.streams[0]);
         chunk.imagine(
             &ctx,
-            obs,
-            actions,
-            1,
             (dynamics, regularizer, learned),
             Some((rewards, energies)),
             0..ctx.horizon,
         );
-        chunk.candidate_return(&ctx, 1, 0)
+        std::mem::swap(&mut chunk.streams[0], &mut self.streams[0]);
+        let ret = chunk.candidate_return(&ctx, 0, 0);
+        self.own = Some(workspace);
+        ret
     }
 
-    /// Makes sure every chunk has network scratch space that fits these models.
-    fn prepare(&mut self, dynamics: &Ensemble, regularizer: &Regularizer, learned: Learned<'_>) {
-        learned.assert_matches(self.ctx.task);
+    /// The workspace of this imagination's solo evaluations (an empty one the first time),
+    /// to be given back with [`Imagination::keep_workspace`].
+    pub fn take_workspace(&mut self) -> Workspace {
+        self.own.take().unwrap_or_default()
+    }
+
+    /// Keeps `workspace` for this imagination's solo evaluations.
+    pub fn keep_workspace(&mut self, workspace: Workspace) {
+        self.own = Some(workspace);
+    }
+
+    /// Candidates per chunk for an evaluation of `n`: the full population keeps its fixed
+    /// split; a smaller one is spread evenly, which fits every chunk (⌈n/c⌉ ≤ chunk_len).
+    fn split_for(&self, n: usize) -> usize {
+        if n == self.population {
+            self.chunk_len
+        } else {
+            n.div_ceil(self.streams.len()).max(1)
+        }
+    }
+}
+
+/// Scores every agent's candidates of `batch` (each [`Imagination::evaluate`] would score its
+/// own) in one pass over the horizon through `workspace`: each chunk imagines every agent's
+/// share of it together, so each network call is one matrix product over all their rows.
+/// Every agent's returns (and candidate energies) are exactly those it gets alone.
+///
+/// The agents must share their task and configuration (the agents of one run do): one
+/// horizon, particle count, energy weight, sampling and chunk count. Each may score its own
+/// number of candidates.
+pub fn evaluate_batch<R: Rollout>(
+    workspace: &mut Workspace,
+    batch: &mut [R],
+    dynamics: &Ensemble,
+    regularizer: &Regularizer,
+    learned: Learned<'_>,
+    preempt: Option<&dyn Preempt>,
+) {
+    let Some(ctx) = batch
+        .iter_mut()
+        .find_map(|r| r.rollouts().map(|r| r.imagination.ctx))
+    else {
+        return;
+    };
+    let mut chunks = 0;
+    let mut agents = 0;
+    let seq = ctx.horizon * ctx.task.act_dim;
+    for r in batch.iter_mut().filter_map(|r| r.rollouts()) {
+        let im = r.imagination;
+        if agents == 0 {
+            chunks = im.streams.len();
+        }
+        assert!(
+            im.ctx == ctx && im.streams.len() == chunks,
+            "a batch shares one task and configuration"
+        );
+        assert_eq!(r.obs.len(), ctx.task.obs_dim, "observation dimension");
+        assert!(r.returns.len() <= im.population, "population");
+        assert_eq!(r.actions.len(), r.returns.len() * seq, "action sequences");
+        im.split = im.split_for(r.returns.len());
+        agents += 1;
+    }
+    workspace.reserve(&ctx, chunks, agents);
+    for (c, chunk) in workspace.chunks[..chunks].iter_mut().enumerate() {
+        chunk.candidates = batch
+            .iter_mut()
+            .filter_map(|r| r.rollouts())
+            .map(|r| {
+                let (n, split) = (r.returns.len(), r.imagination.split);
+                n.saturating_sub(c * split).min(split)
+            })
+            .sum();
+    }
+    workspace.prepare(&ctx, chunks, (dynamics, regularizer, learned));
+    // Chunks that hold candidates this time (a smaller population may leave some idle).
+    let active = workspace.chunks[..chunks]
+        .iter()
+        .take_while(|c| c.candidates > 0)
+        .count();
+    for (c, chunk) in workspace.chunks[..active].iter_mut().enumerate() {
+        chunk.segments.clear();
+        let mut offset = 0;
+        for (b, r) in batch.iter_mut().filter_map(|r| r.rollouts()).enumerate() {
+            let (n, split) = (r.returns.len(), r.imagination.split);
+            let range = (c * split).min(n)..((c + 1) * split).min(n);
+            chunk.lay_out(&ctx, b, offset, r.obs, r.actions, range);
+            offset += chunk.segments[b].len;
+            std::mem::swap(&mut chunk.streams[b], &mut r.imagination.streams[c]);
+        }
+        debug_assert_eq!(offset, chunk.candidates);
+        chunk.next_step = 0;
+    }
+    let horizon = ctx.horizon;
+    loop {
+        workspace.chunks[..active].par_iter_mut().for_each(|chunk| {
+            let first = chunk.next_step;
+            let mut t = first;
+            while t < horizon {
+                // Alone on the cores the chunk runs the whole horizon; shared, it stops after
+                // the step at which a more urgent plan waits.
+                let last = match preempt {
+                    None => horizon,
+                    Some(_) => t + 1,
+                };
+                chunk.imagine(&ctx, (dynamics, regularizer, learned), None, t..last);
+                t = last;
+                if t < horizon && preempt.is_some_and(|p| p.outranked()) {
+                    break;
+                }
+            }
+            chunk.next_step = t;
+            if first < horizon && t == horizon {
+                chunk.write_returns(&ctx);
+            }
+        });
+        let done = workspace.chunks[..active]
+            .iter()
+            .all(|c| c.next_step == horizon);
+        match preempt {
+            Some(preempt) if !done => preempt.step_back(),
+            _ => break,
+        }
+    }
+    for (c, chunk) in workspace.chunks[..active].iter_mut().enumerate() {
+        for (b, r) in batch.iter_mut().filter_map(|r| r.rollouts()).enumerate() {
+            std::mem::swap(&mut chunk.streams[b], &mut r.imagination.streams[c]);
+            let s = chunk.segments[b];
+            r.returns[s.first..s.first + s.len]
+                .copy_from_slice(&chunk.out[s.offset..s.offset + s.len]);
+        }
+    }
+}
+
+/// Decorrelated seeds for the chunks' noise generators (splitmix64 of seed and chunk index).
+fn seed_for_chunk(seed: u64, chunk: usize) -> u64 {
+    let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(chunk as u64 + 1));
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+impl Workspace {
+    /// An empty workspace; it takes its memory on its first evaluation.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Makes room for `chunks` chunks of a batch of `agents` agents of `ctx`'s task (the
+    /// rows come with [`Workspace::prepare`], once the chunks' candidates are counted).
+    fn reserve(&mut self, ctx: &Context, chunks: usize, agents: usize) {
+        while self.chunks.len() < chunks {
+            self.chunks.push(WorkChunk::new(ctx.task));
+        }
+        for chunk in &mut self.chunks[..chunks] {
+            if !std::ptr::eq(chunk.task, ctx.task) {
+                *chunk = WorkChunk::new(ctx.task);
+            }
+            if chunk.streams.len() < agents {
+                chunk.streams.resize_with(agents, Stream::placeholder);
+                chunk.segments.reserve(agents);
+                chunk.obs.resize(agents * ctx.task.obs_dim, 0.0);
+            }
+            chunk.candidates = 0;
+        }
+    }
+
+    /// Makes sure each of the first `chunks` chunks has rows for its candidates and network
+    /// scratch space that fits these models.
+    fn prepare(
+        &mut self,
+        ctx: &Context,
+        chunks: usize,
+        (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Learned<'_>),
+    ) {
+        learned.assert_matches(ctx.task);
         let Learned {
             reward,
             termination,
         } = learned;
-        let rows_per_chunk = |c: &Chunk| c.capacity * self.ctx.particles;
-        for chunk in &mut self.chunks {
-            let rows = rows_per_chunk(chunk);
+        let (o, a) = (ctx.task.obs_dim, ctx.task.act_dim);
+        let seq = ctx.horizon * a;
+        for chunk in &mut self.chunks[..chunks] {
+            let n = chunk.candidates;
+            let rows = ctx.particles * n;
+            if rows > chunk.rows {
+                chunk.state.resize(rows * o, 0.0);
+                chunk.next.resize(rows * o, 0.0);
+                chunk.act.resize(rows * a, 0.0);
+                chunk.noise.resize(rows * o, 0.0);
+                chunk.reward.resize(rows, 0.0);
+                chunk.energy.resize(rows, 0.0);
+                chunk.terminal.resize(rows, false);
+                chunk.ret.resize(rows, 0.0);
+                chunk.energy_sum.resize(rows, 0.0);
+                chunk.alive.resize(rows, true);
+                chunk.rows = rows;
+            }
+            if chunk.seqs.len() < n * seq {
+                chunk.seqs.resize(n * seq, 0.0);
+                chunk.out.resize(n, 0.0);
+            }
+            let rows = chunk.rows;
             let fits = chunk.scratch.as_ref().is_some_and(|s| {
                 s.dynamics.fits(dynamics, rows)
                     && s.energy.fits(regularizer, rows)
@@ -313,60 +559,96 @@ impl Imagination {
     }
 }
 
-/// Decorrelated seeds for the chunks' noise generators (splitmix64 of seed and chunk index).
-fn seed_for_chunk(seed: u64, chunk: usize) -> u64 {
-    let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(chunk as u64 + 1));
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
-impl Chunk {
-    fn new(task: &Task, particles: usize, capacity: usize, seed: u64) -> Self {
-        let rows = particles * capacity;
-        let (o, a) = (task.obs_dim, task.act_dim);
+impl WorkChunk {
+    fn new(task: &'static Task) -> Self {
         Self {
-            capacity,
-            state: vec![0.0; rows * o],
-            next: vec![0.0; rows * o],
-            act: vec![0.0; rows * a],
-            noise: vec![0.0; rows * o],
-            reward: vec![0.0; rows],
-            energy: vec![0.0; rows],
-            terminal: vec![false; rows],
-            ret: vec![0.0; rows],
-            energy_sum: vec![0.0; rows],
-            alive: vec![true; rows],
-            candidate_energy: vec![0.0; capacity],
+            rows: 0,
+            candidates: 0,
+            segments: Vec::new(),
+            streams: Vec::new(),
+            obs: Vec::new(),
+            seqs: Vec::new(),
+            out: Vec::new(),
+            state: Vec::new(),
+            next: Vec::new(),
+            act: Vec::new(),
+            noise: Vec::new(),
+            reward: Vec::new(),
+            energy: Vec::new(),
+            terminal: Vec::new(),
+            ret: Vec::new(),
+            energy_sum: Vec::new(),
+            alive: Vec::new(),
             next_step: 0,
+            members: 1,
             formulas: task.formula_scratch(),
+            task,
             scratch: None,
-            rng: StdRng::seed_from_u64(seed),
         }
     }
 
-    /// Rolls `n` candidates (their sequences in `actions`, `n × horizon × act_dim`) forward
-    /// from `obs` over the time `steps` (a solve's steps in order, from 0: a range starting at 0
-    /// starts the rollout over), accumulating per-row returns; with `record`, also writes each
-    /// step's mean reward and energy over all rows.
-    #[allow(clippy::too_many_arguments)]
+    /// Takes agent `b`'s share of this chunk, after the `offset` candidates of the agents
+    /// before it: its observation and its candidates `range` of `actions` (its whole
+    /// population's sequences).
+    fn lay_out(
+        &mut self,
+        ctx: &Context,
+        b: usize,
+        offset: usize,
+        obs: &[f32],
+        actions: &[f32],
+        range: Range<usize>,
+    ) {
+        let (o, seq) = (ctx.task.obs_dim, ctx.horizon * ctx.task.act_dim);
+        debug_assert_eq!(self.segments.len(), b);
+        self.obs[b * o..(b + 1) * o].copy_from_slice(obs);
+        let len = range.len();
+        self.seqs[offset * seq..(offset + len) * seq]
+            .copy_from_slice(&actions[range.start * seq..range.end * seq]);
+        self.segments.push(Segment {
+            first: range.start,
+            len,
+            offset,
+        });
+    }
+
+    /// The rows of member `member`'s particles of agent `b`: within the member's block (its
+    /// `slots` particle slots of every candidate of the chunk, from slot `first_slot`), the
+    /// agent's candidates, slot-major.
+    fn block(&self, first_slot: usize, slots: usize, b: usize) -> Range<usize> {
+        let s = self.segments[b];
+        let start = first_slot * self.candidates + slots * s.offset;
+        start..start + slots * s.len
+    }
+
+    /// Rolls the chunk's candidates forward over the time `steps` (a solve's steps in order,
+    /// from 0: a range starting at 0 starts the rollout over), accumulating per-row returns;
+    /// with `record`, also writes each step's mean reward and energy over all rows.
     fn imagine(
         &mut self,
         ctx: &Context,
-        obs: &[f32],
-        actions: &[f32],
-        n: usize,
         (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Learned<'_>),
         mut record: Option<(&mut [f32], &mut [f32])>,
         steps: Range<usize>,
     ) {
         let (o, a, h) = (ctx.task.obs_dim, ctx.task.act_dim, ctx.horizon);
+        let n = self.candidates;
         let rows = ctx.particles * n;
         let members = dynamics.members();
+        let used = members.min(ctx.particles);
         let with_energy = !matches!(regularizer, Regularizer::None);
         if steps.start == 0 {
-            for s in self.state[..rows * o].chunks_exact_mut(o) {
-                s.copy_from_slice(obs);
+            let mut first_slot = 0;
+            for member in 0..used {
+                let slots = particles_of_member(ctx.particles, members, member);
+                for b in 0..self.segments.len() {
+                    let block = self.block(first_slot, slots, b);
+                    let obs = &self.obs[b * o..(b + 1) * o];
+                    for s in self.state[block.start * o..block.end * o].chunks_exact_mut(o) {
+                        s.copy_from_slice(obs);
+                    }
+                }
+                first_slot += slots;
             }
             self.ret[..rows].fill(0.0);
             self.energy_sum[..rows].fill(0.0);
@@ -375,20 +657,35 @@ impl Chunk {
         }
         let scratch = self.scratch.as_mut().expect("prepared before imagining");
         for t in steps {
-            // Row `k·n + i` is particle slot `k` of candidate `i`.
-            for slot in self.act[..rows * a].chunks_exact_mut(n * a) {
-                for (i, row) in slot.chunks_exact_mut(a).enumerate() {
-                    let at = i * h * a + t * a;
-                    row.copy_from_slice(&actions[at..at + a]);
+            // Per member and agent: row `k·len + i` of the block is the member's particle slot
+            // `k` of the agent's candidate `i`. Each agent draws its rows' noise from its own
+            // stream, member by member, in the order it draws it alone.
+            let mut first_slot = 0;
+            for member in 0..used {
+                let slots = particles_of_member(ctx.particles, members, member);
+                for b in 0..self.segments.len() {
+                    let seg = self.segments[b];
+                    let start = first_slot * n + slots * seg.offset;
+                    let block = start..start + slots * seg.len;
+                    for slot in
+                        self.act[block.start * a..block.end * a].chunks_exact_mut(seg.len * a)
+                    {
+                        for (i, row) in slot.chunks_exact_mut(a).enumerate() {
+                            let at = (seg.offset + i) * h * a + t * a;
+                            row.copy_from_slice(&self.seqs[at..at + a]);
+                        }
+                    }
+                    if ctx.sample {
+                        let rng = &mut self.streams[b].rng;
+                        for z in &mut self.noise[block.start * o..block.end * o] {
+                            *z = rng.sample(StandardNormal);
+                        }
+                    }
                 }
-            }
-            if ctx.sample {
-                for z in &mut self.noise[..rows * o] {
-                    *z = self.rng.sample(StandardNormal);
-                }
+                first_slot += slots;
             }
             let mut first_slot = 0;
-            for member in 0..members.min(ctx.particles) {
+            for member in 0..used {
                 let slots = particles_of_member(ctx.particles, members, member);
                 let (r0, r1) = (first_slot * n, (first_slot + slots) * n);
                 let noise = ctx.sample.then(|| &self.noise[r0 * o..r1 * o]);
@@ -466,24 +763,42 @@ impl Chunk {
             }
             std::mem::swap(&mut self.state, &mut self.next);
         }
+        self.members = members;
     }
 
-    /// The particles' mean return per candidate (non-finite → `-inf`), and their mean energy
-    /// per step into `candidate_energy`.
-    fn write_returns(&mut self, ctx: &Context, returns: &mut [f32]) {
-        let n = returns.len();
+    /// The rows of agent `b`'s candidate `i`, particle slot by slot.
+    fn rows_of(&self, ctx: &Context, b: usize, i: usize) -> impl Iterator<Item = usize> + '_ {
+        let used = self.members.min(ctx.particles);
+        let (members, particles) = (self.members, ctx.particles);
+        (0..used)
+            .scan(0, move |first_slot, member| {
+                let slots = particles_of_member(particles, members, member);
+                let block = self.block(*first_slot, slots, b);
+                *first_slot += slots;
+                let len = self.segments[b].len;
+                Some((0..slots).map(move |k| block.start + k * len + i))
+            })
+            .flatten()
+    }
+
+    /// Per agent: its candidates' particles' mean returns (non-finite → `-inf`) into `out`, and
+    /// their mean energy per step into the agent's stream.
+    fn write_returns(&mut self, ctx: &Context) {
         let inv_step = 1.0 / (ctx.particles * ctx.horizon) as f32;
-        for (i, out) in returns.iter_mut().enumerate() {
-            *out = self.candidate_return(ctx, n, i);
-            let energy: f32 = (0..ctx.particles).map(|k| self.energy_sum[k * n + i]).sum();
-            self.candidate_energy[i] = energy * inv_step;
+        for b in 0..self.segments.len() {
+            let seg = self.segments[b];
+            for i in 0..seg.len {
+                self.out[seg.offset + i] = self.candidate_return(ctx, b, i);
+                let energy: f32 = self.rows_of(ctx, b, i).map(|r| self.energy_sum[r]).sum();
+                self.streams[b].candidate_energy[i] = energy * inv_step;
+            }
         }
     }
 
-    /// The particles' mean return of candidate `i` of the `n` last imagined; a non-finite mean
-    /// (a diverging model) is `-inf`, so it never wins.
-    fn candidate_return(&self, ctx: &Context, n: usize, i: usize) -> f32 {
-        let sum: f32 = (0..ctx.particles).map(|k| self.ret[k * n + i]).sum();
+    /// The particles' mean return of agent `b`'s candidate `i`; a non-finite mean (a diverging
+    /// model) is `-inf`, so it never wins.
+    fn candidate_return(&self, ctx: &Context, b: usize, i: usize) -> f32 {
+        let sum: f32 = self.rows_of(ctx, b, i).map(|r| self.ret[r]).sum();
         let ret = sum / ctx.particles as f32;
         if ret.is_finite() {
             ret

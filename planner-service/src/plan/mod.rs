@@ -32,8 +32,8 @@ pub use adam::AdamPlanner;
 pub use anytime::IterationClock;
 pub use cem::Cem;
 pub use icem::Icem;
-pub use imagine::Imagination;
-pub use mpc::{ImaginedPlan, MpcPlanner, PlanOutcome};
+pub use imagine::{Imagination, Rollout, Rollouts, Workspace, evaluate_batch};
+pub use mpc::{ImaginedPlan, MpcPlanner, PlanOutcome, PlanRequest};
 pub use sequence::{CemOutcome, PopulationObjective};
 pub use settings::{AdamConfig, CemConfig, ConfigError, IcemConfig, Optimizer};
 

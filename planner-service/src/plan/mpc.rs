@@ -5,16 +5,21 @@ use super::Learned;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
 use crate::plan::anytime::IterationClock;
-use crate::plan::imagine::Imagination;
-use crate::plan::search::{Imagined, Search};
+use crate::plan::imagine::{Imagination, Rollout, Rollouts, Workspace, evaluate_batch};
+use crate::plan::search::Search;
+use crate::plan::sequence::{Lockstep, LockstepMember, SteppedSearch, solve_lockstep};
 use crate::plan::settings::{CemConfig, ConfigError};
 use crate::sched::Preempt;
 use proto::Task;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// One agent's planner. Owns the optimiser's distribution (the warm start), the imagination's
-/// buffers and the random state, so planning allocates nothing.
+/// One agent's planner. Owns the optimiser's distribution (the warm start), its random state
+/// and (for its solo plans) the imagination's buffers, so planning allocates nothing.
+///
+/// Several agents of one run plan together with [`MpcPlanner::plan_batch`]: their CEM (or
+/// iCEM) solves run in lockstep, and each iteration imagines all their populations as one
+/// batch through the networks. [`MpcPlanner::plan`] is the batch of one.
 pub struct MpcPlanner {
     task: &'static Task,
     /// CEM, iCEM or Adam, as the configuration says.
@@ -24,6 +29,71 @@ pub struct MpcPlanner {
     action: Vec<f32>,
     /// This agent's iteration timings, which decide how many iterations fit a deadline.
     clock: IterationClock,
+    /// What the last solve did.
+    solved: Solved,
+}
+
+/// The statistics of the last solve (see [`PlanOutcome`]).
+#[derive(Clone, Copy, Debug)]
+struct Solved {
+    predicted_return: f32,
+    mean_energy: f32,
+    iterations: u32,
+    cut: bool,
+}
+
+/// One agent's observation in a batch of plans ([`MpcPlanner::plan_batch`]): its planner, the
+/// observation and when the answer is due.
+pub struct PlanRequest<'a> {
+    planner: &'a mut MpcPlanner,
+    obs: &'a [f32],
+    deadline: Option<Instant>,
+    step: Lockstep,
+}
+
+impl<'a> PlanRequest<'a> {
+    pub fn new(planner: &'a mut MpcPlanner, obs: &'a [f32], deadline: Option<Instant>) -> Self {
+        Self {
+            planner,
+            obs,
+            deadline,
+            step: Lockstep::default(),
+        }
+    }
+
+    /// The planner's answer, after [`MpcPlanner::plan_batch`].
+    pub fn outcome(&self) -> PlanOutcome<'_> {
+        self.planner.outcome()
+    }
+}
+
+impl LockstepMember for PlanRequest<'_> {
+    fn parts(
+        &mut self,
+    ) -> (
+        Option<&mut dyn SteppedSearch>,
+        &mut IterationClock,
+        &mut Lockstep,
+    ) {
+        let planner = &mut *self.planner;
+        (planner.search.stepped(), &mut planner.clock, &mut self.step)
+    }
+}
+
+impl Rollout for PlanRequest<'_> {
+    fn rollouts(&mut self) -> Option<Rollouts<'_>> {
+        if !self.step.joined {
+            return None;
+        }
+        let planner = &mut *self.planner;
+        let (actions, returns) = planner.search.stepped()?.drawn();
+        Some(Rollouts {
+            imagination: &mut planner.imagination,
+            obs: self.obs,
+            actions,
+            returns,
+        })
+    }
 }
 
 /// The answer to one observation.
@@ -108,6 +178,12 @@ impl MpcPlanner {
             imagination,
             action: vec![0.0; task.act_dim],
             clock: IterationClock::default(),
+            solved: Solved {
+                predicted_return: f32::NEG_INFINITY,
+                mean_energy: 0.0,
+                iterations: 0,
+                cut: false,
+            },
         })
     }
 
@@ -158,7 +234,7 @@ impl MpcPlanner {
 
     /// [`MpcPlanner::plan`] on cores shared with other plans: `preempt` may pause the solve
     /// before each iteration, and between imagined steps within one, while a more urgent plan
-    /// runs (see [`crate::sched`]).
+    /// runs (see [`crate::sched`]). The batch of one, in this planner's own workspace.
     pub fn plan_shared(
         &mut self,
         obs: &[f32],
@@ -168,30 +244,115 @@ impl MpcPlanner {
         deadline: Option<Instant>,
         preempt: Option<Arc<dyn Preempt>>,
     ) -> PlanOutcome<'_> {
-        let mut objective = Imagined {
-            imagination: &mut self.imagination,
-            obs,
-            dynamics,
-            regularizer,
-            learned,
-            preempt: preempt.clone(),
-        };
-        self.clock.start_shared(deadline, preempt);
-        let (outcome, mean_energy) = self.search.optimize(&mut objective, &mut self.clock);
-        self.clock.end();
-        if outcome.iterations == 0 {
-            self.action
-                .copy_from_slice(&self.search.mean()[..self.task.act_dim]);
-        } else {
-            self.action.copy_from_slice(self.search.first_action());
+        let mut workspace = self.imagination.take_workspace();
+        Self::plan_batch(
+            &mut [PlanRequest::new(self, obs, deadline)],
+            &mut workspace,
+            (dynamics, regularizer, learned),
+            preempt,
+        );
+        self.imagination.keep_workspace(workspace);
+        self.outcome()
+    }
+
+    /// Plans every request of `batch` as [`MpcPlanner::plan_shared`] plans one, together:
+    /// their CEM or iCEM solves run in lockstep, and each iteration imagines every agent's
+    /// candidates in one pass through `workspace` (one matrix product per layer for them all;
+    /// see [`crate::plan::imagine::evaluate_batch`]). Each agent's answer
+    /// ([`PlanRequest::outcome`]) is exactly what planning it alone with the same random state
+    /// gives, unless a deadline cut it. A request's iteration starts only when its deadline
+    /// leaves room for the whole batch's iteration; one whose deadline does not is cut there,
+    /// and the others go on. Adam (a gradient planner, no population to stack) solves each of
+    /// its requests in turn.
+    ///
+    /// The requests must come from planners of one task and configuration (one run's agents).
+    /// Allocates nothing once `workspace` has served a batch as large.
+    pub fn plan_batch(
+        batch: &mut [PlanRequest<'_>],
+        workspace: &mut Workspace,
+        models: (&Ensemble, &Regularizer, Learned<'_>),
+        preempt: Option<Arc<dyn Preempt>>,
+    ) {
+        for request in batch.iter_mut() {
+            request
+                .planner
+                .clock
+                .start_shared(request.deadline, preempt.clone());
         }
-        self.search.shift();
+        Self::solve(batch, workspace, models, preempt.as_deref());
+        for request in batch.iter_mut() {
+            let planner = &mut *request.planner;
+            planner.clock.end();
+            let act_dim = planner.task.act_dim;
+            if planner.solved.iterations == 0 {
+                planner
+                    .action
+                    .copy_from_slice(&planner.search.mean()[..act_dim]);
+            } else {
+                planner
+                    .action
+                    .copy_from_slice(planner.search.first_action());
+            }
+            planner.search.shift();
+        }
+    }
+
+    /// One solve per request from its warm start (the clocks started), its statistics left in
+    /// each planner.
+    fn solve(
+        batch: &mut [PlanRequest<'_>],
+        workspace: &mut Workspace,
+        (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Learned<'_>),
+        preempt: Option<&dyn Preempt>,
+    ) {
+        for request in batch.iter_mut() {
+            let planner = &mut *request.planner;
+            if let Some((outcome, mean_energy)) = planner.search.solve_gradient(
+                request.obs,
+                dynamics,
+                regularizer,
+                learned,
+                &mut planner.clock,
+            ) {
+                planner.solved = Solved {
+                    predicted_return: outcome.elite_return,
+                    mean_energy,
+                    iterations: outcome.iterations,
+                    cut: outcome.cut,
+                };
+            }
+        }
+        solve_lockstep(batch, |members| {
+            evaluate_batch(workspace, members, dynamics, regularizer, learned, preempt)
+        });
+        for request in batch.iter_mut() {
+            let planner = &mut *request.planner;
+            let Some((iterations, elite_return)) = planner.search.stepped().map(|s| s.progress())
+            else {
+                continue;
+            };
+            let mean_energy = if iterations == 0 {
+                0.0
+            } else {
+                planner.search.elite_energy(&planner.imagination)
+            };
+            planner.solved = Solved {
+                predicted_return: elite_return,
+                mean_energy,
+                iterations,
+                cut: request.step.cut,
+            };
+        }
+    }
+
+    /// The answer of the last plan: its action and what the solve did.
+    pub fn outcome(&self) -> PlanOutcome<'_> {
         PlanOutcome {
             action: &self.action,
-            predicted_return: outcome.elite_return,
-            mean_energy,
-            iterations: outcome.iterations,
-            cut: outcome.cut,
+            predicted_return: self.solved.predicted_return,
+            mean_energy: self.solved.mean_energy,
+            iterations: self.solved.iterations,
+            cut: self.solved.cut,
         }
     }
 
@@ -207,16 +368,16 @@ impl MpcPlanner {
     ) -> ImaginedPlan {
         let warm_start = self.search.mean().to_vec();
         self.search.reset();
-        let mut objective = Imagined {
-            imagination: &mut self.imagination,
-            obs,
-            dynamics,
-            regularizer,
-            learned,
-            preempt: None,
-        };
         self.clock.start(None);
-        let (outcome, _) = self.search.optimize(&mut objective, &mut self.clock);
+        let mut workspace = self.imagination.take_workspace();
+        Self::solve(
+            &mut [PlanRequest::new(self, obs, None)],
+            &mut workspace,
+            (dynamics, regularizer, learned),
+            None,
+        );
+        self.imagination.keep_workspace(workspace);
+        self.clock.end();
         let actions = self.search.plan().to_vec();
         self.search.set_mean(&warm_start);
         let horizon = self.search.config().horizon;
@@ -235,7 +396,7 @@ impl MpcPlanner {
             rewards,
             energies,
             predicted_return,
-            iterations: outcome.iterations,
+            iterations: self.solved.iterations,
         }
     }
 }
@@ -246,6 +407,7 @@ mod tests {
     use crate::data::Transitions;
     use crate::dynamics::DynamicsConfig;
     use crate::energy::{EnergyConfig, RegularizerKind};
+    use crate::plan::imagine::Workspace;
     use crate::plan::{IcemConfig, Optimizer};
     use proto::Builtin;
     use rand::rngs::StdRng;
@@ -455,6 +617,27 @@ mod tests {
         );
     }
 
+    /// Imagination from one observation as a plain [`crate::plan::PopulationObjective`].
+    struct Imagined<'a> {
+        imagination: &'a mut Imagination,
+        obs: &'a [f32],
+        dynamics: &'a Ensemble,
+    }
+
+    impl crate::plan::PopulationObjective for Imagined<'_> {
+        fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]) {
+            self.imagination.evaluate(
+                self.obs,
+                actions,
+                self.dynamics,
+                &Regularizer::None,
+                Learned::NONE,
+                returns,
+                None,
+            );
+        }
+    }
+
     #[test]
     fn the_default_preset_plans_exactly_as_plain_cem() {
         // The optimiser dispatch changes nothing for the paper's method: the default preset's
@@ -487,9 +670,6 @@ mod tests {
                     imagination: &mut imagination,
                     obs: &obs,
                     dynamics: &dynamics,
-                    regularizer: &Regularizer::None,
-                    learned: Learned::NONE,
-                    preempt: None,
                 },
                 &mut IterationClock::default(),
             );
@@ -584,6 +764,159 @@ mod tests {
             taken
         };
         assert_eq!(actions(None), actions(Some(later)));
+    }
+
+    /// Each agent of a batch gets exactly the answer it gets alone with the same random state:
+    /// CEM and iCEM, ragged batches (1, 3, 8 agents, one workspace serving them all in turn),
+    /// an ensemble with sampled particles, a DEEN, warm starts over several steps, and an
+    /// early stop that ends some agents' solves before others'.
+    #[test]
+    fn a_batch_plans_each_agent_exactly_as_alone() {
+        let task = Builtin::Cartpole.task();
+        let mut rng = StdRng::seed_from_u64(11);
+        let dynamics = Ensemble::new(
+            task,
+            &DynamicsConfig {
+                hidden_layers: 2,
+                hidden_size: 24,
+                ensemble_size: 3,
+                ..Default::default()
+            },
+            &mut rng,
+        );
+        let deen = Regularizer::new(
+            RegularizerKind::Deen,
+            &EnergyConfig {
+                hidden_layers: 2,
+                hidden_size: 16,
+                ..Default::default()
+            },
+            4,
+            1,
+            &mut rng,
+        );
+        let models = (&dynamics, &deen, Learned::NONE);
+        let mut workspace = Workspace::new();
+        for optimizer in [Optimizer::Cem, Optimizer::Icem] {
+            let mut cfg = config();
+            cfg.optimizer = optimizer;
+            cfg.population = 37;
+            cfg.elites = 5;
+            cfg.particles = 4;
+            // Loose enough that some solves converge before their last iteration.
+            cfg.min_variance = match optimizer {
+                Optimizer::Icem => 1.2,
+                _ => 0.3,
+            };
+            let planner = |k: u64| {
+                MpcPlanner::with_chunks(task, cfg.clone(), 0.05, true, 100 + k, 2).unwrap()
+            };
+            for n in [1usize, 3, 8] {
+                let mut alone: Vec<MpcPlanner> = (0..n as u64).map(planner).collect();
+                let mut batched: Vec<MpcPlanner> = (0..n as u64).map(planner).collect();
+                let mut obs: Vec<[f32; 4]> = (0..n)
+                    .map(|k| {
+                        [
+                            0.1 * k as f32 - 0.3,
+                            PI - 0.05 * k as f32,
+                            0.0,
+                            0.01 * k as f32,
+                        ]
+                    })
+                    .collect();
+                let mut iterations = std::collections::BTreeSet::new();
+                for step in 0..3 {
+                    let expected: Vec<(Vec<f32>, f32, f32, u32, bool)> = alone
+                        .iter_mut()
+                        .zip(&obs)
+                        .map(|(p, o)| {
+                            let out = p.plan(o, &dynamics, &deen, Learned::NONE, None);
+                            let (a, r, e) =
+                                (out.action.to_vec(), out.predicted_return, out.mean_energy);
+                            (a, r, e, out.iterations, out.cut)
+                        })
+                        .collect();
+                    let mut requests: Vec<PlanRequest> = batched
+                        .iter_mut()
+                        .zip(&obs)
+                        .map(|(p, o)| PlanRequest::new(p, o, None))
+                        .collect();
+                    MpcPlanner::plan_batch(&mut requests, &mut workspace, models, None);
+                    for (k, (request, want)) in requests.iter().zip(&expected).enumerate() {
+                        let got = request.outcome();
+                        let got = (
+                            got.action.to_vec(),
+                            got.predicted_return,
+                            got.mean_energy,
+                            got.iterations,
+                            got.cut,
+                        );
+                        assert_eq!(
+                            &got, want,
+                            "{optimizer:?}, {n} agents, agent {k}, step {step}"
+                        );
+                        assert!(want.1.is_finite() && want.2 > 0.0, "{want:?}");
+                        iterations.insert(want.3);
+                    }
+                    for (o, (a, ..)) in obs.iter_mut().zip(&expected) {
+                        o[0] += 0.1 * a[0];
+                    }
+                }
+                if n == 8 {
+                    assert!(
+                        iterations.len() > 1,
+                        "{optimizer:?}: every solve ran {iterations:?} iterations"
+                    );
+                }
+            }
+        }
+    }
+
+    /// A deadline cuts only its own request: the agent whose deadline has passed answers its
+    /// warm start (no iteration, cut), and the others of the batch plan exactly as alone.
+    #[test]
+    fn a_passed_deadline_in_a_batch_cuts_that_agent_only() {
+        let dynamics = learned_cart();
+        let task = Builtin::Cartpole.task();
+        let models = (&dynamics, &Regularizer::None, Learned::NONE);
+        let obs = [
+            [0.5, PI, 0.0, 0.0],
+            [-0.5, PI, 0.0, 0.0],
+            [0.2, PI, 0.0, 0.0],
+        ];
+        let make = |k: u64| MpcPlanner::with_chunks(task, config(), 0.0, false, k, 2).unwrap();
+        let mut alone: Vec<MpcPlanner> = (0..3).map(make).collect();
+        let mut batched: Vec<MpcPlanner> = (0..3).map(make).collect();
+        let expected: Vec<Vec<f32>> = alone
+            .iter_mut()
+            .zip(&obs)
+            .map(|(p, o)| {
+                p.plan(o, models.0, models.1, models.2, None)
+                    .action
+                    .to_vec()
+            })
+            .collect();
+        let warm_start = batched[1].search.mean()[0];
+        let passed = Some(Instant::now() - Duration::from_millis(1));
+        let later = Some(Instant::now() + Duration::from_secs(3600));
+        let mut workspace = Workspace::new();
+        let [a, b, c] = &mut batched[..] else {
+            unreachable!()
+        };
+        let mut requests = [
+            PlanRequest::new(a, &obs[0], later),
+            PlanRequest::new(b, &obs[1], passed),
+            PlanRequest::new(c, &obs[2], None),
+        ];
+        MpcPlanner::plan_batch(&mut requests, &mut workspace, models, None);
+        let late = requests[1].outcome();
+        assert_eq!((late.iterations, late.cut), (0, true));
+        assert_eq!(late.action, &[warm_start]);
+        for k in [0, 2] {
+            let outcome = requests[k].outcome();
+            assert_eq!((outcome.iterations, outcome.cut), (5, false), "agent {k}");
+            assert_eq!(outcome.action, &expected[k][..], "agent {k}");
+        }
     }
 
     #[test]

@@ -7,40 +7,11 @@ use super::anytime::IterationClock;
 use super::cem::Cem;
 use super::icem::Icem;
 use super::imagine::Imagination;
-use super::sequence::{CemOutcome, PopulationObjective};
+use super::sequence::{CemOutcome, SteppedSearch};
 use super::settings::{CemConfig, ConfigError, Optimizer};
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use crate::sched::Preempt;
 use proto::Task;
-use std::sync::Arc;
-
-/// The planning problem of one step: imagination from one observation with fixed models.
-/// CEM and iCEM see it as a [`PopulationObjective`]; Adam differentiates the same objective.
-pub(super) struct Imagined<'a> {
-    pub imagination: &'a mut Imagination,
-    pub obs: &'a [f32],
-    pub dynamics: &'a Ensemble,
-    pub regularizer: &'a Regularizer,
-    /// The run's reward and termination models, each exactly when the task learns it.
-    pub learned: Learned<'a>,
-    /// Who may pause the solve between imagined steps (a plan sharing the cores).
-    pub preempt: Option<Arc<dyn Preempt>>,
-}
-
-impl PopulationObjective for Imagined<'_> {
-    fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]) {
-        self.imagination.evaluate(
-            self.obs,
-            actions,
-            self.dynamics,
-            self.regularizer,
-            self.learned,
-            returns,
-            self.preempt.as_deref(),
-        );
-    }
-}
 
 /// CEM (the paper's), iCEM or Adam, built from one [`CemConfig`].
 #[derive(Debug)]
@@ -95,42 +66,53 @@ impl Search {
         }
     }
 
-    /// One solve within the clock's deadline, and the mean energy per imagined step of what
-    /// it settled on (CEM and iCEM: their last elites; Adam: its best sequence; 0 when the
-    /// deadline left no time for an iteration).
-    pub fn optimize(
-        &mut self,
-        problem: &mut Imagined<'_>,
-        clock: &mut IterationClock,
-    ) -> (CemOutcome, f32) {
-        let (outcome, elites) = match self {
-            Search::Cem(s) => (s.optimize(problem, clock), s.elites()),
-            Search::Icem(s) => (s.optimize(problem, clock), s.elites()),
-            Search::Adam(s) => {
-                let outcome = s.optimize(
-                    problem.obs,
-                    problem.dynamics,
-                    problem.regularizer,
-                    problem.learned,
-                    clock,
-                );
-                let energy = if outcome.iterations == 0 {
-                    0.0
-                } else {
-                    s.best_energy()
-                };
-                return (outcome, energy);
-            }
-        };
-        if outcome.iterations == 0 {
-            return (outcome, 0.0);
+    /// CEM and iCEM, run iteration by iteration (several agents' solves in lockstep, see
+    /// [`super::sequence::solve_lockstep`]); `None` for Adam, which solves alone
+    /// ([`Search::solve_gradient`]).
+    pub fn stepped(&mut self) -> Option<&mut dyn SteppedSearch> {
+        match self {
+            Search::Cem(s) => Some(s),
+            Search::Icem(s) => Some(s),
+            Search::Adam(_) => None,
         }
-        let energy = elites
+    }
+
+    /// Adam's solve from `obs` within the clock's deadline, and the mean energy per imagined
+    /// step of its best sequence (0 when the deadline left no time for an iteration); `None`
+    /// for CEM and iCEM.
+    pub fn solve_gradient(
+        &mut self,
+        obs: &[f32],
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+        learned: Learned<'_>,
+        clock: &mut IterationClock,
+    ) -> Option<(CemOutcome, f32)> {
+        let Search::Adam(s) = self else {
+            return None;
+        };
+        let outcome = s.optimize(obs, dynamics, regularizer, learned, clock);
+        let energy = if outcome.iterations == 0 {
+            0.0
+        } else {
+            s.best_energy()
+        };
+        Some((outcome, energy))
+    }
+
+    /// After a CEM or iCEM solve that ran an iteration: the mean energy per imagined step of
+    /// its last elites, as `imagination` scored them.
+    pub fn elite_energy(&self, imagination: &Imagination) -> f32 {
+        let elites = match self {
+            Search::Cem(s) => s.elites(),
+            Search::Icem(s) => s.elites(),
+            Search::Adam(s) => return s.best_energy(),
+        };
+        elites
             .iter()
-            .map(|&e| problem.imagination.candidate_energy(e))
+            .map(|&e| imagination.candidate_energy(e))
             .sum::<f32>()
-            / elites.len() as f32;
-        (outcome, energy)
+            / elites.len() as f32
     }
 
     /// The plan of the last solve: CEM's mean, iCEM's and Adam's best sequence.

@@ -2,6 +2,7 @@
 //! that scores a population, the box a sequence lives in (and the MPC shift of a plan), and
 //! what one solve did.
 
+use super::anytime::IterationClock;
 use super::settings::ConfigError;
 
 /// Scores a whole population of action sequences at once (higher is better).
@@ -69,5 +70,155 @@ impl SequenceBox {
         let dim = plan.len();
         plan.copy_within(act_dim.., 0);
         plan[dim - act_dim..].copy_from_slice(&initial[dim - act_dim..]);
+    }
+}
+
+/// A population search run one iteration at a time, so that several agents' solves can share
+/// each iteration's evaluation ([`solve_lockstep`]): CEM and iCEM.
+pub trait SteppedSearch {
+    /// Starts a solve from the warm-start mean.
+    fn begin(&mut self);
+    /// Candidates the next iteration scores; `None` once the solve is over (every configured
+    /// iteration run, or the distribution converged).
+    fn next_population(&self) -> Option<usize>;
+    /// Draws the next iteration's `n` candidates (`n` as [`SteppedSearch::next_population`]
+    /// said).
+    fn draw(&mut self, n: usize);
+    /// The candidates drawn last (`n × horizon × act_dim`) and room for their scores (`n`).
+    fn drawn(&mut self) -> (&[f32], &mut [f32]);
+    /// Moves the distribution towards the elites of the scored candidates.
+    fn refit(&mut self);
+    /// Iterations run in the solve in hand, and the mean score of the last one's elites
+    /// (`-inf` before the first).
+    fn progress(&self) -> (u32, f32);
+}
+
+/// Where one member of a lockstep solve stands.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Lockstep {
+    /// Its solve goes on.
+    pub running: bool,
+    /// It scores candidates in the iteration in hand.
+    pub joined: bool,
+    /// Iterations were left out because the next one would have crossed its deadline.
+    pub cut: bool,
+}
+
+/// One solve of a lockstep: its search (`None`: not a population search, it sits the lockstep
+/// out), its clock and its standing.
+pub trait LockstepMember {
+    fn parts(
+        &mut self,
+    ) -> (
+        Option<&mut dyn SteppedSearch>,
+        &mut IterationClock,
+        &mut Lockstep,
+    );
+}
+
+/// Runs the solves of `members` together, iteration by iteration: every member whose solve
+/// goes on draws its candidates, `evaluate` scores those of every member that
+/// [`Lockstep::joined`] at once, and each refits to its own. A member's iteration starts when
+/// its clock lets an iteration of all the members' candidates start (they share the cores for
+/// it); one that it refuses is cut, and the others go on. A member's draws and refits are
+/// those of its solve alone, so without deadlines each ends exactly where it would alone; a
+/// solve alone is the lockstep of one.
+pub fn solve_lockstep<M: LockstepMember>(members: &mut [M], mut evaluate: impl FnMut(&mut [M])) {
+    for m in members.iter_mut() {
+        let (search, _, step) = m.parts();
+        *step = Lockstep {
+            running: search.is_some(),
+            ..Lockstep::default()
+        };
+        if let Some(search) = search {
+            search.begin();
+        }
+    }
+    loop {
+        let mut wanted = 0;
+        for m in members.iter_mut() {
+            let (search, _, step) = m.parts();
+            step.joined = false;
+            match search.filter(|_| step.running).map(|s| s.next_population()) {
+                Some(Some(n)) => wanted += n,
+                Some(None) => step.running = false,
+                None => {}
+            }
+        }
+        if wanted == 0 {
+            return;
+        }
+        let mut joined = 0;
+        for m in members.iter_mut() {
+            let (Some(search), clock, step) = m.parts() else {
+                continue;
+            };
+            if !step.running {
+                continue;
+            }
+            let n = search
+                .next_population()
+                .expect("a running solve wants an iteration");
+            if clock.may_start(wanted, search.progress().0 == 0) {
+                search.draw(n);
+                step.joined = true;
+                joined += n;
+            } else {
+                step.cut = true;
+                step.running = false;
+            }
+        }
+        if joined == 0 {
+            return;
+        }
+        evaluate(members);
+        for m in members.iter_mut() {
+            let (Some(search), clock, step) = m.parts() else {
+                continue;
+            };
+            if step.joined {
+                search.refit();
+                clock.finished(joined);
+            }
+        }
+    }
+}
+
+/// One search's solve over `objective`: the lockstep of one.
+pub fn solve_alone<S: SteppedSearch, O: PopulationObjective + ?Sized>(
+    search: &mut S,
+    objective: &mut O,
+    clock: &mut IterationClock,
+) -> CemOutcome {
+    struct Alone<'a, S> {
+        search: &'a mut S,
+        clock: &'a mut IterationClock,
+        step: Lockstep,
+    }
+    impl<S: SteppedSearch> LockstepMember for Alone<'_, S> {
+        fn parts(
+            &mut self,
+        ) -> (
+            Option<&mut dyn SteppedSearch>,
+            &mut IterationClock,
+            &mut Lockstep,
+        ) {
+            (Some(&mut *self.search), &mut *self.clock, &mut self.step)
+        }
+    }
+    let mut one = [Alone {
+        search,
+        clock,
+        step: Lockstep::default(),
+    }];
+    solve_lockstep(&mut one, |members| {
+        let (candidates, returns) = members[0].search.drawn();
+        objective.evaluate(candidates, returns);
+    });
+    let (iterations, elite_return) = one[0].search.progress();
+    CemOutcome {
+        iterations,
+        elite_return,
+        cut: one[0].step.cut,
     }
 }

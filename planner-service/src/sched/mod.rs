@@ -109,11 +109,11 @@ impl Waiting {
         self.0.load(Ordering::SeqCst)
     }
 
-    fn add(&self) {
+    pub(crate) fn add(&self) {
         self.0.fetch_add(1, Ordering::SeqCst);
     }
 
-    fn sub(&self) {
+    pub(crate) fn sub(&self) {
         self.0.fetch_sub(1, Ordering::SeqCst);
     }
 }

@@ -114,6 +114,8 @@ impl AgentHandle {
 
 struct RunHandle {
     run: Arc<Run>,
+    /// The run's plans, batched across its agents.
+    plans: Arc<worker::PlanBatcher>,
     agents: HashMap<String, AgentHandle>,
     trainer: JoinHandle<()>,
 }
@@ -718,7 +720,7 @@ impl Service {
             self.outbox.clone(),
             self.fleet.clone(),
             self.config.limits.magnitudes(run.task()),
-            self.plans.clone(),
+            handle.plans.clone(),
             session,
         )?
         .counting_waits_in(plans_waiting.clone());
@@ -1007,6 +1009,7 @@ impl Service {
         runs.insert(
             run.name().to_string(),
             RunHandle {
+                plans: Arc::new(worker::PlanBatcher::new(run.clone(), self.plans.clone())),
                 run,
                 agents: HashMap::new(),
                 trainer,

@@ -1,13 +1,18 @@
 //! One agent's worker: takes its observations in order, stores what they complete, and
 //! answers each with an action — uniformly random while the run explores, planned otherwise.
 
+mod batch;
+
+pub(crate) use batch::PlanBatcher;
+
 use super::Outbox;
 use super::status::PlanRecord;
 use crate::agent::AgentSession;
 use crate::fleet::Fleet;
 use crate::plan::MpcPlanner;
 use crate::run::{Refused, Run, StoreError};
-use crate::sched::{Scheduler, Waiting};
+use crate::sched::Waiting;
+use batch::{Expected, Planned, Request};
 use proto::task::Magnitudes;
 use proto::{
     Action, ActionSource, Encoding, ErrorCode, ErrorReport, Observation, PROTOCOL_VERSION,
@@ -48,9 +53,10 @@ pub(crate) struct AgentWorker {
     /// How long the worker waits for an observation before it checks that the agent still
     /// holds its liveliness token (and closes the session if not).
     idle: std::time::Duration,
-    /// The daemon's plan queue: this worker's plans take the cores in deadline order there,
-    /// and retraining yields to them.
-    plans: Arc<Scheduler>,
+    /// The run's batched plans (this agent's with the other agents' waiting at the same
+    /// time), and whether it expects this agent's next observation. Through it the plans
+    /// take the cores in deadline order, and retraining yields to them.
+    expected: Expected,
     /// This agent's plans waiting for the cores (its queue depth, with its inbox).
     waiting: Waiting,
     /// The session token this worker serves; every report it sends names it.
@@ -96,7 +102,7 @@ impl AgentWorker {
         outbox: Outbox,
         fleet: Arc<Fleet>,
         magnitudes: Magnitudes,
-        plans: Arc<Scheduler>,
+        plans: Arc<PlanBatcher>,
         token: u64,
     ) -> Result<Self, ErrorReport> {
         let seed = agent_seed(run.spec().seed, &name);
@@ -111,7 +117,7 @@ impl AgentWorker {
             outbox,
             fleet,
             magnitudes,
-            plans,
+            expected: Expected::new(plans),
             waiting: Waiting::default(),
             token,
         })
@@ -151,7 +157,11 @@ impl AgentWorker {
     pub(crate) async fn run(mut self, mut rx: mpsc::Receiver<Incoming>) {
         while let Some(incoming) = self.next(&mut rx).await {
             let encoding = incoming.encoding;
-            if let Err(report) = self.handle(incoming).await {
+            let handled = self.handle(incoming).await;
+            // Answered mid-episode, the agent sends its next observation soon: a batch of the
+            // run's plans that starts meanwhile lingers for it.
+            self.expected.set(matches!(handled, Ok(true)));
+            if let Err(report) = handled {
                 let report = report.for_session(self.token);
                 self.outbox
                     .report(self.run.name(), &self.name, report, encoding)
@@ -168,7 +178,8 @@ impl AgentWorker {
         }
     }
 
-    async fn handle(&mut self, incoming: Incoming) -> Result<(), ErrorReport> {
+    /// Stores `incoming` and answers it; `Ok(true)` when it was answered with an action.
+    async fn handle(&mut self, incoming: Incoming) -> Result<bool, ErrorReport> {
         let msg = incoming.msg;
         let position = |r: ErrorReport| r.at(msg.episode, msg.step);
         proto::validate::validate_observation(&msg, self.run.task(), &self.magnitudes)
@@ -198,7 +209,7 @@ impl AgentWorker {
             }
         }
         if !accepted.needs_action() {
-            return Ok(());
+            return Ok(false);
         }
         if msg.step == 0 {
             if let Some(episodes) = self.wait_for_episodes.take() {
@@ -217,7 +228,41 @@ impl AgentWorker {
         self.session.acted(msg.step, &action.action);
         let key = self.outbox.keys().act(self.run.name(), &self.name);
         self.outbox.publish(&key, &action, incoming.encoding).await;
-        Ok(())
+        Ok(true)
+    }
+
+    /// Plans `msg` with the run's models, in a batch with whichever of the run's other agents
+    /// wait at the same time.
+    async fn plan(
+        &mut self,
+        msg: &Observation,
+        deadline: Option<Instant>,
+    ) -> Result<Planned, ErrorReport> {
+        let planner = self.planner.take().ok_or_else(|| {
+            ErrorReport::new(
+                ErrorCode::Internal,
+                "this agent's planner was lost in an earlier failure: attach again",
+            )
+        })?;
+        let (reply, answer) = tokio::sync::oneshot::channel();
+        let request = Request {
+            planner,
+            obs: msg.obs.clone(),
+            deadline: deadline.map(|d| d - ANSWER_MARGIN),
+            waiting: self.waiting.clone(),
+            reply,
+        };
+        let batcher = self.expected.batcher().clone();
+        batcher.submit(request, &mut self.expected);
+        answer.await.map_err(|_| {
+            // The batch panicked: start this agent over with a fresh planner.
+            self.planner =
+                new_planner(&self.run, agent_seed(self.run.spec().seed, &self.name)).ok();
+            ErrorReport::new(
+                ErrorCode::Internal,
+                "planning failed (the planner's log says why)",
+            )
+        })
     }
 
     /// The action for `msg`: random while exploring, planned with the run's models otherwise,
@@ -229,74 +274,44 @@ impl AgentWorker {
     ) -> Result<Action, ErrorReport> {
         let started = Instant::now();
         let task = self.run.task();
-        let models = self.run.models();
-        let (action, source, predicted_return, mean_energy, iterations, cut, stepped_back) = if self
-            .run
-            .exploring()
-        {
+        let (
+            action,
+            source,
+            models_version,
+            predicted_return,
+            mean_energy,
+            iterations,
+            cut,
+            stepped_back,
+        ) = if self.run.exploring() {
             let action: Vec<f32> = task
                 .action_low
                 .iter()
                 .zip(&task.action_high)
                 .map(|(&lo, &hi)| self.explore_rng.random_range(lo..=hi))
                 .collect();
-            (action, ActionSource::Random, 0.0, 0.0, 0, false, 0)
+            let version = self.run.models().version;
+            (action, ActionSource::Random, version, 0.0, 0.0, 0, false, 0)
         } else {
-            let mut planner = self.planner.take().ok_or_else(|| {
-                ErrorReport::new(
-                    ErrorCode::Internal,
-                    "this agent's planner was lost in an earlier failure: attach again",
-                )
-            })?;
-            let obs = msg.obs.clone();
-            let plan_models = models.clone();
-            let plan_deadline = deadline.map(|d| d - ANSWER_MARGIN);
-            let (plans, waiting) = (self.plans.clone(), self.waiting.clone());
-            let joined = tokio::task::spawn_blocking(move || {
-                let estimate = planner.estimated_solve();
-                let turn = Arc::new(plans.turn(plan_deadline, estimate, &waiting));
-                let outcome = planner.plan_shared(
-                    &obs,
-                    &plan_models.dynamics,
-                    &plan_models.regularizer,
-                    plan_models.learned(),
-                    plan_deadline,
-                    Some(turn.clone()),
-                );
-                let planned = (
-                    outcome.action.to_vec(),
-                    outcome.predicted_return,
-                    outcome.mean_energy,
-                    outcome.iterations,
-                    outcome.cut,
-                    turn.stepped_back(),
-                );
-                (planner, planned)
-            })
-            .await;
-            let (planner, outcome) = match joined {
-                Ok(done) => done,
-                Err(e) => {
-                    // The planner panicked: start this agent over with a fresh one.
-                    self.planner =
-                        new_planner(&self.run, agent_seed(self.run.spec().seed, &self.name)).ok();
-                    return Err(ErrorReport::new(
-                        ErrorCode::Internal,
-                        format!("planning failed: {e}"),
-                    ));
-                }
-            };
+            let Planned {
+                planner,
+                action,
+                predicted_return,
+                mean_energy,
+                iterations,
+                cut,
+                stepped_back,
+                models_version,
+            } = self.plan(msg, deadline).await?;
             self.planner = Some(planner);
-            let (action, predicted_return, mean_energy, iterations, cut, stepped_back) = outcome;
             // A model that diverged on every elite scores −inf; JSON cannot carry that, and
             // the statistic is informational, so report the most negative finite number.
-            let (predicted_return, mean_energy) =
-                (finite_or_min(predicted_return), finite_or_min(mean_energy));
             (
                 action,
                 ActionSource::Planned,
-                predicted_return,
-                mean_energy,
+                models_version,
+                finite_or_min(predicted_return),
+                finite_or_min(mean_energy),
                 iterations,
                 cut,
                 stepped_back,
@@ -331,7 +346,7 @@ impl AgentWorker {
                 predicted_return,
                 mean_energy,
                 iterations,
-                models_version: models.version,
+                models_version,
                 cut,
                 missed,
             },

@@ -69,6 +69,7 @@ pub(super) fn run(s: &Settings) -> Result<ExpressionReport, BenchError> {
         population: None,
         elites: None,
         iterations: None,
+        agents: 1,
     })?;
     let rows = plan.population * plan.horizon * plan.particles;
 

@@ -88,6 +88,11 @@ pub enum BenchCommand {
         /// Maximum iterations per plan instead of the preset's.
         #[arg(long)]
         iterations: Option<usize>,
+        /// Agents of one run, each with its own observation and planner: with more than one,
+        /// each timed call plans every agent's observation, one by one and (in turns with it)
+        /// batched in one solve, as the daemon plans a vector environment's copies.
+        #[arg(long, default_value_t = 1)]
+        agents: usize,
     },
     /// Time single training steps (one minibatch of the preset's batch size) of the dynamics
     /// model and of DEEN.
@@ -199,8 +204,10 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
             population,
             elites,
             iterations,
+            agents,
         } => {
             let settings = plan::Settings {
+                agents,
                 optimizer,
                 population,
                 elites,
@@ -376,6 +383,7 @@ mod tests {
                 population: None,
                 elites: None,
                 iterations: None,
+                agents: 1,
             }
         );
         assert!(Cli::try_parse_from(["bench", "plan", "--task", "walker"]).is_err());

@@ -13,7 +13,7 @@ use planner_service::nn::KernelPath;
 use planner_service::nn::cputime::process_cpu_time;
 use planner_service::nn::kernel_path::Measurement;
 use planner_service::nn::peak::{Peak, percent};
-use planner_service::plan::MpcPlanner;
+use planner_service::plan::{MpcPlanner, PlanRequest};
 use planner_service::reward::RewardModel;
 use proto::task::{RewardKind, SpecBounds};
 use proto::{Builtin, InferencePrecision, Task};
@@ -41,6 +41,8 @@ pub(super) struct Settings {
     pub population: Option<usize>,
     pub elites: Option<usize>,
     pub iterations: Option<usize>,
+    /// Agents planned per call (more than one: one by one and batched, in turns).
+    pub agents: usize,
 }
 
 /// How the benchmarked task's reward is given to the planner.
@@ -94,6 +96,8 @@ pub struct PlanReport {
     pub measurements: Vec<Measurement>,
     /// Planning calls timed per reward.
     pub calls: usize,
+    /// Agents (observations) planned per call.
+    pub agents: usize,
     /// One entry per reward asked for, in the order asked.
     pub rewards: Vec<RewardTiming>,
     /// Share of `threads × wall time` that this process's threads spent on a CPU during the
@@ -104,10 +108,15 @@ pub struct PlanReport {
     pub peak: Peak,
 }
 
-/// The planning calls of one reward.
+/// The planning calls of one reward (and, with several agents, one way of planning them).
 #[derive(Clone, Debug, PartialEq)]
 pub struct RewardTiming {
     pub reward: BenchReward,
+    /// With several agents: whether each call planned them in one batch (else one by one).
+    pub batched: Option<bool>,
+    /// With several agents, for the batched calls: each call's one-by-one time over its
+    /// batched time (the one-by-one call just before it), best and median.
+    pub speedup: Option<(f64, f64)>,
     /// The formula, for [`BenchReward::Expression`].
     pub formula: Option<String>,
     /// The reward model's layer sizes, for [`BenchReward::Learned`].
@@ -129,6 +138,42 @@ pub struct RewardTiming {
     /// Mean CPU time of one call, every thread's summed, in milliseconds. `None` where the
     /// platform does not report it.
     pub cpu_ms_per_call: Option<f64>,
+}
+
+impl Contender {
+    /// Plans every agent's observation (batched or one by one); the iterations of each plan.
+    fn plan_all(
+        &mut self,
+        observations: &[Vec<f32>],
+        (dynamics, regularizer): (&Ensemble, &Regularizer),
+        shared: Option<std::sync::Arc<dyn planner_service::sched::Preempt>>,
+    ) -> Vec<u32> {
+        let learned = planner_service::plan::Learned::reward(self.model.as_ref());
+        if self.batched == Some(true) {
+            let mut requests: Vec<PlanRequest<'_>> = self
+                .planners
+                .iter_mut()
+                .zip(observations)
+                .map(|(p, o)| PlanRequest::new(p, o, None))
+                .collect();
+            MpcPlanner::plan_batch(
+                &mut requests,
+                &mut self.workspace,
+                (dynamics, regularizer, learned),
+                shared,
+            );
+            requests.iter().map(|r| r.outcome().iterations).collect()
+        } else {
+            self.planners
+                .iter_mut()
+                .zip(observations)
+                .map(|(p, o)| {
+                    p.plan_shared(o, dynamics, regularizer, learned, None, shared.clone())
+                        .iterations
+                })
+                .collect()
+        }
+    }
 }
 
 impl PlanReport {
@@ -166,7 +211,10 @@ struct Contender {
     reward: BenchReward,
     formula: Option<String>,
     model: Option<RewardModel>,
-    planner: MpcPlanner,
+    /// One planner per agent, and whether a call plans them in one batch.
+    planners: Vec<MpcPlanner>,
+    batched: Option<bool>,
+    workspace: planner_service::plan::Workspace,
     times: Vec<Duration>,
     iterations: u64,
     candidates: usize,
@@ -197,6 +245,9 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     if s.rewards.is_empty() {
         return Err(BenchError::Zero("rewards"));
     }
+    if s.agents == 0 {
+        return Err(BenchError::Zero("agents"));
+    }
     let mut preset = preset(s.task, s.regularizer, s.pets)?;
     preset.cem.optimizer = s.optimizer;
     let cem = &mut preset.cem;
@@ -226,7 +277,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         Regularizer::Deen(m) => Some(m.mlp().kernel_path()),
     };
     let peak = Peak::measure();
-    let obs = data.row(0).0.to_vec();
+    let observations: Vec<Vec<f32>> = (0..s.agents).map(|k| data.row(k).0.to_vec()).collect();
 
     // Planning runs inside its own pool: one population chunk per thread, and no trips
     // through rayon's global injector.
@@ -250,26 +301,39 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             model.set_inference_precision(s.precision);
             model
         });
-        let planner = MpcPlanner::with_chunks(
-            task,
-            preset.cem.clone(),
-            preset.energy_weight,
-            preset.sample_dynamics,
-            s.seed,
-            chunks,
-        )?;
-        contenders.push(Contender {
-            reward,
-            formula: (reward == BenchReward::Expression)
-                .then(|| s.task.reward_formula().map(str::to_string))
-                .flatten(),
-            model,
-            planner,
-            times: Vec::with_capacity(s.timed),
-            iterations: 0,
-            candidates: 0,
-            cpu: Some(Duration::ZERO),
-        });
+        let modes: &[Option<bool>] = if s.agents > 1 {
+            &[Some(false), Some(true)]
+        } else {
+            &[None]
+        };
+        for &batched in modes {
+            let planners = (0..s.agents as u64)
+                .map(|k| {
+                    MpcPlanner::with_chunks(
+                        task,
+                        preset.cem.clone(),
+                        preset.energy_weight,
+                        preset.sample_dynamics,
+                        s.seed + k,
+                        chunks,
+                    )
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            contenders.push(Contender {
+                reward,
+                formula: (reward == BenchReward::Expression)
+                    .then(|| s.task.reward_formula().map(str::to_string))
+                    .flatten(),
+                model: model.clone(),
+                planners,
+                batched,
+                workspace: planner_service::plan::Workspace::new(),
+                times: Vec::with_capacity(s.timed),
+                iterations: 0,
+                candidates: 0,
+                cpu: Some(Duration::ZERO),
+            });
+        }
     }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
@@ -284,38 +348,26 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let (cpu_share, contenders) = pool.install(|| {
         for c in &mut contenders {
             for _ in 0..s.warmup {
-                c.planner.plan_shared(
-                    &obs,
-                    &dynamics,
-                    &regularizer,
-                    planner_service::plan::Learned::reward(c.model.as_ref()),
-                    None,
-                    turn(),
-                );
+                c.plan_all(&observations, (&dynamics, &regularizer), turn());
             }
         }
         let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
-        // In turns, call by call: every reward sees the same load.
+        // In turns, call by call: every reward (and way of planning) sees the same load.
         for _ in 0..s.timed {
             for c in &mut contenders {
                 let shared = turn();
                 let cpu_start = process_cpu_time();
                 let start = Instant::now();
-                let outcome = c.planner.plan_shared(
-                    &obs,
-                    &dynamics,
-                    &regularizer,
-                    planner_service::plan::Learned::reward(c.model.as_ref()),
-                    None,
-                    shared,
-                );
+                let iterations = c.plan_all(&observations, (&dynamics, &regularizer), shared);
                 c.times.push(start.elapsed());
                 c.cpu = c
                     .cpu
                     .zip(cpu_start.zip(process_cpu_time()))
                     .map(|(sum, (before, after))| sum + after.saturating_sub(before));
-                c.iterations += u64::from(outcome.iterations);
-                c.candidates += preset.cem.candidates_scored(outcome.iterations as usize);
+                for i in iterations {
+                    c.iterations += u64::from(i);
+                    c.candidates += preset.cem.candidates_scored(i as usize);
+                }
             }
         }
         let wall = wall_start.elapsed().as_secs_f64() * threads as f64;
@@ -333,9 +385,36 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         Regularizer::Deen(m) => m.mlp().sizes().to_vec(),
     };
     let cem = &preset.cem;
+    // Each batched call against the one-by-one call of the same reward just before it.
+    let speedups: Vec<Option<(f64, f64)>> = contenders
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let alone = contenders[..i]
+                .iter()
+                .rfind(|o| o.reward == c.reward && o.batched == Some(false))
+                .filter(|_| c.batched == Some(true))?;
+            let mut ratios: Vec<f64> = alone
+                .times
+                .iter()
+                .zip(&c.times)
+                .map(|(a, b)| a.as_secs_f64() / b.as_secs_f64())
+                .collect();
+            ratios.sort_by(f64::total_cmp);
+            let best = *ratios.last()?;
+            let n = ratios.len();
+            let median = if n % 2 == 1 {
+                ratios[n / 2]
+            } else {
+                (ratios[n / 2 - 1] + ratios[n / 2]) / 2.0
+            };
+            Some((best, median))
+        })
+        .collect();
     let rewards = contenders
         .into_iter()
-        .map(|mut c| {
+        .zip(speedups)
+        .map(|(mut c, speedup)| {
             let model_sizes = c
                 .model
                 .as_ref()
@@ -352,6 +431,8 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
             let cpu_seconds = c.cpu.map(|d| d.as_secs_f64());
             RewardTiming {
                 reward: c.reward,
+                batched: c.batched,
+                speedup,
                 formula: c.formula,
                 model_sizes,
                 mean_iterations,
@@ -386,6 +467,7 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         energy_path,
         measurements: planner_service::nn::kernel_path::measurements(),
         calls: s.timed,
+        agents: s.agents,
         rewards,
         cpu_share,
         peak,
@@ -474,14 +556,27 @@ impl fmt::Display for PlanReport {
             if !t.model_sizes.is_empty() {
                 write!(f, " (reward model {})", describe(&t.model_sizes))?;
             }
+            match t.batched {
+                Some(true) => write!(f, ", {} agents batched in one solve", self.agents)?,
+                Some(false) => write!(f, ", {} agents planned one by one", self.agents)?,
+                None => {}
+            }
             writeln!(
                 f,
-                "\n    per plan   {:.2} ms median, {:.2} ms best, over {} calls ({:.1} iterations and \
+                "\n    per call   {:.2} ms median, {:.2} ms best, over {} calls ({:.1} iterations and \
                  {:.0} candidates per call)",
                 t.median_ms, t.min_ms, self.calls, t.mean_iterations, t.mean_candidates
             )?;
             if let Some(cpu) = t.cpu_ms_per_call {
                 writeln!(f, "    CPU        {cpu:.2} ms per call, every thread's")?;
+            }
+            if let Some((best, median)) = t.speedup {
+                writeln!(
+                    f,
+                    "    batched    one by one / batched: x{best:.2} best, x{median:.2} median \
+                     over {} paired calls",
+                    self.calls
+                )?;
             }
             write!(
                 f,
@@ -541,7 +636,29 @@ mod tests {
             population: None,
             elites: None,
             iterations: None,
+            agents: 1,
         }
+    }
+
+    #[test]
+    fn several_agents_are_timed_one_by_one_and_batched_in_turns() {
+        let report = run(&Settings {
+            agents: 3,
+            shared: true,
+            ..settings()
+        })
+        .unwrap();
+        let [alone, batched] = &report.rewards[..] else {
+            panic!("one reward, two ways: {:?}", report.rewards)
+        };
+        assert_eq!((alone.batched, batched.batched), (Some(false), Some(true)));
+        assert!(alone.speedup.is_none(), "{alone:?}");
+        let (best, median) = batched.speedup.expect("paired with the one-by-one calls");
+        assert!(best >= median && median > 0.0, "{batched:?}");
+        // The same agents' plans, seed for seed: the same iterations and candidates.
+        assert_eq!(alone.mean_candidates, batched.mean_candidates);
+        assert_eq!(alone.mean_iterations, batched.mean_iterations);
+        assert!(report.to_string().contains("3 agents batched in one solve"));
     }
 
     #[test]
