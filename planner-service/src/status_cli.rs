@@ -70,6 +70,8 @@ pub struct PlannerReport {
 pub struct FailedRunReport {
     pub name: String,
     pub reason: String,
+    pub attempts: u32,
+    pub retry_in_seconds: f64,
 }
 
 /// The fleet as a planner sees it (a lenient mirror of `fleet::FleetStatus`).
@@ -79,6 +81,18 @@ pub struct FleetReport {
     pub planners: Vec<String>,
     pub pins: PinsReport,
     pub events: Vec<EventReport>,
+    /// The planner's etcd lease (absent for a single daemon).
+    pub lease: Option<LeaseReport>,
+}
+
+/// A fleet planner's etcd lease (a lenient mirror of `fleet::LeaseStatus`).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct LeaseReport {
+    pub valid_for_seconds: f64,
+    pub ttl_seconds: f64,
+    pub reachable: bool,
+    pub failures: u64,
 }
 
 #[derive(Clone, Debug, Default, Deserialize, PartialEq)]
@@ -353,13 +367,15 @@ fn render_failed(out: &mut String, failed: &[FailedRunReport]) {
     if failed.is_empty() {
         return;
     }
-    let _ = writeln!(out, "failed runs (stored, set aside, not served):");
+    let _ = writeln!(out, "failed runs (stored, set aside, tried again later):");
     for run in failed {
         let _ = writeln!(
             out,
-            "  {}: {}",
+            "  {}: {} (tried {} times, next in {:.0} s)",
             one_line(&run.name, FAILED_NAME_CHARS),
-            one_line(&run.reason, FAILED_REASON_CHARS)
+            one_line(&run.reason, FAILED_REASON_CHARS),
+            run.attempts,
+            run.retry_in_seconds.ceil()
         );
     }
 }
@@ -403,6 +419,20 @@ fn render_fleet(out: &mut String, fleet: &FleetReport) {
                 list(&fleet.pins.serve)
             },
             list(&fleet.pins.refuse),
+        );
+    }
+    if let Some(lease) = &fleet.lease {
+        let _ = writeln!(
+            out,
+            "etcd lease: valid {:.1} s more (ttl {:.0} s); etcd {}; {} failures to reach it",
+            lease.valid_for_seconds,
+            lease.ttl_seconds,
+            if lease.reachable {
+                "reachable"
+            } else {
+                "UNREACHABLE"
+            },
+            lease.failures
         );
     }
     let events = &fleet.events[fleet.events.len().saturating_sub(EVENTS_SHOWN)..];
@@ -664,25 +694,35 @@ agents:
                 FailedRunReport {
                     name: "old-run".into(),
                     reason: "dynamics_hidden_size = 4000000000 is over the limit".into(),
+                    attempts: 3,
+                    retry_in_seconds: 3.2,
                 },
                 FailedRunReport {
                     name: "é".repeat(100),
                     reason: long,
+                    attempts: 1,
+                    retry_in_seconds: 0.5,
                 },
             ],
             ..PlannerReport::default()
         };
         let text = render(&[report]);
         let lines: Vec<&str> = text.lines().collect();
-        assert_eq!(lines[1], "failed runs (stored, set aside, not served):");
+        assert_eq!(
+            lines[1],
+            "failed runs (stored, set aside, tried again later):"
+        );
         assert_eq!(
             lines[2],
-            "  old-run: dynamics_hidden_size = 4000000000 is over the limit"
+            "  old-run: dynamics_hidden_size = 4000000000 is over the limit (tried 3 times, next in 4 s)"
         );
         let expected_reason = format!("cannot open: {}…", "x".repeat(FAILED_REASON_CHARS - 13));
         assert_eq!(
             lines[3],
-            format!("  {}…: {expected_reason}", "é".repeat(FAILED_NAME_CHARS))
+            format!(
+                "  {}…: {expected_reason} (tried 1 times, next in 1 s)",
+                "é".repeat(FAILED_NAME_CHARS)
+            )
         );
         assert_eq!(lines.len(), 4, "{text}");
         // The daemon's JSON field is read.

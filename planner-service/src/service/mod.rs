@@ -4,11 +4,14 @@
 //! ```text
 //! attach query ──▶ Service::attach ──▶ Run (created or joined) + agent worker task
 //! obs sample ────▶ Service::route ───▶ agent worker (in order) ──▶ validate → store → act
-//! fleet change ──▶ Service::rebalance ──▶ step down from lost runs, take over free ones
+//! fleet change ──▶ steward task ──▶ Service::rebalance: step down from lost runs, take free ones
 //! ```
-//! In a fleet of planners ([`crate::fleet`]) the service serves only the runs it owns: it
-//! stays silent on other runs' attach queries and observations, so the owner's answer is the
-//! only one. A planner with no peers owns every run.
+//! In a fleet of planners ([`crate::fleet`]) the service serves only the runs it owns (etcd
+//! says which): it stays silent on other runs' attach queries and observations, so the
+//! owner's answer is the only one, and acknowledges a step only while its etcd lease is valid.
+//! A single daemon (no `[fleet]`) owns every run. Taking runs over and stepping down run on
+//! a steward task of their own, beside serving: a slow takeover delays no other run's actions
+//! and no shutdown.
 //! Each agent has one worker task, so its observations are handled strictly in order while
 //! agents (and runs) proceed concurrently; planning and storing (replay writes and fsyncs) run
 //! on the blocking pool, and training on the run's trainer task, so none of them stalls the
@@ -22,8 +25,8 @@ pub mod status;
 mod worker;
 
 use crate::config::{Preset, ServiceConfig};
-use crate::fleet::{Fleet, FleetError, Owner};
-use crate::persist::{self, PersistError, RunDir};
+use crate::fleet::Fleet;
+use crate::persist::{self, RunDir};
 use crate::run::{EventSink, Hosting, LogDisk, Run};
 use crate::trainer::TrainLimits;
 use proto::{
@@ -230,28 +233,25 @@ impl SpecTask {
     }
 }
 
-/// How often the daemon checks whether a stored run's next try at opening is due.
-const OPEN_RETRY_TICK: std::time::Duration = std::time::Duration::from_millis(500);
+/// How often the steward looks at the fleet even when nothing woke it: a free run's grace
+/// running out, a set-aside run's retry falling due, a lease that ran out without an event.
+const STEWARD_TICK: std::time::Duration = std::time::Duration::from_secs(1);
 
-/// The first wait before a stored run whose opening failed on an I/O error is tried again;
-/// it doubles with every failure, up to [`MAX_OPEN_RETRY`].
-const FIRST_OPEN_RETRY: std::time::Duration = std::time::Duration::from_secs(1);
+/// First and longest wait before a run that could not be opened is tried again.
+const RETRY_FIRST: std::time::Duration = std::time::Duration::from_secs(1);
+const RETRY_LONGEST: std::time::Duration = std::time::Duration::from_secs(300);
 
-/// The longest wait between two tries at opening a stored run.
-const MAX_OPEN_RETRY: std::time::Duration = std::time::Duration::from_secs(300);
-
-/// A stored run whose opening failed on an I/O error that may pass.
-#[derive(Debug)]
-struct Retrying {
-    attempts: u32,
-    next_at: std::time::Instant,
+/// A stored run this planner could not open: why, how often it tried, and when it tries again.
+struct SetAside {
     reason: String,
+    attempts: u32,
+    retry_at: std::time::Instant,
 }
 
-/// Why taking a run over failed, on the blocking pool.
-enum Taking {
-    Fleet(FleetError),
-    Open(crate::run::OpenError),
+impl SetAside {
+    fn is_due(&self) -> bool {
+        std::time::Instant::now() >= self.retry_at
+    }
 }
 
 /// The planner daemon.
@@ -263,11 +263,11 @@ pub struct Service {
     fleet: Arc<Fleet>,
     runs: Mutex<HashMap<String, RunHandle>>,
     /// Stored runs that could not be opened, with the reason: listed by `status`, refused at
-    /// attach, left on disk untouched for the operator.
-    failed: Mutex<BTreeMap<String, String>>,
-    /// Stored runs whose opening failed on an I/O error that may pass: tried again with
-    /// backoff, listed by `status` meanwhile.
-    retrying: Mutex<BTreeMap<String, Retrying>>,
+    /// attach until their next try (with backoff), left on disk untouched for the operator.
+    failed: Mutex<BTreeMap<String, SetAside>>,
+    /// Stored runs nobody holds, since when this planner has seen them free (a fleet
+    /// planner takes one it is not preferred on once it has been free for a grace period).
+    free_since: Mutex<HashMap<String, std::time::Instant>>,
     /// Held while a new run is opened (off the event loop), so that two agents attaching to
     /// the same new run at once open it once. Hosted runs are joined without it.
     opening: tokio::sync::Mutex<()>,
@@ -339,17 +339,11 @@ impl Service {
         let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
         let keys = Keys::new(&config.prefix);
         let planner_id = config.planner_id.clone();
-        let (fleet, mut fleet_changes) = match &config.fleet {
-            Some(pins) => {
-                Fleet::join(
-                    session.clone(),
-                    keys.clone(),
-                    planner_id.clone(),
-                    pins.clone(),
-                )
-                .await?
+        let fleet = match &config.fleet {
+            Some(fleet) => {
+                Fleet::join(session.clone(), keys.clone(), planner_id.clone(), fleet).await?
             }
-            None => Fleet::alone(session.clone(), keys.clone(), planner_id.clone()),
+            None => Fleet::alone(keys.clone(), planner_id.clone()),
         };
         let plans = Arc::new(crate::sched::Scheduler::new(config.retraining_share));
         let replay_budget = Arc::new(crate::run::ReplayBudget::new(
@@ -368,7 +362,7 @@ impl Service {
             catalog,
             runs: Mutex::new(HashMap::new()),
             failed: Mutex::new(BTreeMap::new()),
-            retrying: Mutex::new(BTreeMap::new()),
+            free_since: Mutex::new(HashMap::new()),
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
             cancel_training: Arc::new(AtomicBool::new(false)),
@@ -407,11 +401,10 @@ impl Service {
             Some(addr) => Some(service.serve_metrics(addr).await?),
             None => None,
         };
+        let steward = service.spawn_steward();
         tracing::info!(planner = %planner_id, prefix = %keys.prefix(), "planner serving");
 
         tokio::pin!(shutdown);
-        let mut retries = tokio::time::interval(OPEN_RETRY_TICK);
-        retries.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             // Biased: observations are drained before liveliness changes. Zenoh delivers an
             // agent's last observation before its token's deletion, but they arrive on two
@@ -436,22 +429,37 @@ impl Service {
                     Ok(token) => service.liveliness(token),
                     Err(e) => { tracing::error!(error = %e, "liveliness subscriber closed"); break; }
                 },
-                _ = retries.tick(), if service.open_retry_due() => service.rebalance().await,
-                Some(()) = fleet_changes.recv() => {
-                    // One rebalance covers every change queued so far.
-                    while fleet_changes.try_recv().is_ok() {}
-                    service.rebalance().await;
-                }
                 () = &mut shutdown => break,
             }
         }
         tracing::info!("shutting down");
+        // A takeover in progress is abandoned where it stands: a run it created the owner key
+        // of is freed with the lease, below.
+        steward.abort();
         if let Some(endpoint) = metrics_endpoint {
             endpoint.abort();
         }
         service.stop().await;
+        service.fleet.leave().await;
         session.close().await.map_err(zenoh_err)?;
         Ok(())
+    }
+
+    /// Starts the steward: it rebalances whenever the fleet changed (changes coalesce: one
+    /// rebalance covers all that came meanwhile) and every [`STEWARD_TICK`], on a task of its
+    /// own, so the serve loop never waits for a takeover.
+    fn spawn_steward(self: &Arc<Self>) -> JoinHandle<()> {
+        let service = self.clone();
+        let changes = self.fleet.changes();
+        self.runtime.spawn(async move {
+            loop {
+                tokio::select! {
+                    () = changes.notified() => {}
+                    () = tokio::time::sleep(STEWARD_TICK) => {}
+                }
+                service.rebalance().await;
+            }
+        })
     }
 
     /// Serves the metrics as Prometheus text on `addr` (`GET /metrics`) on a task of its own.
@@ -548,6 +556,9 @@ impl Service {
             && !self.fleet.is_mine(run)
         {
             tracing::debug!(%run, owner = ?self.fleet.owner(run), "attach for a run owned elsewhere");
+            if self.fleet.in_fleet() && !self.fleet.has_owner_key(run) {
+                self.attach_if_still_free(run.to_string(), query);
+            }
             return;
         }
         match self.attach_slots.clone().try_acquire_owned() {
@@ -571,6 +582,29 @@ impl Service {
                 });
             }
         }
+    }
+
+    /// An attach for a run nobody holds, preferred on another planner: that planner should
+    /// take it at once, but it may be cut off from etcd, or not a planner at all (a forged
+    /// token). After [`crate::fleet::FREE_GRACE`], if the run is still free, this planner
+    /// takes it (etcd lets only one of the planners that try succeed; the others stay
+    /// silent). Bounded by the attach slots: without one the query is left to the others.
+    fn attach_if_still_free(self: &Arc<Self>, run: String, query: zenoh::query::Query) {
+        let Ok(slot) = self.attach_slots.clone().try_acquire_owned() else {
+            return;
+        };
+        let service = self.clone();
+        self.runtime.spawn(async move {
+            tokio::time::sleep(crate::fleet::FREE_GRACE).await;
+            if !service.fleet.has_owner_key(&run)
+                && service
+                    .fleet
+                    .may_take_unpreferred(&run, crate::fleet::FREE_GRACE)
+            {
+                service.attach(query).await;
+            }
+            drop(slot);
+        });
     }
 
     async fn attach(&self, query: zenoh::query::Query) {
@@ -731,6 +765,14 @@ impl Service {
                 token_gone: false,
             },
         );
+        if !self.fleet.may_acknowledge(run_name, run.epoch()) {
+            // This planner's lease ran out (or the run moved) meanwhile: its answer must not
+            // be the one the agent acts on.
+            if let Some(agent) = handle.agents.remove(&request.agent) {
+                agent.task.abort();
+            }
+            return Err(Refusal::Contended);
+        }
         let models = run.models();
         tracing::info!(run = %run_name, agent = %request.agent, task = %run.spec().task, method = %run.preset().method, "agent attached");
         Ok(AttachAccepted {
@@ -865,14 +907,21 @@ impl Service {
         if self.is_hosted(name) {
             return Ok(()); // another agent opened it meanwhile
         }
-        if let Some(reason) = self
+        if let Some(failed) = self
             .failed
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .get(name)
+            .filter(|failed| !failed.is_due())
         {
+            let wait = failed
+                .retry_at
+                .saturating_duration_since(std::time::Instant::now());
             return Err(refuse(format!(
-                "run `{name}` is stored here but cannot be opened ({reason}): ask the operator, or use another run name"
+                "run `{name}` is stored here but could not be opened ({}; tried {} times, next in {:.0} s): attach again later, ask the operator, or use another run name",
+                failed.reason,
+                failed.attempts,
+                wait.as_secs_f64().ceil()
             ))
             .into());
         }
@@ -888,9 +937,22 @@ impl Service {
             ))
             .into());
         }
-        let run = self.open_run(name, spec.clone()).await?;
-        self.host(run);
-        Ok(())
+        match self.open_run(name, spec.clone()).await {
+            Ok(run) => {
+                self.host(run);
+                Ok(())
+            }
+            Err(Refusal::Report(report)) if self.is_stored(name) => {
+                self.set_aside(name, report.message.clone());
+                Err(Refusal::Report(report))
+            }
+            Err(refusal) => Err(refusal),
+        }
+    }
+
+    /// Whether run `name` has data in the data directory.
+    fn is_stored(&self, name: &str) -> bool {
+        RunDir::new(&self.config.data_dir, name).root().exists()
     }
 
     /// Takes run `name` over (a new ownership epoch) and opens it in the data directory (new,
@@ -911,6 +973,8 @@ impl Service {
             replay_budget: self.replay_budget.clone(),
             log_disk: self.log_disk.clone(),
             histograms: self.outbox.metrics.for_run(name),
+            sync_every_step: self.config.sync_every_step(),
+            shared_dir: self.fleet.in_fleet(),
         };
         let internal = |why: String| {
             Refusal::Report(ErrorReport::new(
@@ -924,30 +988,40 @@ impl Service {
                 format!("cannot open run `{name}` now ({why}): attach again later"),
             ))
         };
+        let token = match self.fleet.take(name, &dir).await {
+            Ok(token) => token,
+            Err(e) if e.is_contended() => return Err(Refusal::Contended),
+            Err(crate::fleet::FleetError::Etcd(e)) => {
+                tracing::info!(run = %name, error = %e, "cannot take the run over now");
+                return Err(Refusal::Contended);
+            }
+            Err(e @ crate::fleet::FleetError::Persist(crate::persist::PersistError::Io { .. })) => {
+                return Err(transient(format!("cannot take it over: {e}")));
+            }
+            Err(e) => return Err(internal(format!("cannot take it over: {e}"))),
+        };
         let (fleet, planner, owned) = (
             self.fleet.clone(),
             self.config.planner_id.clone(),
             name.to_string(),
         );
         let opened = tokio::task::spawn_blocking(move || {
-            let epoch = fleet.take(&owned, &dir).map_err(Taking::Fleet)?;
-            Run::open(owned.clone(), spec, preset, dir, hosting, (epoch, &planner)).map_err(|e| {
+            Run::open(owned.clone(), spec, preset, dir, hosting, (token, &planner)).map_err(|e| {
                 fleet.step_down(&owned, format!("the run could not be opened: {e}"));
-                Taking::Open(e)
+                e
             })
         })
         .await;
         match opened {
-            Ok(Ok(run)) => Ok(run),
-            Ok(Err(Taking::Fleet(FleetError::Persist(PersistError::EpochTaken { .. })))) => {
-                Err(Refusal::Contended)
+            Ok(Ok(run)) => {
+                self.failed
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .remove(name);
+                Ok(run)
             }
-            Ok(Err(Taking::Fleet(e @ FleetError::Persist(PersistError::Io { .. })))) => {
-                Err(transient(format!("cannot take it over: {e}")))
-            }
-            Ok(Err(Taking::Fleet(e))) => Err(internal(format!("cannot take it over: {e}"))),
-            Ok(Err(Taking::Open(e))) if e.is_transient() => Err(transient(e.to_string())),
-            Ok(Err(Taking::Open(e))) => Err(internal(e.to_string())),
+            Ok(Err(e)) if e.is_transient() => Err(transient(e.to_string())),
+            Ok(Err(e)) => Err(internal(e.to_string())),
             Err(e) => {
                 self.fleet
                     .step_down(name, format!("opening the run failed: {e}"));
@@ -957,10 +1031,6 @@ impl Service {
     }
 
     fn host(&self, run: Arc<Run>) {
-        self.retrying
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .remove(run.name());
         let trainer = self.runtime.spawn(run.clone().trainer_loop());
         let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         runs.insert(
@@ -973,16 +1043,18 @@ impl Service {
         );
     }
 
-    /// Brings the runs this planner hosts in line with the fleet's view: steps down from the
-    /// runs another planner now owns (a newer lease, a newer epoch on disk, or reported fenced
-    /// by a worker), then takes over every stored run that is free and placed here. At start
-    /// this resumes a restarted daemon's runs (all stored runs, for a planner without peers):
-    /// status lists them at once, their trainers catch up with episodes stored after the last
-    /// checkpoint, and agents re-attach to them. Stored runs are taken even beyond `max_runs`
-    /// (the limit is on creating runs, never on keeping data). A run that cannot be opened
-    /// (over today's limits, damaged, even one whose opening panics) is set aside: logged,
-    /// listed by `status` as failed with the reason, refused at attach, not tried again by
-    /// this daemon, and left on disk untouched; the daemon serves the others.
+    /// Brings the runs this planner hosts in line with the fleet: steps down from the runs it
+    /// may no longer serve (its etcd lease ran out, etcd names another owner, a newer token
+    /// on disk, or reported fenced by a worker), then takes over every stored run that is
+    /// free and preferred here (or free for [`crate::fleet::FREE_GRACE`], wherever it is
+    /// preferred). At start this resumes a restarted daemon's runs (every stored run, for a
+    /// single daemon): status lists them at once, their trainers catch up with episodes stored
+    /// after the last checkpoint, and agents re-attach to them. Stored runs are taken even
+    /// beyond `max_runs` (the limit is on creating runs, never on keeping data). A run that
+    /// cannot be opened (over today's limits, damaged, a full disk, even one whose opening
+    /// panics) is set aside: logged, listed by `status` with the reason, released for the
+    /// other planners, and tried again after a backoff (1 s doubling to 5 min); the daemon
+    /// serves the others meanwhile. Every disk read runs on the blocking pool.
     async fn rebalance(&self) {
         let mut lost: Vec<(String, String)> = self
             .fleet
@@ -991,53 +1063,99 @@ impl Service {
             .map(|run| {
                 (
                     run,
-                    "its epoch on disk is newer than this planner's".to_string(),
+                    "its token on disk is newer than this planner's".to_string(),
                 )
             })
             .collect();
-        {
-            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-            for (name, handle) in runs.iter() {
-                if let Owner::Holder { planner, epoch } = self.fleet.owner(name)
-                    && planner != self.config.planner_id
-                {
-                    lost.push((name.clone(), format!("{planner} holds it at epoch {epoch}")));
-                } else if let Err(e) = handle.run.check_owner() {
-                    lost.push((name.clone(), e.to_string()));
-                }
-            }
-        }
+        lost.extend(self.fleet.lost_runs());
+        let hosted: Vec<Arc<Run>> = self
+            .runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .values()
+            .map(|h| h.run.clone())
+            .collect();
+        let fenced = tokio::task::spawn_blocking(move || {
+            hosted
+                .iter()
+                .filter_map(|run| {
+                    run.check_owner()
+                        .err()
+                        .map(|e| (run.name().to_string(), e.to_string()))
+                })
+                .collect::<Vec<_>>()
+        })
+        .await
+        .unwrap_or_default();
+        lost.extend(fenced);
         for (name, reason) in lost {
             self.step_down(&name, reason).await;
         }
-        let stored = match persist::stored_runs(&self.config.data_dir) {
-            Ok(stored) => stored,
-            Err(e) => {
-                tracing::error!(error = %e, "cannot list stored runs; none taken over");
-                return;
-            }
+        self.fleet.release_strays().await;
+        let data_dir = self.config.data_dir.clone();
+        let stored =
+            match tokio::task::spawn_blocking(move || persist::stored_runs(&data_dir)).await {
+                Ok(Ok(stored)) => stored,
+                Ok(Err(e)) => {
+                    tracing::error!(error = %e, "cannot list stored runs; none taken over");
+                    return;
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, "listing stored runs failed; none taken over");
+                    return;
+                }
+            };
+        let now = std::time::Instant::now();
+        let candidates: Vec<(String, RunDir)> = {
+            let mut free_since = self
+                .free_since
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            let free: std::collections::HashSet<String> = stored
+                .iter()
+                .map(|(name, _)| name.clone())
+                .filter(|name| !self.fleet.has_owner_key(name))
+                .collect();
+            free_since.retain(|name, _| free.contains(name));
+            stored
+                .into_iter()
+                .filter(|(name, _)| {
+                    if self.is_hosted(name) {
+                        return false;
+                    }
+                    if self.fleet.is_mine(name) {
+                        return true;
+                    }
+                    if !free.contains(name) {
+                        return false;
+                    }
+                    let since = *free_since.entry(name.clone()).or_insert(now);
+                    self.fleet.may_take_unpreferred(name, now - since)
+                })
+                .collect()
         };
-        for (name, dir) in stored {
-            let set_aside = self
+        for (name, dir) in candidates {
+            let waiting = self
                 .failed
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
-                .contains_key(&name);
-            if set_aside
-                || self.is_hosted(&name)
-                || !self.fleet.is_mine(&name)
-                || self.open_retry_waits(&name)
-            {
+                .get(&name)
+                .is_some_and(|failed| !failed.is_due());
+            if waiting || self.is_hosted(&name) {
                 continue;
             }
-            let spec = match dir.read_spec() {
-                Ok(Some(spec)) => spec,
-                Ok(None) => {
-                    tracing::warn!(run = %name, "stored run has no run.json; it resumes when an agent attaches");
+            let spec = match tokio::task::spawn_blocking(move || dir.read_spec()).await {
+                Ok(Ok(Some(spec))) => spec,
+                Ok(Ok(None)) => {
+                    tracing::debug!(run = %name, "stored run has no run.json; it resumes when an agent attaches");
+                    continue;
+                }
+                Ok(Err(e)) => {
+                    self.set_aside(&name, format!("cannot read its spec: {e}"));
                     continue;
                 }
                 Err(e) => {
-                    self.set_aside(&name, format!("cannot read its spec: {e}"));
+                    self.set_aside(&name, format!("reading its spec failed: {e}"));
                     continue;
                 }
             };
@@ -1052,10 +1170,11 @@ impl Service {
             }
             match self.open_run(&name, spec).await {
                 Ok(run) => self.host(run),
-                Err(Refusal::Transient(report)) => self.retry_open_later(&name, report.message),
-                Err(Refusal::Report(report)) => self.set_aside(&name, report.message),
+                Err(Refusal::Report(report) | Refusal::Transient(report)) => {
+                    self.set_aside(&name, report.message)
+                }
                 Err(Refusal::Contended) => {
-                    tracing::info!(run = %name, "another planner took the run over first");
+                    tracing::debug!(run = %name, "another planner holds the run, or etcd cannot be reached");
                 }
             }
         }
@@ -1089,51 +1208,25 @@ impl Service {
         }
     }
 
-    /// Whether stored run `name` waits for its next try at opening.
-    fn open_retry_waits(&self, name: &str) -> bool {
-        self.retrying
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get(name)
-            .is_some_and(|r| r.next_at > std::time::Instant::now())
-    }
-
-    /// Whether a stored run's next try at opening is due.
-    fn open_retry_due(&self) -> bool {
-        let now = std::time::Instant::now();
-        self.retrying
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .values()
-            .any(|r| r.next_at <= now)
-    }
-
-    /// Opening stored run `name` failed on an I/O error that may pass: it is tried again
-    /// after a backoff that doubles with every failure, from [`FIRST_OPEN_RETRY`] up to
-    /// [`MAX_OPEN_RETRY`], and `status` lists it meanwhile.
-    fn retry_open_later(&self, name: &str, reason: String) {
-        let mut retrying = self.retrying.lock().unwrap_or_else(PoisonError::into_inner);
-        let attempts = retrying.get(name).map_or(0, |r| r.attempts) + 1;
-        let backoff = FIRST_OPEN_RETRY
-            .saturating_mul(1 << attempts.saturating_sub(1).min(16))
-            .min(MAX_OPEN_RETRY);
-        tracing::warn!(run = %name, attempts, retry_in_s = backoff.as_secs_f64(), "cannot open a stored run now, trying again later: {reason}");
-        retrying.insert(
-            name.to_string(),
-            Retrying {
-                attempts,
-                next_at: std::time::Instant::now() + backoff,
+    /// Sets `run` aside after a failure to open it, until a retry after a backoff that
+    /// doubles with each failure (from [`RETRY_FIRST`] to [`RETRY_LONGEST`]). Its owner key
+    /// (if it was taken) is released already, so another planner may open it meanwhile.
+    fn set_aside(&self, run: &str, reason: String) {
+        let mut failed = self.failed.lock().unwrap_or_else(PoisonError::into_inner);
+        let attempts = failed.get(run).map_or(0, |f| f.attempts) + 1;
+        let backoff = RETRY_FIRST
+            .saturating_mul(1 << (attempts - 1).min(16))
+            .min(RETRY_LONGEST);
+        tracing::error!(%run, attempts, retry_in_s = backoff.as_secs(), "stored run set aside, not resumed: {reason}");
+        self.outbox.metrics.record_open_failure();
+        failed.insert(
+            run.to_string(),
+            SetAside {
                 reason,
+                attempts,
+                retry_at: std::time::Instant::now() + backoff,
             },
         );
-    }
-
-    fn set_aside(&self, run: &str, reason: String) {
-        tracing::error!(%run, "stored run set aside, not resumed: {reason}");
-        self.failed
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert(run.to_string(), reason);
     }
 
     /// The status report of this planner.
@@ -1193,22 +1286,14 @@ impl Service {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .iter()
-            .map(|(name, reason)| status::FailedRun {
+            .map(|(name, failed)| status::FailedRun {
                 name: name.clone(),
-                reason: reason.clone(),
-            })
-            .collect();
-        let now = std::time::Instant::now();
-        let retrying_runs = self
-            .retrying
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .iter()
-            .map(|(name, r)| status::RetryingRun {
-                name: name.clone(),
-                reason: r.reason.clone(),
-                attempts: r.attempts,
-                next_try_seconds: r.next_at.saturating_duration_since(now).as_secs_f64(),
+                reason: failed.reason.clone(),
+                attempts: failed.attempts,
+                retry_in_seconds: failed
+                    .retry_at
+                    .saturating_duration_since(std::time::Instant::now())
+                    .as_secs_f64(),
             })
             .collect();
         status::PlannerStatus {
@@ -1218,7 +1303,6 @@ impl Service {
             runs: reports,
             fleet: self.fleet.status(),
             failed_runs,
-            retrying_runs,
             wildcards_dropped: self.outbox.metrics.wildcards_dropped(),
             refused: self.outbox.metrics.refusals(),
             retraining: self.plans.training(),

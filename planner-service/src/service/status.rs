@@ -115,10 +115,6 @@ pub struct PlannerStatus {
     /// Stored runs this planner could not open, set aside with the reason.
     #[serde(default)]
     pub failed_runs: Vec<FailedRun>,
-    /// Stored runs whose opening failed on an I/O error that may pass: tried again with a
-    /// backoff that doubles with every failure.
-    #[serde(default)]
-    pub retrying_runs: Vec<RetryingRun>,
     /// Observations and attaches dropped unanswered because their key had a wildcard.
     #[serde(default)]
     pub wildcards_dropped: u64,
@@ -241,18 +237,12 @@ pub struct RunKernels {
 pub struct FailedRun {
     pub name: String,
     pub reason: String,
-}
-
-/// A stored run whose opening failed on an I/O error that may pass.
-#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
-pub struct RetryingRun {
-    pub name: String,
-    /// The last failure.
-    pub reason: String,
-    /// Tries that failed so far.
+    /// Failed tries to open it so far.
+    #[serde(default)]
     pub attempts: u32,
-    /// Seconds until the next try.
-    pub next_try_seconds: f64,
+    /// Seconds until the next try (0: at the next look).
+    #[serde(default)]
+    pub retry_in_seconds: f64,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]

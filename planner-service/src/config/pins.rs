@@ -3,7 +3,7 @@
 //! Patterns are globs over whole run names: `*` matches any run of characters, `?` one
 //! character, everything else itself. A planner with `serve` patterns is a candidate only for
 //! the runs they match; `refuse` patterns take it out of the candidates for the runs they
-//! match, whatever `serve` says. Every planner publishes its pins (see `super::Fleet`), so all
+//! match, whatever `serve` says. Every planner publishes its pins (see `crate::fleet::Fleet`), so all
 //! planners apply the same rules when they place a run.
 
 use serde::{Deserialize, Serialize};
