@@ -7,7 +7,7 @@
 //! <out>/runs/<method>-s<seed>.csv   one run's episodes; `.csv.partial` while it runs
 //! <out>/runs/<method>-s<seed>.csv.attempt   the episodes of the bridge now running
 //! <out>/runs/<method>-s<seed>.json  a finished run's record: spec, binaries' commit, machine,
-//!                              CPU path, load (provenance::RunRecord)
+//!                              kernel paths and precision, load (provenance::RunRecord)
 //! <out>/runs/<method>-s<seed>.state.tar.gz  an unfinished run's resumable state (resume_state)
 //! <out>/episodes.csv           every run's rows with method and seed (results::HEADER)
 //! <out>/learning_curves.{png,svg}
@@ -47,7 +47,7 @@
 use crate::manifest::Manifest;
 use crate::method::Method;
 use crate::progress::Progress;
-use crate::provenance::{self, Load, Machine, RunRecord};
+use crate::provenance::{self, Load, Machine, RunKernels, RunRecord};
 use crate::queue::{self, Pending};
 use crate::results::{self, EpisodeRow};
 use crate::resume_state;
@@ -365,8 +365,15 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
                     let outcome = run_one(&context, &run);
                     match outcome {
                         Ok(RunEnd::Finished) => {
+                            // While the daemon still holds the run: what its networks ran on.
+                            let kernels = provenance::run_kernels(
+                                &exp.bin_dir.join("planner-service"),
+                                &planner.endpoint,
+                                &run.daemon_run(exp.task),
+                            );
                             let _guard = csv_lock.lock();
-                            if let Err(e) = write_record(exp, &manifest, &run, &machine, &commit) {
+                            let identity = (&machine, commit.as_str(), kernels);
+                            if let Err(e) = write_record(exp, &manifest, &run, identity) {
                                 progress.log(&format!("cannot write {}'s record: {e:#}", run.stem()));
                             }
                             if let Err(e) = collect_rows(&exp.out, &manifest)
@@ -462,13 +469,13 @@ fn remove_finished_states(dir: &Path, manifest: &Manifest) -> Result<()> {
     Ok(())
 }
 
-/// Writes a finished run's record beside its episodes.
+/// Writes a finished run's record beside its episodes: `identity` is the machine, the
+/// binaries' commit and the kernels the daemon ran the run on.
 fn write_record(
     exp: &Experiment,
     manifest: &Manifest,
     run: &RunId,
-    machine: &Machine,
-    commit: &str,
+    (machine, commit, kernels): (&Machine, &str, Option<RunKernels>),
 ) -> Result<()> {
     let rows = results::read_run_csv(&run.csv(&exp.out), exp.task.name(), &run.method, run.seed)?;
     let spec = std::fs::read_to_string(run.daemon_dir(&exp.out, exp.task).join("run.json"))
@@ -488,6 +495,7 @@ fn write_record(
         spec,
         binaries_commit: commit.to_string(),
         machine: machine.clone(),
+        kernels,
         load_at_start,
         load_at_end: Load::now(),
         started,

@@ -1,11 +1,13 @@
 //! Where and how a run was produced: the record written beside each finished run's episodes
 //! (`runs/<stem>.json`), so that a folder committed run by run, across days and machines,
-//! still says for every run which binaries ran it, on which CPU, along which kernel path and
+//! still says for every run which binaries ran it, on which CPU, along which kernel paths (the
+//! ones the daemon measured and chose for the run's networks, and the precision asked for) and
 //! under what load.
 
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::process::Command;
+use std::time::{Duration, Instant};
 
 /// The machine a sitting runs on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -16,8 +18,9 @@ pub struct Machine {
     /// CPU family and model numbers, e.g. "6/143".
     pub cpu_family_model: String,
     pub logical_cpus: usize,
-    /// The planner's numeric path on this CPU: the SIMD level its dispatched kernels run at,
-    /// and whether bf16 dot products are available to packed inference layers.
+    /// The kernel paths this CPU offers the planner, space-separated (e.g. `amx-bf16
+    /// avx512-bf16 avx512-f32 avx2-f32 scalar-f32`): the candidates among which the daemon
+    /// measures; which one each network ran is the run's [`RunKernels`].
     pub cpu_path: String,
 }
 
@@ -46,15 +49,96 @@ impl Machine {
     }
 }
 
-/// The planner library's kernel path here, e.g. `Avx512+bf16`.
+/// The kernel paths the planner library can run here, space-separated, fastest-looking first.
 pub fn cpu_path() -> String {
-    use planner_service::nn::simd;
-    let level = format!("{:?}", simd::level());
-    if simd::bf16_dot_available() {
-        format!("{level}+bf16")
-    } else {
-        level
+    planner_service::nn::KernelPath::available()
+        .iter()
+        .map(|p| p.name())
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// What the daemon ran a run's networks on: the precision the run's preset asked for and the
+/// kernel path of each network (chosen by measurement under `auto`), as the run's entry of
+/// `planner-service status --json` reports them (`kernels`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct RunKernels {
+    /// `auto`, `bf16` or `f32`.
+    pub precision: String,
+    pub dynamics: Option<String>,
+    pub energy: Option<String>,
+    pub reward: Option<String>,
+}
+
+/// How long [`run_kernels`] waits for `planner-service status`.
+const STATUS_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// Asks the daemon at `endpoint` (through `planner-service status --json`, the binary at
+/// `planner`) for the kernels of its run `run`. `None`, with the reason logged, when the daemon
+/// does not answer in time or does not list the run: the record then says nothing rather than
+/// something guessed.
+pub fn run_kernels(planner: &Path, endpoint: &str, run: &str) -> Option<RunKernels> {
+    let out = match status_json(planner, endpoint) {
+        Ok(out) => out,
+        Err(e) => {
+            tracing::warn!(run, "no kernel paths for the run's record: {e}");
+            return None;
+        }
+    };
+    let kernels = kernels_of(&out, run);
+    if kernels.is_none() {
+        tracing::warn!(run, "the daemon's status does not list the run's kernels");
     }
+    kernels
+}
+
+/// The `kernels` of run `run` in `status --json`'s output (an array of planner reports).
+pub fn kernels_of(status_json: &str, run: &str) -> Option<RunKernels> {
+    let reports: Vec<serde_json::Value> = serde_json::from_str(status_json).ok()?;
+    reports
+        .iter()
+        .filter_map(|r| r.get("runs")?.as_array())
+        .flatten()
+        .find(|r| r.get("name").and_then(|n| n.as_str()) == Some(run))
+        .and_then(|r| serde_json::from_value(r.get("kernels")?.clone()).ok())
+}
+
+/// `planner status --json --connect endpoint`'s standard output, killed after
+/// [`STATUS_TIMEOUT`].
+fn status_json(planner: &Path, endpoint: &str) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut child = Command::new(planner)
+        .args(["status", "--json", "--timeout", "5", "--connect", endpoint])
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()?;
+    let start = Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait()? {
+            break status;
+        }
+        if start.elapsed() > STATUS_TIMEOUT {
+            child.kill()?;
+            child.wait()?;
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                format!("`status` gave no answer in {STATUS_TIMEOUT:?}"),
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut out = String::new();
+    if let Some(mut stdout) = child.stdout.take() {
+        stdout.read_to_string(&mut out)?;
+    }
+    if !status.success() {
+        return Err(std::io::Error::other(format!(
+            "`status` exited with {status}"
+        )));
+    }
+    Ok(out)
 }
 
 /// The 1-minute load average and whether this process runs at `SCHED_IDLE`.
@@ -123,6 +207,11 @@ pub struct RunRecord {
     pub spec: Option<serde_json::Value>,
     pub binaries_commit: String,
     pub machine: Machine,
+    /// The precision and kernel paths the daemon ran the run's networks on, read from its
+    /// status when the run finished (`None`: it did not say; records written before it was
+    /// recorded have none).
+    #[serde(default)]
+    pub kernels: Option<RunKernels>,
     /// The load when the last sitting of the run started and when it finished.
     pub load_at_start: Load,
     pub load_at_end: Load,
@@ -184,16 +273,42 @@ mod tests {
     fn the_machine_and_load_are_read_from_this_one() {
         let m = Machine::this();
         assert!(m.logical_cpus >= 1);
-        assert!(
-            ["Scalar", "Avx2", "Avx512"]
-                .iter()
-                .any(|l| m.cpu_path.starts_with(l)),
-            "{}",
-            m.cpu_path
-        );
+        // Every CPU runs the portable path; it is listed last.
+        assert!(m.cpu_path.ends_with("scalar-f32"), "{}", m.cpu_path);
         #[cfg(target_arch = "x86_64")]
         assert_ne!(m.cpu_model, "unknown");
         assert!(Load::now().load_average_1m >= 0.0);
+    }
+
+    #[test]
+    fn a_runs_kernels_are_read_from_the_status_report() {
+        let status = r#"[{"planner_id": "p", "runs": [
+            {"name": "other", "kernels": {"precision": "f32", "dynamics": "avx512-f32"}},
+            {"name": "cartpole-cem-deen-s0", "kernels": {"precision": "auto",
+             "dynamics": "amx-bf16", "energy": "avx512-f32", "reward": null}}]}]"#;
+        assert_eq!(
+            kernels_of(status, "cartpole-cem-deen-s0"),
+            Some(RunKernels {
+                precision: "auto".into(),
+                dynamics: Some("amx-bf16".into()),
+                energy: Some("avx512-f32".into()),
+                reward: None,
+            })
+        );
+        assert_eq!(kernels_of(status, "missing"), None);
+        // A run reported without kernels (an older daemon), or no report at all: nothing.
+        assert_eq!(kernels_of(r#"[{"runs": [{"name": "r"}]}]"#, "r"), None);
+        assert_eq!(kernels_of("not json", "r"), None);
+    }
+
+    #[test]
+    fn a_silent_status_command_is_cut_off_and_says_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let planner = dir.path().join("planner-service");
+        std::fs::write(&planner, "#!/bin/sh\nexit 1\n").unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&planner, std::fs::Permissions::from_mode(0o755)).unwrap();
+        assert_eq!(run_kernels(&planner, "tcp/127.0.0.1:1", "r"), None);
     }
 
     #[test]

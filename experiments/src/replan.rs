@@ -145,7 +145,7 @@ pub fn run(config: &ReplanConfig) -> Result<ReplanReport> {
             &obs,
             &models.dynamics,
             &models.regularizer,
-            models.reward.as_ref(),
+            models.learned(),
             None,
         );
         plan_ms.push(started.elapsed().as_secs_f64() * 1e3);

@@ -121,7 +121,7 @@ fn rollout(
         actions,
         &models.dynamics,
         &models.regularizer,
-        models.reward.as_ref(),
+        planner_service::plan::Learned::reward(models.reward.as_ref()),
         &mut rewards,
         &mut energies,
     );

@@ -53,10 +53,26 @@ fn script(path: &Path, body: &str) {
 /// fails after one episode for that seed; with HANG_SEED=<seed> it writes one episode for that
 /// seed, records its pid in `hung.pid` and hangs (a run in progress, for killing the
 /// launcher).
+///
+/// The planner's `status --json` lists every run the bridges have written to, each with the
+/// kernel paths a daemon on an AMX machine would report.
 fn fake_binaries(dir: &Path) {
+    let status = r#"if [ "$1" = status ]; then
+  printf '[{"planner_id":"p","runs":['
+  sep=''
+  for f in DIR/daemon-*; do
+    [ -e "$f" ] || continue
+    printf '%s{"name":"%s","kernels":{"precision":"auto","dynamics":"amx-bf16","energy":"avx512-f32","reward":null}}' "$sep" "${f##*/daemon-}"
+    sep=','
+  done
+  echo ']}]'
+  exit 0
+fi
+"#
+    .replace("DIR", &dir.display().to_string());
     script(
         &dir.join("planner-service"),
-        "echo 'INFO planner serving'\nexec sleep 300\n",
+        &format!("{status}echo 'INFO planner serving'\nexec sleep 300\n"),
     );
     let calls = dir.join("calls.log");
     script(
@@ -288,6 +304,21 @@ fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
     assert!(
         csv.contains("cartpole,cem+deen,1,2,102.5,200,200,12.500,1.250,0.010"),
         "{csv}"
+    );
+
+    // Each finished run's record names the kernels the daemon reported for it.
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("runs/cem-deen-s1.json")).unwrap())
+            .unwrap();
+    assert_eq!(record["kernels"]["precision"], "auto", "{record}");
+    assert_eq!(record["kernels"]["dynamics"], "amx-bf16", "{record}");
+    assert_eq!(record["kernels"]["energy"], "avx512-f32", "{record}");
+    assert!(
+        record["machine"]["cpu_path"]
+            .as_str()
+            .unwrap()
+            .ends_with("scalar-f32"),
+        "{record}"
     );
 
     // Third attempt: nothing left to do, nothing started.

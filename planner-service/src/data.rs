@@ -4,8 +4,10 @@
 //! dynamics and energy models (which read it in minibatches) and the tests (which build it from
 //! known distributions). Row-major matrices feed `gemm` directly without copies.
 
-/// A set of transitions: row `i` of `obs`, `act`, `rewards` and `next_obs` is one transition.
-/// The reward is the one the agent reported for it: what a learned reward model trains on.
+/// A set of transitions: row `i` of `obs`, `act`, `rewards`, `next_obs` and `terminated` is one
+/// transition. The reward is the one the agent reported for it: what a learned reward model
+/// trains on; `terminated` says that its agent ended the episode there as `terminated` (the
+/// system's own end, not a time limit): what a learned termination trains on.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Transitions {
     obs_dim: usize,
@@ -14,6 +16,7 @@ pub struct Transitions {
     act: Vec<f32>,
     rewards: Vec<f32>,
     next_obs: Vec<f32>,
+    terminated: Vec<bool>,
 }
 
 impl Transitions {
@@ -36,6 +39,12 @@ impl Transitions {
         self.act.extend_from_slice(act);
         self.rewards.push(reward);
         self.next_obs.extend_from_slice(next_obs);
+        self.terminated.push(false);
+    }
+
+    /// Marks transition `i` as the one its episode terminated with (see [`Transitions::terminated`]).
+    pub fn mark_terminated(&mut self, i: usize) {
+        self.terminated[i] = true;
     }
 
     /// Appends every transition of `other` (same dimensions).
@@ -45,6 +54,7 @@ impl Transitions {
         self.act.extend_from_slice(&other.act);
         self.rewards.extend_from_slice(&other.rewards);
         self.next_obs.extend_from_slice(&other.next_obs);
+        self.terminated.extend_from_slice(&other.terminated);
     }
 
     /// Keeps the transitions whose row index `keep` accepts, in order.
@@ -60,6 +70,7 @@ impl Transitions {
                 self.next_obs.copy_within(i * od..(i + 1) * od, kept * od);
                 self.act.copy_within(i * ad..(i + 1) * ad, kept * ad);
                 self.rewards[kept] = self.rewards[i];
+                self.terminated[kept] = self.terminated[i];
             }
             kept += 1;
         }
@@ -67,6 +78,7 @@ impl Transitions {
         self.next_obs.truncate(kept * od);
         self.act.truncate(kept * ad);
         self.rewards.truncate(kept);
+        self.terminated.truncate(kept);
     }
 
     pub fn len(&self) -> usize {
@@ -100,6 +112,12 @@ impl Transitions {
         &self.rewards
     }
 
+    /// Whether each transition ended its episode as `terminated` (the system's own end: nothing
+    /// follows its next observation), as its agent reported it.
+    pub fn terminated(&self) -> &[bool] {
+        &self.terminated
+    }
+
     /// All next observations, `len() × obs_dim`, row-major.
     pub fn next_obs(&self) -> &[f32] {
         &self.next_obs
@@ -128,11 +146,14 @@ mod tests {
         assert_eq!(t.len(), 2);
         assert_eq!(t.row(1), (&[5.0, 6.0][..], &[-0.5][..], &[7.0, 8.0][..]));
         assert_eq!(t.rewards(), &[0.25, -1.0]);
+        t.mark_terminated(1);
+        assert_eq!(t.terminated(), &[false, true]);
         let mut u = Transitions::new(2, 1);
         u.extend(&t);
         assert_eq!(u, t);
         u.retain(|i| i == 1);
         assert_eq!(u.rewards(), &[-1.0]);
+        assert_eq!(u.terminated(), &[true]);
         assert_eq!(u.row(0).0, &[5.0, 6.0]);
     }
 }

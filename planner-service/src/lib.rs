@@ -9,7 +9,6 @@
 //! - [`plan`]: CEM over action sequences and the batched imagination that scores them.
 
 pub mod agent;
-pub mod bench;
 pub mod config;
 pub mod data;
 pub mod dynamics;
@@ -24,4 +23,5 @@ pub mod reward;
 pub mod run;
 pub mod sched;
 pub mod service;
+pub mod termination;
 pub mod trainer;

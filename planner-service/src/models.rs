@@ -6,13 +6,15 @@
 use crate::config::Preset;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
+use crate::plan::Learned;
 use crate::reward::RewardModel;
+use crate::termination::TerminationModel;
 use proto::Task;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
-/// The dynamics model, the regulariser and (for a task whose reward is learned) the reward
-/// model of one version.
+/// The dynamics model, the regulariser and (for a task whose reward or termination is learned)
+/// the reward and termination models of one version.
 #[derive(Clone, Debug)]
 pub struct Models {
     /// 0 until the first training; +1 with every retraining.
@@ -24,6 +26,9 @@ pub struct Models {
     /// The reward imagination scores with: `Some` exactly when the task's reward is learned
     /// ([`proto::Task::reward_is_learned`]); otherwise the task's own reward is used.
     pub reward: Option<RewardModel>,
+    /// The termination imagination ends particles with: `Some` exactly when the task's
+    /// termination is learned ([`proto::Task::termination_is_learned`]).
+    pub termination: Option<TerminationModel>,
 }
 
 impl Models {
@@ -46,12 +51,27 @@ impl Models {
         if let Some(r) = &mut reward {
             r.set_inference_precision(preset.inference_precision);
         }
+        let mut termination = task
+            .termination_is_learned()
+            .then(|| TerminationModel::new(task, &preset.dynamics, &mut rng));
+        if let Some(t) = &mut termination {
+            t.set_inference_precision(preset.inference_precision);
+        }
         Self {
             version: 0,
             episodes_covered: 0,
             dynamics,
             regularizer,
             reward,
+            termination,
+        }
+    }
+
+    /// The learned parts of the task that imagination scores with (see [`Learned`]).
+    pub fn learned(&self) -> Learned<'_> {
+        Learned {
+            reward: self.reward.as_ref(),
+            termination: self.termination.as_ref(),
         }
     }
 
@@ -62,6 +82,9 @@ impl Models {
         self.regularizer.set_inference_precision(precision);
         if let Some(r) = &mut self.reward {
             r.set_inference_precision(precision);
+        }
+        if let Some(t) = &mut self.termination {
+            t.set_inference_precision(precision);
         }
     }
 
@@ -104,6 +127,9 @@ impl Models {
         if let Some(r) = &self.reward {
             r.mlp().pack_for_inference();
         }
+        if let Some(t) = &self.termination {
+            t.mlp().pack_for_inference();
+        }
     }
 
     /// The first part of these models that holds a NaN or an infinity (`None`: all finite).
@@ -132,6 +158,16 @@ impl Models {
             ];
             if let Some((what, _)) = pieces.iter().find(|(_, v)| !finite(v)) {
                 return Some(format!("{} regulariser: {what}", self.regularizer.kind()));
+            }
+        }
+        if let Some(t) = self.termination.as_ref().map(TerminationModel::parts) {
+            let pieces: [(&str, &[f32]); 3] = [
+                ("parameters", &t.params),
+                ("input means", t.input_norm.mean()),
+                ("input scales", t.input_norm.std()),
+            ];
+            if let Some((what, _)) = pieces.iter().find(|(_, v)| !finite(v)) {
+                return Some(format!("termination model: {what}"));
             }
         }
         if let Some(r) = self.reward.as_ref().map(RewardModel::parts) {

@@ -553,10 +553,17 @@ impl Run {
             .percentiles()
     }
 
-    /// Whether actions are still uniformly random: during the exploration episodes, and for as
-    /// long as no model has been trained.
+    /// Whether actions are still uniformly random: during the exploration episodes and steps
+    /// (both must be reached), and for as long as no model has been trained.
     pub fn exploring(&self) -> bool {
-        self.episodes_stored() < self.preset.exploration_episodes || !self.models().is_trained()
+        self.episodes_stored() < self.preset.exploration_episodes
+            || self.short_of_exploration_steps()
+            || !self.models().is_trained()
+    }
+
+    /// Whether fewer transitions than the preset's `exploration_steps` are stored.
+    fn short_of_exploration_steps(&self) -> bool {
+        (self.lock_tally().transitions as u64) < self.preset.exploration_steps
     }
 
     /// Records the log's new size in the tally and in the daemon's replay budget.
@@ -791,6 +798,12 @@ impl Run {
             if episodes <= *self.trained_through.borrow() {
                 continue;
             }
+            if self.short_of_exploration_steps() {
+                // Models trained now would not be used: actions stay random until the
+                // exploration steps are stored. Agents waiting for these episodes go on.
+                self.trained_through.send_replace(episodes);
+                continue;
+            }
             self.training.store(true, Ordering::SeqCst);
             let current = self.models();
             let preset = self.preset.clone();
@@ -887,6 +900,11 @@ impl Run {
             energy_loss = report.energy_loss,
             reward_steps = report.reward_steps,
             reward_loss = ?report.reward_loss,
+            termination_steps = report.termination_steps,
+            termination_accuracy = report.termination_accuracy.map(|a| a.accuracy),
+            termination_recall = report.termination_accuracy.map(|a| a.recall),
+            termination_held_out = report.termination_accuracy.map(|a| a.held_out),
+            termination_held_out_ends = report.termination_accuracy.map(|a| a.terminations),
             seconds = report.seconds,
             "models updated"
         );
@@ -906,6 +924,7 @@ impl Run {
             seconds: report.seconds,
             dynamics_loss: loss(report.dynamics_steps, report.dynamics_loss),
             energy_loss: loss(report.energy_steps, report.energy_loss),
+            termination_accuracy: report.termination_accuracy,
         });
         self.trained_through.send_replace(episodes);
         self.emit(RunEventKind::ModelsUpdated {
@@ -914,6 +933,7 @@ impl Run {
             energy_loss: report.energy_loss,
             reward_loss: report.reward_loss,
             seconds: report.seconds,
+            termination_accuracy: report.termination_accuracy,
         });
     }
 }

@@ -31,6 +31,11 @@ pub struct TrainReport {
     /// The reward model's steps and last-epoch loss (`None`: the task's reward is not learned).
     pub reward_steps: usize,
     pub reward_loss: Option<f32>,
+    /// The termination model's steps, and its accuracy on the transitions held out of its
+    /// training (`None`: the task's termination is not learned, or no episode has ended as
+    /// `terminated` yet).
+    pub termination_steps: usize,
+    pub termination_accuracy: Option<proto::TerminationAccuracy>,
     /// Why a model's training ended before its epochs (the step cap or the time budget).
     pub cut_short: Option<Stop>,
     pub seconds: f32,
@@ -114,6 +119,15 @@ pub fn retrain(
             &mut rng,
         )
     });
+    // A learned termination trains on the same data with the dynamics' epochs, in the same
+    // share of the time budget as a learned reward (the two are the system's other halves).
+    let termination = next.termination.as_mut().map(|model| {
+        model.fit(
+            data,
+            plan(dynamics_epochs, limits.deadline(started, 0.75)),
+            &mut rng,
+        )
+    });
     let energy = next.regularizer.fit(
         data,
         plan(energy_epochs, limits.deadline(started, 1.0)),
@@ -122,6 +136,7 @@ pub fn retrain(
     let reports = [
         Some(("dynamics loss", &dynamics)),
         reward.as_ref().map(|r| ("reward model loss", r)),
+        termination.as_ref().map(|r| ("termination model loss", r)),
         Some(("regulariser loss", &energy)),
     ];
     let reports = reports.iter().flatten();
@@ -155,9 +170,12 @@ pub fn retrain(
         energy_loss: energy.loss,
         reward_steps: reward.as_ref().map_or(0, |r| r.steps),
         reward_loss: reward.as_ref().map(|r| r.loss),
+        termination_steps: termination.as_ref().map_or(0, |r| r.steps),
+        termination_accuracy: next.termination.as_ref().and_then(|t| t.held_out()),
         cut_short: dynamics
             .stopped
             .or(reward.as_ref().and_then(|r| r.stopped))
+            .or(termination.as_ref().and_then(|r| r.stopped))
             .or(energy.stopped),
         seconds: started.elapsed().as_secs_f32(),
     };

@@ -1,8 +1,9 @@
 //! The planning loop allocates nothing: a counting global allocator watches full `plan` calls
 //! with real (tiny) networks, an ensemble with sampled particles, and a DEEN, for CEM, iCEM and
 //! Adam (whose back-propagation through the horizon keeps one training tape per step), with the
-//! task's own reward, with a learned one (a reward model scoring every imagined step) and with
-//! a reward and a termination written as formulas.
+//! task's own reward, with a learned reward and termination (a reward model scoring and a
+//! termination model classifying every imagined step) and with a reward and a termination
+//! written as formulas.
 //!
 //! The planner's own buffers and the networks' scratch are allocated when the planner is built
 //! and on its first call with a model; rayon's pool and gemm-free kernels need nothing per call.
@@ -21,8 +22,9 @@ use planner_service::dynamics::{DynamicsConfig, Ensemble};
 use planner_service::energy::{EnergyConfig, Regularizer, RegularizerKind};
 use planner_service::nn::KernelPath;
 use planner_service::plan::anytime::Preempt;
-use planner_service::plan::{CemConfig, IcemConfig, MpcPlanner, Optimizer};
+use planner_service::plan::{CemConfig, IcemConfig, Learned, MpcPlanner, Optimizer};
 use planner_service::reward::{RewardConfig, RewardModel};
+use planner_service::termination::TerminationModel;
 use proto::task::{RewardKind, SpecBounds, TerminationKind};
 use proto::{Builtin, InferencePrecision, Task};
 use rand::rngs::StdRng;
@@ -99,13 +101,19 @@ fn random_transitions(spec: &Task, n: usize, rng: &mut StdRng) -> Transitions {
             .collect();
         let reward = next.iter().sum::<f32>() - act.iter().map(|a| a * a).sum::<f32>();
         data.push(&obs, &act, reward, &next);
+        if next[0] < -0.5 {
+            data.mark_terminated(data.len() - 1);
+        }
     }
     data
 }
 
 /// Packs every network of the models ahead of planning (what a trainer does before publishing).
-fn pack(dynamics: &Ensemble, regularizer: &Regularizer, reward: Option<&RewardModel>) {
-    if let Some(model) = reward {
+fn pack(dynamics: &Ensemble, regularizer: &Regularizer, learned: Learned<'_>) {
+    if let Some(model) = learned.reward {
+        model.mlp().pack_for_inference();
+    }
+    if let Some(model) = learned.termination {
         model.mlp().pack_for_inference();
     }
     for i in 0..dynamics.members() {
@@ -124,12 +132,13 @@ fn pack(dynamics: &Ensemble, regularizer: &Regularizer, reward: Option<&RewardMo
 /// allocation counter is global, so no other test may run beside this one.
 #[test]
 fn planning_allocates_nothing_after_warm_up() {
-    // Ant: the task with termination, so that path is exercised too; ant with its reward
-    // learned, planned with a reward model; and ant with its reward and termination written as
+    // Ant: the task with termination, so that path is exercised too; ant with its reward and
+    // termination learned, planned with a reward and a termination model; and ant with its reward and termination written as
     // formulas, evaluated for the population by the expression language's block evaluator.
     let mut learned = Builtin::Ant.spec();
-    learned.name = "ant-learned-reward".into();
+    learned.name = "ant-learned-reward-and-end".into();
     learned.reward = RewardKind::Learned;
+    learned.termination = TerminationKind::Learned;
     let learned = Task::intern(learned, &SpecBounds::default()).unwrap();
     let mut formulas = Builtin::Ant.spec();
     formulas.name = "ant-formulas".into();
@@ -183,6 +192,30 @@ impl Inference {
             Inference::Path(p) => model.set_kernel_path(p),
         }
     }
+
+    fn apply_to_termination(self, model: &mut TerminationModel) {
+        match self {
+            Inference::Precision(p) => model.set_inference_precision(p),
+            Inference::Path(p) => model.set_kernel_path(p),
+        }
+    }
+}
+
+/// A termination model for `spec` trained briefly on `data` (`None` unless its termination is
+/// learned); `data` has ends, so it predicts with its network.
+fn termination_model(
+    spec: &'static Task,
+    data: &Transitions,
+    inference: Inference,
+    rng: &mut StdRng,
+) -> Option<TerminationModel> {
+    spec.termination_is_learned().then(|| {
+        let mut model = TerminationModel::new(spec, &DynamicsConfig::default(), rng);
+        model.fit(data, 1, rng);
+        assert!(model.knows_ends());
+        inference.apply_to_termination(&mut model);
+        model
+    })
 }
 
 /// A reward model for `spec` trained briefly on `data` (`None` unless its reward is learned).
@@ -234,7 +267,11 @@ fn allocates_nothing_after_warm_up_in(
     deen.fit(&data, 1, &mut rng);
     inference.apply(&mut dynamics, &mut deen);
     let reward = reward_model(spec, &data, inference, &mut rng);
-    let reward = reward.as_ref();
+    let termination = termination_model(spec, &data, inference, &mut rng);
+    let learned = Learned {
+        reward: reward.as_ref(),
+        termination: termination.as_ref(),
+    };
 
     let cem = CemConfig {
         horizon: 7,
@@ -262,7 +299,7 @@ fn allocates_nothing_after_warm_up_in(
         // Warm-up: the first calls create the network scratch; every worker thread runs a
         // chunk at least once.
         for _ in 0..10 {
-            planner.plan(&obs, &dynamics, &deen, reward, None);
+            planner.plan(&obs, &dynamics, &deen, learned, None);
         }
         planner.reset();
         ALLOCATIONS.store(0, Ordering::SeqCst);
@@ -272,14 +309,14 @@ fn allocates_nothing_after_warm_up_in(
         // is far enough away not to bind, so the checksum is the seed's alone).
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(3600);
         for _ in 0..5 {
-            let outcome = planner.plan(&obs, &dynamics, &deen, reward, Some(deadline));
+            let outcome = planner.plan(&obs, &dynamics, &deen, learned, Some(deadline));
             checksum += outcome.action[0] + outcome.predicted_return + outcome.mean_energy;
         }
         // Nor does a plan sharing the cores, offered a pause between every imagined step.
         for _ in 0..2 {
             let shared = Some(preempt.clone());
             let outcome =
-                planner.plan_shared(&obs, &dynamics, &deen, reward, Some(deadline), shared);
+                planner.plan_shared(&obs, &dynamics, &deen, learned, Some(deadline), shared);
             checksum += outcome.action[0] + outcome.predicted_return + outcome.mean_energy;
         }
         COUNTING.store(false, Ordering::SeqCst);
@@ -307,13 +344,17 @@ fn allocates_nothing_after_warm_up_in(
     deen.fit(&data, 2, &mut rng);
     inference.apply(&mut dynamics, &mut deen);
     let reward = reward_model(spec, &data, inference, &mut rng);
-    let reward = reward.as_ref();
-    pack(&dynamics, &deen, reward);
+    let termination = termination_model(spec, &data, inference, &mut rng);
+    let learned = Learned {
+        reward: reward.as_ref(),
+        termination: termination.as_ref(),
+    };
+    pack(&dynamics, &deen, learned);
     let (allocations, outcome) = pool.install(|| {
         ALLOCATIONS.store(0, Ordering::SeqCst);
         COUNTING.store(true, Ordering::SeqCst);
         let outcome = planner
-            .plan(&obs, &dynamics, &deen, reward, None)
+            .plan(&obs, &dynamics, &deen, learned, None)
             .predicted_return;
         COUNTING.store(false, Ordering::SeqCst);
         (ALLOCATIONS.load(Ordering::SeqCst), outcome)
@@ -326,7 +367,7 @@ fn allocates_nothing_after_warm_up_in(
 
     // The counter does see allocations, so a zero above is meaningful.
     COUNTING.store(true, Ordering::SeqCst);
-    let plan = planner.imagine_plan(&obs, &dynamics, &deen, reward);
+    let plan = planner.imagine_plan(&obs, &dynamics, &deen, learned);
     COUNTING.store(false, Ordering::SeqCst);
     assert_eq!(plan.actions.len(), 7 * spec.act_dim);
     assert!(ALLOCATIONS.load(Ordering::SeqCst) > 0);

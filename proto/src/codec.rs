@@ -117,7 +117,7 @@ mod tests {
 
     #[test]
     fn json_is_readable_by_other_languages() {
-        let json = r#"{"version":5,"episode":0,"step":0,"obs":[1,2,3,4]}"#;
+        let json = r#"{"version":6,"episode":0,"step":0,"obs":[1,2,3,4]}"#;
         let obs: Observation = decode(json.as_bytes(), Encoding::Json).unwrap();
         assert_eq!(obs.obs, vec![1.0, 2.0, 3.0, 4.0]);
         assert_eq!((obs.reward, obs.applied), (None, None));
@@ -245,7 +245,7 @@ mod tests {
         for bad in [
             &bytes[..bytes.len() - 3],
             &[][..],
-            &[5, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
+            &[PROTOCOL_VERSION as u8, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff][..],
         ] {
             assert!(
                 matches!(

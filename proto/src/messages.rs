@@ -21,8 +21,25 @@ use serde::{Deserialize, Serialize};
 /// [`RunSpec::task_spec`], a whole task for a system the planner's catalog does not know;
 /// version 5 the reward model's sizes ([`PlannerOverrides::reward_hidden_layers`],
 /// [`PlannerOverrides::reward_hidden_size`]) and its loss in
-/// [`RunEventKind::ModelsUpdated`], for tasks whose reward is learned.
-pub const PROTOCOL_VERSION: u16 = 5;
+/// [`RunEventKind::ModelsUpdated`], for tasks whose reward is learned; version 6 a learned
+/// termination ([`crate::task::TerminationKind::Learned`]) and its model's held-out accuracy in
+/// [`RunEventKind::ModelsUpdated`], and exploration budgets in steps
+/// ([`PlannerOverrides::exploration_steps`]).
+pub const PROTOCOL_VERSION: u16 = 6;
+
+/// How well a learned termination predicts episode ends it was not trained on.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TerminationAccuracy {
+    /// Held-out transitions it was scored on.
+    pub held_out: u32,
+    /// Of them, transitions that ended their episode as `terminated`.
+    pub terminations: u32,
+    /// Fraction of the held-out transitions classified right.
+    pub accuracy: f32,
+    /// Fraction of the held-out terminations predicted as ends (`NaN`-free: 1 when none).
+    pub recall: f32,
+}
 
 /// How the trainer interacts with acting agents: whether an agent's next episode waits for the
 /// models retrained on its last one.
@@ -262,8 +279,13 @@ pub struct PlannerOverrides {
     /// iteration runs, as a simulator that waits for its action wants); absent: the task's
     /// control period.
     pub deadline_ms: Option<u32>,
-    /// The units of `energy_noise_sigma` (the preset's: `standardised`).
+    /// The units of `energy_noise_sigma` (the preset's: `raw` for pusher, `standardised` for
+    /// the other built-in tasks).
     pub energy_noise_units: Option<NoiseUnits>,
+    /// Transitions of uniformly random actions before planning starts, on top of
+    /// `exploration_episodes` (both must be reached): a task whose random episodes end
+    /// after a few steps still gets enough data before its first plan.
+    pub exploration_steps: Option<u64>,
 }
 
 /// What an agent asks for when it attaches: which task it is and how its run should plan.
@@ -603,6 +625,10 @@ pub enum RunEventKind {
         /// `None` unless the task's reward is learned).
         reward_loss: Option<f32>,
         seconds: f32,
+        /// The termination model's accuracy on transitions held out of its training, and
+        /// its recall of the held-out terminations (`None` unless the task's termination is
+        /// learned, or before any episode ended as `terminated`).
+        termination_accuracy: Option<TerminationAccuracy>,
     },
     /// Training failed; the previous models stay in use.
     TrainingFailed { message: String },

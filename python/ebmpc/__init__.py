@@ -51,6 +51,7 @@ from .events import (
     ModelsUpdated,
     RunEvent,
     RunEvents,
+    TerminationAccuracy,
     TrainingFailed,
     TrainingStarted,
 )
@@ -88,6 +89,7 @@ __all__ = [
     "SessionError",
     "StorageError",
     "Task",
+    "TerminationAccuracy",
     "TrainMode",
     "TrainingFailed",
     "TrainingStarted",

@@ -48,6 +48,21 @@ class ModelsUpdated:
     seconds: float
     #: The reward model's loss, for a task whose reward is learned (else ``None``).
     reward_loss: Optional[float] = None
+    #: A learned termination's accuracy on the transitions held out of its training (else
+    #: ``None``, also before any episode ended as ``terminated``).
+    termination_accuracy: Optional["TerminationAccuracy"] = None
+
+
+@dataclass(frozen=True)
+class TerminationAccuracy:
+    """How well a learned termination predicts episode ends it was not trained on."""
+
+    #: Held-out transitions it was scored on, and how many of them ended their episode.
+    held_out: int
+    terminations: int
+    #: Fraction of them classified right, and of their ends predicted (1 with none).
+    accuracy: float
+    recall: float
 
 
 @dataclass(frozen=True)
@@ -92,12 +107,22 @@ def parse_event(message: Mapping[str, Any]) -> RunEvent:
                 float(fields["energy_loss"]),
                 float(fields["seconds"]),
                 None if fields.get("reward_loss") is None else float(fields["reward_loss"]),
+                _termination_accuracy(fields.get("termination_accuracy")),
             )
         if name == "TrainingFailed":
             return TrainingFailed(run, str(fields["message"]))
     except (KeyError, TypeError, ValueError) as e:
         raise ProtocolError(f"run event {name} without a valid {e}: {fields!r}") from None
     raise ProtocolError(f"unknown run event kind `{name}`")
+
+
+def _termination_accuracy(fields: Any) -> Optional[TerminationAccuracy]:
+    if fields is None:
+        return None
+    return TerminationAccuracy(
+        int(fields["held_out"]), int(fields["terminations"]),
+        float(fields["accuracy"]), float(fields["recall"]),
+    )
 
 
 class RunEvents(Iterator[RunEvent]):

@@ -19,11 +19,16 @@ With ``--connect`` it attaches to that planner instead.
 
 Any environment with ``Box`` observation and action spaces works: the task spec comes from its
 spaces (:mod:`ebmpc.gym_spec`), the reward is ``learned`` from the rewards this driver sends
-with every step unless ``--reward-expression`` gives a formula. Gymnasium's two endings map onto
-the protocol's: ``terminated`` (the environment's own rule fired: nothing follows the last
-state) ends the episode as ``terminated``, ``truncated`` (its time limit, or a wrapper's) as
-``time_limit``; the planner stores both, and a learned reward trains on both. ``--num-envs N``
-drives a vector env of N copies as N agents of one run.
+with every step unless ``--reward-expression`` gives a formula, and the termination is
+``learned`` from the episodes the environment ends unless ``--termination-expression`` gives
+one. Gymnasium's two endings map onto the protocol's: ``terminated`` (the environment's own
+rule fired: nothing follows the last state) ends the episode as ``terminated``, ``truncated``
+(its time limit, or a wrapper's) as ``time_limit``; the planner stores both, a learned reward
+trains on both, and a learned termination learns from the first which states end an episode
+(so that falling costs a plan the rest of its horizon). ``--steps N`` budgets the experience
+in environment steps instead of (or as well as) episodes: a task whose early episodes last 10
+steps gets as much data as one whose episodes run to their limit. ``--num-envs N`` drives a
+vector env of N copies as N agents of one run.
 
 It prints one line per episode (return, steps, how it ended, milliseconds per action), a
 progress line on stderr when that is a terminal, and exits with status 0, or with the status
@@ -172,6 +177,29 @@ class _ActionClock:
         return self.later_seconds * 1e3 / self.later if self.later else self.first_ms
 
 
+class Budget:
+    """How much experience to collect: ``episodes`` started and/or ``steps`` taken (``None``:
+    no bound of that kind; at least one is given). A new episode starts while both leave
+    room; an episode that has started always runs to its end, so the steps may overshoot by
+    the last episodes' lengths."""
+
+    def __init__(self, episodes: Optional[int], steps: Optional[int]) -> None:
+        if episodes is None and steps is None:
+            raise ValueError("give episodes, steps, or both")
+        if episodes is not None and episodes < 1:
+            raise ValueError("episodes must be at least 1")
+        if steps is not None and steps < 1:
+            raise ValueError("steps must be at least 1")
+        self.episodes = episodes
+        self.steps = steps
+
+    def allows(self, started: int, steps: int) -> bool:
+        """Whether another episode may start after ``started`` episodes and ``steps`` steps."""
+        return (self.episodes is None or started < self.episodes) and (
+            self.steps is None or steps < self.steps
+        )
+
+
 def run_episode(
     env: Any, agent: Agent, episode: int, seed: Optional[int], bar: Optional[Progress] = None
 ) -> EpisodeResult:
@@ -257,8 +285,9 @@ def _spec_of(env: Any, spec_args: Dict[str, Any]) -> Dict[str, Any]:
 
 def learn(
     env: Any,
-    episodes: int,
+    episodes: Optional[int] = None,
     *,
+    steps: Optional[int] = None,
     preset: Optional[str] = None,
     overrides: Optional[Mapping[str, Any]] = None,
     planner: Optional[Planner] = None,
@@ -283,9 +312,11 @@ def learn(
     ``env``: a Gymnasium id (made here, and closed at the end; ``num_envs`` > 1 makes a vector
     env of that many copies), an environment, or a vector environment (each copy an agent of
     the run, ``{agent}-{i}``: one replay buffer and one set of models, the planner serving
-    their observations together). ``episodes``: how many to play in all (over every copy).
-    The task spec comes from the spaces (:func:`ebmpc.gym_spec.task_spec_from_env`):
-    ``reward``/``termination`` formulas (default: a learned reward, no termination rule),
+    their observations together). ``episodes``/``steps``: the budget, in episodes and/or
+    environment steps over every copy (:class:`Budget`: new episodes start until either is
+    reached; an episode that started runs to its end). The task spec comes from the spaces
+    (:func:`ebmpc.gym_spec.task_spec_from_env`): ``reward``/``termination`` formulas
+    (default: both learned, from the rewards and the ``terminated`` ends sent),
     ``angles``, ``base_preset``. ``preset``/``overrides``: the planner preset and fields of it to
     change. ``run``: the run's name (default: the environment's id, so that learning the same
     environment again continues its run). ``planner``: where to learn (default: a
@@ -300,8 +331,7 @@ def learn(
     planner's errors as their :class:`~ebmpc.PlannerError`, and the local planner's start
     errors.
     """
-    if episodes < 1:
-        raise ValueError("episodes must be at least 1")
+    budget = Budget(episodes, steps)
     if num_envs < 1:
         raise ValueError("num_envs must be at least 1")
     if planner is not None and data_dir is not None:
@@ -321,7 +351,9 @@ def learn(
                     Planner.local(data_dir, train_timeout=train_timeout)
                 )
             events = stack.enter_context(planner.events(run_name))
-            bar = stack.enter_context(Progress(episodes, enabled=progress, events=events))
+            bar = stack.enter_context(Progress(
+                episodes, total_steps=steps, enabled=progress, events=events,
+            ))
             results: List[EpisodeResult] = []
 
             def finished(result: EpisodeResult) -> None:
@@ -343,15 +375,18 @@ def learn(
                 for name in names
             ]
             if is_vector_env(environment):
-                _VectorDriver(environment, agents, bar, finished).run(episodes, seed)
+                _VectorDriver(environment, agents, bar, finished).run(budget, seed)
             else:
-                for i in range(episodes):
+                taken = 0
+                while budget.allows(len(results), taken):
                     # Seeded once: the environment's own generator then differs per episode,
                     # and the whole run is reproducible from the seed.
-                    finished(run_episode(
-                        environment, agents[0], agents[0].episode, seed if i == 0 else None,
-                        bar,
-                    ))
+                    result = run_episode(
+                        environment, agents[0], agents[0].episode,
+                        seed if not results else None, bar,
+                    )
+                    taken += result.steps
+                    finished(result)
             return results
     finally:
         if owned:
@@ -391,9 +426,9 @@ class _VectorDriver:
     Every step sends the observations of all copies in an episode before it waits for their
     actions, so the planner plans them together. A copy's episode ends with its own last
     observation; the copy's reset (Gymnasium's autoreset, in any of its modes) starts the
-    agent's next episode at step 0, so no transition across a reset is ever sent. Once as many
-    episodes have started as were asked for, a copy that finishes is left idle (its actions
-    are ignored) until the others finish theirs: no episode is cut short.
+    agent's next episode at step 0, so no transition across a reset is ever sent. Once the
+    budget allows no new episode, a copy that finishes is left idle (its actions are ignored)
+    until the others finish theirs: no episode is cut short.
     """
 
     def __init__(
@@ -422,12 +457,13 @@ class _VectorDriver:
             "SameStep": "SAME_STEP", "Disabled": "DISABLED",
         }.get(str(mode), "NEXT_STEP")
 
-    def run(self, episodes: int, seed: Optional[int]) -> None:
+    def run(self, budget: Budget, seed: Optional[int]) -> None:
         import numpy as np
 
         n = len(self.agents)
         obs, _ = self.env.reset(seed=seed)
         started = 0
+        taken = 0
         # Per copy: a clock while in an episode, None while idle or awaiting its reset.
         clocks: List[Optional[_ActionClock]] = [None] * n
         returns = [0.0] * n
@@ -436,7 +472,7 @@ class _VectorDriver:
 
         def start(i: int, first_obs: Any) -> None:
             nonlocal started
-            if started >= episodes or clocks[i] is not None:
+            if not budget.allows(started, taken) or clocks[i] is not None:
                 return
             started += 1
             clocks[i] = _ActionClock(self.agents[i])
@@ -465,6 +501,7 @@ class _VectorDriver:
                 reward = _finite([rewards[i]], "reward")[0]
                 returns[i] += reward
                 steps[i] += 1
+                taken += 1
                 self.bar.step()
                 if not (terminated[i] or truncated[i]):
                     clock.submit(_finite(obs[i], "observation"), reward)
@@ -517,6 +554,7 @@ def drive(args: argparse.Namespace) -> int:
             learn(
                 env,
                 args.episodes,
+                steps=args.steps,
                 preset=args.preset,
                 overrides=dict(args.override),
                 planner=planner,
@@ -561,8 +599,15 @@ def parser() -> argparse.ArgumentParser:
         "same command again resumes it)",
     )
     p.add_argument(
-        "--episodes", type=int, default=10,
-        help="episodes to play, over all copies with --num-envs (default 10)",
+        "--episodes", type=int, default=None,
+        help="episodes to play, over all copies with --num-envs (default 10 unless --steps "
+        "is given)",
+    )
+    p.add_argument(
+        "--steps", type=int, default=None,
+        help="environment steps of experience to collect, over all copies: episodes start "
+        "until this many steps are taken (and --episodes, if given, are played); an episode "
+        "that started runs to its end",
     )
     p.add_argument(
         "--num-envs", type=int, default=1, metavar="N",
@@ -597,8 +642,8 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--termination-expression", default=None, metavar="FORMULA",
-        help="formula over s_next that ends an imagined episode where it is not 0 "
-        "(default: none; the environment still ends its own episodes)",
+        help="formula over s_next that ends an imagined episode where it is not 0 (default: "
+        "learned from the episodes the environment ends as terminated; 0 for none)",
     )
     p.add_argument(
         "--angle", type=int, action="append", default=[], metavar="INDEX",
@@ -636,8 +681,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     """``python -m ebmpc.gym``: parses ``argv`` and runs the driver; the exit status."""
     p = parser()
     args = p.parse_args(argv)
-    if args.episodes < 1:
+    if args.episodes is None and args.steps is None:
+        args.episodes = 10
+    if args.episodes is not None and args.episodes < 1:
         p.error("--episodes must be at least 1")
+    if args.steps is not None and args.steps < 1:
+        p.error("--steps must be at least 1")
     if args.num_envs < 1:
         p.error("--num-envs must be at least 1")
     if args.connect and args.data_dir is not None:

@@ -4,8 +4,8 @@ A planner learns any system with a vector observation and a box action space; Gy
 describes one with ``Box`` spaces and ``spec.max_episode_steps``. This module turns those into
 the attach message's task spec (``proto/src/task/spec.rs`` of protocol 4): dimensions, action
 bounds, the observation bounds when they are finite, the episode length, the control period,
-and the reward: ``learned`` (a model trained on the rewards the agent sends) unless a formula
-is given. It reads the spaces by duck typing (``shape``, ``low``, ``high``), so it needs neither
+and the reward and termination: each ``learned`` (models trained on the rewards the agent
+sends and on the episodes it ends as ``terminated``) unless a formula is given. It reads the spaces by duck typing (``shape``, ``low``, ``high``), so it needs neither
 Gymnasium nor NumPy itself. The Gymnasium driver (:mod:`ebmpc.gym`) attaches with it.
 """
 
@@ -61,8 +61,10 @@ def task_spec_from_spaces(
 ) -> Dict[str, Any]:
     """The task spec of a system with these spaces.
 
-    ``reward``/``termination``: formulas over ``s``, ``a``, ``s_next`` (``None``: a learned
-    reward, and no termination rule: the agent still ends episodes its environment ends).
+    ``reward``/``termination``: formulas over ``s``, ``a``, ``s_next`` (``None``: each is
+    learned, the reward from the rewards the agent sends, the termination from the episodes
+    it ends as ``terminated``; an environment that never ends its own episodes teaches a
+    termination that never fires). ``termination="0"`` is a rule that never ends one.
     ``angles``: observation dimensions that are angles (the model sees their sine and cosine).
     ``base_preset``: the catalog task whose paper sizes a run starts from (``None``: the
     planner's default, ``cartpole``, the smallest).
@@ -88,7 +90,7 @@ def task_spec_from_spaces(
         "episode_len": int(max_episode_steps),
         "control_dt": float(control_dt),
         "model": {"declared": {"angles": list(angles), "absolute": []}},
-        "termination": "never" if termination is None else {"expression": termination},
+        "termination": "learned" if termination is None else {"expression": termination},
         "reward": "learned" if reward is None else {"expression": reward},
     }
     if all(math.isfinite(v) for v in obs_low + obs_high):

@@ -25,7 +25,9 @@ REDRAW_SECONDS = 0.5
 
 
 class Progress:
-    """Progress of ``total`` episodes on ``stream`` (default stderr).
+    """Progress of ``total`` episodes (``None``: no episode budget) and ``total_steps``
+    environment steps (``None``: no step budget) on ``stream`` (default stderr); the bar
+    follows whichever budget is nearer its end.
 
     ``enabled``: ``None`` draws when the stream is a terminal. ``events``: the run's events
     (:meth:`ebmpc.Planner.events`), read to show retraining. Use it as a context manager;
@@ -34,13 +36,15 @@ class Progress:
 
     def __init__(
         self,
-        total: int,
+        total: Optional[int],
         *,
+        total_steps: Optional[int] = None,
         stream: Optional[TextIO] = None,
         enabled: Optional[bool] = None,
         events: Optional[RunEvents] = None,
     ) -> None:
         self.total = total
+        self.total_steps = total_steps
         self.stream = stream if stream is not None else sys.stderr
         isatty = getattr(self.stream, "isatty", None)
         self.enabled = enabled if enabled is not None else bool(isatty and isatty())
@@ -102,9 +106,14 @@ class Progress:
 
     def line(self) -> str:
         """The progress line as it is drawn."""
-        filled = BAR_WIDTH * self.done // max(1, self.total)
+        shares = [self.done / max(1, self.total)] if self.total is not None else []
+        if self.total_steps is not None:
+            shares.append(self.steps / max(1, self.total_steps))
+        filled = min(BAR_WIDTH, int(BAR_WIDTH * max(shares, default=0.0)))
         bar = "#" * filled + "-" * (BAR_WIDTH - filled)
-        parts = [f"[{bar}] {self.done}/{self.total} episodes", f"{self.steps} steps"]
+        episodes = f"{self.done}/{self.total}" if self.total is not None else f"{self.done}"
+        steps = f"{self.steps}/{self.total_steps}" if self.total_steps is not None else f"{self.steps}"
+        parts = [f"[{bar}] {episodes} episodes", f"{steps} steps"]
         if self.last_return is not None and self.best_return is not None:
             parts.append(f"return {self.last_return:.1f} (best {self.best_return:.1f})")
         if self.trainer:
@@ -124,6 +133,12 @@ class Progress:
                 self.trainer = f"retraining on {event.transitions} transitions"
             elif isinstance(event, ModelsUpdated):
                 self.trainer = f"models v{event.models_version} ({event.seconds:.1f} s to train)"
+                ends = event.termination_accuracy
+                if ends is not None:
+                    self.trainer += (
+                        f", ends {100 * ends.accuracy:.0f}% right "
+                        f"({100 * ends.recall:.0f}% of {ends.terminations} held out)"
+                    )
             elif isinstance(event, TrainingFailed):
                 self.trainer = f"retraining failed: {event.message[:60]}"
 

@@ -164,6 +164,11 @@ def test_the_progress_line_counts_episodes_steps_and_returns() -> None:
         assert bar.line().startswith("[##########----------] 2/4 episodes | 40 steps | "
                                      "return -3.0 (best -3.0)")
     assert "2/4 episodes" in out.getvalue() and lines.getvalue() == "episode 0: ...\n"
+    # A step budget fills the bar by the steps when it is nearer its end than the episodes.
+    with Progress(None, total_steps=200, stream=io.StringIO(), enabled=True) as bar:
+        bar.step(150)
+        bar.episode(1.0)
+        assert bar.line().startswith("[###############-----] 1 episodes | 150/200 steps")
     quiet = io.StringIO()
     with Progress(1, stream=quiet) as bar:  # not a terminal: draws nothing
         bar.episode(1.0)
@@ -183,3 +188,60 @@ def test_the_command_drives_num_envs_copies_and_names_each_episodes_agent(
     lines = sorted(line.split(":")[0] for line in out.out.splitlines())
     assert lines == ["gym-0 episode 0", "gym-1 episode 0"], out.out
     assert out.err == "", "no progress line where stderr is not a terminal"
+
+
+def test_a_learned_termination_and_a_step_budget_for_an_environment_that_ends_early(
+    daemon: Daemon,
+) -> None:
+    import ebmpc
+
+    seen: List[dict[str, Any]] = []
+    overrides = {**TINY, "exploration_steps": 1000}
+    with ebmpc.Planner(connect=daemon.endpoint) as planner:
+        results = driver.learn(
+            "InvertedPendulum-v5", steps=60, overrides=overrides, planner=planner,
+            progress=False, on_spec=seen.append,
+        )
+        (report,) = planner.status()
+    # No termination given: the planner learns it.
+    assert seen[0]["termination"] == "learned"
+    # Random episodes fall within a few steps: many of them, until 60 steps are taken (the
+    # last one started below 60 and ran to its end).
+    steps = [r.steps for r in results]
+    assert len(results) > 2 and all(r.end == "terminated" for r in results), steps
+    assert sum(steps) >= 60 > sum(steps[:-1]), steps
+    assert all(r.planned == 0 for r in results), "exploring: 1000 random steps first"
+    (run,) = [r for r in report["runs"] if r["name"] == "InvertedPendulum-v5"]
+    assert (run["episodes"], run["transitions"]) == (len(results), sum(steps)), run
+    # Models trained now would not be used: retraining waits for the exploration steps.
+    assert run["models_version"] == 0 and run.get("last_retraining") is None, run
+
+
+def test_status_and_events_report_the_learned_terminations_held_out_accuracy(
+    daemon: Daemon,
+) -> None:
+    import ebmpc
+
+    with ebmpc.Planner(connect=daemon.endpoint) as planner:
+        with planner.events("pendulum-ends") as events:
+            results = driver.learn(
+                # Every CEM iteration run: the episodes do not depend on the machine's load.
+                "InvertedPendulum-v5", steps=80, overrides={**TINY, "deadline_ms": 0},
+                planner=planner, run="pendulum-ends", progress=False,
+            )
+            (report,) = planner.status()
+            updates = []
+            while True:
+                try:
+                    event = events.next(timeout=0.5)
+                except ebmpc.EventTimeout:
+                    break
+                if isinstance(event, ebmpc.ModelsUpdated):
+                    updates.append(event)
+    assert sum(r.steps for r in results) >= 80
+    (run,) = [r for r in report["runs"] if r["name"] == "pendulum-ends"]
+    held = run["last_retraining"]["termination_accuracy"]
+    assert held["held_out"] > 0 and held["terminations"] >= 0, held
+    assert 0.0 <= held["accuracy"] <= 1.0 and 0.0 <= held["recall"] <= 1.0, held
+    # The retrainings report it in their events too (once an end was in the training data).
+    assert any(u.termination_accuracy is not None for u in updates), updates

@@ -54,7 +54,7 @@ def test_pendulum_spec() -> None:
         "episode_len": 200,
         "control_dt": pytest.approx(1 / 30),
         "model": {"declared": {"angles": [], "absolute": []}},
-        "termination": "never",
+        "termination": "learned",
         "reward": "learned",
         "observation_bounds": {"low": [-1.0, -1.0, -8.0], "high": [1.0, 1.0, 8.0]},
     }

@@ -99,7 +99,7 @@ def test_each_copy_is_an_agent_and_no_transition_crosses_a_reset(mode: Autoreset
     agents = [ScriptedAgent(f"gym-{i}", s) for i, s in enumerate([0.6, 0.3, 0.05])]
     results: List[driver.EpisodeResult] = []
     with Progress(7, enabled=False) as bar:
-        driver._VectorDriver(env, agents, bar, results.append).run(7, seed=0)  # type: ignore[arg-type]
+        driver._VectorDriver(env, agents, bar, results.append).run(driver.Budget(7, None), seed=0)  # type: ignore[arg-type]
     assert len(results) == 7, "exactly the episodes asked for, none cut short"
     for agent in agents:
         check_no_transition_across_a_reset(agent)
@@ -119,6 +119,36 @@ def test_each_copy_is_an_agent_and_no_transition_crosses_a_reset(mode: Autoreset
             assert reward == 1.0 and all(r == 1.0 for _, r in steps[1:])
             assert last[1] == float(len(steps))
     env.close()
+
+
+def test_a_step_budget_starts_episodes_until_its_steps_are_taken() -> None:
+    env = SyncVectorEnv([lambda: Walk(limit=5)] * 3)
+    agents = [ScriptedAgent(f"gym-{i}", s) for i, s in enumerate([0.6, 0.3, 0.05])]
+    results: List[driver.EpisodeResult] = []
+    with Progress(None, total_steps=12, enabled=False) as bar:
+        driver._VectorDriver(env, agents, bar, results.append).run(  # type: ignore[arg-type]
+            driver.Budget(None, 12), seed=0
+        )
+    env.close()
+    for agent in agents:
+        check_no_transition_across_a_reset(agent)
+        assert len(agent.episodes) == len(agent.ends), "every started episode ended"
+    # The three copies step together: 12 steps are taken within the fourth vector step
+    # (2 + 2 + 2 at vector step 2, ...); episodes started before that run to their end.
+    taken = sum(r.steps for r in results)
+    assert taken >= 12 and bar.steps == taken
+    by_agent = {a.name: [r.steps for r in results if r.agent == a.name] for a in agents}
+    assert by_agent == {"gym-0": [2, 2], "gym-1": [4], "gym-2": [5]}, by_agent
+
+
+def test_a_budget_needs_episodes_or_steps() -> None:
+    with pytest.raises(ValueError):
+        driver.Budget(None, None)
+    with pytest.raises(ValueError):
+        driver.Budget(0, None)
+    both = driver.Budget(3, 100)
+    assert both.allows(2, 99) and not both.allows(3, 10) and not both.allows(1, 100)
+    assert driver.Budget(None, 5).allows(1000, 4)
 
 
 def test_the_spec_of_a_vector_env_is_that_of_one_copy() -> None:

@@ -84,6 +84,11 @@ def test_events_parse_into_typed_values() -> None:
     message["kind"]["ModelsUpdated"]["reward_loss"] = 0.125  # a learned reward's model
     validate("RunEvent", message)
     assert events.parse_event(message) == ebmpc.ModelsUpdated("r", 2, -1.0, 0.5, 0.25, 0.125)
+    message["kind"]["ModelsUpdated"]["termination_accuracy"] = {  # a learned termination's
+        "held_out": 40, "terminations": 4, "accuracy": 0.975, "recall": 0.75}
+    validate("RunEvent", message)
+    assert events.parse_event(message) == ebmpc.ModelsUpdated(
+        "r", 2, -1.0, 0.5, 0.25, 0.125, ebmpc.TerminationAccuracy(40, 4, 0.975, 0.75))
     for bad in ({"run": "r", "kind": {"Exploded": {}}},
                 {"run": "r", "kind": {"TrainingStarted": {}}},
                 {"run": "r", "kind": {"EpisodeFinished": {"agent": "a", "episode": 0,

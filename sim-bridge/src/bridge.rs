@@ -554,12 +554,14 @@ fn log_event(event: &RunEvent) {
             energy_loss,
             reward_loss,
             seconds,
+            termination_accuracy,
         } => tracing::info!(
             run = %event.run,
             models_version,
             dynamics_loss,
             energy_loss,
             reward_loss = ?reward_loss,
+            termination_accuracy = ?termination_accuracy,
             seconds,
             "planner: models updated"
         ),

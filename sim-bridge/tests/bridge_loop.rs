@@ -116,7 +116,7 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                         let events = [
                             RunEventKind::EpisodeFinished { agent: agent.clone(), episode: obs.episode, episode_return: 0.0, steps: obs.step, end },
                             RunEventKind::TrainingStarted { transitions: u64::from(obs.step) },
-                            RunEventKind::ModelsUpdated { models_version: 1, dynamics_loss: 0.1, energy_loss: 0.2, reward_loss: None, seconds: 0.01 },
+                            RunEventKind::ModelsUpdated { models_version: 1, dynamics_loss: 0.1, energy_loss: 0.2, reward_loss: None, seconds: 0.01, termination_accuracy: None },
                         ];
                         for kind in events {
                             let event = RunEvent { version: PROTOCOL_VERSION, run: run.clone(), kind };

@@ -12,8 +12,9 @@ const PLANNER: &str = "metrics";
 /// Every metric the issue names, as served: plan latency per run, iterations, cut plans,
 /// misses, refusals by code, wildcards dropped, models version, replay transitions and bytes,
 /// episodes, agents, queue depth per agent, fsync latency, training duration and losses; and
-/// how often plans stepped back for a more urgent one.
-const METRICS: [&str; 16] = [
+/// how often plans stepped back for a more urgent one; how retrainings fare against plans
+/// (their share, slices, waits, and whether one is starving); dormant stored runs.
+const METRICS: [&str; 21] = [
     "ebmpc_plan_seconds_bucket",
     "ebmpc_plan_iterations_bucket",
     "ebmpc_plans_cut_total",
@@ -30,6 +31,11 @@ const METRICS: [&str; 16] = [
     "ebmpc_replay_fsync_seconds_bucket",
     "ebmpc_retraining_seconds_bucket",
     "ebmpc_training_loss",
+    "ebmpc_retraining_share",
+    "ebmpc_retraining_slices",
+    "ebmpc_retraining_waited_seconds",
+    "ebmpc_retraining_starving",
+    "ebmpc_dormant_runs",
 ];
 
 fn scrape(url: &str) -> String {

@@ -116,7 +116,7 @@ fn episode(
         match planner.as_mut() {
             Some((p, m)) => {
                 action.copy_from_slice(
-                    p.plan(&obs, &m.dynamics, &m.regularizer, m.reward.as_ref(), None)
+                    p.plan(&obs, &m.dynamics, &m.regularizer, m.learned(), None)
                         .action,
                 );
             }
@@ -224,7 +224,7 @@ pub fn run(
                     &obs,
                     &models.dynamics,
                     &models.regularizer,
-                    models.reward.as_ref(),
+                    models.learned(),
                     None,
                 )
                 .action
@@ -254,8 +254,7 @@ pub fn run(
                 false,
                 config.seed.wrapping_add(1000),
             )?;
-            let plan =
-                fresh.imagine_plan(&obs, &models.dynamics, regularizer, models.reward.as_ref());
+            let plan = fresh.imagine_plan(&obs, &models.dynamics, regularizer, models.learned());
             // Reality: the same state (replaying the same actions in a deterministic
             // simulator), then the plan open-loop.
             env.reset(start_seed);

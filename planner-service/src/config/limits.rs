@@ -30,6 +30,8 @@ pub struct Limits {
     pub max_cem_iterations: u64,
     /// Most episodes of random exploration (Table 2: 1–3).
     pub max_exploration_episodes: u64,
+    /// Most transitions of random exploration (`exploration_steps`).
+    pub max_exploration_steps: u64,
     /// Most training epochs per retraining, of either model, also in an epoch schedule
     /// (Table 2: up to 800).
     pub max_epochs: u64,
@@ -78,6 +80,7 @@ impl Default for Limits {
             max_population: 5_000,
             max_cem_iterations: 50,
             max_exploration_episodes: 1_000,
+            max_exploration_steps: 1_000_000,
             max_epochs: 5_000,
             max_hidden_layers: 10,
             max_hidden_size: 2_048,
@@ -221,6 +224,12 @@ impl Limits {
                 preset.exploration_episodes as u64,
                 self.max_exploration_episodes,
                 "max_exploration_episodes",
+            ),
+            (
+                "exploration_steps",
+                preset.exploration_steps,
+                self.max_exploration_steps,
+                "max_exploration_steps",
             ),
             (
                 "dynamics_epochs",
@@ -556,6 +565,13 @@ mod tests {
                     ..Default::default()
                 },
                 "exploration_episodes",
+            ),
+            (
+                PlannerOverrides {
+                    exploration_steps: Some(u64::MAX),
+                    ..Default::default()
+                },
+                "exploration_steps",
             ),
             (
                 PlannerOverrides {

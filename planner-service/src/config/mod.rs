@@ -33,7 +33,10 @@ pub struct ServiceConfig {
     pub zenoh_config: Option<PathBuf>,
     /// Where runs keep their replay buffers and models.
     pub data_dir: PathBuf,
-    /// Most runs this daemon hosts at once; further attaches to new runs are refused.
+    /// Most runs this daemon hosts at once: further attaches to new runs are refused, and a
+    /// restart opens at most this many stored runs (the newest first; also only while the
+    /// open runs' replay is below `[storage] max_total_replay_bytes`). The others stay on
+    /// disk untouched, listed by `status` as dormant, refused at attach with the budget's name.
     pub max_runs: usize,
     /// Most agents attached to one run at once.
     pub max_agents_per_run: usize,

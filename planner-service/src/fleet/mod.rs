@@ -12,7 +12,7 @@
 //! **Who owns a run** is etcd's answer alone ([`etcd`]): the holder of the run's owner key,
 //! created in a transaction only when absent and attached to its creator's lease. Zenoh
 //! liveliness serves discovery only: which planners are up, and so which one a *free* run is
-//! preferred on (rendezvous hashing over the live planners their [`Pins`] allow, [`view`]). A
+//! preferred on (rendezvous hashing over the live planners their pins ([`Pins`]) allow, [`view`]). A
 //! planner cut off from the router sees no peers and prefers every free run, but the runs
 //! other planners hold have owner keys, so it takes none of them; one cut off from etcd can
 //! renew nothing and take nothing, and stops acknowledging before its lease can expire.

@@ -6,7 +6,7 @@
 //! unit that multiplies them: one `TDPBF16PS` adds a 16 × 32 bf16 tile times a 32 × 16 one
 //! into a 16 × 16 f32 tile (8192 multiply-adds). On the Xeon this project measures on, one
 //! core runs it at ~2.7–3.0 TFLOP/s against ~170 GFLOP/s of 512-bit f32 FMA (measured with a
-//! register-only loop and with tile loads from L1, see `bench::peak`).
+//! register-only loop and with tile loads from L1, see `nn::peak`).
 //!
 //! Rust has no stable AMX intrinsics, so the instructions are `asm!` with the tile register
 //! named by a const generic. The tile state is not preserved across function calls by any

@@ -18,6 +18,7 @@ pub mod adam;
 pub mod aligned;
 pub mod amx;
 pub mod backprop;
+pub mod cputime;
 pub mod denormals;
 pub mod double_backprop;
 pub mod fastmath;
@@ -27,6 +28,7 @@ pub mod kernel_path;
 pub mod matmul;
 pub mod mlp;
 pub mod normalizer;
+pub mod peak;
 #[cfg(test)]
 pub(crate) mod reference;
 pub mod simd;

@@ -1,7 +1,7 @@
 //! Model checkpoints: one safetensors file per models version.
 //!
 //! The network weights are safetensors tensors (`dynamics.{member}`, `energy` and, for a task
-//! whose reward is learned, `reward`; flat f32 in [`crate::nn::Mlp::params`] order);
+//! whose reward or termination is learned, `reward` or `termination`; flat f32 in [`crate::nn::Mlp::params`] order);
 //! everything small that a model also needs to predict — normaliser statistics, learned
 //! log-variance bounds, the models version, the episodes the models were trained on, the
 //! regulariser, whether the reward model is trained — is a JSON header stored in the safetensors
@@ -18,6 +18,7 @@ use crate::energy::{EnergyParts, Regularizer, RegularizerKind};
 use crate::models::Models;
 use crate::nn::Normalizer;
 use crate::reward::{RewardModel, RewardParts};
+use crate::termination::{TerminationModel, TerminationParts};
 use proto::Task;
 use safetensors::tensor::{Dtype, TensorView};
 use safetensors::{SafeTensors, serialize};
@@ -35,7 +36,9 @@ pub const CHECKSUM_KEY: &str = "ebmpc.crc32";
 /// the run retrains from its replay log. Version 3 added the reward model (`reward` in the
 /// header, the `reward` tensor); a version 2 file is read as models without one, which is
 /// what it holds: no build that wrote version 2 could run a task whose reward is learned.
-pub const FORMAT_VERSION: u32 = 3;
+/// Version 4 added the termination model (`termination` in the header, the `termination`
+/// tensor); older files are read as models without one, for the same reason.
+pub const FORMAT_VERSION: u32 = 4;
 
 /// The oldest layout this build reads (see [`FORMAT_VERSION`]).
 pub const OLDEST_FORMAT_READ: u32 = 2;
@@ -95,6 +98,17 @@ struct Header {
     /// is not learned).
     #[serde(default)]
     reward: Option<RewardStats>,
+    /// The termination model's statistics (absent before version 4 and for a task whose
+    /// termination is not learned).
+    #[serde(default)]
+    termination: Option<TerminationStats>,
+}
+
+/// The termination model's statistics and whether it has seen an end.
+#[derive(Debug, Serialize, Deserialize)]
+struct TerminationStats {
+    input_norm: Normalizer,
+    knows_ends: bool,
 }
 
 /// The reward model's statistics and whether it is trained.
@@ -120,12 +134,14 @@ fn dynamics_tensor(member: usize) -> String {
 
 const ENERGY_TENSOR: &str = "energy";
 const REWARD_TENSOR: &str = "reward";
+const TERMINATION_TENSOR: &str = "termination";
 
 /// Encodes `models` of `task` as safetensors bytes.
 pub fn encode(models: &Models, task: &Task) -> Result<Vec<u8>, CheckpointError> {
     let members = models.dynamics.parts();
     let energy = models.regularizer.parts();
     let reward = models.reward.as_ref().map(RewardModel::parts);
+    let termination = models.termination.as_ref().map(TerminationModel::parts);
     let header = Header {
         format: FORMAT_VERSION,
         task: task.name().to_string(),
@@ -147,6 +163,10 @@ pub fn encode(models: &Models, task: &Task) -> Result<Vec<u8>, CheckpointError> 
             target_norm: r.target_norm.clone(),
             trained: r.trained,
         }),
+        termination: termination.as_ref().map(|t| TerminationStats {
+            input_norm: t.input_norm.clone(),
+            knows_ends: t.knows_ends,
+        }),
     };
     let mut weights: Vec<(String, Vec<u8>, usize)> = members
         .iter()
@@ -165,6 +185,13 @@ pub fn encode(models: &Models, task: &Task) -> Result<Vec<u8>, CheckpointError> 
             REWARD_TENSOR.to_string(),
             le_bytes(&r.params),
             r.params.len(),
+        ));
+    }
+    if let Some(t) = &termination {
+        weights.push((
+            TERMINATION_TENSOR.to_string(),
+            le_bytes(&t.params),
+            t.params.len(),
         ));
     }
     let views = weights
@@ -324,12 +351,35 @@ pub fn decode(
             });
         }
     };
+    let termination = match (header.termination, task.termination_is_learned()) {
+        (None, false) => None,
+        (Some(stats), true) => Some(TerminationModel::from_parts(
+            task,
+            &preset.dynamics,
+            TerminationParts {
+                params: read_f32(&tensors, TERMINATION_TENSOR)?,
+                input_norm: stats.input_norm,
+                knows_ends: stats.knows_ends,
+            },
+        )?),
+        (stored, learned) => {
+            return Err(CheckpointError::Tensor {
+                name: TERMINATION_TENSOR.to_string(),
+                problem: format!(
+                    "{} a termination model, the run's task {} a learned termination",
+                    if stored.is_some() { "holds" } else { "lacks" },
+                    if learned { "has" } else { "does not have" },
+                ),
+            });
+        }
+    };
     Ok(Models {
         version: header.models_version,
         episodes_covered: header.episodes_covered,
         dynamics,
         regularizer,
         reward,
+        termination,
     })
 }
 
@@ -386,12 +436,18 @@ mod tests {
         for i in 0..40 {
             let s = [i as f32 * 0.1, 0.2, -0.1, 0.05 * i as f32];
             data.push(&s, &[0.5], 0.1 * i as f32, &[s[0] + 0.01, 0.2, -0.1, s[3]]);
+            if i % 10 == 9 {
+                data.mark_terminated(data.len() - 1);
+            }
         }
         let mut rng = StdRng::seed_from_u64(1);
         models.dynamics.fit(&data, 2, &mut rng);
         models.regularizer.fit(&data, 2, &mut rng);
         if let Some(reward) = &mut models.reward {
             reward.fit(&data, 2, &mut rng);
+        }
+        if let Some(termination) = &mut models.termination {
+            termination.fit(&data, 2, &mut rng);
         }
         models.version = 4;
         models.episodes_covered = 7;
@@ -425,6 +481,30 @@ mod tests {
         };
         let err = decode(&back, Builtin::Cartpole.task(), &plain_preset).unwrap_err();
         assert!(err.to_string().contains("holds a reward model"), "{err}");
+    }
+
+    #[test]
+    fn a_learned_termination_model_round_trips_and_must_match_the_task() {
+        let mut spec = Builtin::Cartpole.spec();
+        spec.name = "learned-end-cartpole".into();
+        spec.termination = proto::task::TerminationKind::Learned;
+        let task = Task::intern(spec, &proto::task::SpecBounds::default()).unwrap();
+        let (preset, models) = trained_for(task, "cem+deen");
+        let saved = models.termination.clone().unwrap();
+        assert!(saved.knows_ends());
+        let bytes = encode(&models, task).unwrap();
+        let restored = decode(&bytes, task, &preset).unwrap();
+        assert_eq!(restored.termination.unwrap().parts(), saved.parts());
+        // Models without a termination model do not serve a learned termination.
+        let (_, plain) = trained("cem+deen");
+        let renamed = rewrite_header(&encode(&plain, Builtin::Cartpole.task()).unwrap(), |h| {
+            h["task"] = task.name().into()
+        });
+        let err = decode(&renamed, task, &preset).unwrap_err();
+        assert!(
+            err.to_string().contains("lacks a termination model"),
+            "{err}"
+        );
     }
 
     /// The checkpoint `bytes` with its JSON header edited by `edit`, checksummed again.

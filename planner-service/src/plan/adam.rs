@@ -17,8 +17,8 @@
 //! which unlike the catalog's rewards also depends on `s_t`); the regulariser's is
 //! [`Regularizer::energy_and_gradient`]: for the DAE, the penalty `‖g(x) − x‖²` with the
 //! gradient stopped at the autoencoder, as the paper describes Boney et al.'s method (§3).
-//! Termination (the ant falling) stops a row accruing, as in imagination; its gradient does
-//! not pass through the termination test.
+//! Termination (the ant falling; a learned termination's prediction) stops a row accruing, as
+//! in imagination; its gradient does not pass through the termination test.
 //!
 //! **Back-propagation through the horizon.** The forward pass keeps every step's network
 //! activations (one [`MeanTape`] per step and member) and the gradients of each step's own
@@ -44,47 +44,19 @@
 //! and on the first call with a model (again only for a model of another shape);
 //! [`AdamPlanner::optimize`] allocates nothing.
 
+use super::Learned;
 use super::anytime::IterationClock;
-use super::cem::{CemConfig, CemOutcome, ConfigError, SequenceBox};
+use super::sequence::{CemOutcome, SequenceBox};
+use super::settings::{CemConfig, ConfigError};
 use crate::dynamics::{Ensemble, MeanTape};
 use crate::energy::{EnergyGradScratch, Regularizer};
-use crate::reward::{RewardModel, RewardTape};
+use crate::reward::RewardTape;
+use crate::termination::TerminationScratch;
 use proto::Task;
 use proto::task::FormulaScratch;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
-use serde::{Deserialize, Serialize};
-
-/// Adam planning's own parameter (the rest are [`CemConfig`]'s: `horizon`, `population` =
-/// candidates optimised together, `iterations` = Adam steps, `particles`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AdamConfig {
-    /// Step size as a fraction of each action's half-range `(ub − lb)/2`.
-    pub learning_rate: f32,
-}
-
-impl Default for AdamConfig {
-    fn default() -> Self {
-        Self { learning_rate: 0.1 }
-    }
-}
-
-/// Largest accepted [`AdamConfig::learning_rate`]: a step of one half-range already crosses
-/// the whole box in two steps.
-pub const MAX_LEARNING_RATE: f32 = 1.0;
-
-impl AdamConfig {
-    /// Checks the learning rate: finite, positive, at most [`MAX_LEARNING_RATE`].
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        let lr = self.learning_rate;
-        if lr.is_finite() && lr > 0.0 && lr <= MAX_LEARNING_RATE {
-            Ok(())
-        } else {
-            Err(ConfigError::Adam("learning_rate", lr))
-        }
-    }
-}
 
 const BETA1: f32 = 0.9;
 const BETA2: f32 = 0.999;
@@ -155,6 +127,8 @@ struct Rollout {
     r_next: Vec<f32>,
     /// The reward model's training pass, for a learned reward.
     reward_tape: Option<RewardTape>,
+    /// The termination model's working memory, for a learned termination.
+    termination_scratch: Option<TerminationScratch>,
     /// Per row: whether the step's next state ends the episode.
     terminal: Vec<bool>,
     /// The task's formulas' working memory.
@@ -250,11 +224,11 @@ impl AdamPlanner {
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
-        reward: Option<&RewardModel>,
+        learned: Learned<'_>,
         clock: &mut IterationClock,
     ) -> CemOutcome {
         assert_eq!(obs.len(), self.task.obs_dim, "observation dimension");
-        self.prepare(dynamics, regularizer, reward);
+        self.prepare(dynamics, regularizer, learned);
         let dim = self.warm.len();
         for (i, candidate) in self.params.chunks_exact_mut(dim).enumerate() {
             candidate.copy_from_slice(&self.warm);
@@ -282,7 +256,7 @@ impl AdamPlanner {
                 cut = true;
                 break;
             }
-            self.forward(obs, dynamics, regularizer, reward);
+            self.forward(obs, dynamics, regularizer, learned);
             self.keep_best();
             if scores_only {
                 break;
@@ -336,13 +310,12 @@ impl AdamPlanner {
     }
 
     /// Makes sure the rollout memory fits these models.
-    fn prepare(
-        &mut self,
-        dynamics: &Ensemble,
-        regularizer: &Regularizer,
-        reward: Option<&RewardModel>,
-    ) {
-        super::imagine::assert_learned_reward_matches(self.task, reward);
+    fn prepare(&mut self, dynamics: &Ensemble, regularizer: &Regularizer, learned: Learned<'_>) {
+        learned.assert_matches(self.task);
+        let Learned {
+            reward,
+            termination,
+        } = learned;
         let c = self.config.population;
         let members = dynamics.members().min(self.config.particles);
         let fits = self.rollout.as_ref().is_some_and(|r| {
@@ -351,6 +324,11 @@ impl AdamPlanner {
                 && match (reward, &r.reward_tape) {
                     (None, _) => true,
                     (Some(m), Some(tape)) => tape.fits(m, members * c),
+                    (Some(_), None) => false,
+                }
+                && match (termination, &r.termination_scratch) {
+                    (None, _) => true,
+                    (Some(m), Some(scratch)) => scratch.fits(m, members * c),
                     (Some(_), None) => false,
                 }
                 && r.tapes[0]
@@ -363,7 +341,7 @@ impl AdamPlanner {
                 self.task,
                 &self.config,
                 members,
-                (dynamics, regularizer, reward),
+                (dynamics, regularizer, learned),
             ));
         }
     }
@@ -375,7 +353,7 @@ impl AdamPlanner {
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
-        learned: Option<&RewardModel>,
+        learned: Learned<'_>,
     ) {
         let (o, a, h) = (self.task.obs_dim, self.task.act_dim, self.config.horizon);
         let c = self.config.population;
@@ -416,7 +394,7 @@ impl AdamPlanner {
                 &mut r.g_act[t],
                 &mut r.g_next[t],
             );
-            if let Some(model) = learned {
+            if let Some(model) = learned.reward {
                 model.predict_with_gradient(
                     state,
                     &r.act,
@@ -431,7 +409,7 @@ impl AdamPlanner {
                     &mut r.r_next,
                 );
             }
-            if learned.is_none() {
+            if learned.reward.is_none() {
                 // The whole population's rewards and gradients at once: a formula through the
                 // block evaluator (its `∂r/∂s` included), builtin code row by row.
                 self.task.reward_gradients(
@@ -445,8 +423,14 @@ impl AdamPlanner {
                     &mut r.r_next,
                 );
             }
-            self.task
-                .terminations(next, &mut r.formulas, &mut r.terminal);
+            super::imagine::ended(
+                self.task,
+                learned.termination,
+                next,
+                rows,
+                (&mut r.formulas, r.termination_scratch.as_mut()),
+                &mut r.terminal,
+            );
             let alpha = self.energy_weight;
             for row in 0..rows {
                 let (go, ga, gn) = (
@@ -549,7 +533,7 @@ impl Rollout {
         task: &'static Task,
         config: &CemConfig,
         members: usize,
-        (dynamics, regularizer, reward): (&Ensemble, &Regularizer, Option<&RewardModel>),
+        (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Learned<'_>),
     ) -> Self {
         let (o, a, h, c) = (
             task.obs_dim,
@@ -593,7 +577,8 @@ impl Rollout {
             r_obs: vec![0.0; rows * o],
             r_act: vec![0.0; rows * a],
             r_next: vec![0.0; rows * o],
-            reward_tape: reward.map(|m| m.tape(rows)),
+            reward_tape: learned.reward.map(|m| m.tape(rows)),
+            termination_scratch: learned.termination.map(|m| m.scratch(rows)),
             terminal: vec![false; rows],
             formulas: task.formula_scratch(),
         }
@@ -606,6 +591,7 @@ mod tests {
     use crate::data::Transitions;
     use crate::dynamics::DynamicsConfig;
     use crate::energy::{EnergyConfig, RegularizerKind};
+    use crate::plan::settings::{AdamConfig, MAX_LEARNING_RATE};
     use crate::plan::{IcemConfig, Optimizer};
     use proto::Builtin;
 
@@ -703,8 +689,12 @@ mod tests {
                     hidden_layers: 2,
                     hidden_size: 16,
                 };
-                let mut model =
-                    RewardModel::new(spec, &sizes, &DynamicsConfig::default(), &mut rng);
+                let mut model = crate::reward::RewardModel::new(
+                    spec,
+                    &sizes,
+                    &DynamicsConfig::default(),
+                    &mut rng,
+                );
                 model.fit(&data, 3, &mut rng);
                 model
             });
@@ -719,14 +709,14 @@ mod tests {
                 0.0
             };
             let mut planner = AdamPlanner::new(spec, config(4, 3, 1, 3), alpha, 5).unwrap();
-            planner.prepare(&dynamics, &reg, reward);
+            planner.prepare(&dynamics, &reg, crate::plan::Learned::reward(reward));
             let dim = planner.warm.len();
             for (k, p) in planner.params.iter_mut().enumerate() {
                 let c = k % dim;
                 *p = 0.5 * planner.upper[c] * (0.7 * (k as f32 * 1.3).sin());
             }
             let obs: Vec<f32> = (0..spec.obs_dim).map(|i| 0.2 * (i as f32).cos()).collect();
-            planner.forward(&obs, &dynamics, &reg, reward);
+            planner.forward(&obs, &dynamics, &reg, crate::plan::Learned::reward(reward));
             planner.backward(&dynamics);
             let grad = planner.grad.clone();
             let base = planner.params.clone();
@@ -735,7 +725,7 @@ mod tests {
                 let mut at = |x: f32| {
                     planner.params.copy_from_slice(&base);
                     planner.params[k] = x;
-                    planner.forward(&obs, &dynamics, &reg, reward);
+                    planner.forward(&obs, &dynamics, &reg, crate::plan::Learned::reward(reward));
                     planner.returns[k / dim] as f64
                 };
                 let fd = ((at(base[k] + h) - at(base[k] - h)) / (2.0 * h as f64)) as f32;
@@ -784,7 +774,13 @@ mod tests {
         dynamics.fit(&data, 30, &mut rng);
         let mut planner = AdamPlanner::new(spec, config(5, 4, 60, 1), 0.0, 1).unwrap();
         let mut clock = IterationClock::default();
-        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None, None, &mut clock);
+        let outcome = planner.optimize(
+            &[0.0; 18],
+            &dynamics,
+            &Regularizer::None,
+            crate::plan::Learned::NONE,
+            &mut clock,
+        );
         assert_eq!(outcome.iterations, 60);
         assert!(!outcome.cut);
         for (t, step) in planner.best().chunks_exact(6).enumerate() {
@@ -810,7 +806,13 @@ mod tests {
         clock.start(Some(
             std::time::Instant::now() - std::time::Duration::from_millis(1),
         ));
-        let outcome = planner.optimize(&[0.0; 18], &dynamics, &Regularizer::None, None, &mut clock);
+        let outcome = planner.optimize(
+            &[0.0; 18],
+            &dynamics,
+            &Regularizer::None,
+            crate::plan::Learned::NONE,
+            &mut clock,
+        );
         assert_eq!((outcome.iterations, outcome.cut), (0, true));
         assert_eq!(planner.best(), &warm[..]);
         planner.reset();

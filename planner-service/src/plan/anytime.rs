@@ -23,6 +23,14 @@ pub trait Preempt: Send + Sync + std::fmt::Debug {
     /// pool's threads free for the plan it makes way for).
     fn step_back(&self);
 
+    /// Whether a more urgent plan waits for the cores now, so that [`Preempt::step_back`]
+    /// would pause. Looked at after every imagined step by each population chunk, so it must
+    /// not block; the chunks meet to step back only when it says so. The default, `true`,
+    /// meets after every step.
+    fn outranked(&self) -> bool {
+        true
+    }
+
     /// Everything this solve has spent stepped back so far, so that iteration timings can
     /// leave it out.
     fn paused(&self) -> Duration;

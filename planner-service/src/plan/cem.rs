@@ -17,177 +17,12 @@
 //!
 //! All buffers are allocated in [`Cem::new`]; [`Cem::optimize`] allocates nothing.
 
-use super::adam::AdamConfig;
 use super::anytime::IterationClock;
-use super::icem::IcemConfig;
-pub use proto::Optimizer;
+use super::sequence::{CemOutcome, PopulationObjective, SequenceBox};
+use super::settings::{CemConfig, ConfigError};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
-use serde::{Deserialize, Serialize};
-
-/// Scores a whole population of action sequences at once (higher is better).
-///
-/// Batching is the point: the objective behind the planner pushes all candidates through the
-/// networks together, step by step, instead of one sequence at a time.
-pub trait PopulationObjective {
-    /// `actions` holds `returns.len()` candidates, each `horizon × act_dim` numbers, row-major.
-    /// Write one score per candidate into `returns`. Non-finite scores are allowed: the
-    /// optimiser ranks them below every finite one.
-    fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]);
-}
-
-/// The CEM hyperparameters (PETS names in brackets).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct CemConfig {
-    /// Planning horizon in steps (`plan_hor`).
-    pub horizon: usize,
-    /// Candidates per iteration (`popsize`).
-    pub population: usize,
-    /// Candidates the distribution is refitted to (`num_elites`).
-    pub elites: usize,
-    /// Maximum iterations per solve (`max_iters`).
-    pub iterations: usize,
-    /// Weight of the previous distribution in the refit (`alpha`, 0.1).
-    pub smoothing: f32,
-    /// Stop once every coordinate's variance is below this (`epsilon`, 0.001).
-    pub min_variance: f32,
-    /// Imagined rollouts per candidate, averaged (`npart`); particle `p` uses ensemble member
-    /// `p mod B`.
-    pub particles: usize,
-    /// The optimiser over these settings: this module's CEM (the paper's) or
-    /// [`iCEM`](super::icem), which adds `icem`'s parameters.
-    #[serde(default)]
-    pub optimizer: Optimizer,
-    /// iCEM's own parameters (unused by CEM).
-    #[serde(default)]
-    pub icem: IcemConfig,
-    /// Adam planning's own parameters (unused by CEM and iCEM).
-    #[serde(default)]
-    pub adam: AdamConfig,
-}
-
-impl CemConfig {
-    /// Checks the values against each other; the planner refuses an invalid configuration.
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        for (name, value) in [
-            ("horizon", self.horizon),
-            ("population", self.population),
-            ("elites", self.elites),
-            ("iterations", self.iterations),
-            ("particles", self.particles),
-        ] {
-            if value == 0 {
-                return Err(ConfigError::Zero(name));
-            }
-        }
-        if self.elites > self.population {
-            return Err(ConfigError::TooManyElites {
-                elites: self.elites,
-                population: self.population,
-            });
-        }
-        if !(0.0..1.0).contains(&self.smoothing) {
-            return Err(ConfigError::Smoothing(self.smoothing));
-        }
-        if !(self.min_variance.is_finite() && self.min_variance >= 0.0) {
-            return Err(ConfigError::MinVariance(self.min_variance));
-        }
-        Ok(())
-    }
-}
-
-impl CemConfig {
-    /// Candidate sequences a solve of `iterations` iterations scores: the population each
-    /// time for CEM (and Adam's sequences, one forward rollout each), iCEM's decaying
-    /// population ([`super::icem::population_at`]) summed.
-    pub fn candidates_scored(&self, iterations: usize) -> usize {
-        match self.optimizer {
-            Optimizer::Cem | Optimizer::Adam => iterations * self.population,
-            Optimizer::Icem => (0..iterations)
-                .map(|i| super::icem::population_at(self, i))
-                .sum(),
-        }
-    }
-}
-
-/// Why a planner configuration was refused.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum ConfigError {
-    #[error("CEM `{0}` must be at least 1")]
-    Zero(&'static str),
-    #[error("CEM elites ({elites}) exceed the population ({population})")]
-    TooManyElites { elites: usize, population: usize },
-    #[error("CEM smoothing must lie in [0, 1), got {0}")]
-    Smoothing(f32),
-    #[error("CEM min_variance must be finite and non-negative, got {0}")]
-    MinVariance(f32),
-    #[error("action bounds must be finite with low < high in every dimension")]
-    Bounds,
-    #[error("energy weight must be finite and non-negative, got {0}")]
-    EnergyWeight(f32),
-    #[error("iCEM `{0}` is out of its range, got {1}")]
-    Icem(&'static str, f32),
-    #[error("Adam planning `{0}` is out of its range, got {1}")]
-    Adam(&'static str, f32),
-}
-
-/// What one solve did.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct CemOutcome {
-    /// Iterations run: at least 1 unless a deadline left no time for one (then the
-    /// distribution is the warm start, untouched).
-    pub iterations: u32,
-    /// Iterations were left out because the next one would have crossed the deadline.
-    pub cut: bool,
-    /// Mean score of the last iteration's elites; `-inf` if every one of them was non-finite.
-    pub elite_return: f32,
-}
-
-/// The box an action sequence lives in: the per-step bounds, checked once and tiled over the
-/// horizon. CEM and iCEM both start from it.
-pub(super) struct SequenceBox {
-    pub act_dim: usize,
-    /// Bounds per coordinate (`horizon × act_dim`).
-    pub lower: Vec<f32>,
-    pub upper: Vec<f32>,
-}
-
-impl SequenceBox {
-    /// Tiles `lower`/`upper` (one entry per action dimension) over `horizon` steps, or refuses
-    /// bounds that are empty, of different lengths, not finite or not increasing.
-    pub fn new(lower: &[f32], upper: &[f32], horizon: usize) -> Result<Self, ConfigError> {
-        let bounds_ok = lower.len() == upper.len()
-            && !lower.is_empty()
-            && lower
-                .iter()
-                .zip(upper)
-                .all(|(l, u)| l.is_finite() && u.is_finite() && l < u);
-        if !bounds_ok {
-            return Err(ConfigError::Bounds);
-        }
-        let dim = horizon * lower.len();
-        Ok(Self {
-            act_dim: lower.len(),
-            lower: lower.iter().copied().cycle().take(dim).collect(),
-            upper: upper.iter().copied().cycle().take(dim).collect(),
-        })
-    }
-
-    /// `f(lower, upper)` for every coordinate: an optimiser's initial mean or spread.
-    pub fn per_coordinate(lower: &[f32], upper: &[f32], f: impl Fn(f32, f32) -> f32) -> Vec<f32> {
-        lower.iter().zip(upper).map(|(&l, &u)| f(l, u)).collect()
-    }
-
-    /// The warm start of the next time step, in place: `plan` (`horizon × act_dim`) drops its
-    /// first action, moves the rest one step forward and ends with `initial`'s last action.
-    /// The one MPC shift that CEM, iCEM and Adam share.
-    pub fn shift_plan(plan: &mut [f32], act_dim: usize, initial: &[f32]) {
-        let dim = plan.len();
-        plan.copy_within(act_dim.., 0);
-        plan[dim - act_dim..].copy_from_slice(&initial[dim - act_dim..]);
-    }
-}
 
 /// A CEM optimiser for sequences of `horizon` actions within fixed bounds.
 #[derive(Debug)]
@@ -414,6 +249,7 @@ fn truncated_standard_normal(rng: &mut StdRng) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::plan::{IcemConfig, Optimizer};
 
     fn config(horizon: usize) -> CemConfig {
         CemConfig {

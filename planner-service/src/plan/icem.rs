@@ -25,57 +25,11 @@
 //! All buffers are allocated in [`Icem::new`]; [`Icem::optimize`] allocates nothing.
 
 use super::anytime::IterationClock;
-use super::cem::{CemConfig, CemOutcome, ConfigError, PopulationObjective, SequenceBox};
+use super::sequence::{CemOutcome, PopulationObjective, SequenceBox};
+use super::settings::{CemConfig, ConfigError, IcemConfig};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
-use serde::{Deserialize, Serialize};
-
-/// iCEM's own parameters (the paper's names in brackets; defaults: its general values, which
-/// a task's preset may replace: see `config::preset`'s `icem_for`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct IcemConfig {
-    /// Exponent `β` of the colored noise's `1/f^β` spectrum (`noise_beta`, 0 = white).
-    pub noise_beta: f32,
-    /// Fraction of the elites kept for the next iteration and the next step
-    /// (`fraction_elites_reused`).
-    pub keep_elites: f32,
-    /// Population decay `γ ≥ 1` per iteration (`factor_decrease_num`).
-    pub population_decay: f32,
-}
-
-impl Default for IcemConfig {
-    fn default() -> Self {
-        Self {
-            noise_beta: 2.0,
-            keep_elites: 0.3,
-            population_decay: 1.25,
-        }
-    }
-}
-
-/// Limits of the iCEM parameters: beyond them the method stops making sense (a `β` above 4 is
-/// a straight line; a decay above 8 leaves the floor of `2K` candidates from iteration 1).
-pub const NOISE_BETA_RANGE: (f32, f32) = (0.0, 4.0);
-pub const POPULATION_DECAY_RANGE: (f32, f32) = (1.0, 8.0);
-
-impl IcemConfig {
-    /// Checks each parameter against its limits.
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        let within = |v: f32, (lo, hi): (f32, f32)| v.is_finite() && (lo..=hi).contains(&v);
-        if !within(self.noise_beta, NOISE_BETA_RANGE) {
-            return Err(ConfigError::Icem("noise_beta", self.noise_beta));
-        }
-        if !within(self.keep_elites, (0.0, 1.0)) {
-            return Err(ConfigError::Icem("keep_elites", self.keep_elites));
-        }
-        if !within(self.population_decay, POPULATION_DECAY_RANGE) {
-            return Err(ConfigError::Icem("population_decay", self.population_decay));
-        }
-        Ok(())
-    }
-}
 
 /// Sampler of stationary Gaussian sequences of length `len` with unit variance and power
 /// spectrum `∝ f^(−β)`, exact in distribution: a sequence is the inverse real DFT of
@@ -251,9 +205,9 @@ impl Icem {
         &self.order[..self.config.elites.min(self.last_population)]
     }
 
-    /// Candidates the `iteration`-th iteration draws (see [`population_at`]).
+    /// Candidates the `iteration`-th iteration draws (see [`CemConfig::icem_population_at`]).
     pub fn population_at(&self, iteration: usize) -> usize {
-        population_at(&self.config, iteration)
+        self.config.icem_population_at(iteration)
     }
 
     /// Runs one solve from the warm-start mean; the plan is [`Icem::best`].
@@ -380,15 +334,6 @@ impl Icem {
     }
 }
 
-/// Candidates iCEM's `iteration`-th iteration draws: `max(N·γ^(−i), 2K)`, at most `N`.
-pub fn population_at(config: &CemConfig, iteration: usize) -> usize {
-    let n = config.population as f64;
-    let decayed = n * f64::from(config.icem.population_decay).powi(-(iteration as i32));
-    (decayed.round() as usize)
-        .max(2 * config.elites)
-        .min(config.population)
-}
-
 /// Elites kept across iterations and steps: `round(fraction · K)`.
 fn keep_count(icem: &IcemConfig, elites: usize) -> usize {
     ((icem.keep_elites * elites as f32).round() as usize).min(elites)
@@ -398,7 +343,7 @@ fn keep_count(icem: &IcemConfig, elites: usize) -> usize {
 mod tests {
     use super::*;
     use crate::config::Preset;
-    use crate::plan::cem::{Cem, Optimizer};
+    use crate::plan::{Cem, Optimizer};
     use proto::Builtin;
 
     fn config(horizon: usize, population: usize, iterations: usize) -> CemConfig {

@@ -14,8 +14,10 @@
 //!   state from the member's predicted Gaussian. The candidate's return is the particles' mean.
 //!   `P = 1`, `B = 1` without sampling is the paper's single-model setting.
 //! - **Termination.** Once a particle reaches a terminal state (`Task::is_terminal`, e.g. the
-//!   ant falling; for the whole chunk per step by `Task::terminations`) it stops accruing reward
-//!   and energy; the transition into the terminal state still counts.
+//!   ant falling; for the whole chunk per step by `Task::terminations`, or for a task whose
+//!   termination is learned by the run's termination model, one batched forward pass per step,
+//!   [`TerminationModel::predict`]) it stops accruing reward and energy; the transition into
+//!   the terminal state still counts.
 //! - **Non-finite returns** (a diverging model) are reported as `-inf`, so they never win.
 //! - **Batching.** The whole population advances one horizon step at a time, so every network
 //!   call is a large matrix product. The population is split into one chunk per rayon thread;
@@ -28,9 +30,11 @@
 
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
+use crate::plan::Learned;
 use crate::plan::anytime::Preempt;
-use crate::plan::cem::CemConfig;
-use crate::reward::{RewardModel, RewardScratch};
+use crate::plan::settings::CemConfig;
+use crate::reward::RewardScratch;
+use crate::termination::{TerminationModel, TerminationScratch};
 use proto::Task;
 use proto::task::FormulaScratch;
 use rand::rngs::StdRng;
@@ -83,6 +87,8 @@ struct Chunk {
     alive: Vec<bool>,
     /// Per candidate: the particles' mean return and mean energy per step.
     candidate_energy: Vec<f32>,
+    /// The first time step the chunk has not imagined yet in the evaluation in hand.
+    next_step: usize,
     /// The task's formulas' working memory (made with the chunk: it depends on the task only).
     formulas: FormulaScratch,
     scratch: Option<Scratch>,
@@ -95,6 +101,8 @@ struct Scratch {
     energy: EnergyScratch,
     /// For a learned reward only.
     reward: Option<RewardScratch>,
+    /// For a learned termination only.
+    termination: Option<TerminationScratch>,
 }
 
 impl Imagination {
@@ -139,13 +147,16 @@ impl Imagination {
     /// Scores every candidate of `actions` (`n × horizon × act_dim`) from `obs` into `returns`
     /// (`n`), for any `n` up to [`Imagination::population`] (iCEM's population shrinks from one
     /// iteration to the next; the chunks are filled in order, so a smaller population leaves
-    /// the last chunks short or idle). `reward` is the run's reward model, exactly when the
-    /// task's reward is learned.
+    /// the last chunks short or idle). `learned`: the run's reward and termination models,
+    /// each exactly when the task learns that part.
     ///
-    /// With `preempt` (a plan sharing the cores), the chunks meet after every imagined time
-    /// step, outside rayon's jobs, where a more urgent plan may take the cores (see
-    /// [`crate::sched`]); the chunks' random streams and arithmetic are the same either way, so
-    /// the returns are too.
+    /// With `preempt` (a plan sharing the cores), each chunk looks after every imagined time
+    /// step whether a more urgent plan waits ([`Preempt::outranked`], without blocking); only
+    /// then do the chunks meet, outside rayon's jobs, where that plan may take the cores (see
+    /// [`crate::sched`]). While nobody waits they run through the horizon and meet once, as a
+    /// plan alone does: a fork-join of every thread per imagined step costs more, the more
+    /// threads share a step's work. The chunks are independent, their random streams and
+    /// arithmetic the same either way, so the returns are too.
     #[allow(clippy::too_many_arguments)]
     pub fn evaluate(
         &mut self,
@@ -153,7 +164,7 @@ impl Imagination {
         actions: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
-        reward: Option<&RewardModel>,
+        learned: Learned<'_>,
         returns: &mut [f32],
         preempt: Option<&dyn Preempt>,
     ) {
@@ -162,7 +173,7 @@ impl Imagination {
         assert_eq!(obs.len(), ctx.task.obs_dim, "observation dimension");
         assert!(returns.len() <= self.population(), "population");
         assert_eq!(actions.len(), returns.len() * seq, "action sequences");
-        self.prepare(dynamics, regularizer, reward);
+        self.prepare(dynamics, regularizer, learned);
         // The full population keeps its fixed split; a smaller one is spread evenly, which fits
         // every chunk (⌈n/c⌉ ≤ chunk_len, the room of each).
         let n = returns.len();
@@ -173,32 +184,50 @@ impl Imagination {
         };
         self.split = chunk_len;
         let horizon = ctx.horizon;
-        let stride = if preempt.is_some() { 1 } else { horizon };
-        for start in (0..horizon).step_by(stride) {
-            if start > 0
-                && let Some(preempt) = preempt
-            {
-                preempt.step_back();
-            }
-            let steps = start..(start + stride).min(horizon);
-            self.chunks
+        // Chunks that hold candidates this time (a smaller population may leave some idle).
+        let active = n.div_ceil(chunk_len);
+        for chunk in &mut self.chunks[..active] {
+            chunk.next_step = 0;
+        }
+        loop {
+            self.chunks[..active]
                 .par_iter_mut()
                 .zip(returns.par_chunks_mut(chunk_len))
                 .zip(actions.par_chunks(chunk_len * seq))
                 .for_each(|((chunk, returns), actions)| {
-                    chunk.imagine(
-                        &ctx,
-                        obs,
-                        actions,
-                        returns.len(),
-                        (dynamics, regularizer, reward),
-                        None,
-                        steps.clone(),
-                    );
-                    if steps.end == horizon {
+                    let first = chunk.next_step;
+                    let mut t = first;
+                    while t < horizon {
+                        // Alone on the cores the chunk runs the whole horizon; shared, it
+                        // stops after the step at which a more urgent plan waits.
+                        let last = match preempt {
+                            None => horizon,
+                            Some(_) => t + 1,
+                        };
+                        chunk.imagine(
+                            &ctx,
+                            obs,
+                            actions,
+                            returns.len(),
+                            (dynamics, regularizer, learned),
+                            None,
+                            t..last,
+                        );
+                        t = last;
+                        if t < horizon && preempt.is_some_and(|p| p.outranked()) {
+                            break;
+                        }
+                    }
+                    chunk.next_step = t;
+                    if first < horizon && t == horizon {
                         chunk.write_returns(&ctx, returns);
                     }
                 });
+            let done = self.chunks[..active].iter().all(|c| c.next_step == horizon);
+            match preempt {
+                Some(preempt) if !done => preempt.step_back(),
+                _ => break,
+            }
         }
     }
 
@@ -218,7 +247,7 @@ impl Imagination {
         actions: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
-        reward: Option<&RewardModel>,
+        learned: Learned<'_>,
         rewards: &mut [f32],
         energies: &mut [f32],
     ) -> f32 {
@@ -234,14 +263,14 @@ impl Imagination {
             (ctx.horizon, ctx.horizon),
             "per-step outputs"
         );
-        self.prepare(dynamics, regularizer, reward);
+        self.prepare(dynamics, regularizer, learned);
         let chunk = &mut self.chunks[0];
         chunk.imagine(
             &ctx,
             obs,
             actions,
             1,
-            (dynamics, regularizer, reward),
+            (dynamics, regularizer, learned),
             Some((rewards, energies)),
             0..ctx.horizon,
         );
@@ -249,13 +278,12 @@ impl Imagination {
     }
 
     /// Makes sure every chunk has network scratch space that fits these models.
-    fn prepare(
-        &mut self,
-        dynamics: &Ensemble,
-        regularizer: &Regularizer,
-        reward: Option<&RewardModel>,
-    ) {
-        assert_learned_reward_matches(self.ctx.task, reward);
+    fn prepare(&mut self, dynamics: &Ensemble, regularizer: &Regularizer, learned: Learned<'_>) {
+        learned.assert_matches(self.ctx.task);
+        let Learned {
+            reward,
+            termination,
+        } = learned;
         let rows_per_chunk = |c: &Chunk| c.capacity * self.ctx.particles;
         for chunk in &mut self.chunks {
             let rows = rows_per_chunk(chunk);
@@ -267,28 +295,22 @@ impl Imagination {
                         (Some(m), Some(r)) => r.fits(m, rows),
                         (Some(_), None) => false,
                     }
+                    && match (termination, &s.termination) {
+                        (None, _) => true,
+                        (Some(m), Some(t)) => t.fits(m, rows),
+                        (Some(_), None) => false,
+                    }
             });
             if !fits {
                 chunk.scratch = Some(Scratch {
                     dynamics: dynamics.scratch(rows),
                     energy: regularizer.scratch(rows),
                     reward: reward.map(|m| m.scratch(rows)),
+                    termination: termination.map(|m| m.scratch(rows)),
                 });
             }
         }
     }
-}
-
-/// A planner scores with a reward model exactly when the task's reward is learned: a learned
-/// reward has no formula, and a task with one has no use for a model. The service builds the
-/// call from the run's models, so a mismatch is a bug, not an input.
-pub(super) fn assert_learned_reward_matches(task: &Task, reward: Option<&RewardModel>) {
-    assert_eq!(
-        reward.is_some(),
-        task.reward_is_learned(),
-        "task {}: a reward model is given exactly when the reward is learned",
-        task.name()
-    );
 }
 
 /// Decorrelated seeds for the chunks' noise generators (splitmix64 of seed and chunk index).
@@ -316,6 +338,7 @@ impl Chunk {
             energy_sum: vec![0.0; rows],
             alive: vec![true; rows],
             candidate_energy: vec![0.0; capacity],
+            next_step: 0,
             formulas: task.formula_scratch(),
             scratch: None,
             rng: StdRng::seed_from_u64(seed),
@@ -333,7 +356,7 @@ impl Chunk {
         obs: &[f32],
         actions: &[f32],
         n: usize,
-        (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Option<&RewardModel>),
+        (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Learned<'_>),
         mut record: Option<(&mut [f32], &mut [f32])>,
         steps: Range<usize>,
     ) {
@@ -394,7 +417,7 @@ impl Chunk {
             // pass, or the task's formula through the block evaluator (builtin code row by row).
             // Rows that ended earlier are scored too and then ignored: cheaper than gathering
             // the live ones.
-            if let Some(model) = learned {
+            if let Some(model) = learned.reward {
                 let scratch = scratch
                     .reward
                     .as_mut()
@@ -416,9 +439,12 @@ impl Chunk {
                     &mut self.reward[..rows],
                 );
             }
-            ctx.task.terminations(
+            ended(
+                ctx.task,
+                learned.termination,
                 &self.next[..rows * o],
-                &mut self.formulas,
+                rows,
+                (&mut self.formulas, scratch.termination.as_mut()),
                 &mut self.terminal[..rows],
             );
             for r in 0..rows {
@@ -464,6 +490,28 @@ impl Chunk {
         } else {
             f32::NEG_INFINITY
         }
+    }
+}
+
+/// Whether each of `rows` imagined next states ends its episode, into `out`: the task's rule
+/// ([`Task::terminations`]), or for a task whose termination is learned the run's model
+/// (`scratch` is the model's, prepared with it). Shared by every planner that imagines.
+pub(super) fn ended(
+    task: &Task,
+    model: Option<&TerminationModel>,
+    next: &[f32],
+    rows: usize,
+    (formulas, scratch): (&mut FormulaScratch, Option<&mut TerminationScratch>),
+    out: &mut [bool],
+) {
+    match model {
+        Some(model) => model.predict(
+            next,
+            rows,
+            scratch.expect("prepared for the termination model"),
+            out,
+        ),
+        None => task.terminations(next, formulas, out),
     }
 }
 
@@ -604,7 +652,7 @@ mod tests {
                     &actions,
                     &dynamics,
                     &regularizer,
-                    None,
+                    crate::plan::Learned::NONE,
                     &mut returns,
                     None,
                 );
@@ -622,7 +670,7 @@ mod tests {
                     &actions,
                     &dynamics,
                     &regularizer,
-                    None,
+                    crate::plan::Learned::NONE,
                     &mut again,
                     None,
                 );
@@ -676,7 +724,7 @@ mod tests {
             &actions,
             &dynamics,
             &Regularizer::None,
-            Some(&model),
+            crate::plan::Learned::reward(Some(&model)),
             &mut returns,
             None,
         );
@@ -712,7 +760,7 @@ mod tests {
             &actions,
             &dynamics,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             &mut returns,
             None,
         );
@@ -728,7 +776,15 @@ mod tests {
         let score = |alpha: f32, reg: &Regularizer| {
             let mut imagination = Imagination::new(task, &cem(5, 4, 1), alpha, false, 2, 0);
             let mut returns = vec![0.0; 4];
-            imagination.evaluate(&obs, &actions, &dynamics, reg, None, &mut returns, None);
+            imagination.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                reg,
+                crate::plan::Learned::NONE,
+                &mut returns,
+                None,
+            );
             let energies: Vec<f32> = (0..4).map(|i| imagination.candidate_energy(i)).collect();
             (returns, energies)
         };
@@ -792,7 +848,7 @@ mod tests {
             &actions,
             &dynamics,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             &mut returns,
             None,
         );
@@ -814,12 +870,88 @@ mod tests {
             &actions,
             &standing,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             &mut upright,
             None,
         );
         for (r, u) in returns.iter().zip(&upright) {
             assert!(u > r, "{u} should exceed {r}");
+        }
+    }
+
+    /// Ant with its termination learned instead of given: a termination model trained on
+    /// ant's own rule (torso height outside [0.2, 1]) ends the particles at the same fall,
+    /// so the returns are the builtin termination's; a model that has seen no end ends none.
+    #[test]
+    fn a_learned_termination_ends_particles_where_its_model_predicts_an_end() {
+        use crate::termination::TerminationModel;
+        use rand_distr::Distribution;
+        let mut spec = Builtin::Ant.spec();
+        spec.name = "imagine-ant-learned-end".into();
+        spec.termination = proto::task::TerminationKind::Learned;
+        let task = Task::intern(spec, &proto::task::SpecBounds::default()).unwrap();
+        let mut rng = StdRng::seed_from_u64(8);
+        let mut data = crate::data::Transitions::new(task.obs_dim, task.act_dim);
+        let noise = rand_distr::Normal::new(0.0f32, 0.1).unwrap();
+        for _ in 0..3000 {
+            let mut s1: Vec<f32> = (0..task.obs_dim).map(|_| noise.sample(&mut rng)).collect();
+            s1[0] = rng.random_range(0.0f32..1.3);
+            s1[13] = rng.random_range(0.0f32..5.0);
+            data.push(&s1, &vec![0.0; task.act_dim], 0.0, &s1);
+            if Builtin::Ant.task().is_terminal(&s1) {
+                data.mark_terminated(data.len() - 1);
+            }
+        }
+        let training = DynamicsConfig {
+            batch_size: 64,
+            learning_rate: 3e-3,
+            weight_decay: 0.0,
+            ..DynamicsConfig::default()
+        };
+        let mut model = TerminationModel::new(task, &training, &mut rng);
+        let untrained = model.clone();
+        model.fit(&data, 30, &mut rng);
+        let held = model.held_out().unwrap();
+        assert!(held.accuracy > 0.95 && held.recall > 0.9, "{held:?}");
+        let mut delta = vec![0.0; task.obs_dim];
+        delta[0] = -0.1; // falls on the fourth step, as in `terminal_states_stop_reward_accrual`
+        delta[13] = 0.5;
+        let mut obs = vec![0.0; task.obs_dim];
+        obs[0] = 0.55;
+        let (horizon, population) = (8, 6);
+        let actions = random_sequences(task, population, horizon, 5);
+        let score = |task: &'static Task, learned: crate::plan::Learned<'_>| {
+            let dynamics = constant_delta(task, &delta);
+            let mut imagination =
+                Imagination::new(task, &cem(horizon, population, 2), 0.0, false, 2, 0);
+            let mut returns = vec![0.0; population];
+            imagination.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                &Regularizer::None,
+                learned,
+                &mut returns,
+                None,
+            );
+            returns
+        };
+        let builtin = score(Builtin::Ant.task(), crate::plan::Learned::NONE);
+        let with_model = crate::plan::Learned {
+            reward: None,
+            termination: Some(&model),
+        };
+        let learned = score(task, with_model);
+        for (l, b) in learned.iter().zip(&builtin) {
+            assert_close(*l, *b, "return up to the learned fall");
+        }
+        // Knowing no end, the particles fall through the floor and keep earning.
+        let blind = crate::plan::Learned {
+            reward: None,
+            termination: Some(&untrained),
+        };
+        for (u, b) in score(task, blind).iter().zip(&builtin) {
+            assert!(u > b, "{u} should exceed {b}");
         }
     }
 
@@ -854,7 +986,7 @@ mod tests {
                 &actions,
                 &dynamics,
                 &Regularizer::None,
-                None,
+                crate::plan::Learned::NONE,
                 &mut returns,
                 None,
             );
@@ -890,7 +1022,7 @@ mod tests {
             &actions,
             &dynamics,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             &mut returns,
             None,
         );
@@ -916,13 +1048,21 @@ mod tests {
         let preempt = crate::plan::anytime::CountingPreempt::default();
         for round in 1..=2 {
             let (mut a, mut b) = (vec![0.0; population], vec![0.0; population]);
-            alone.evaluate(&obs, &actions, &dynamics, &energy, None, &mut a, None);
+            alone.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                &energy,
+                crate::plan::Learned::NONE,
+                &mut a,
+                None,
+            );
             shared.evaluate(
                 &obs,
                 &actions,
                 &dynamics,
                 &energy,
-                None,
+                crate::plan::Learned::NONE,
                 &mut b,
                 Some(&preempt),
             );
@@ -934,6 +1074,77 @@ mod tests {
                 round * (horizon - 1)
             );
         }
+    }
+
+    /// A shared plan whose rival waits exactly once: at the `at`-th look (counting from 1)
+    /// after an imagined step; counts the plan's step-backs.
+    #[derive(Debug, Default)]
+    struct RivalOnce {
+        at: usize,
+        looks: std::sync::atomic::AtomicUsize,
+        step_backs: std::sync::atomic::AtomicUsize,
+    }
+
+    impl Preempt for RivalOnce {
+        fn step_back(&self) {
+            self.step_backs
+                .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        }
+
+        fn paused(&self) -> std::time::Duration {
+            std::time::Duration::ZERO
+        }
+
+        fn outranked(&self) -> bool {
+            self.looks.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1 == self.at
+        }
+    }
+
+    #[test]
+    fn shared_chunks_meet_only_when_a_rival_waits_and_score_exactly_the_same() {
+        let task = Builtin::Cartpole.task();
+        let obs = [0.1, 2.0, 0.0, 0.3];
+        let (horizon, population) = (6, 9);
+        let actions = random_sequences(task, population, horizon, 3);
+        let dynamics = ensemble(Builtin::Cartpole, 2, 5);
+        let energy = deen(Builtin::Cartpole, 6);
+        let config = cem(horizon, population, 2);
+        let mut alone = Imagination::new(task, &config, 0.01, true, 3, 11);
+        let mut a = vec![0.0; population];
+        alone.evaluate(
+            &obs,
+            &actions,
+            &dynamics,
+            &energy,
+            Learned::NONE,
+            &mut a,
+            None,
+        );
+        // Nobody waits: every chunk looks after each of its steps but the last, nobody meets.
+        // A rival at the 4th look: one step-back, the stopped chunk then finishes its steps.
+        for at in [0, 4] {
+            let mut shared = Imagination::new(task, &config, 0.01, true, 3, 11);
+            let rival = RivalOnce {
+                at,
+                ..Default::default()
+            };
+            let mut b = vec![0.0; population];
+            shared.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                &energy,
+                Learned::NONE,
+                &mut b,
+                Some(&rival),
+            );
+            assert_eq!(a, b, "rival at look {at}");
+            let step_backs = rival.step_backs.load(std::sync::atomic::Ordering::SeqCst);
+            let looks = rival.looks.load(std::sync::atomic::Ordering::SeqCst);
+            assert_eq!(step_backs, usize::from(at > 0), "rival at look {at}");
+            assert_eq!(looks, 3 * (horizon - 1), "rival at look {at}");
+        }
+        assert!(a.iter().all(|r| r.is_finite()), "{a:?}");
     }
 
     #[test]
@@ -949,7 +1160,15 @@ mod tests {
         let mut imagination =
             Imagination::new(task, &cem(horizon, population, 1), 0.01, false, 3, 0);
         let mut full = vec![0.0; population];
-        imagination.evaluate(&obs, &actions, &dynamics, &energy, None, &mut full, None);
+        imagination.evaluate(
+            &obs,
+            &actions,
+            &dynamics,
+            &energy,
+            crate::plan::Learned::NONE,
+            &mut full,
+            None,
+        );
         let full_energy: Vec<f32> = (0..population)
             .map(|i| imagination.candidate_energy(i))
             .collect();
@@ -961,7 +1180,7 @@ mod tests {
                 &actions[..n * seq],
                 &dynamics,
                 &energy,
-                None,
+                crate::plan::Learned::NONE,
                 &mut part,
                 None,
             );
@@ -996,7 +1215,7 @@ mod tests {
                 &actions,
                 &dynamics,
                 &Regularizer::None,
-                None,
+                crate::plan::Learned::NONE,
                 &mut returns,
                 None,
             );
@@ -1024,7 +1243,7 @@ mod tests {
             &seq,
             &dynamics,
             &regularizer,
-            None,
+            crate::plan::Learned::NONE,
             &mut rewards,
             &mut energies,
         );

@@ -1,13 +1,13 @@
 //! The per-agent model-predictive controller: CEM over imagined returns, warm-started from
 //! the previous step's plan, applying only the first action (PETS' `MPC.act`).
 
+use super::Learned;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
 use crate::plan::anytime::{IterationClock, Preempt};
-use crate::plan::cem::{CemConfig, ConfigError};
 use crate::plan::imagine::Imagination;
 use crate::plan::search::{Imagined, Search};
-use crate::reward::RewardModel;
+use crate::plan::settings::{CemConfig, ConfigError};
 use proto::Task;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -132,17 +132,18 @@ impl MpcPlanner {
     /// (`predicted_return` is `-inf`, `mean_energy` 0). Without one, every configured
     /// iteration runs, exactly as the seed dictates.
     ///
-    /// `reward` is the run's reward model, given exactly when the task's reward is learned
-    /// (a planner of such a task has no other way to score a transition).
+    /// `learned` holds the run's reward and termination models, each given exactly when the
+    /// task learns that part (a planner of such a task has no other way to score a transition
+    /// or to see an episode end).
     pub fn plan(
         &mut self,
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
-        reward: Option<&RewardModel>,
+        learned: Learned<'_>,
         deadline: Option<Instant>,
     ) -> PlanOutcome<'_> {
-        self.plan_shared(obs, dynamics, regularizer, reward, deadline, None)
+        self.plan_shared(obs, dynamics, regularizer, learned, deadline, None)
     }
 
     /// How long a whole solve is expected to take on the cores alone, from this planner's
@@ -162,7 +163,7 @@ impl MpcPlanner {
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
-        reward: Option<&RewardModel>,
+        learned: Learned<'_>,
         deadline: Option<Instant>,
         preempt: Option<Arc<dyn Preempt>>,
     ) -> PlanOutcome<'_> {
@@ -171,7 +172,7 @@ impl MpcPlanner {
             obs,
             dynamics,
             regularizer,
-            reward,
+            learned,
             preempt: preempt.clone(),
         };
         self.clock.start_shared(deadline, preempt);
@@ -201,7 +202,7 @@ impl MpcPlanner {
         obs: &[f32],
         dynamics: &Ensemble,
         regularizer: &Regularizer,
-        reward: Option<&RewardModel>,
+        learned: Learned<'_>,
     ) -> ImaginedPlan {
         let warm_start = self.search.mean().to_vec();
         self.search.reset();
@@ -210,7 +211,7 @@ impl MpcPlanner {
             obs,
             dynamics,
             regularizer,
-            reward,
+            learned,
             preempt: None,
         };
         self.clock.start(None);
@@ -224,7 +225,7 @@ impl MpcPlanner {
             &actions,
             dynamics,
             regularizer,
-            reward,
+            learned,
             &mut rewards,
             &mut energies,
         );
@@ -306,7 +307,7 @@ mod tests {
             &[0.5, PI, 0.0, 0.0],
             &dynamics,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             None,
         );
         assert!(right.action[0] < -1.0, "{right:?}");
@@ -320,7 +321,7 @@ mod tests {
             &[-0.5, PI, 0.0, 0.0],
             &dynamics,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             None,
         );
         assert!(left.action[0] > 1.0, "{left:?}");
@@ -349,16 +350,16 @@ mod tests {
             |plan: &ImaginedPlan| plan.actions.iter().sum::<f32>() / plan.actions.len() as f32;
 
         let mut free = MpcPlanner::new(task, config(), 0.0, false, 3).unwrap();
-        let unregularised = free.imagine_plan(&obs, &dynamics, &deen, None);
+        let unregularised = free.imagine_plan(&obs, &dynamics, &deen, crate::plan::Learned::NONE);
         let mut careful = MpcPlanner::new(task, config(), 10.0, false, 3).unwrap();
-        let regularised = careful.imagine_plan(&obs, &dynamics, &deen, None);
+        let regularised = careful.imagine_plan(&obs, &dynamics, &deen, crate::plan::Learned::NONE);
         assert!(mean_push(&unregularised) < -0.4, "{unregularised:?}");
         assert!(mean_push(&regularised) > 0.1, "{regularised:?}");
         assert!(regularised.actions[0] > unregularised.actions[0] + 1.0);
         // The regularised plan is the more familiar one, step for step on average.
         let mean_energy = |plan: &ImaginedPlan| plan.energies.iter().sum::<f32>();
         assert!(mean_energy(&regularised) < mean_energy(&unregularised));
-        let outcome = careful.plan(&obs, &dynamics, &deen, None, None);
+        let outcome = careful.plan(&obs, &dynamics, &deen, crate::plan::Learned::NONE, None);
         assert!(
             outcome.mean_energy.is_finite() && outcome.mean_energy > 0.0,
             "{outcome:?}"
@@ -373,22 +374,46 @@ mod tests {
         let mut a = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
         let mut b = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
         let first = a
-            .plan(&obs, &dynamics, &Regularizer::None, None, None)
+            .plan(
+                &obs,
+                &dynamics,
+                &Regularizer::None,
+                crate::plan::Learned::NONE,
+                None,
+            )
             .action[0];
         assert_eq!(
             first,
-            b.plan(&obs, &dynamics, &Regularizer::None, None, None)
-                .action[0]
+            b.plan(
+                &obs,
+                &dynamics,
+                &Regularizer::None,
+                crate::plan::Learned::NONE,
+                None
+            )
+            .action[0]
         );
         // The warm start is the plan shifted by one step, with the neutral action appended.
         let plan = a.search.mean().to_vec();
         assert_eq!(plan[plan.len() - 1], 0.0);
         let second = a
-            .plan(&obs, &dynamics, &Regularizer::None, None, None)
+            .plan(
+                &obs,
+                &dynamics,
+                &Regularizer::None,
+                crate::plan::Learned::NONE,
+                None,
+            )
             .action[0];
         b.reset();
         let fresh = b
-            .plan(&obs, &dynamics, &Regularizer::None, None, None)
+            .plan(
+                &obs,
+                &dynamics,
+                &Regularizer::None,
+                crate::plan::Learned::NONE,
+                None,
+            )
             .action[0];
         assert_ne!(
             second, fresh,
@@ -405,12 +430,16 @@ mod tests {
             &[0.5, PI, 0.0, 0.0],
             &dynamics,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             None,
         );
         let warm = planner.search.mean().to_vec();
-        let imagined =
-            planner.imagine_plan(&[0.5, PI, 0.0, 0.0], &dynamics, &Regularizer::None, None);
+        let imagined = planner.imagine_plan(
+            &[0.5, PI, 0.0, 0.0],
+            &dynamics,
+            &Regularizer::None,
+            crate::plan::Learned::NONE,
+        );
         assert_eq!(planner.search.mean(), &warm[..]);
         assert_eq!((imagined.actions.len(), imagined.rewards.len()), (8, 8));
         let total: f32 = imagined.rewards.iter().sum();
@@ -443,7 +472,13 @@ mod tests {
         let mut obs = [0.5, PI, 0.0, 0.0];
         for _ in 0..3 {
             let planned = planner
-                .plan(&obs, &dynamics, &Regularizer::None, None, None)
+                .plan(
+                    &obs,
+                    &dynamics,
+                    &Regularizer::None,
+                    crate::plan::Learned::NONE,
+                    None,
+                )
                 .action
                 .to_vec();
             cem.optimize(
@@ -452,7 +487,7 @@ mod tests {
                     obs: &obs,
                     dynamics: &dynamics,
                     regularizer: &Regularizer::None,
-                    reward: None,
+                    learned: Learned::NONE,
                     preempt: None,
                 },
                 &mut IterationClock::default(),
@@ -476,7 +511,7 @@ mod tests {
             &[0.5, PI, 0.0, 0.0],
             &dynamics,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             None,
         );
         assert!(right.action[0] < -1.0, "{right:?}");
@@ -485,7 +520,7 @@ mod tests {
             &[-0.5, PI, 0.0, 0.0],
             &dynamics,
             &Regularizer::None,
-            None,
+            crate::plan::Learned::NONE,
             None,
         );
         assert!(left.action[0] > 1.0, "{left:?}");
@@ -498,13 +533,25 @@ mod tests {
         let task = Builtin::Cartpole.task();
         let obs = [0.5, PI, 0.0, 0.0];
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 4).unwrap();
-        let first = planner.plan(&obs, &dynamics, &Regularizer::None, None, None);
+        let first = planner.plan(
+            &obs,
+            &dynamics,
+            &Regularizer::None,
+            crate::plan::Learned::NONE,
+            None,
+        );
         assert!(first.iterations > 0 && !first.cut, "{first:?}");
         // The warm start is the plan shifted by one step: its first action is what a plan
         // that cannot run one iteration answers.
         let shifted = planner.search.mean()[0];
         let passed = Some(Instant::now() - Duration::from_millis(1));
-        let late = planner.plan(&obs, &dynamics, &Regularizer::None, None, passed);
+        let late = planner.plan(
+            &obs,
+            &dynamics,
+            &Regularizer::None,
+            crate::plan::Learned::NONE,
+            passed,
+        );
         assert_eq!((late.iterations, late.cut), (0, true));
         assert_eq!(late.action, &[shifted]);
         assert_eq!(late.mean_energy, 0.0);
@@ -522,7 +569,13 @@ mod tests {
             let mut obs = [0.5, PI, 0.0, 0.0];
             let mut taken = Vec::new();
             for _ in 0..4 {
-                let outcome = planner.plan(&obs, &dynamics, &Regularizer::None, None, deadline);
+                let outcome = planner.plan(
+                    &obs,
+                    &dynamics,
+                    &Regularizer::None,
+                    crate::plan::Learned::NONE,
+                    deadline,
+                );
                 assert!(outcome.iterations > 0 && !outcome.cut, "{outcome:?}");
                 taken.push(outcome.action[0]);
                 obs[0] += 0.1 * outcome.action[0];

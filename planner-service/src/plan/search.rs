@@ -1,15 +1,17 @@
 //! The planner's choice of optimiser ([`CemConfig::optimizer`]): one type that the MPC loop
 //! drives the same way whichever search runs underneath.
 
+use super::Learned;
 use super::adam::AdamPlanner;
 use super::anytime::IterationClock;
 use super::anytime::Preempt;
-use super::cem::{Cem, CemConfig, CemOutcome, ConfigError, Optimizer, PopulationObjective};
+use super::cem::Cem;
 use super::icem::Icem;
 use super::imagine::Imagination;
+use super::sequence::{CemOutcome, PopulationObjective};
+use super::settings::{CemConfig, ConfigError, Optimizer};
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use crate::reward::RewardModel;
 use proto::Task;
 use std::sync::Arc;
 
@@ -20,8 +22,8 @@ pub(super) struct Imagined<'a> {
     pub obs: &'a [f32],
     pub dynamics: &'a Ensemble,
     pub regularizer: &'a Regularizer,
-    /// The run's reward model, exactly when the task's reward is learned.
-    pub reward: Option<&'a RewardModel>,
+    /// The run's reward and termination models, each exactly when the task learns it.
+    pub learned: Learned<'a>,
     /// Who may pause the solve between imagined steps (a plan sharing the cores).
     pub preempt: Option<Arc<dyn Preempt>>,
 }
@@ -33,7 +35,7 @@ impl PopulationObjective for Imagined<'_> {
             actions,
             self.dynamics,
             self.regularizer,
-            self.reward,
+            self.learned,
             returns,
             self.preempt.as_deref(),
         );
@@ -109,7 +111,7 @@ impl Search {
                     problem.obs,
                     problem.dynamics,
                     problem.regularizer,
-                    problem.reward,
+                    problem.learned,
                     clock,
                 );
                 let energy = if outcome.iterations == 0 {

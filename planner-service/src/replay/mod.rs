@@ -300,13 +300,33 @@ impl ReplayBuffer {
                 episode_return,
                 end,
                 ..
-            } => self.episodes.push(EpisodeSummary {
-                agent: agent.clone(),
-                episode: *episode,
-                steps: *steps,
-                episode_return: *episode_return,
-                end: *end,
-            }),
+            } => {
+                if *end == EpisodeEnd::Terminated {
+                    self.mark_last_terminated(agent, *episode);
+                }
+                self.episodes.push(EpisodeSummary {
+                    agent: agent.clone(),
+                    episode: *episode,
+                    steps: *steps,
+                    episode_return: *episode_return,
+                    end: *end,
+                });
+            }
+        }
+    }
+
+    /// Marks the last stored transition of `agent`'s `episode` as the one it terminated with:
+    /// an agent's transitions are stored in step order, and its episode's end after them, so
+    /// the newest transition of that episode is its last. The search runs from the newest
+    /// transition back and stops at the first of the episode's (a few rows back: the other
+    /// agents' steps since). An episode with no transition in memory marks nothing.
+    fn mark_last_terminated(&mut self, agent: &str, episode: u32) {
+        let Some(index) = self.agents.iter().position(|a| a == agent) else {
+            return;
+        };
+        let owner = (index as u32, episode);
+        if let Some(row) = self.owners.iter().rposition(|o| *o == owner) {
+            self.transitions.mark_terminated(row);
         }
     }
 
@@ -752,6 +772,12 @@ mod tests {
 
         let reopened = ReplayBuffer::open(&path, task).unwrap();
         assert_eq!(reopened.len(), 6, "every stored transition is kept");
+        // b's episode terminated: its last step (the newest row, after a's) is marked as the
+        // end a learned termination trains on; a's interrupted one marks nothing.
+        assert_eq!(
+            reopened.transitions().terminated(),
+            &[false, false, false, false, false, true]
+        );
         let interrupted = EpisodeSummary {
             agent: "a".into(),
             episode: 4,

@@ -284,6 +284,10 @@ impl Preempt for Turn {
         self.yield_to_earlier();
     }
 
+    fn outranked(&self) -> bool {
+        self.scheduler.lock().outranked()
+    }
+
     fn paused(&self) -> Duration {
         Duration::from_nanos(self.paused_ns.load(Ordering::SeqCst))
     }

@@ -142,6 +142,11 @@ pub struct Metrics {
     /// counting where it left off, like its histograms do.
     run_histograms: Mutex<std::collections::HashMap<String, RunHistograms>>,
     training_loss: Family<ModelLabel, FloatGauge>,
+    retraining_share: FloatGauge,
+    retraining_slices: Gauge,
+    retraining_waited_seconds: FloatGauge,
+    retraining_starving: Gauge,
+    dormant_runs: Gauge,
 }
 
 impl Default for Metrics {
@@ -166,6 +171,36 @@ impl Default for Metrics {
         let retraining_seconds =
             Histograms::new_with_constructor(retraining_histogram as fn() -> Histogram);
         let training_loss = Family::default();
+        let retraining_share = FloatGauge::default();
+        let retraining_slices = Gauge::default();
+        let retraining_waited_seconds = FloatGauge::default();
+        let retraining_starving = Gauge::default();
+        let dormant_runs = Gauge::default();
+        registry.register(
+            "retraining_share",
+            "Share of the cores a retraining is guaranteed while plans never stop",
+            retraining_share.clone(),
+        );
+        registry.register(
+            "retraining_slices",
+            "Minibatches retrainings ran in slices taken from plans, since the daemon started",
+            retraining_slices.clone(),
+        );
+        registry.register(
+            "retraining_waited_seconds",
+            "Seconds retrainings waited for plans before their minibatches, since the daemon started",
+            retraining_waited_seconds.clone(),
+        );
+        registry.register(
+            "retraining_starving",
+            "1 while a retraining gets no idle time from the plans and advances at its guaranteed share only",
+            retraining_starving.clone(),
+        );
+        registry.register(
+            "dormant_runs",
+            "Stored runs left closed because opening them would go beyond a budget",
+            dormant_runs.clone(),
+        );
         registry.register(
             "plan_seconds",
             "Time from taking an observation to its planned action, per run",
@@ -264,6 +299,11 @@ impl Default for Metrics {
             retraining_seconds,
             run_histograms: Mutex::default(),
             training_loss,
+            retraining_share,
+            retraining_slices,
+            retraining_waited_seconds,
+            retraining_starving,
+            dormant_runs,
         }
     }
 }
@@ -358,6 +398,9 @@ impl Metrics {
 
     /// The registry as Prometheus text, with the gauges copied from `status` first.
     pub fn render(&self, status: &PlannerStatus) -> String {
+        self.copy_retraining(&status.retraining);
+        self.dormant_runs
+            .set(i64::try_from(status.dormant_run_count).unwrap_or(i64::MAX));
         // Agents come and go: only the ones attached now have a queue.
         self.queue_depth.clear();
         for r in &status.runs {
@@ -407,6 +450,21 @@ impl Metrics {
                 }
             }
         }
+        self.text()
+    }
+
+    /// How retrainings fare against continuous planning, as the status report has it: a
+    /// starving retraining is an alert an operator's Prometheus can fire on.
+    fn copy_retraining(&self, training: &crate::sched::TrainingShare) {
+        self.retraining_share.set(training.share);
+        self.retraining_slices
+            .set(i64::try_from(training.slices).unwrap_or(i64::MAX));
+        self.retraining_waited_seconds.set(training.waited_seconds);
+        self.retraining_starving.set(i64::from(training.starving));
+    }
+
+    /// The registry as Prometheus text, as it is now.
+    fn text(&self) -> String {
         let mut text = String::new();
         if let Err(e) = prometheus_client::encoding::text::encode(&mut text, &self.registry) {
             tracing::error!(error = %e, "cannot encode metrics");
@@ -528,6 +586,30 @@ mod tests {
         let addr = listener.local_addr().unwrap();
         tokio::spawn(serve(listener, || "ebmpc_up 1\n".to_string()));
         addr
+    }
+
+    #[test]
+    fn a_starving_retraining_shows_in_the_metrics() {
+        let metrics = Metrics::default();
+        let mut training = crate::sched::TrainingShare {
+            share: 0.25,
+            slices: 7,
+            waited_seconds: 1.5,
+            starving: true,
+        };
+        metrics.copy_retraining(&training);
+        let text = metrics.text();
+        for line in [
+            "ebmpc_retraining_starving 1\n",
+            "ebmpc_retraining_slices 7\n",
+            "ebmpc_retraining_share 0.25\n",
+            "ebmpc_retraining_waited_seconds 1.5\n",
+        ] {
+            assert!(text.contains(line), "{line:?} missing from\n{text}");
+        }
+        training.starving = false;
+        metrics.copy_retraining(&training);
+        assert!(metrics.text().contains("ebmpc_retraining_starving 0\n"));
     }
 
     #[tokio::test]

@@ -237,21 +237,19 @@ impl SpecTask {
 /// running out, a set-aside run's retry falling due, a lease that ran out without an event.
 const STEWARD_TICK: std::time::Duration = std::time::Duration::from_secs(1);
 
-/// First and longest wait before a run that could not be opened is tried again.
-const RETRY_FIRST: std::time::Duration = std::time::Duration::from_secs(1);
-const RETRY_LONGEST: std::time::Duration = std::time::Duration::from_secs(300);
+/// The first wait before a stored run whose opening failed on an I/O error is tried again;
+/// it doubles with every failure, up to [`MAX_OPEN_RETRY`].
+const FIRST_OPEN_RETRY: std::time::Duration = std::time::Duration::from_secs(1);
 
-/// A stored run this planner could not open: why, how often it tried, and when it tries again.
-struct SetAside {
-    reason: String,
+/// The longest wait between two tries at opening a stored run.
+const MAX_OPEN_RETRY: std::time::Duration = std::time::Duration::from_secs(300);
+
+/// A stored run whose opening failed on an I/O error that may pass.
+#[derive(Debug)]
+struct Retrying {
     attempts: u32,
-    retry_at: std::time::Instant,
-}
-
-impl SetAside {
-    fn is_due(&self) -> bool {
-        std::time::Instant::now() >= self.retry_at
-    }
+    next_at: std::time::Instant,
+    reason: String,
 }
 
 /// The planner daemon.
@@ -263,8 +261,16 @@ pub struct Service {
     fleet: Arc<Fleet>,
     runs: Mutex<HashMap<String, RunHandle>>,
     /// Stored runs that could not be opened, with the reason: listed by `status`, refused at
-    /// attach until their next try (with backoff), left on disk untouched for the operator.
-    failed: Mutex<BTreeMap<String, SetAside>>,
+    /// attach, left on disk untouched for the operator. In a fleet its owner key is released
+    /// at once, so another planner may try it.
+    failed: Mutex<BTreeMap<String, String>>,
+    /// Stored runs whose opening failed on an I/O error that may pass: tried again with
+    /// backoff, listed by `status` meanwhile (released for the other planners meanwhile).
+    retrying: Mutex<BTreeMap<String, Retrying>>,
+    /// Stored runs left closed because opening them would go beyond a budget (`max_runs`,
+    /// `[storage] max_total_replay_bytes`), with the budget: listed by `status`, opened when an
+    /// agent attaches once the budget allows, refused with the reason until then.
+    dormant: Mutex<BTreeMap<String, String>>,
     /// Stored runs nobody holds, since when this planner has seen them free (a fleet
     /// planner takes one it is not preferred on once it has been free for a grace period).
     free_since: Mutex<HashMap<String, std::time::Instant>>,
@@ -362,6 +368,8 @@ impl Service {
             catalog,
             runs: Mutex::new(HashMap::new()),
             failed: Mutex::new(BTreeMap::new()),
+            retrying: Mutex::new(BTreeMap::new()),
+            dormant: Mutex::new(BTreeMap::new()),
             free_since: Mutex::new(HashMap::new()),
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
@@ -372,7 +380,7 @@ impl Service {
             runtime: tokio::runtime::Handle::current(),
             started: std::time::Instant::now(),
         });
-        crate::bench::peak::measure_in_background();
+        crate::nn::peak::measure_in_background();
         // Resume the stored runs that are ours (all of them for a planner without peers).
         service.rebalance().await;
         let _alive = session
@@ -907,52 +915,64 @@ impl Service {
         if self.is_hosted(name) {
             return Ok(()); // another agent opened it meanwhile
         }
-        if let Some(failed) = self
+        if let Some(reason) = self
             .failed
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .get(name)
-            .filter(|failed| !failed.is_due())
         {
-            let wait = failed
-                .retry_at
-                .saturating_duration_since(std::time::Instant::now());
             return Err(refuse(format!(
-                "run `{name}` is stored here but could not be opened ({}; tried {} times, next in {:.0} s): attach again later, ask the operator, or use another run name",
-                failed.reason,
-                failed.attempts,
-                wait.as_secs_f64().ceil()
+                "run `{name}` is stored here but cannot be opened ({reason}): ask the operator, or use another run name"
             ))
             .into());
         }
+        let stored = RunDir::new(&self.config.data_dir, name)
+            .replay_log()
+            .exists();
+        if let Err(budget) = self.opening_budget(stored) {
+            if !stored {
+                return Err(refuse(budget).into());
+            }
+            let reason = format!(
+                "run `{name}` is stored here but not open: {budget}; it stays on disk untouched \
+                 (the operator raises the budget, or archives runs with `planner-service runs archive`)"
+            );
+            self.dormant
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .insert(name.to_string(), budget);
+            return Err(refuse(reason).into());
+        }
+        let run = self.open_run(name, spec.clone()).await?;
+        self.host(run);
+        Ok(())
+    }
+
+    /// Whether one more run may be opened now: fewer than `max_runs` are hosted and, for a
+    /// stored run (opening reads its whole replay into memory), the open runs' replay logs
+    /// are below `[storage] max_total_replay_bytes`. These two bound the daemon's memory:
+    /// `max_runs` runs' models, and replay of at most that budget plus the last run opened.
+    /// The budget that is reached otherwise, named by its setting.
+    fn opening_budget(&self, stored: bool) -> Result<(), String> {
         let hosted = self
             .runs
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .len();
         if hosted >= self.config.max_runs {
-            return Err(refuse(format!(
-                "this planner already hosts its limit of {} runs",
+            return Err(format!(
+                "this planner already hosts its limit of {} runs (max_runs)",
                 self.config.max_runs
-            ))
-            .into());
+            ));
         }
-        match self.open_run(name, spec.clone()).await {
-            Ok(run) => {
-                self.host(run);
-                Ok(())
-            }
-            Err(Refusal::Report(report)) if self.is_stored(name) => {
-                self.set_aside(name, report.message.clone());
-                Err(Refusal::Report(report))
-            }
-            Err(refusal) => Err(refusal),
+        let (used, total) = (self.replay_budget.used(), self.replay_budget.total);
+        if stored && used >= total {
+            return Err(format!(
+                "the open runs' replay logs hold {used} bytes, this planner's budget of {total} \
+                 bytes ([storage] max_total_replay_bytes)"
+            ));
         }
-    }
-
-    /// Whether run `name` has data in the data directory.
-    fn is_stored(&self, name: &str) -> bool {
-        RunDir::new(&self.config.data_dir, name).root().exists()
+        Ok(())
     }
 
     /// Takes run `name` over (a new ownership epoch) and opens it in the data directory (new,
@@ -1013,13 +1033,7 @@ impl Service {
         })
         .await;
         match opened {
-            Ok(Ok(run)) => {
-                self.failed
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .remove(name);
-                Ok(run)
-            }
+            Ok(Ok(run)) => Ok(run),
             Ok(Err(e)) if e.is_transient() => Err(transient(e.to_string())),
             Ok(Err(e)) => Err(internal(e.to_string())),
             Err(e) => {
@@ -1031,6 +1045,14 @@ impl Service {
     }
 
     fn host(&self, run: Arc<Run>) {
+        self.retrying
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(run.name());
+        self.dormant
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(run.name());
         let trainer = self.runtime.spawn(run.clone().trainer_loop());
         let mut runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
         runs.insert(
@@ -1049,12 +1071,18 @@ impl Service {
     /// free and preferred here (or free for [`crate::fleet::FREE_GRACE`], wherever it is
     /// preferred). At start this resumes a restarted daemon's runs (every stored run, for a
     /// single daemon): status lists them at once, their trainers catch up with episodes stored
-    /// after the last checkpoint, and agents re-attach to them. Stored runs are taken even
-    /// beyond `max_runs` (the limit is on creating runs, never on keeping data). A run that
-    /// cannot be opened (over today's limits, damaged, a full disk, even one whose opening
-    /// panics) is set aside: logged, listed by `status` with the reason, released for the
-    /// other planners, and tried again after a backoff (1 s doubling to 5 min); the daemon
-    /// serves the others meanwhile. Every disk read runs on the blocking pool.
+    /// after the last checkpoint, and agents re-attach to them. Runs are opened newest first
+    /// (by their replay log's last write) while the budgets allow ([`Service::opening_budget`]:
+    /// `max_runs`, the total replay bytes), so that a restart stays inside the memory a running
+    /// daemon may use; the others stay dormant, on disk untouched, listed by `status`, and open
+    /// on an agent's attach once a budget allows (refused with the budget's name until then).
+    /// A run whose opening failed on an I/O error that may pass (a full disk, etcd
+    /// unreachable while writing) is retried with a backoff, listed by `status` meanwhile. A
+    /// run that cannot be opened (over today's limits, damaged, even one whose opening panics)
+    /// is set aside: logged, listed by `status` as failed with the reason, refused at attach,
+    /// not tried again by this daemon, and left on disk untouched; the daemon serves the
+    /// others. Either way its owner key is released, so another planner may open it. Every
+    /// disk read runs on the blocking pool.
     async fn rebalance(&self) {
         let mut lost: Vec<(String, String)> = self
             .fleet
@@ -1093,18 +1121,29 @@ impl Service {
         }
         self.fleet.release_strays().await;
         let data_dir = self.config.data_dir.clone();
-        let stored =
-            match tokio::task::spawn_blocking(move || persist::stored_runs(&data_dir)).await {
-                Ok(Ok(stored)) => stored,
-                Ok(Err(e)) => {
-                    tracing::error!(error = %e, "cannot list stored runs; none taken over");
-                    return;
-                }
-                Err(e) => {
-                    tracing::error!(error = %e, "listing stored runs failed; none taken over");
-                    return;
-                }
+        let listed = tokio::task::spawn_blocking(move || {
+            let mut stored = persist::stored_runs(&data_dir)?;
+            // Newest first: the runs in use resume before the long finished ones.
+            let last_written = |dir: &RunDir| {
+                std::fs::metadata(dir.replay_log())
+                    .and_then(|m| m.modified())
+                    .ok()
             };
+            stored.sort_by_cached_key(|(_, dir)| std::cmp::Reverse(last_written(dir)));
+            Ok::<_, crate::persist::PersistError>(stored)
+        })
+        .await;
+        let stored = match listed {
+            Ok(Ok(stored)) => stored,
+            Ok(Err(e)) => {
+                tracing::error!(error = %e, "cannot list stored runs; none taken over");
+                return;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "listing stored runs failed; none taken over");
+                return;
+            }
+        };
         let now = std::time::Instant::now();
         let candidates: Vec<(String, RunDir)> = {
             let mut free_since = self
@@ -1134,14 +1173,14 @@ impl Service {
                 })
                 .collect()
         };
+        let mut dormant = BTreeMap::new();
         for (name, dir) in candidates {
-            let waiting = self
+            let set_aside = self
                 .failed
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
-                .get(&name)
-                .is_some_and(|failed| !failed.is_due());
-            if waiting || self.is_hosted(&name) {
+                .contains_key(&name);
+            if set_aside || self.is_hosted(&name) || self.open_retry_waits(&name) {
                 continue;
             }
             let spec = match tokio::task::spawn_blocking(move || dir.read_spec()).await {
@@ -1168,16 +1207,27 @@ impl Service {
                 self.set_aside(&name, reason);
                 continue;
             }
+            if let Err(budget) = self.opening_budget(true) {
+                dormant.insert(name, budget);
+                continue;
+            }
             match self.open_run(&name, spec).await {
                 Ok(run) => self.host(run),
-                Err(Refusal::Report(report) | Refusal::Transient(report)) => {
-                    self.set_aside(&name, report.message)
-                }
+                Err(Refusal::Transient(report)) => self.retry_open_later(&name, report.message),
+                Err(Refusal::Report(report)) => self.set_aside(&name, report.message),
                 Err(Refusal::Contended) => {
                     tracing::debug!(run = %name, "another planner holds the run, or etcd cannot be reached");
                 }
             }
         }
+        if !dormant.is_empty() {
+            tracing::warn!(
+                runs = dormant.len(),
+                "stored runs left closed at a budget (see status: dormant_runs): {}",
+                dormant.values().next().map_or("", String::as_str)
+            );
+        }
+        *self.dormant.lock().unwrap_or_else(PoisonError::into_inner) = dormant;
     }
 
     /// Gives up run `name`: its trainer and workers stop, its lease goes, and each attached
@@ -1208,25 +1258,46 @@ impl Service {
         }
     }
 
-    /// Sets `run` aside after a failure to open it, until a retry after a backoff that
-    /// doubles with each failure (from [`RETRY_FIRST`] to [`RETRY_LONGEST`]). Its owner key
-    /// (if it was taken) is released already, so another planner may open it meanwhile.
-    fn set_aside(&self, run: &str, reason: String) {
-        let mut failed = self.failed.lock().unwrap_or_else(PoisonError::into_inner);
-        let attempts = failed.get(run).map_or(0, |f| f.attempts) + 1;
-        let backoff = RETRY_FIRST
-            .saturating_mul(1 << (attempts - 1).min(16))
-            .min(RETRY_LONGEST);
-        tracing::error!(%run, attempts, retry_in_s = backoff.as_secs(), "stored run set aside, not resumed: {reason}");
+    /// Whether stored run `name` waits for its next try at opening.
+    fn open_retry_waits(&self, name: &str) -> bool {
+        self.retrying
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(name)
+            .is_some_and(|r| r.next_at > std::time::Instant::now())
+    }
+
+    /// Opening stored run `name` failed on an I/O error that may pass: it is tried again
+    /// after a backoff that doubles with every failure, from [`FIRST_OPEN_RETRY`] up to
+    /// [`MAX_OPEN_RETRY`] (the steward looks every [`STEWARD_TICK`]), and `status` lists it
+    /// meanwhile. Its owner key is released already, so another planner may open it first.
+    fn retry_open_later(&self, name: &str, reason: String) {
+        let mut retrying = self.retrying.lock().unwrap_or_else(PoisonError::into_inner);
+        let attempts = retrying.get(name).map_or(0, |r| r.attempts) + 1;
+        let backoff = FIRST_OPEN_RETRY
+            .saturating_mul(1 << attempts.saturating_sub(1).min(16))
+            .min(MAX_OPEN_RETRY);
+        tracing::warn!(run = %name, attempts, retry_in_s = backoff.as_secs_f64(), "cannot open a stored run now, trying again later: {reason}");
         self.outbox.metrics.record_open_failure();
-        failed.insert(
-            run.to_string(),
-            SetAside {
-                reason,
+        retrying.insert(
+            name.to_string(),
+            Retrying {
                 attempts,
-                retry_at: std::time::Instant::now() + backoff,
+                next_at: std::time::Instant::now() + backoff,
+                reason,
             },
         );
+    }
+
+    /// Sets stored run `run` aside for good (for this daemon): it cannot be opened here. Its
+    /// owner key (if it was taken) is released already, so another planner may try it.
+    fn set_aside(&self, run: &str, reason: String) {
+        tracing::error!(%run, "stored run set aside, not resumed: {reason}");
+        self.outbox.metrics.record_open_failure();
+        self.failed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(run.to_string(), reason);
     }
 
     /// The status report of this planner.
@@ -1286,14 +1357,34 @@ impl Service {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .iter()
-            .map(|(name, failed)| status::FailedRun {
+            .map(|(name, reason)| status::FailedRun {
                 name: name.clone(),
-                reason: failed.reason.clone(),
-                attempts: failed.attempts,
-                retry_in_seconds: failed
-                    .retry_at
-                    .saturating_duration_since(std::time::Instant::now())
-                    .as_secs_f64(),
+                reason: reason.clone(),
+            })
+            .collect();
+        let (dormant_runs, dormant_run_count) = {
+            let dormant = self.dormant.lock().unwrap_or_else(PoisonError::into_inner);
+            let listed = dormant
+                .iter()
+                .take(status::DORMANT_LISTED)
+                .map(|(name, budget)| status::DormantRun {
+                    name: name.clone(),
+                    budget: budget.clone(),
+                })
+                .collect();
+            (listed, dormant.len() as u64)
+        };
+        let now = std::time::Instant::now();
+        let retrying_runs = self
+            .retrying
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .iter()
+            .map(|(name, r)| status::RetryingRun {
+                name: name.clone(),
+                reason: r.reason.clone(),
+                attempts: r.attempts,
+                next_try_seconds: r.next_at.saturating_duration_since(now).as_secs_f64(),
             })
             .collect();
         status::PlannerStatus {
@@ -1303,6 +1394,9 @@ impl Service {
             runs: reports,
             fleet: self.fleet.status(),
             failed_runs,
+            retrying_runs,
+            dormant_runs,
+            dormant_run_count,
             wildcards_dropped: self.outbox.metrics.wildcards_dropped(),
             refused: self.outbox.metrics.refusals(),
             retraining: self.plans.training(),

@@ -94,6 +94,10 @@ pub struct LastRetraining {
     pub dynamics_loss: Option<f32>,
     /// The regulariser's (DEEN or DAE) loss over its last epoch.
     pub energy_loss: Option<f32>,
+    /// A learned termination's accuracy on the transitions held out of its training (absent
+    /// unless the task's termination is learned and an episode has ended as `terminated`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub termination_accuracy: Option<proto::TerminationAccuracy>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -115,6 +119,18 @@ pub struct PlannerStatus {
     /// Stored runs this planner could not open, set aside with the reason.
     #[serde(default)]
     pub failed_runs: Vec<FailedRun>,
+    /// Stored runs whose opening failed on an I/O error that may pass: tried again with a
+    /// backoff that doubles with every failure.
+    #[serde(default)]
+    pub retrying_runs: Vec<RetryingRun>,
+    /// Stored runs left closed because opening them would go beyond a budget (`max_runs`, or
+    /// `[storage] max_total_replay_bytes`): on disk untouched, opened on an agent's attach
+    /// once the budget allows. The first [`DORMANT_LISTED`] by name; see `dormant_run_count`.
+    #[serde(default)]
+    pub dormant_runs: Vec<DormantRun>,
+    /// How many stored runs are dormant (also those beyond the list).
+    #[serde(default)]
+    pub dormant_run_count: u64,
     /// Observations and attaches dropped unanswered because their key had a wildcard.
     #[serde(default)]
     pub wildcards_dropped: u64,
@@ -179,7 +195,7 @@ impl KernelStatus {
     /// The peak measured so far and every measurement this process made.
     pub fn now() -> Self {
         use crate::nn::KernelPath;
-        let peak_gflops = crate::bench::peak::background_peak()
+        let peak_gflops = crate::nn::peak::background_peak()
             .map(|peak| {
                 KernelPath::ALL
                     .into_iter()
@@ -237,12 +253,30 @@ pub struct RunKernels {
 pub struct FailedRun {
     pub name: String,
     pub reason: String,
-    /// Failed tries to open it so far.
-    #[serde(default)]
+}
+
+/// Most dormant runs [`PlannerStatus::dormant_runs`] names: a data directory may hold
+/// thousands, and the report stays small.
+pub const DORMANT_LISTED: usize = 100;
+
+/// A stored run left closed at a budget.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+pub struct DormantRun {
+    pub name: String,
+    /// The budget that kept it closed, named by its setting.
+    pub budget: String,
+}
+
+/// A stored run whose opening failed on an I/O error that may pass.
+#[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]
+pub struct RetryingRun {
+    pub name: String,
+    /// The last failure.
+    pub reason: String,
+    /// Tries that failed so far.
     pub attempts: u32,
-    /// Seconds until the next try (0: at the next look).
-    #[serde(default)]
-    pub retry_in_seconds: f64,
+    /// Seconds until the next try.
+    pub next_try_seconds: f64,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, JsonSchema)]

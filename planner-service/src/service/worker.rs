@@ -275,7 +275,7 @@ impl AgentWorker {
                     &obs,
                     &plan_models.dynamics,
                     &plan_models.regularizer,
-                    plan_models.reward.as_ref(),
+                    plan_models.learned(),
                     plan_deadline,
                     Some(turn.clone()),
                 );

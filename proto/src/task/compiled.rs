@@ -198,6 +198,9 @@ enum Termination {
     Never,
     Builtin(&'static BuiltinCode),
     Expression(Formula),
+    /// Observed only: the run's termination model predicts it (see
+    /// [`Task::termination_is_learned`]).
+    Learned,
 }
 
 /// Working memory for evaluating a task's formulas over a population ([`Task::rewards`],
@@ -308,6 +311,7 @@ impl Task {
             TerminationKind::Expression(source) => {
                 Termination::Expression(compile_expression(&spec, "termination", source)?)
             }
+            TerminationKind::Learned => Termination::Learned,
         };
         Ok(Task {
             spec,
@@ -338,6 +342,14 @@ impl Task {
     /// [`Task::reward`].
     pub fn reward_is_learned(&self) -> bool {
         matches!(self.reward, Reward::Learned)
+    }
+
+    /// Whether this task's termination is learned: it has no rule, only the episodes agents
+    /// end as `terminated`, and a planner ends imagined particles where the run's termination
+    /// model predicts an end. [`Task::terminations`] and [`Task::is_terminal`] say `false`
+    /// for it (the formula part of the task knows no end).
+    pub fn termination_is_learned(&self) -> bool {
+        matches!(self.termination, Termination::Learned)
     }
 
     /// Reward of the transition `obs --act--> next_obs`. The simulator reports exactly this.
@@ -387,7 +399,7 @@ impl Task {
             },
             termination: match &self.termination {
                 Termination::Expression(f) => Some(f.scratch()),
-                Termination::Never | Termination::Builtin(_) => None,
+                Termination::Never | Termination::Builtin(_) | Termination::Learned => None,
             },
         }
     }
@@ -517,7 +529,7 @@ impl Task {
             self.spec.name
         );
         match &self.termination {
-            Termination::Never => out.fill(false),
+            Termination::Never | Termination::Learned => out.fill(false),
             Termination::Builtin(code) => {
                 for (t, s1) in out.iter_mut().zip(next_obs.chunks_exact(o)) {
                     *t = (code.is_terminal)(s1);
@@ -549,7 +561,7 @@ impl Task {
     /// Whether `next_obs` ends the episode (no reward accrues after it, in reality or imagination).
     pub fn is_terminal(&self, next_obs: &[f32]) -> bool {
         match &self.termination {
-            Termination::Never => false,
+            Termination::Never | Termination::Learned => false,
             Termination::Builtin(code) => (code.is_terminal)(next_obs),
             // A termination expression reads `s_next` only; `s` and `a` are passed as `s_next`
             // and an empty action so that no index of them can be valid.

@@ -7,7 +7,7 @@
 //!
 //! Reward and termination are *kinds*: `builtin` (Rust code of one of the five catalog tasks),
 //! `expression` (a formula over `s`, `a`, `s_next`) or `learned` (a model trained on the rewards
-//! agents send). Serde writes them externally tagged (`reward = { builtin = "cartpole" }`,
+//! agents send, or on the episodes they end as `terminated`). Serde writes them externally tagged (`reward = { builtin = "cartpole" }`,
 //! `reward = "learned"`), the one enum form that postcard, JSON and TOML all read.
 
 use super::Builtin;
@@ -144,6 +144,9 @@ pub enum TerminationKind {
     Builtin(Builtin),
     /// A formula over `s_next`; the episode ends where it is positive.
     Expression(String),
+    /// Observed only: a classifier learns it from the episodes agents end as `terminated`,
+    /// and imagination stops a particle's returns where it predicts an end.
+    Learned,
 }
 
 /// What a transition earns.
@@ -332,6 +335,7 @@ impl TaskSpec {
             TerminationKind::Never => {}
             TerminationKind::Builtin(b) => self.check_builtin("termination", *b)?,
             TerminationKind::Expression(e) => self.check_expression("termination", e)?,
+            TerminationKind::Learned => {}
         }
         match &self.reward {
             RewardKind::Learned => {}

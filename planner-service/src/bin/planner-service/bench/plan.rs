@@ -6,15 +6,15 @@
 //! load on a shared machine; the report puts them side by side and states the formula's cost
 //! on the planner's path as the difference from the builtin code.
 
-use super::cputime::process_cpu_time;
-use super::peak::{Peak, percent};
 use super::{BenchError, describe, flops_per_row, median_ms, preset, random_transitions};
-use crate::dynamics::Ensemble;
-use crate::energy::{Regularizer, RegularizerKind};
-use crate::nn::KernelPath;
-use crate::nn::kernel_path::Measurement;
-use crate::plan::MpcPlanner;
-use crate::reward::RewardModel;
+use planner_service::dynamics::Ensemble;
+use planner_service::energy::{Regularizer, RegularizerKind};
+use planner_service::nn::KernelPath;
+use planner_service::nn::cputime::process_cpu_time;
+use planner_service::nn::kernel_path::Measurement;
+use planner_service::nn::peak::{Peak, percent};
+use planner_service::plan::MpcPlanner;
+use planner_service::reward::RewardModel;
 use proto::task::{RewardKind, SpecBounds};
 use proto::{Builtin, InferencePrecision, Task};
 use rand::SeedableRng;
@@ -33,6 +33,8 @@ pub(super) struct Settings {
     pub pets: bool,
     pub threads: Option<usize>,
     pub chunks: Option<usize>,
+    /// Plan through the daemon's scheduler (a turn per call, no rival).
+    pub shared: bool,
     pub precision: InferencePrecision,
     pub seed: u64,
     pub optimizer: proto::Optimizer,
@@ -79,6 +81,8 @@ pub struct PlanReport {
     pub threads: usize,
     /// Population chunks planned in parallel.
     pub chunks: usize,
+    /// Whether the plans took turns through the daemon's scheduler.
+    pub shared: bool,
     /// The number format inference actually ran in (the dynamics model's).
     pub precision: InferencePrecision,
     /// The number format asked for (`auto`: the kernel paths were chosen by measurement).
@@ -270,22 +274,41 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
+    let scheduler = std::sync::Arc::new(planner_service::sched::Scheduler::new(0.0));
+    let turn = || -> Option<std::sync::Arc<dyn planner_service::plan::anytime::Preempt>> {
+        s.shared.then(|| {
+            let turn = scheduler.turn(None, None, &planner_service::sched::Waiting::default());
+            std::sync::Arc::new(turn) as std::sync::Arc<dyn planner_service::plan::anytime::Preempt>
+        })
+    };
     let (cpu_share, contenders) = pool.install(|| {
         for c in &mut contenders {
             for _ in 0..s.warmup {
-                c.planner
-                    .plan(&obs, &dynamics, &regularizer, c.model.as_ref(), None);
+                c.planner.plan_shared(
+                    &obs,
+                    &dynamics,
+                    &regularizer,
+                    planner_service::plan::Learned::reward(c.model.as_ref()),
+                    None,
+                    turn(),
+                );
             }
         }
         let (cpu_before, wall_start) = (process_cpu_time(), Instant::now());
         // In turns, call by call: every reward sees the same load.
         for _ in 0..s.timed {
             for c in &mut contenders {
+                let shared = turn();
                 let cpu_start = process_cpu_time();
                 let start = Instant::now();
-                let outcome = c
-                    .planner
-                    .plan(&obs, &dynamics, &regularizer, c.model.as_ref(), None);
+                let outcome = c.planner.plan_shared(
+                    &obs,
+                    &dynamics,
+                    &regularizer,
+                    planner_service::plan::Learned::reward(c.model.as_ref()),
+                    None,
+                    shared,
+                );
                 c.times.push(start.elapsed());
                 c.cpu = c
                     .cpu
@@ -356,11 +379,12 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         particles: cem.particles,
         threads,
         chunks,
+        shared: s.shared,
         precision,
         asked: s.precision,
         dynamics_path,
         energy_path,
-        measurements: crate::nn::kernel_path::measurements(),
+        measurements: planner_service::nn::kernel_path::measurements(),
         calls: s.timed,
         rewards,
         cpu_share,
@@ -398,8 +422,16 @@ impl fmt::Display for PlanReport {
         )?;
         writeln!(
             f,
-            "  parallel   {} thread(s), {} population chunk(s), {} inference (asked: {})",
-            self.threads, self.chunks, self.precision, self.asked
+            "  parallel   {} thread(s), {} population chunk(s), {} inference (asked: {}){}",
+            self.threads,
+            self.chunks,
+            self.precision,
+            self.asked,
+            if self.shared {
+                ", shared through the scheduler"
+            } else {
+                ""
+            }
         )?;
         write!(f, "  kernels    dynamics {}", self.dynamics_path)?;
         if let Some(p) = self.energy_path {
@@ -416,7 +448,7 @@ impl fmt::Display for PlanReport {
                     .map(|t| format!("{} {:.1} µs", t.path, t.seconds * 1e6))
                     .collect::<Vec<_>>()
                     .join(", "),
-                crate::nn::kernel_path::BATCH
+                planner_service::nn::kernel_path::BATCH
             )?;
         }
         if let Some(share) = self.cpu_share {
@@ -502,6 +534,7 @@ mod tests {
             pets: false,
             threads: Some(2),
             chunks: None,
+            shared: false,
             precision: InferencePrecision::Bf16,
             seed: 1,
             optimizer: proto::Optimizer::Cem,
@@ -509,6 +542,25 @@ mod tests {
             elites: None,
             iterations: None,
         }
+    }
+
+    #[test]
+    fn plans_through_the_scheduler_as_the_daemon_does() {
+        let report = run(&Settings {
+            shared: true,
+            ..settings()
+        })
+        .unwrap();
+        assert!(report.shared);
+        let [timing] = &report.rewards[..] else {
+            panic!("one reward asked for")
+        };
+        assert!(timing.min_ms > 0.0 && timing.median_ms >= timing.min_ms);
+        assert!(timing.mean_iterations >= 1.0, "{timing:?}");
+        assert!(
+            report.to_string().contains("shared through the scheduler"),
+            "{report}"
+        );
     }
 
     #[test]
@@ -557,7 +609,7 @@ mod tests {
         assert!(timing.cpu_gflops.is_none_or(|g| g.is_finite() && g > 0.0));
         assert_eq!(
             report.peak.bf16_gflops.is_some(),
-            crate::nn::simd::bf16_dot_available() && report.peak.f32_gflops.is_some()
+            planner_service::nn::simd::bf16_dot_available() && report.peak.f32_gflops.is_some()
         );
         assert_eq!(report.precision, report.dynamics_path.precision());
         assert!(text_has_paths(&report.to_string(), &report));

@@ -1,7 +1,7 @@
 //! `bench kernel`: throughput of the matrix kernels alone, on the shapes of the planner's layers
 //! and of the training passes.
 //!
-//! The design of [`crate::nn::matmul`] rests on three speed claims, and this is where they are
+//! The design of [`planner_service::nn::matmul`] rests on three speed claims, and this is where they are
 //! checked on the machine at hand (a full planning call, `bench plan`, mixes the products with
 //! everything else):
 //! - **Packing and the fused epilogue**: a hidden layer `C = act(Wᵀ·H + b)` through the general
@@ -24,14 +24,14 @@
 //! measurement had the CPU. Inputs are uniform in `[-1, 1)`, so no product meets a denormal.
 
 use super::BenchError;
-use super::peak::{Peak, percent};
 use super::timing::{BATCHES, Clock, Timing, measure_for};
-use crate::nn::Activation;
-use crate::nn::matmul::{
+use planner_service::nn::Activation;
+use planner_service::nn::matmul::{
     Encoding, Init, MatMut, MatRef, PackedMatrix, matmul, matmul_packed, matmul_par, transpose,
     write_bf16_pairs,
 };
-use crate::nn::simd::{SimdLevel, bf16_dot_available, level};
+use planner_service::nn::peak::{Peak, percent};
+use planner_service::nn::simd::{SimdLevel, bf16_dot_available, level};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::fmt;
@@ -333,7 +333,7 @@ fn time_layer(
         })
     };
     let packed_bf16 = bf16.then(|| bf16_layer(PackedMatrix::pack_bf16(wt)));
-    let packed_amx = (bf16 && crate::nn::amx::available())
+    let packed_amx = (bf16 && planner_service::nn::amx::available())
         .then(|| bf16_layer(PackedMatrix::pack_bf16_tiles(wt)));
 
     LayerTiming {

@@ -11,13 +11,13 @@ use std::time::Duration;
 
 /// Total time on a CPU of every thread of this process (`CLOCK_PROCESS_CPUTIME_ID`); `None`
 /// where the platform does not provide the clock.
-pub(super) fn process_cpu_time() -> Option<Duration> {
+pub fn process_cpu_time() -> Option<Duration> {
     read(libc::CLOCK_PROCESS_CPUTIME_ID)
 }
 
 /// Time the calling thread has spent on a CPU (`CLOCK_THREAD_CPUTIME_ID`); `None` where the
 /// platform does not provide the clock.
-pub(super) fn thread_cpu_time() -> Option<Duration> {
+pub fn thread_cpu_time() -> Option<Duration> {
     read(libc::CLOCK_THREAD_CPUTIME_ID)
 }
 

@@ -3,7 +3,7 @@
 //! One call of a kernel lasts microseconds, too short to time alone, and the project's machine
 //! is shared: any single measurement may have lost its core for a while. So the work runs in
 //! batches of many calls, after one untimed warm-up batch (caches, page faults, clock ramp-up),
-//! and each batch is timed in **CPU time** (see [`cputime`](super::cputime)): time in which
+//! and each batch is timed in **CPU time** (see [`cputime`](planner_service::nn::cputime)): time in which
 //! another process had the core does not count, so a kernel's rate is not halved because
 //! someone was compiling on the same core. Work on the calling thread is timed on that thread's
 //! clock; parallel work on the whole process's, so that every helper thread's time (spinning
@@ -12,7 +12,7 @@
 //! reader sees how loaded the machine was. Where the platform has no CPU clock the wall clock
 //! is used instead (and no share is reported).
 
-use super::cputime::{process_cpu_time, thread_cpu_time};
+use planner_service::nn::cputime::{process_cpu_time, thread_cpu_time};
 use std::time::{Duration, Instant};
 
 /// Which CPU time a measurement reads.

@@ -11,7 +11,7 @@
 use super::BenchError;
 use super::plan::{self, BenchReward, PlanReport, RewardTiming};
 use super::timing::{Clock, Timing, measure_for};
-use crate::energy::RegularizerKind;
+use planner_service::energy::RegularizerKind;
 use proto::task::expression::{Dims, Expression, ExpressionError, Gradients, Inputs};
 use proto::{Builtin, InferencePrecision};
 use rand::rngs::StdRng;
@@ -62,6 +62,7 @@ pub(super) fn run(s: &Settings) -> Result<ExpressionReport, BenchError> {
         pets: false,
         threads: None,
         chunks: None,
+        shared: false,
         precision: InferencePrecision::Bf16,
         seed: s.seed,
         optimizer: proto::Optimizer::Cem,

@@ -17,12 +17,12 @@
 //! half-cheetah steps: 8.8 % of the samples in the kernel's task switch, 1.5 % in a contended
 //! mutex, 1.8 % in `sched_yield`).
 
-use super::peak::{Peak, percent};
 use super::timing::{BATCHES, Clock, Samples, Timing, measure};
 use super::{BenchError, describe, preset, random_transitions};
-use crate::dynamics::{Ensemble, TrainWorkspace, TrainingSet};
-use crate::energy::{Deen, DeenWorkspace, RegularizerKind, transition_rows};
-use crate::nn::{Adam, FlushDenormals, InputGradTape, Mlp, Normalizer, TrainPath};
+use planner_service::dynamics::{Ensemble, TrainWorkspace, TrainingSet};
+use planner_service::energy::{Deen, DeenWorkspace, RegularizerKind, transition_rows};
+use planner_service::nn::peak::{Peak, percent};
+use planner_service::nn::{Adam, FlushDenormals, InputGradTape, Mlp, Normalizer, TrainPath};
 use proto::Builtin;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};

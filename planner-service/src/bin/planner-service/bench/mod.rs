@@ -9,26 +9,21 @@
 //! floating-point operations per linear layer per row (the matrix products; activations and
 //! the per-row reward are extra work not counted).
 
-mod cputime;
 mod expression;
 mod kernel;
-pub mod peak;
 mod plan;
 mod timing;
 mod train;
 
 pub use expression::ExpressionReport;
-pub use kernel::{
-    FirstLayerTiming, KernelReport, LayerTiming, ProductTiming, Shape, Throughput, TransposeTiming,
-};
-pub use peak::Peak;
-pub use plan::{BenchReward, PlanReport, RewardTiming};
+pub use kernel::KernelReport;
+pub use plan::{BenchReward, PlanReport};
 pub use train::TrainReport;
 
-use crate::config::{Preset, PresetError};
-use crate::data::Transitions;
-use crate::energy::RegularizerKind;
-use crate::plan::ConfigError;
+use planner_service::config::{Preset, PresetError};
+use planner_service::data::Transitions;
+use planner_service::energy::RegularizerKind;
+use planner_service::plan::ConfigError;
 use proto::{Builtin, InferencePrecision};
 use rand::RngExt;
 use rand::rngs::StdRng;
@@ -67,6 +62,11 @@ pub enum BenchCommand {
         /// Population chunks planned in parallel; default: one per thread.
         #[arg(long)]
         chunks: Option<usize>,
+        /// Plan as the daemon does, on cores shared through its scheduler (each call takes a
+        /// turn; with no rival plan, nothing pauses it): times the scheduler's checks between
+        /// iterations and imagined steps along with the plan.
+        #[arg(long)]
+        shared: bool,
         /// Number format of inference: auto (the service's default: every kernel path this
         /// CPU has is timed on each network's layers and the fastest runs), bf16 (the faster
         /// bf16 path; f32 where the CPU lacks AVX-512 BF16) or f32.
@@ -192,6 +192,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
             pets,
             threads,
             chunks,
+            shared,
             precision,
             seed,
             optimizer,
@@ -212,6 +213,7 @@ pub fn run(cmd: &BenchCommand) -> Result<BenchReport, BenchError> {
                 pets,
                 threads,
                 chunks,
+                shared,
                 precision,
                 seed,
             };
@@ -367,6 +369,7 @@ mod tests {
                 pets: false,
                 threads: None,
                 chunks: None,
+                shared: false,
                 precision: InferencePrecision::F32,
                 seed: 0,
                 optimizer: proto::Optimizer::Cem,

@@ -70,8 +70,6 @@ pub struct PlannerReport {
 pub struct FailedRunReport {
     pub name: String,
     pub reason: String,
-    pub attempts: u32,
-    pub retry_in_seconds: f64,
 }
 
 /// The fleet as a planner sees it (a lenient mirror of `fleet::FleetStatus`).
@@ -367,15 +365,13 @@ fn render_failed(out: &mut String, failed: &[FailedRunReport]) {
     if failed.is_empty() {
         return;
     }
-    let _ = writeln!(out, "failed runs (stored, set aside, tried again later):");
+    let _ = writeln!(out, "failed runs (stored, set aside, not served):");
     for run in failed {
         let _ = writeln!(
             out,
-            "  {}: {} (tried {} times, next in {:.0} s)",
+            "  {}: {}",
             one_line(&run.name, FAILED_NAME_CHARS),
-            one_line(&run.reason, FAILED_REASON_CHARS),
-            run.attempts,
-            run.retry_in_seconds.ceil()
+            one_line(&run.reason, FAILED_REASON_CHARS)
         );
     }
 }
@@ -694,35 +690,25 @@ agents:
                 FailedRunReport {
                     name: "old-run".into(),
                     reason: "dynamics_hidden_size = 4000000000 is over the limit".into(),
-                    attempts: 3,
-                    retry_in_seconds: 3.2,
                 },
                 FailedRunReport {
                     name: "é".repeat(100),
                     reason: long,
-                    attempts: 1,
-                    retry_in_seconds: 0.5,
                 },
             ],
             ..PlannerReport::default()
         };
         let text = render(&[report]);
         let lines: Vec<&str> = text.lines().collect();
-        assert_eq!(
-            lines[1],
-            "failed runs (stored, set aside, tried again later):"
-        );
+        assert_eq!(lines[1], "failed runs (stored, set aside, not served):");
         assert_eq!(
             lines[2],
-            "  old-run: dynamics_hidden_size = 4000000000 is over the limit (tried 3 times, next in 4 s)"
+            "  old-run: dynamics_hidden_size = 4000000000 is over the limit"
         );
         let expected_reason = format!("cannot open: {}…", "x".repeat(FAILED_REASON_CHARS - 13));
         assert_eq!(
             lines[3],
-            format!(
-                "  {}…: {expected_reason} (tried 1 times, next in 1 s)",
-                "é".repeat(FAILED_NAME_CHARS)
-            )
+            format!("  {}…: {expected_reason}", "é".repeat(FAILED_NAME_CHARS))
         );
         assert_eq!(lines.len(), 4, "{text}");
         // The daemon's JSON field is read.

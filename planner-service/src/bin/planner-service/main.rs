@@ -1,7 +1,8 @@
 //! `planner-service`: the ebmpc planner daemon and its tools.
 
-mod runs_cli;
-mod status_cli;
+mod bench;
+mod runs;
+mod status;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
@@ -26,11 +27,11 @@ enum Command {
     Serve(ServeArgs),
     /// Measure planning and training speed at a preset's sizes.
     #[command(subcommand)]
-    Bench(planner_service::bench::BenchCommand),
+    Bench(bench::BenchCommand),
     /// Ask running planners for their runs, agents and planning latencies (a table, or --json).
-    Status(status_cli::StatusArgs),
+    Status(status::StatusArgs),
     /// List, delete or archive the runs stored in a data directory.
-    Runs(runs_cli::RunsArgs),
+    Runs(runs::RunsArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -176,11 +177,11 @@ fn main() -> Result<()> {
             Ok(())
         }
         Command::Bench(cmd) => {
-            let report = planner_service::bench::run(&cmd)?;
+            let report = bench::run(&cmd)?;
             println!("{report}");
             Ok(())
         }
-        Command::Status(args) => status_cli::run(args),
-        Command::Runs(args) => runs_cli::run(args),
+        Command::Status(args) => status::run(args),
+        Command::Runs(args) => runs::run(args),
     }
 }
