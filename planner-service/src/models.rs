@@ -90,17 +90,14 @@ impl Models {
 
     /// The kernel path of each network, for the status report (networks not yet packed show
     /// none: reading the path does not pack or measure).
-    pub fn kernels(
-        &self,
-        precision: proto::InferencePrecision,
-    ) -> crate::service::status::RunKernels {
+    pub fn kernels(&self, precision: proto::InferencePrecision) -> RunKernels {
         let name = |p: Option<crate::nn::KernelPath>| p.map(|p| p.name().to_string());
         let energy = match &self.regularizer {
             Regularizer::None => None,
             Regularizer::Dae(m) => m.mlp().packed_kernel_path(),
             Regularizer::Deen(m) => m.mlp().packed_kernel_path(),
         };
-        crate::service::status::RunKernels {
+        RunKernels {
             precision: precision.to_string(),
             dynamics: name(self.dynamics.member(0).mlp().packed_kernel_path()),
             energy: name(energy),
@@ -195,4 +192,16 @@ impl Models {
     pub fn is_trained(&self) -> bool {
         self.version > 0 && self.reward.as_ref().is_none_or(RewardModel::is_trained)
     }
+}
+
+/// The kernel path each of a run's networks runs (`None`: not packed yet, or no such network).
+#[derive(
+    Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+pub struct RunKernels {
+    /// The number format the run's preset asks for (`auto`, `bf16` or `f32`).
+    pub precision: String,
+    pub dynamics: Option<String>,
+    pub energy: Option<String>,
+    pub reward: Option<String>,
 }

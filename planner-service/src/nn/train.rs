@@ -163,6 +163,58 @@ pub fn run_epochs(
     run
 }
 
+/// How a small network is trained on its own: minibatches of `batch_size`, and `weight_decay`
+/// added to each weight's gradient at every Adam step (see [`super::Adam::step_decaying`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Minibatches {
+    pub batch_size: usize,
+    pub weight_decay: f32,
+}
+
+/// Trains `mlp` with `adam` on samples `0..n` for the budget's epochs in shuffled minibatches
+/// (see [`run_epochs`]): for each minibatch `loss_and_grad` runs the forward pass on the tape,
+/// seeds its output gradient and returns the minibatch's mean loss; the gradient of the
+/// weights is then taken and one Adam step applied. The learned reward and the learned
+/// termination train this way; only their inputs and losses differ.
+pub fn fit_minibatches(
+    mlp: &mut super::Mlp,
+    adam: &mut super::Adam,
+    settings: Minibatches,
+    n: usize,
+    budget: &FitBudget,
+    rng: &mut StdRng,
+    mut loss_and_grad: impl FnMut(&super::Mlp, &[usize], &mut super::Tape) -> f32,
+) -> EpochsRun {
+    let mut tape = super::Tape::for_training(mlp, settings.batch_size.min(n).max(1));
+    let mut grads = vec![0.0; mlp.params().len()];
+    let mut order: Vec<usize> = (0..n).collect();
+    run_epochs(&mut order, settings.batch_size, budget, rng, |batch, _| {
+        let loss = loss_and_grad(mlp, batch, &mut tape);
+        mlp.backward(&mut tape, &mut grads, false);
+        adam.step_decaying(mlp, &grads, settings.weight_decay);
+        loss
+    })
+}
+
+/// Copies the minibatch `batch` of the sample-major `inputs` (one row of `mlp.in_dim()` values
+/// per sample) into the tape's inputs, one column per sample, and runs the training forward
+/// pass; the loss then reads the outputs and seeds their gradient in the tape.
+pub fn forward_minibatch(
+    mlp: &super::Mlp,
+    inputs: &[f32],
+    batch: &[usize],
+    tape: &mut super::Tape,
+) {
+    let (dim, ld) = (mlp.in_dim(), tape.ld());
+    let input = tape.input_mut();
+    for (col, &idx) in batch.iter().enumerate() {
+        for (k, &v) in inputs[idx * dim..(idx + 1) * dim].iter().enumerate() {
+            input[k * ld + col] = v;
+        }
+    }
+    mlp.forward_train(tape, batch.len());
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

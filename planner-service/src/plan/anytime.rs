@@ -13,28 +13,9 @@
 //! plan runs; the pause counts against the deadline but not in the iteration timings, which
 //! describe this planner's own work.
 
+use crate::sched::Preempt;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-
-/// What may pause a solve: the scheduler, when a more urgent plan waits for the cores.
-pub trait Preempt: Send + Sync + std::fmt::Debug {
-    /// Blocks while a more urgent plan has the cores. Called between two iterations and
-    /// between two imagined time steps (never inside a rayon job: the pause must leave the
-    /// pool's threads free for the plan it makes way for).
-    fn step_back(&self);
-
-    /// Whether a more urgent plan waits for the cores now, so that [`Preempt::step_back`]
-    /// would pause. Looked at after every imagined step by each population chunk, so it must
-    /// not block; the chunks meet to step back only when it says so. The default, `true`,
-    /// meets after every step.
-    fn outranked(&self) -> bool {
-        true
-    }
-
-    /// Everything this solve has spent stepped back so far, so that iteration timings can
-    /// leave it out.
-    fn paused(&self) -> Duration;
-}
 
 /// The time budget of one solve, and the iteration timings that outlive it. Owned by one
 /// planner (one agent): its timings describe its models and population on this machine.

@@ -31,9 +31,9 @@
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
 use crate::plan::Learned;
-use crate::plan::anytime::Preempt;
 use crate::plan::settings::CemConfig;
 use crate::reward::RewardScratch;
+use crate::sched::Preempt;
 use crate::termination::{TerminationModel, TerminationScratch};
 use proto::Task;
 use proto::task::FormulaScratch;

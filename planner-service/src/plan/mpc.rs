@@ -4,10 +4,11 @@
 use super::Learned;
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
-use crate::plan::anytime::{IterationClock, Preempt};
+use crate::plan::anytime::IterationClock;
 use crate::plan::imagine::Imagination;
 use crate::plan::search::{Imagined, Search};
 use crate::plan::settings::{CemConfig, ConfigError};
+use crate::sched::Preempt;
 use proto::Task;
 use std::sync::Arc;
 use std::time::{Duration, Instant};

@@ -4,7 +4,6 @@
 use super::Learned;
 use super::adam::AdamPlanner;
 use super::anytime::IterationClock;
-use super::anytime::Preempt;
 use super::cem::Cem;
 use super::icem::Icem;
 use super::imagine::Imagination;
@@ -12,6 +11,7 @@ use super::sequence::{CemOutcome, PopulationObjective};
 use super::settings::{CemConfig, ConfigError, Optimizer};
 use crate::dynamics::Ensemble;
 use crate::energy::Regularizer;
+use crate::sched::Preempt;
 use proto::Task;
 use std::sync::Arc;
 

@@ -23,7 +23,7 @@
 
 use crate::data::Transitions;
 use crate::dynamics::DynamicsConfig;
-use crate::nn::train::{FitBudget, run_epochs};
+use crate::nn::train::{FitBudget, Minibatches, fit_minibatches, forward_minibatch};
 use crate::nn::{
     Activation, Adam, FitReport, FlushDenormals, ForwardScratch, Mlp, Normalizer, ShapeError, Tape,
 };
@@ -238,16 +238,19 @@ impl RewardModel {
         self.target_norm = Normalizer::fit(&targets, 1);
         self.input_norm.normalize_rows(&mut inputs);
         self.target_norm.normalize_rows(&mut targets);
-        let mut tape = Tape::for_training(&self.mlp, self.batch_size.min(n));
-        let mut grads = vec![0.0; self.mlp.params().len()];
-        let mut order: Vec<usize> = (0..n).collect();
-        let run = run_epochs(&mut order, self.batch_size, &budget, rng, |batch, _| {
-            let loss = squared_error_and_grad(&self.mlp, &inputs, &targets, batch, &mut tape);
-            self.mlp.backward(&mut tape, &mut grads, false);
-            self.adam
-                .step_decaying(&mut self.mlp, &grads, self.weight_decay);
-            loss
-        });
+        let settings = Minibatches {
+            batch_size: self.batch_size,
+            weight_decay: self.weight_decay,
+        };
+        let run = fit_minibatches(
+            &mut self.mlp,
+            &mut self.adam,
+            settings,
+            n,
+            &budget,
+            rng,
+            |mlp, batch, tape| squared_error_and_grad(mlp, &inputs, &targets, batch, tape),
+        );
         self.trained |= run.steps > 0;
         let mse = self.mean_squared_error(data);
         tracing::debug!(
@@ -456,14 +459,8 @@ fn squared_error_and_grad(
     batch: &[usize],
     tape: &mut Tape,
 ) -> f32 {
-    let (dim, ld, b) = (mlp.in_dim(), tape.ld(), batch.len());
-    let input = tape.input_mut();
-    for (col, &idx) in batch.iter().enumerate() {
-        for (k, &v) in inputs[idx * dim..(idx + 1) * dim].iter().enumerate() {
-            input[k * ld + col] = v;
-        }
-    }
-    mlp.forward_train(tape, b);
+    let b = batch.len();
+    forward_minibatch(mlp, inputs, batch, tape);
     let (out, grad) = tape.output_and_grad_mut();
     let mut total = 0.0f32;
     for (col, &idx) in batch.iter().enumerate() {

@@ -34,9 +34,10 @@
 //! much each plan gets, and the anytime planner cuts and reports the rest.
 
 pub mod background;
+mod preempt;
 pub mod queue;
 
-use crate::plan::anytime::Preempt;
+pub use preempt::Preempt;
 use queue::PlanQueue;
 use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};

@@ -7,7 +7,8 @@
 //! and the status report reads the count and sum of each run's fsync and retraining histograms
 //! ([`RunHistograms`]), so there is one source for each figure.
 
-use super::status::{PlanRecord, PlannerStatus, Timings};
+use super::status::{PlanRecord, PlannerStatus};
+use crate::run::stats::{RunHistograms, Timed, fsync_histogram, retraining_histogram};
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -52,69 +53,8 @@ fn iterations_histogram() -> Histogram {
     Histogram::new([0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])
 }
 
-/// Replay log fsync buckets: 50 µs to about 1.6 s, doubling.
-fn fsync_histogram() -> Histogram {
-    Histogram::new(exponential_buckets(50e-6, 2.0, 16))
-}
-
-/// Retraining buckets: 10 ms to about 20 min, doubling.
-fn retraining_histogram() -> Histogram {
-    Histogram::new(exponential_buckets(0.01, 2.0, 18))
-}
-
 type Histograms = Family<RunLabel, Histogram, fn() -> Histogram>;
 type FloatGauge = Gauge<f64, std::sync::atomic::AtomicU64>;
-
-/// A timed operation: each duration goes into a Prometheus histogram and into the count and
-/// total the status report shows (`prometheus-client` does not read a histogram back), from
-/// one call.
-#[derive(Clone, Debug)]
-pub struct Timed {
-    histogram: Histogram,
-    totals: Arc<Mutex<Timings>>,
-}
-
-impl Timed {
-    fn new(histogram: Histogram) -> Self {
-        Self {
-            histogram,
-            totals: Arc::default(),
-        }
-    }
-
-    pub fn observe(&self, seconds: f64) {
-        self.histogram.observe(seconds);
-        let mut totals = self.totals.lock().unwrap_or_else(PoisonError::into_inner);
-        totals.count += 1;
-        totals.seconds_total += seconds;
-    }
-
-    /// How many durations were observed, and their sum: the histogram's `_count` and `_sum`.
-    pub fn timings(&self) -> Timings {
-        *self.totals.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-}
-
-/// The durations a run times itself, since it is the run that syncs its replay log and
-/// retrains: the daemon's registry serves them (see [`Metrics::for_run`]) and the status
-/// report shows their count and total. The default ones are served nowhere (experiments,
-/// tests).
-#[derive(Clone, Debug)]
-pub struct RunHistograms {
-    /// Seconds per fsync of the run's replay log.
-    pub fsync_seconds: Timed,
-    /// Seconds per retraining that produced models.
-    pub retraining_seconds: Timed,
-}
-
-impl Default for RunHistograms {
-    fn default() -> Self {
-        Self {
-            fsync_seconds: Timed::new(fsync_histogram()),
-            retraining_seconds: Timed::new(retraining_histogram()),
-        }
-    }
-}
 
 /// Every metric of the daemon.
 pub struct Metrics {

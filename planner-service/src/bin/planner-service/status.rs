@@ -62,6 +62,30 @@ pub struct PlannerReport {
     pub fleet: FleetReport,
     /// Stored runs the planner set aside (they could not be opened), with the reason.
     pub failed_runs: Vec<FailedRunReport>,
+    /// Stored runs whose opening failed on an error that may pass, tried again with a backoff.
+    pub retrying_runs: Vec<RetryingRunReport>,
+    /// Stored runs left closed at a budget (the first ones by name), and how many there are.
+    pub dormant_runs: Vec<DormantRunReport>,
+    pub dormant_run_count: u64,
+}
+
+/// A stored run being tried again (a lenient mirror of `service::status::RetryingRun`).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct RetryingRunReport {
+    pub name: String,
+    pub reason: String,
+    pub attempts: u32,
+    pub next_try_seconds: f64,
+}
+
+/// A stored run left closed at a budget (a lenient mirror of `service::status::DormantRun`).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct DormantRunReport {
+    pub name: String,
+    /// The setting whose budget kept it closed.
+    pub budget: String,
 }
 
 /// A stored run set aside (a lenient mirror of `service::status::FailedRun`).
@@ -133,6 +157,26 @@ pub struct RunReport {
     pub last_returns: Vec<(String, u32, f32)>,
     pub agents: Vec<String>,
     pub planning_latency: Option<LatencyReport>,
+    pub last_retraining: Option<LastRetrainingReport>,
+}
+
+/// The part of a run's last retraining the table shows (a lenient mirror of
+/// `run::stats::LastRetraining`).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct LastRetrainingReport {
+    pub termination_accuracy: Option<TerminationAccuracyReport>,
+}
+
+/// A learned termination's held-out accuracy (a lenient mirror of
+/// `proto::TerminationAccuracy`).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct TerminationAccuracyReport {
+    pub held_out: u32,
+    pub terminations: u32,
+    pub accuracy: f32,
+    pub recall: f32,
 }
 
 #[derive(Clone, Debug, Default, Deserialize, PartialEq)]
@@ -336,6 +380,8 @@ pub fn render(reports: &[PlannerReport]) -> String {
         );
         render_fleet(&mut out, &report.fleet);
         render_failed(&mut out, &report.failed_runs);
+        render_retrying(&mut out, &report.retrying_runs);
+        render_dormant(&mut out, &report.dormant_runs, report.dormant_run_count);
         if report.runs.is_empty() {
             continue;
         }
@@ -350,8 +396,85 @@ pub fn render(reports: &[PlannerReport]) -> String {
             };
             let _ = writeln!(out, "  {}: {agents}", run.name);
         }
+        render_terminations(&mut out, &report.runs);
     }
     out
+}
+
+/// Stored runs whose opening is being tried again, one line each.
+fn render_retrying(out: &mut String, retrying: &[RetryingRunReport]) {
+    if retrying.is_empty() {
+        return;
+    }
+    let _ = writeln!(out, "runs retrying to open (stored, not served yet):");
+    for run in retrying {
+        let _ = writeln!(
+            out,
+            "  {}: {} (failed {} time{}, next try in {:.0}s)",
+            one_line(&run.name, FAILED_NAME_CHARS),
+            one_line(&run.reason, FAILED_REASON_CHARS),
+            run.attempts,
+            if run.attempts == 1 { "" } else { "s" },
+            run.next_try_seconds.max(0.0),
+        );
+    }
+}
+
+/// Most dormant runs the table names (the report itself names at most a hundred).
+const DORMANT_SHOWN: usize = 10;
+
+/// How many stored runs stay closed at a budget, and the first few with the budget's setting.
+fn render_dormant(out: &mut String, dormant: &[DormantRunReport], count: u64) {
+    let count = count.max(dormant.len() as u64);
+    if count == 0 {
+        return;
+    }
+    let _ = writeln!(
+        out,
+        "dormant runs (stored, closed at a budget, opened when it allows): {count}"
+    );
+    for run in dormant.iter().take(DORMANT_SHOWN) {
+        let _ = writeln!(
+            out,
+            "  {}: {}",
+            one_line(&run.name, FAILED_NAME_CHARS),
+            one_line(&run.budget, FAILED_NAME_CHARS)
+        );
+    }
+    let named = dormant.len().min(DORMANT_SHOWN) as u64;
+    if count > named {
+        let _ = writeln!(
+            out,
+            "  … and {} more (`--json` lists up to 100)",
+            count - named
+        );
+    }
+}
+
+/// The held-out accuracy of each run's learned termination, for the runs that have one.
+fn render_terminations(out: &mut String, runs: &[RunReport]) {
+    let learned: Vec<(&str, &TerminationAccuracyReport)> = runs
+        .iter()
+        .filter_map(|run| {
+            let accuracy = run
+                .last_retraining
+                .as_ref()?
+                .termination_accuracy
+                .as_ref()?;
+            Some((run.name.as_str(), accuracy))
+        })
+        .collect();
+    if learned.is_empty() {
+        return;
+    }
+    out.push_str("learned terminations (held-out transitions of the last retraining):\n");
+    for (name, t) in learned {
+        let _ = writeln!(
+            out,
+            "  {name}: accuracy {:.3}, recall {:.3} ({} held out, {} ends)",
+            t.accuracy, t.recall, t.held_out, t.terminations
+        );
+    }
 }
 
 /// Characters of a failed run's name and reason the table shows: both come from the disk and
@@ -724,8 +847,7 @@ agents:
             protocol_version: 1,
             uptime_seconds: 59.9,
             runs: Vec::new(),
-            fleet: FleetReport::default(),
-            failed_runs: Vec::new(),
+            ..PlannerReport::default()
         };
         let text = render(&[idle.clone(), fixture()]);
         assert!(
@@ -742,6 +864,44 @@ agents:
         let text = render(&[report]);
         assert!(text.contains("\nr  "), "{text}");
         assert!(text.contains("planning"), "{text}");
+    }
+
+    #[test]
+    fn retrying_and_dormant_runs_and_learned_terminations_are_shown() {
+        let json = r#"{
+            "planner_id": "p",
+            "protocol_version": 6,
+            "retrying_runs": [{"name": "r1", "reason": "disk busy", "attempts": 2, "next_try_seconds": 3.6}],
+            "dormant_runs": [{"name": "old-1", "budget": "max_runs"}, {"name": "old-2", "budget": "max_runs"}],
+            "dormant_run_count": 13,
+            "runs": [
+                {"name": "pendulum", "last_retraining": {"models_version": 3, "seconds": 1.5,
+                    "termination_accuracy": {"held_out": 57, "terminations": 4, "accuracy": 0.982, "recall": 1.0}}},
+                {"name": "cart", "last_retraining": {"models_version": 2, "seconds": 0.5}}
+            ]
+        }"#;
+        let report: PlannerReport = serde_json::from_str(json).unwrap();
+        let text = render(&[report]);
+        for line in [
+            "runs retrying to open (stored, not served yet):",
+            "  r1: disk busy (failed 2 times, next try in 4s)",
+            "dormant runs (stored, closed at a budget, opened when it allows): 13",
+            "  old-1: max_runs",
+            "  … and 11 more (`--json` lists up to 100)",
+            "learned terminations (held-out transitions of the last retraining):",
+            "  pendulum: accuracy 0.982, recall 1.000 (57 held out, 4 ends)",
+        ] {
+            assert!(
+                text.lines().any(|l| l == line),
+                "no line {line:?} in:\n{text}"
+            );
+        }
+        assert!(!text.contains("  cart: accuracy"), "{text}");
+        // Nothing of these in a report without them.
+        let plain = render(&[fixture()]);
+        assert!(
+            !plain.contains("dormant") && !plain.contains("retrying") && !plain.contains("learned")
+        );
     }
 
     #[test]

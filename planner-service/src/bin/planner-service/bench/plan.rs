@@ -275,10 +275,10 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
         .num_threads(threads)
         .build()?;
     let scheduler = std::sync::Arc::new(planner_service::sched::Scheduler::new(0.0));
-    let turn = || -> Option<std::sync::Arc<dyn planner_service::plan::anytime::Preempt>> {
+    let turn = || -> Option<std::sync::Arc<dyn planner_service::sched::Preempt>> {
         s.shared.then(|| {
             let turn = scheduler.turn(None, None, &planner_service::sched::Waiting::default());
-            std::sync::Arc::new(turn) as std::sync::Arc<dyn planner_service::plan::anytime::Preempt>
+            std::sync::Arc::new(turn) as std::sync::Arc<dyn planner_service::sched::Preempt>
         })
     };
     let (cpu_share, contenders) = pool.install(|| {

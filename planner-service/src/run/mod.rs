@@ -1,18 +1,20 @@
 //! A run: one learning process with its task, preset, replay buffer and models, fed by one or
 //! more agents and retrained by its own trainer task.
 
+pub mod stats;
+
 use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
 use crate::replay::{self, EpisodeSummary, LogFile, Record, ReplayBuffer, ReplayError};
 use crate::sched::background::run_in_background;
-use crate::service::metrics::RunHistograms;
-use crate::service::status::{LastRetraining, Latency, LatencyWindow, PlanRecord, PlanTally};
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
     EpisodeEnd, ErrorCode, ErrorReport, Observation, RunEventKind, RunSpec, Task, TrainMode,
 };
+pub use stats::RunHistograms;
+use stats::{LastRetraining, Latency, LatencyWindow, PlanRecord, PlanTally};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
