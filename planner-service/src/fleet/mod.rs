@@ -160,15 +160,25 @@ pub struct Fleet {
     /// Wakes the service's steward whenever something may have changed: any number of
     /// token events between two looks coalesce into one.
     changed: Arc<Notify>,
+    session: zenoh::Session,
+    /// This planner's liveliness token, declared while it may take runs (see
+    /// [`Fleet::show_presence`]).
+    presence: tokio::sync::Mutex<Option<zenoh::liveliness::LivelinessToken>>,
 }
 
 impl Fleet {
     /// A single daemon: owns every run in its data directory, watches no one.
-    pub fn alone(keys: Keys, me: String) -> Arc<Self> {
-        Arc::new(Self::new(keys, me, Pins::default(), None))
+    pub fn alone(session: zenoh::Session, keys: Keys, me: String) -> Arc<Self> {
+        Arc::new(Self::new(session, keys, me, Pins::default(), None))
     }
 
-    fn new(keys: Keys, me: String, pins: Pins, etcd: Option<Arc<EtcdOwners>>) -> Self {
+    fn new(
+        session: zenoh::Session,
+        keys: Keys,
+        me: String,
+        pins: Pins,
+        etcd: Option<Arc<EtcdOwners>>,
+    ) -> Self {
         let mut view = View::default();
         view.planner_joined(&me);
         view.set_pins(&me, pins.clone());
@@ -182,6 +192,8 @@ impl Fleet {
             events: Mutex::new(VecDeque::new()),
             fenced: Mutex::new(Vec::new()),
             changed: Arc::new(Notify::new()),
+            session,
+            presence: tokio::sync::Mutex::new(None),
         }
     }
 
@@ -198,7 +210,13 @@ impl Fleet {
     ) -> Result<Arc<Self>, FleetError> {
         let timing = LeaseTiming::new(config.lease_ttl_seconds);
         let etcd = EtcdOwners::connect(&config.etcd, keys.prefix(), &me, timing).await?;
-        let fleet = Arc::new(Self::new(keys, me, config.pins(), Some(etcd.clone())));
+        let fleet = Arc::new(Self::new(
+            session.clone(),
+            keys,
+            me,
+            config.pins(),
+            Some(etcd.clone()),
+        ));
         let runtime = tokio::runtime::Handle::current();
         let wake = fleet.changed.clone();
         runtime.spawn(etcd.clone().keep_alive(move || wake.notify_one()));
@@ -271,6 +289,43 @@ impl Fleet {
     /// Whether this planner is one of a fleet (etcd decides), not a single daemon.
     pub fn in_fleet(&self) -> bool {
         self.etcd.is_some()
+    }
+
+    /// Declares this planner's liveliness token while it may take runs, and withdraws it
+    /// while it may not: a fleet planner holds its token only while its etcd lease is valid.
+    /// The token is what the other planners prefer free runs on (rendezvous hashing over the
+    /// live planners): a planner cut off from etcd that kept it would stay the preferred
+    /// planner of its own runs once etcd expired its lease, and they would wait a whole
+    /// [`FREE_GRACE`] for another planner. Agents watching their owner's token (sim-bridge)
+    /// attach again at once when it goes. A single daemon always shows it. Called at start
+    /// (once the stored runs are resumed) and by the service's steward at every look.
+    pub async fn show_presence(&self) {
+        let wanted = self.etcd.as_ref().is_none_or(|etcd| etcd.lease_valid());
+        let mut presence = self.presence.lock().await;
+        if wanted == presence.is_some() {
+            return;
+        }
+        if !wanted {
+            tracing::warn!(
+                "no valid etcd lease: planner token withdrawn, so no run is preferred here"
+            );
+            *presence = None;
+            return;
+        }
+        match self
+            .session
+            .liveliness()
+            .declare_token(self.keys.planner_alive(&self.me))
+            .await
+        {
+            Ok(token) => {
+                if self.etcd.is_some() {
+                    tracing::info!("etcd lease held: planner token declared");
+                }
+                *presence = Some(token);
+            }
+            Err(e) => tracing::error!(error = %e, "cannot declare the planner token"),
+        }
     }
 
     /// What wakes the service's steward.
@@ -544,8 +599,10 @@ impl Fleet {
         }
     }
 
-    /// At shutdown: the lease is revoked, so every run this planner held is free at once.
+    /// At shutdown: the planner token is withdrawn and the lease revoked, so every run this
+    /// planner held is free at once.
     pub async fn leave(&self) {
+        *self.presence.lock().await = None;
         if let Some(etcd) = &self.etcd {
             etcd.revoke().await;
         }

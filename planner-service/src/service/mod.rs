@@ -349,7 +349,7 @@ impl Service {
             Some(fleet) => {
                 Fleet::join(session.clone(), keys.clone(), planner_id.clone(), fleet).await?
             }
-            None => Fleet::alone(keys.clone(), planner_id.clone()),
+            None => Fleet::alone(session.clone(), keys.clone(), planner_id.clone()),
         };
         let plans = Arc::new(crate::sched::Scheduler::new(config.retraining_share));
         let replay_budget = Arc::new(crate::run::ReplayBudget::new(
@@ -383,11 +383,7 @@ impl Service {
         crate::nn::peak::measure_in_background();
         // Resume the stored runs that are ours (all of them for a planner without peers).
         service.rebalance().await;
-        let _alive = session
-            .liveliness()
-            .declare_token(keys.planner_alive(&planner_id))
-            .await
-            .map_err(zenoh_err)?;
+        service.fleet.show_presence().await;
         let attach = session
             .declare_queryable(keys.all_attach())
             .await
@@ -465,6 +461,7 @@ impl Service {
                     () = changes.notified() => {}
                     () = tokio::time::sleep(STEWARD_TICK) => {}
                 }
+                service.fleet.show_presence().await;
                 service.rebalance().await;
             }
         })
@@ -602,8 +599,16 @@ impl Service {
             return;
         };
         let service = self.clone();
+        // The grace counts from when the steward first saw the run free, not from this query:
+        // an agent asking again after its owner went waits only what is left of it.
+        let free_for = self
+            .free_since
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(&run)
+            .map_or(std::time::Duration::ZERO, std::time::Instant::elapsed);
         self.runtime.spawn(async move {
-            tokio::time::sleep(crate::fleet::FREE_GRACE).await;
+            tokio::time::sleep(crate::fleet::FREE_GRACE.saturating_sub(free_for)).await;
             if !service.fleet.has_owner_key(&run)
                 && service
                     .fleet
