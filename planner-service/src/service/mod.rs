@@ -87,6 +87,10 @@ const ZENOH_HEADROOM: u64 = 64 << 10;
 /// beyond this a request is refused at once instead of queueing without bound.
 const CONCURRENT_ATTACHES: usize = 8;
 
+/// Most attach queries for free runs preferred on another planner that wait out the free-run
+/// grace at once (each holds only its query until then).
+const FREE_RUN_WAITS: usize = 64;
+
 struct AgentHandle {
     tx: mpsc::Sender<Incoming>,
     /// The agent's plans waiting for the cores (see [`AgentHandle::queue_depth`]).
@@ -278,6 +282,8 @@ pub struct Service {
     /// the same new run at once open it once. Hosted runs are joined without it.
     opening: tokio::sync::Mutex<()>,
     attach_slots: Arc<Semaphore>,
+    /// Attach queries for free runs preferred elsewhere, waiting out the grace.
+    free_run_waits: Arc<Semaphore>,
     /// Raised at shutdown: every run's training stops before its next minibatch.
     cancel_training: Arc<AtomicBool>,
     /// Every run's plans, given the cores by earliest deadline; retraining yields to them
@@ -373,6 +379,7 @@ impl Service {
             free_since: Mutex::new(HashMap::new()),
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
+            free_run_waits: Arc::new(Semaphore::new(FREE_RUN_WAITS)),
             cancel_training: Arc::new(AtomicBool::new(false)),
             plans,
             replay_budget,
@@ -566,6 +573,12 @@ impl Service {
             }
             return;
         }
+        self.attach_in_a_slot(query);
+    }
+
+    /// Attaches on a task of its own in one of the attach slots, or refuses at once when all
+    /// [`CONCURRENT_ATTACHES`] are in hand.
+    fn attach_in_a_slot(self: &Arc<Self>, query: zenoh::query::Query) {
         match self.attach_slots.clone().try_acquire_owned() {
             Ok(slot) => {
                 let service = self.clone();
@@ -593,9 +606,11 @@ impl Service {
     /// take it at once, but it may be cut off from etcd, or not a planner at all (a forged
     /// token). After [`crate::fleet::FREE_GRACE`], if the run is still free, this planner
     /// takes it (etcd lets only one of the planners that try succeed; the others stay
-    /// silent). Bounded by the attach slots: without one the query is left to the others.
+    /// silent). At most [`FREE_RUN_WAITS`] queries wait so at once (beyond that they are left to
+    /// the other planners); waiting takes no attach slot, so the runs this planner owns keep
+    /// theirs.
     fn attach_if_still_free(self: &Arc<Self>, run: String, query: zenoh::query::Query) {
-        let Ok(slot) = self.attach_slots.clone().try_acquire_owned() else {
+        let Ok(waiting) = self.free_run_waits.clone().try_acquire_owned() else {
             return;
         };
         let service = self.clone();
@@ -614,9 +629,9 @@ impl Service {
                     .fleet
                     .may_take_unpreferred(&run, crate::fleet::FREE_GRACE)
             {
-                service.attach(query).await;
+                service.attach_in_a_slot(query);
             }
-            drop(slot);
+            drop(waiting);
         });
     }
 
