@@ -173,6 +173,19 @@ pub fn runs(dir: &Path, manifest: &Manifest) -> Vec<(RunId, bool)> {
     out
 }
 
+/// The unfinished runs this command asks for: its methods × its seeds. A folder's manifest
+/// holds every run any command asked for, and `episodes.csv` all the finished ones, but a
+/// sitting works only on what its own command names, so that a shorter command can finish
+/// one run first (`--methods cem+deen --seeds 1`) and the full one continues the rest.
+pub fn asked_and_unfinished(all: &[(RunId, bool)], exp: &Experiment) -> Vec<RunId> {
+    all.iter()
+        .filter(|(run, done)| {
+            !done && exp.methods.contains(&run.method) && exp.seeds.contains(&run.seed)
+        })
+        .map(|(run, _)| run.clone())
+        .collect()
+}
+
 /// The rows of every complete run of the manifest, in manifest order.
 pub fn collect_rows(dir: &Path, manifest: &Manifest) -> Result<Vec<EpisodeRow>> {
     let task = manifest.task.name();
@@ -286,17 +299,15 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
     let deadline = exp.budget.map(|b| started + b);
     let manifest = prepare(exp)?;
     let all = runs(&exp.out, &manifest);
-    let pending: Vec<RunId> = all
-        .iter()
-        .filter(|(_, done)| !done)
-        .map(|(r, _)| r.clone())
-        .collect();
-    let skipped = all.len() - pending.len();
+    let pending = asked_and_unfinished(&all, exp);
+    let skipped = all.iter().filter(|(_, done)| *done).count();
+    let not_asked = all.len() - skipped - pending.len();
     tracing::info!(
         dir = %exp.out.display(),
         runs = all.len(),
         skipped,
         pending = pending.len(),
+        not_asked,
         budget = ?exp.budget,
         "experiment {} ({} scale): {} episodes per run{}",
         exp.task,
@@ -885,6 +896,21 @@ mod tests {
         exp.seeds = vec![1];
         let merged = prepare(&exp).unwrap();
         assert_eq!((merged.methods.len(), merged.seeds.len()), (2, 2));
+        // The folder holds four runs now; this command asks for one of them, and a finished
+        // run is never asked for again.
+        let mut all = runs(&exp.out, &merged);
+        assert_eq!(all.len(), 4);
+        let asked = asked_and_unfinished(&all, &exp);
+        assert_eq!(asked.len(), 1);
+        assert_eq!((asked[0].method.as_str(), asked[0].seed), ("cem+deen", 1));
+        for (run, done) in &mut all {
+            *done = run.method == "cem+deen";
+        }
+        assert!(asked_and_unfinished(&all, &exp).is_empty());
+        exp.methods = vec!["cem".into(), "cem+deen".into()];
+        exp.seeds = vec![0, 1];
+        assert_eq!(asked_and_unfinished(&all, &exp).len(), 2, "both cem runs");
+        exp.seeds = vec![1];
         exp.methods = vec!["sgd".into()];
         assert!(prepare(&exp).is_err());
         exp.methods = vec!["cem".into(), "adam+dae".into()];

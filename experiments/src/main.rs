@@ -9,7 +9,7 @@ use ebmpc_experiments::figures::{imagination, toy};
 use ebmpc_experiments::launcher::{self, Experiment};
 use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
 use ebmpc_experiments::scale::Scale;
-use ebmpc_experiments::{replan, results};
+use ebmpc_experiments::{distance, replan, results};
 use proto::Builtin;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -30,13 +30,17 @@ struct Cli {
 enum Command {
     /// Learn a task from scratch with several methods and seeds: one planner daemon, one
     /// sim-bridge per (method, seed) run over Zenoh. Re-running into the same --out folder
-    /// skips the runs already complete.
+    /// skips the runs already complete; a sitting works only on the runs its command names.
     Experiment(ExperimentArgs),
     /// Draw the learning curves (mean ± std over seeds per method) of an experiment folder.
     Plot(PlotArgs),
     /// Print a Markdown table of the returns (mean ± sample std over seeds) at chosen episodes,
     /// per method, with the planning time per step and the wall time per run.
     Table(TableArgs),
+    /// How far the body travelled forward in each episode of a locomotion experiment's runs
+    /// (half-cheetah, ant), read from the planner's stored replay logs: a return mixes
+    /// progress with survival bonuses and control costs, the distance does not.
+    Distance(DistanceArgs),
     /// Figure 5: after some episodes of training, optimise one plan from a random population
     /// with each regulariser and compare its imagined rewards with the real ones.
     Imagination(ImaginationArgs),
@@ -130,6 +134,21 @@ struct TableArgs {
     /// Episodes to show (comma-separated; default: every episode).
     #[arg(long, value_delimiter = ',')]
     episodes: Vec<u32>,
+}
+
+#[derive(Args, Debug)]
+struct DistanceArgs {
+    /// Experiment folder (the --out of `experiment`), whose planner/ holds the runs.
+    folder: PathBuf,
+    /// The task whose runs to read (half-cheetah or ant).
+    #[arg(long)]
+    task: Builtin,
+    /// Episodes shown per run, the most recent.
+    #[arg(long, default_value_t = 3)]
+    last: usize,
+    /// Only episodes at least this long (default: whole episodes of the task).
+    #[arg(long)]
+    min_steps: Option<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -372,6 +391,15 @@ fn plot_command(args: PlotArgs) -> Result<()> {
     draw_curves(&rows, &stem)
 }
 
+fn distance_command(args: DistanceArgs) -> Result<()> {
+    let rows = distance::experiment_distances(&args.folder, args.task)?;
+    let min_steps = args
+        .min_steps
+        .unwrap_or_else(|| args.task.spec().episode_len);
+    print!("{}", distance::markdown(&rows, args.last, min_steps));
+    Ok(())
+}
+
 fn table_command(args: TableArgs) -> Result<()> {
     let rows = read_experiments(&args.paths)?;
     print!("{}", results::markdown_table(&rows, &args.episodes));
@@ -505,6 +533,7 @@ fn main() -> Result<()> {
         Command::Experiment(args) => experiment(args),
         Command::Plot(args) => plot_command(args),
         Command::Table(args) => table_command(args),
+        Command::Distance(args) => distance_command(args),
         Command::Imagination(args) => imagination_command(args),
         Command::Toy(args) => toy_command(args),
         Command::Replan(args) => replan_command(args),

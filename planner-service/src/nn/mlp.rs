@@ -13,7 +13,7 @@
 //! ([`Mlp::params_mut`] drops it), so a planner packs once per model, never per call.
 //!
 //! The network's [`Precision`] picks the kernel path ([`KernelPath`], measured per network
-//! shape for `Auto` and `Bf16`, see [`kernel_path`](super::kernel_path)) and so the packing:
+//! shape for `Auto` and `Bf16`, see [`super::kernel_path`]) and so the packing:
 //! an f32 path (the default for a bare network) packs every layer in f32; a bf16 path (AMX
 //! tiles or AVX-512 BF16 dot products) packs every layer as bf16 pairs: the f32 input is
 //! converted to pairs in one pass, hidden activations travel between layers as bf16, and the

@@ -64,6 +64,8 @@ pub enum AdminError {
     Exists { path: String },
     #[error(transparent)]
     Persist(#[from] PersistError),
+    #[error(transparent)]
+    Replay(#[from] crate::replay::LogError),
 }
 
 /// A serving daemon's locks on its data directory; released when dropped (or when the
@@ -221,6 +223,13 @@ fn existing_run(data_dir: &Path, name: &str) -> Result<RunDir, AdminError> {
         });
     }
     Ok(dir)
+}
+
+/// Every intact record of run `name`'s replay log, read without writing anything, so it is
+/// safe while a daemon serves (records appended meanwhile may be missing, never half-read).
+pub fn read_replay(data_dir: &Path, name: &str) -> Result<crate::replay::Recovered, AdminError> {
+    let dir = existing_run(data_dir, name)?;
+    Ok(crate::replay::ReplayLog::read(&dir.replay_log())?)
 }
 
 /// Deletes run `name` and everything it stored, unless a daemon serves `data_dir`.
@@ -401,5 +410,56 @@ mod tests {
         drop(pa);
         delete_run(data.path(), "r").unwrap();
         assert!(!dir.root().exists());
+    }
+
+    #[test]
+    fn a_replay_is_read_beside_a_serving_daemon_without_changing_its_file() {
+        use crate::replay::{ActionOrigin, Record, ReplayLog};
+        let data = tempfile::tempdir().unwrap();
+        store_run(data.path(), "r");
+        let path = RunDir::new(data.path(), "r").replay_log();
+        fs::remove_file(&path).unwrap();
+        let transition = Record::Transition {
+            epoch: 1,
+            agent: "a".into(),
+            episode: 0,
+            step: 0,
+            obs: vec![0.5; 4],
+            act: vec![1.0],
+            origin: ActionOrigin::Planned,
+            next_obs: vec![0.25; 4],
+            reward: 2.0,
+        };
+        let (mut log, _) = ReplayLog::open(&path).unwrap();
+        log.append(&[
+            Record::Header {
+                task: "cartpole".into(),
+                obs_dim: 4,
+                act_dim: 1,
+            },
+            transition.clone(),
+        ])
+        .unwrap();
+        // A daemon in the middle of a write: a torn record at the end.
+        fs::OpenOptions::new()
+            .append(true)
+            .open(&path)
+            .and_then(|mut f| std::io::Write::write_all(&mut f, &[7u8; 5]))
+            .unwrap();
+        let _daemon = DaemonLock::acquire(data.path(), "pa").unwrap();
+        let before = fs::read(&path).unwrap();
+        let read = read_replay(data.path(), "r").unwrap();
+        assert_eq!(read.records.len(), 2);
+        assert_eq!(read.records[1], transition);
+        assert_eq!(read.truncated_bytes, 5);
+        assert_eq!(fs::read(&path).unwrap(), before, "reading wrote nothing");
+        assert!(matches!(
+            read_replay(data.path(), "none"),
+            Err(AdminError::NoSuchRun { .. })
+        ));
+        assert!(matches!(
+            read_replay(data.path(), "../r"),
+            Err(AdminError::Name(_))
+        ));
     }
 }

@@ -13,7 +13,7 @@
 //! every Adam step follow a different function. The reward's gradient is the task's own (for
 //! the whole population per step, [`proto::Task::reward_gradients`]: a formula through the
 //! expression language's block evaluator, with its `∂r/∂s_t` where it reads `s`) or, for a
-//! task whose reward is learned, the reward model's ([`RewardModel::predict_with_gradient`],
+//! task whose reward is learned, the reward model's ([`crate::reward::RewardModel::predict_with_gradient`],
 //! which unlike the catalog's rewards also depends on `s_t`); the regulariser's is
 //! [`Regularizer::energy_and_gradient`]: for the DAE, the penalty `‖g(x) − x‖²` with the
 //! gradient stopped at the autoencoder, as the paper describes Boney et al.'s method (§3).

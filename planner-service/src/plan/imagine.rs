@@ -6,7 +6,7 @@
 //! with `r` the task's own reward (the function the simulator uses, evaluated for the whole
 //! chunk per step by [`proto::Task::rewards`]: a formula through the expression language's
 //! block evaluator) or, for a task whose reward is learned, the run's reward model (one batched
-//! forward pass per step for the whole chunk, [`RewardModel::predict`]), `E` the regulariser's
+//! forward pass per step for the whole chunk, [`crate::reward::RewardModel::predict`]), `E` the regulariser's
 //! energy and `α` the energy weight.
 //!
 //! - **Particles (PETS TS∞).** Each candidate is imagined `P` times; particle `p` follows

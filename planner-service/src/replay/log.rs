@@ -624,6 +624,47 @@ impl ReplayLog {
         ))
     }
 
+    /// Reads every intact record of the log at `path` without writing anything: a torn tail
+    /// and damaged stretches are skipped as [`ReplayLog::open`] would skip them, but nothing
+    /// is cut or migrated, so this is safe beside a daemon that is appending. A log in the
+    /// format before the current one is read as well; an empty or missing file holds nothing.
+    pub fn read(path: &Path) -> Result<Recovered, LogError> {
+        let io = |source| LogError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let bytes = match std::fs::read(path) {
+            Ok(bytes) => bytes,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Recovered::default()),
+            Err(e) => return Err(io(e)),
+        };
+        if is_current_format(&bytes) {
+            let version = u32::from_le_bytes(
+                bytes[MAGIC.len()..FILE_HEADER_LEN]
+                    .try_into()
+                    .expect("4 bytes"),
+            );
+            if version > FORMAT_VERSION {
+                return Err(LogError::Format {
+                    path: path.to_path_buf(),
+                    found: version,
+                });
+            }
+            Ok(scan(&bytes).0)
+        } else if bytes.len() < FILE_HEADER_LEN
+            && MAGIC.starts_with(&bytes[..bytes.len().min(MAGIC.len())])
+        {
+            Ok(Recovered::default())
+        } else {
+            let (records, parsed) = parse_legacy(&bytes);
+            Ok(Recovered {
+                records,
+                truncated_bytes: (bytes.len() - parsed) as u64,
+                ..Recovered::default()
+            })
+        }
+    }
+
     /// Appends `records` in one write and hands them to the OS (they survive the process
     /// being killed). On failure none of them is in the log: the file is cut back to where it
     /// ended before, and the caller can try again later.

@@ -340,7 +340,7 @@ impl ReplayBuffer {
 
     /// As [`ReplayBuffer::append`], and the records are forced to disk before they count: if
     /// the sync fails they are in neither the log nor memory (see
-    /// [`super::ReplayLog::append_synced`]), and the caller refuses what they came from.
+    /// [`ReplayLog::append_synced`]), and the caller refuses what they came from.
     /// Returns the time the sync took (`None` for a buffer in memory only).
     pub fn append_synced(
         &mut self,

@@ -155,7 +155,7 @@ impl Timed {
 }
 
 /// The durations a run times itself, since it is the run that syncs its replay log and
-/// retrains: the daemon's registry serves them (see [`Metrics::for_run`]) and the status
+/// retrains: the daemon's registry serves them (see [`crate::service::metrics::Metrics::for_run`]) and the status
 /// report shows their count and total. The default ones are served nowhere (experiments,
 /// tests).
 #[derive(Clone, Debug)]

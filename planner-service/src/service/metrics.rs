@@ -436,8 +436,8 @@ const MAX_CONNECTIONS: usize = 32;
 /// Serves `GET /metrics` on `listener` until the task is aborted; `render` builds the body,
 /// every other path is `404`. HTTP/1.1 through hyper, one request per connection (a scraper
 /// every few seconds needs no more), each connection bounded in bytes, time and number, so a
-/// slow or hostile client holds at most one of [`MAX_CONNECTIONS`] slots for at most
-/// [`CONNECTION_TIMEOUT`] and never a thread the daemon serves agents with.
+/// slow or hostile client holds at most one of `MAX_CONNECTIONS` slots for at most
+/// `CONNECTION_TIMEOUT` and never a thread the daemon serves agents with.
 pub async fn serve(listener: TcpListener, render: impl Fn() -> String + Send + Sync + 'static) {
     let render = Arc::new(render);
     let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));

@@ -80,7 +80,7 @@ thread_local! {
 }
 
 /// A compiled formula of a task: evaluated for a whole population through the expression
-/// language's block evaluator with the caller's scratch ([`Formula::values`]), or one
+/// language's block evaluator with the caller's scratch (`Formula::values`), or one
 /// transition at a time with a per-thread scratch ([`Formula::value`], and the gradient for
 /// planners that descend it).
 #[derive(Debug)]

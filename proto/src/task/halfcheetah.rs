@@ -37,9 +37,12 @@ pub(crate) fn spec() -> TaskSpec {
 /// Index of the root pitch in the observation.
 const PITCH: usize = 2;
 
+/// Index of the root's forward velocity `Δx/dt` in the observation.
+pub const FORWARD_VELOCITY: usize = 0;
+
 /// `obs[0] − 0.1 ‖a‖²`: the forward velocity reached by this step, minus the control cost.
 fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
-    next_obs[0] - 0.1 * squared_norm(act)
+    next_obs[FORWARD_VELOCITY] - 0.1 * squared_norm(act)
 }
 
 /// `[obs[1], sin obs[2], cos obs[2], obs[3..]]`: the velocity is a target, not an input, and the
@@ -53,7 +56,7 @@ fn reward_gradient(
     d_next: &mut [f32],
 ) -> f32 {
     d_next.fill(0.0);
-    d_next[0] = 1.0;
+    d_next[FORWARD_VELOCITY] = 1.0;
     squared_norm_gradient(act, 0.1, d_act);
     reward(obs, act, next_obs)
 }

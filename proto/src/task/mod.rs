@@ -113,6 +113,17 @@ impl Builtin {
         }
     }
 
+    /// Where a locomotion task's observation holds the root's forward (x) velocity, whose
+    /// integral over an episode is how far the body travelled; `None` for the tasks that do
+    /// not move a body forward.
+    pub fn forward_velocity(self) -> Option<usize> {
+        match self {
+            Builtin::HalfCheetah => Some(halfcheetah::FORWARD_VELOCITY),
+            Builtin::Ant => Some(ant::FORWARD_VELOCITY),
+            Builtin::Cartpole | Builtin::Reacher3d | Builtin::Pusher => None,
+        }
+    }
+
     /// The observation and action dimensions the code indexes.
     pub fn dims(self) -> (usize, usize) {
         let code = self.code();

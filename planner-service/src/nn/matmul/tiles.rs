@@ -112,7 +112,7 @@ pub fn available() -> bool {
 }
 
 /// `C = init + X · Y` with bf16 factors and f32 sums, on the calling thread. Panics on
-/// mismatched shapes and if the tiles are not [`available`](available).
+/// mismatched shapes and if the tiles are not [`available`].
 pub fn tile_matmul(
     c: MatMut<'_>,
     x: MatRef<'_>,
