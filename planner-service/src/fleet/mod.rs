@@ -198,7 +198,7 @@ impl Fleet {
     }
 
     /// Joins a fleet: connects to etcd and holds a lease there (kept alive on a task of its
-    /// own), reads the owner keys now and every [`OWNERS_REFRESH`], serves this planner's pins
+    /// own), reads the owner keys now and every `OWNERS_REFRESH`, serves this planner's pins
     /// and watches the planner tokens, reading the ones already declared. Waits up to a
     /// lease's margin for the first lease, so a planner that starts with etcd up resumes its
     /// share at once. (The planner's own liveliness token is the service's to declare.)
