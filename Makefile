@@ -13,7 +13,7 @@ EPISODES ?= 10
 SEED ?= 0
 METHOD ?= cem+deen
 
-.PHONY: demo test mujoco python-env toolchain lint fmt docs
+.PHONY: demo test mujoco python-env toolchain lint fmt docs protoc etcd
 
 toolchain:
 	@command -v $(CARGO) >/dev/null || { echo "error: cargo not found: install Rust 1.95+ (https://rustup.rs) first" >&2; exit 1; }
@@ -23,7 +23,15 @@ $(MUJOCO_LIB): deploy/install-mujoco.sh
 
 mujoco: $(MUJOCO_LIB)
 
-demo: toolchain mujoco
+# Debian packages: protoc for the build (the etcd client compiles etcd's gRPC definitions), and
+# etcd for the fleet tests (single daemons never need it). Installed only when missing.
+protoc:
+	bash deploy/install-debian-packages.sh protoc
+
+etcd:
+	bash deploy/install-debian-packages.sh protoc etcd
+
+demo: toolchain mujoco protoc
 	$(CARGO) build --release --bins
 	TASK=$(TASK) EPISODES=$(EPISODES) SEED=$(SEED) METHOD=$(METHOD) bash deploy/demo.sh
 
@@ -37,11 +45,11 @@ VENV := .venv
 python-env:
 	bash examples/setup-python.sh "$(CURDIR)/$(VENV)"
 
-test: toolchain mujoco python-env
+test: toolchain mujoco python-env etcd
 	$(CARGO) build --workspace --bins
 	EBMPC_PYTHON="$(CURDIR)/$(VENV)/bin/python" $(CARGO) test --workspace --no-fail-fast
 
-lint: toolchain mujoco
+lint: toolchain mujoco protoc
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
 	RUSTDOCFLAGS="-D warnings" $(CARGO) doc --workspace --no-deps

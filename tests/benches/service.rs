@@ -7,9 +7,13 @@
 //! stored in the run's replay log → action published → received.
 //!
 //! Two set-ups, each printing the round-trip p50/p99 and the total steps per second:
-//! - *direct*: one planner on a loopback port, agents connected to it, 1, 2, 4 and 8 agents;
+//! - *direct*: one planner on a loopback port, agents connected to it, 1, 2, 4 and 8 agents,
+//!   twice side by side: the log synced at episode ends (a single daemon's default), and every
+//!   step synced before it is acknowledged (`[storage] sync_every_step`, group commit; a
+//!   fleet's default): the difference is the group commit's cost per step;
 //! - *fleet*: a Zenoh router (in this process), 1..N planners sharing one data directory, and
-//!   the same number of agents each time, spread over the planners by the fleet's placement.
+//!   the same number of agents each time, spread over the planners by etcd (started here) and
+//!   the fleet's placement; steps synced at episode ends, as in the direct set-up's first row.
 //!   The difference between the direct and the one-planner fleet p50 at equal agent count is
 //!   the router's overhead per step (one more hop each way).
 //!
@@ -18,6 +22,7 @@
 
 use anyhow::{Context, Result};
 use ebmpc_e2e::client::{Client, ToySystem, open_session, runtime, status};
+use ebmpc_e2e::etcd::Etcd;
 use ebmpc_e2e::{Guarded, Planner, TempDir, free_endpoint, router, serve_data};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::path::Path;
@@ -174,12 +179,14 @@ fn report(label: &str, round_trips: Vec<Duration>, wall: Duration) -> f64 {
     p50
 }
 
-/// Starts a router and `n` planners sharing one data directory, waits until each sees all.
+/// Starts etcd, a router and `n` planners sharing one data directory, waits until each sees
+/// all. (The planners come before etcd in the result, so they stop first.)
 fn fleet(
     dir: &Path,
     n: usize,
     runtime: &tokio::runtime::Runtime,
-) -> Result<(zenoh::Session, String, Vec<Guarded>)> {
+) -> Result<(zenoh::Session, String, Vec<Guarded>, Etcd)> {
+    let etcd = Etcd::start(dir)?;
     let endpoint = free_endpoint();
     let router = runtime.block_on(router(&endpoint))?;
     let data = dir.join("data");
@@ -187,8 +194,11 @@ fn fleet(
     let mut planners = Vec::new();
     for i in 0..n {
         let id = format!("p{i}");
-        // `[fleet]` (empty: every run may be placed on any of them) makes each a fleet member.
-        let config = format!("{}\n[fleet]\n", config(&id, &top));
+        let config = format!(
+            "{}\n[storage]\nsync_every_step = false\n{}",
+            config(&id, &top),
+            etcd.fleet_toml(10)
+        );
         planners.push(serve_data(&dir.join(&id), &data, &config, None)?);
     }
     runtime.block_on(async {
@@ -214,7 +224,7 @@ fn fleet(
             .await
             .map_err(|e| anyhow::anyhow!("close: {e}"))
     })?;
-    Ok((router, endpoint, planners))
+    Ok((router, endpoint, planners, etcd))
 }
 
 fn main() -> Result<()> {
@@ -228,7 +238,16 @@ fn main() -> Result<()> {
     let mut direct_p50 = std::collections::BTreeMap::new();
     if !args.agents.is_empty() {
         let planner = Planner::start(&dir.path().join("direct"), &config("bench", ""))?;
-        println!("direct to one planner\nagents  p50 ms  p99 ms  steps/s  (total)");
+        let durable = Planner::start(
+            &dir.path().join("direct-sync"),
+            &format!(
+                "{}\n[storage]\nsync_every_step = true\n",
+                config("bench-sync", "")
+            ),
+        )?;
+        println!(
+            "direct to one planner (sync: at episode ends | every step, group commit)\nagents  sync   p50 ms  p99 ms  steps/s  (total)"
+        );
         for (i, &agents) in args.agents.iter().enumerate() {
             let (round_trips, wall) = runtime.block_on(round(
                 &planner.endpoint,
@@ -236,8 +255,20 @@ fn main() -> Result<()> {
                 agents,
                 args.steps,
             ))?;
-            let p50 = report(&format!("{agents:>6}"), round_trips, wall);
+            let p50 = report(&format!("{agents:>6}  ends "), round_trips, wall);
             direct_p50.insert(agents, p50);
+            let (round_trips, wall) = runtime.block_on(round(
+                &durable.endpoint,
+                &format!("s{i}"),
+                agents,
+                args.steps,
+            ))?;
+            let synced = report(&format!("{agents:>6}  steps"), round_trips, wall);
+            println!(
+                "        group commit per step at {agents} agents: {:+.3} ms p50 ({:.2}x)",
+                synced - p50,
+                synced / p50
+            );
         }
     }
     if !args.planners.is_empty() {
@@ -247,7 +278,7 @@ fn main() -> Result<()> {
         );
         for &n in &args.planners {
             let fleet_dir = dir.path().join(format!("fleet-{n}"));
-            let (router, endpoint, mut planners) = fleet(&fleet_dir, n, &runtime)?;
+            let (router, endpoint, mut planners, _etcd) = fleet(&fleet_dir, n, &runtime)?;
             let (round_trips, wall) = runtime.block_on(round(
                 &endpoint,
                 &format!("f{n}"),

@@ -10,12 +10,21 @@ use proto::{
 };
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
-use zenoh::handlers::FifoChannelHandler;
+use zenoh::handlers::{FifoChannelHandler, RingChannel, RingChannelHandler};
 use zenoh::pubsub::Subscriber;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 use zenoh::sample::Sample;
 
 type Inbox = Subscriber<FifoChannelHandler<Sample>>;
+
+/// The run's events: a ring that keeps the newest [`EVENTS_KEPT`]. A test that never reads
+/// them must not stall the agent: Zenoh's default FIFO blocks the session's receiving once
+/// 256 samples wait unread, and then this agent's actions, error reports and attach replies
+/// would stop as well (a few hundred episodes emit that many events).
+type EventInbox = Subscriber<RingChannelHandler<Sample>>;
+
+/// Run events kept unread by [`Client::events`]; older ones are dropped.
+pub const EVENTS_KEPT: usize = 4096;
 
 /// How long a test waits for one answer before it calls the daemon unresponsive.
 pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(60);
@@ -35,7 +44,7 @@ pub struct Client {
     pub agent: String,
     pub actions: Inbox,
     pub errors: Inbox,
-    pub events: Inbox,
+    pub events: EventInbox,
     /// The run's ownership epoch at the last attach; actions of older epochs are ignored.
     epoch: AtomicU64,
     /// The session token of the last accepted attach (0: none yet); [`Client::send`] stamps it
@@ -60,7 +69,11 @@ impl Client {
         };
         let actions = subscribe(keys.act(run, agent)).await?;
         let errors = subscribe(keys.error(run, agent)).await?;
-        let events = subscribe(keys.events(run, Encoding::Postcard)).await?;
+        let events = session
+            .declare_subscriber(keys.events(run, Encoding::Postcard))
+            .with(RingChannel::new(EVENTS_KEPT))
+            .await
+            .map_err(|e| anyhow!("subscribe: {e}"))?;
         let token = session
             .liveliness()
             .declare_token(keys.agent_alive(run, agent))

@@ -43,8 +43,8 @@ pub struct PlannerConfig {
     sizes: Sizes,
     exploration_episodes: Option<u32>,
     top_level: Vec<String>,
-    /// Whether the planner is a member of a fleet (a `[fleet]` table).
-    in_fleet: bool,
+    /// The planner's `[fleet]` table when it is a member of a fleet.
+    fleet: Option<String>,
 }
 
 impl PlannerConfig {
@@ -56,14 +56,15 @@ impl PlannerConfig {
             sizes,
             exploration_episodes: None,
             top_level: Vec::new(),
-            in_fleet: false,
+            fleet: None,
         }
     }
 
-    /// Makes the planner a member of a fleet (an empty `[fleet]` table: every run may be
-    /// placed on it). Without it a planner is alone and reads no fleet token.
-    pub fn in_fleet(mut self) -> Self {
-        self.in_fleet = true;
+    /// Makes the planner a member of a fleet whose ownership lives in the etcd at `endpoint`
+    /// (a `[fleet]` table, lease of `ttl_seconds`; no pins: every run may be placed on it).
+    /// Without it a planner is alone and needs no etcd.
+    pub fn in_fleet(mut self, endpoint: &str, ttl_seconds: u64) -> Self {
+        self.fleet = Some(crate::etcd::fleet_toml(endpoint, ttl_seconds));
         self
     }
 
@@ -94,7 +95,7 @@ impl PlannerConfig {
             .exploration_episodes
             .map(|n| format!("exploration_episodes = {n}\n"))
             .unwrap_or_default();
-        let fleet = if self.in_fleet { "[fleet]\n" } else { "" };
+        let fleet = self.fleet.as_deref().unwrap_or_default();
         format!(
             r#"planner_id = "{id}"
 {top}{fleet}[overrides]

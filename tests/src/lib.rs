@@ -3,13 +3,16 @@
 //! guard that kills it when dropped (also when a test fails), and gives each test its own
 //! temporary directory. Its modules speak for the other parties: [`config`] writes a test
 //! planner's configuration, [`bridge`] runs sim-bridge and reads its episodes, [`client`] is a
-//! scripted agent, and [`python`] runs the Python package's tests, its example controller and its
+//! scripted agent, [`etcd`] runs a real etcd for a fleet, [`proxy`] is a TCP link a test can
+//! cut, and [`python`] runs the Python package's tests, its example controller and its
 //! Gymnasium driver.
 
 pub mod bridge;
 pub mod client;
 pub mod config;
+pub mod etcd;
 pub mod kill_loop;
+pub mod proxy;
 pub mod python;
 
 use anyhow::{Context, Result, bail};

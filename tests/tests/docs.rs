@@ -56,6 +56,16 @@ const OTHER_VARIABLES: &[(&str, &str, &str)] = &[
         "how many times the kill loop SIGKILLs the daemon (default 10).",
     ),
     (
+        "EBMPC_FLEET_KILLS",
+        "`tests/tests/fleet_etcd_e2e.rs`",
+        "how many times the fleet test SIGKILLs a run's owner among three planners (default 20).",
+    ),
+    (
+        "EBMPC_ETCD",
+        "the fleet's end-to-end tests",
+        "the `etcd` binary they start (default: `etcd` on `PATH`, which `make test` installs).",
+    ),
+    (
         "EBMPC_KILL_SEED",
         "`tests/tests/kill_loop_e2e.rs`",
         "seed of the kill loop's random kill times (default: a fixed seed).",

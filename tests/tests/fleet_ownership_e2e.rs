@@ -1,17 +1,19 @@
-//! A fleet of planners behind one router, sharing one data directory: a router (in this
-//! process), three planners and six runs with two scripted agents each.
+//! A fleet of planners behind one router, sharing one data directory, owning runs through a
+//! real etcd (started here on free loopback ports): a router (in this process), three
+//! planners and six runs with two scripted agents each.
 //!
 //! Checked: every run has exactly one owner (both its agents attach to the same planner, and
 //! only that planner's status lists it) and every step gets exactly one action; `status`
 //! through the router lists all three planners every time it is asked; the owner of two or
 //! more runs is killed with SIGKILL mid-episode, and its runs continue on the others: the
-//! agents re-attach at a newer ownership epoch, the models version does not go back, and no
+//! agents re-attach at a newer fencing token, the models version does not go back, and no
 //! acknowledged transition is lost; the killed planner restarts and takes nothing back. One
 //! agent of each run says it applied a clipped action (a safety layer): the replay holds the
 //! applied actions for it and the planned ones for the other agent, and says which.
 
 use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
+use ebmpc_e2e::etcd::Etcd;
 use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data, status_cli};
 use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, ReplayLog};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
@@ -27,16 +29,19 @@ const BEFORE_KILL: u32 = 5;
 /// The safety layer of agent `b`: it applies at most this much force.
 const SAFE: f32 = 1.0;
 
-fn config(id: &str, router: &str) -> String {
+/// The planners' etcd lease: a dead owner's runs move once it expired.
+const TTL_SECONDS: u64 = 3;
+
+fn config(id: &str, router: &str, etcd: &str) -> String {
     PlannerConfig::new(id, Sizes::TINY)
         .exploration_episodes(1)
         .line(format!("connect = [\"{router}\"]"))
-        .in_fleet()
+        .in_fleet(etcd, TTL_SECONDS)
         .toml()
 }
 
-fn start(dir: &Path, data: &Path, id: &str, router: &str) -> Guarded {
-    serve_data(&dir.join(id), data, &config(id, router), None).expect("planner serves")
+fn start(dir: &Path, data: &Path, id: &str, router: &str, etcd: &str) -> Guarded {
+    serve_data(&dir.join(id), data, &config(id, router, etcd), None).expect("planner serves")
 }
 
 fn spec() -> RunSpec {
@@ -134,12 +139,13 @@ async fn owners(session: &zenoh::Session, planners: &[&str]) -> BTreeMap<String,
 fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
     let dir = TempDir::new("fleet-own");
     let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
     let endpoint = free_endpoint();
     let rt = runtime();
     let _router = rt.block_on(router(&endpoint)).expect("router starts");
     let mut planners: BTreeMap<&str, Guarded> = PLANNERS
         .iter()
-        .map(|id| (*id, start(dir.path(), &data, id, &endpoint)))
+        .map(|id| (*id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint)))
         .collect();
 
     rt.block_on(async {
@@ -179,12 +185,14 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         // Twelve agents attach: both agents of a run reach the same planner.
         let mut agents = Vec::new();
         let mut owner_of: BTreeMap<String, String> = BTreeMap::new();
+        let mut token_of: BTreeMap<String, u64> = BTreeMap::new();
         for r in 0..RUNS {
             let run = format!("run-{r}");
             for (i, name) in ["a", "b"].into_iter().enumerate() {
                 let client = Client::connect(&endpoint, &run, name).await.unwrap();
                 let accepted = client.attach(&spec()).await.unwrap();
-                assert_eq!(accepted.epoch, 1, "{run}: a new run starts at epoch 1");
+                let token = *token_of.entry(run.clone()).or_insert(accepted.epoch);
+                assert_eq!(accepted.epoch, token, "{run}: one token per owner");
                 let owner = owner_of
                     .entry(run.clone())
                     .or_insert(accepted.planner_id.clone());
@@ -254,6 +262,7 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
             .map(|mut agent| {
                 let moved = moved.contains(&agent.client.run);
                 let victim = victim.to_string();
+                let token = token_of[&agent.client.run];
                 tokio::spawn(async move {
                     if !moved {
                         agent.play(1, BEFORE_KILL + 1, STEPS).await;
@@ -263,8 +272,8 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
                     let accepted = agent.client.attach(&spec()).await.unwrap();
                     assert_ne!(accepted.planner_id, victim);
                     assert!(
-                        accepted.epoch >= 2,
-                        "a takeover bumps the epoch: {accepted:?}"
+                        accepted.epoch > token,
+                        "a takeover takes a newer token: {accepted:?}"
                     );
                     assert!(
                         accepted.models_version >= before,
@@ -301,7 +310,10 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         assert_eq!(new_owner.len(), moved.len());
 
         // The killed planner restarts and takes nothing back.
-        planners.insert(victim, start(dir.path(), &data, victim, &endpoint));
+        planners.insert(
+            victim,
+            start(dir.path(), &data, victim, &endpoint, &etcd.endpoint),
+        );
         tokio::time::sleep(Duration::from_secs(2)).await;
         let listed = owners(&session, &PLANNERS).await;
         for (run, planner) in &owner_of {

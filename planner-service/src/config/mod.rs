@@ -45,11 +45,9 @@ pub struct ServiceConfig {
     /// Overrides applied to every run's preset before the agent's own (e.g. smaller networks
     /// for a quick test), keyed like the attach message's overrides.
     pub overrides: proto::PlannerOverrides,
-    /// Membership of a fleet of planners (`[fleet]`, even empty): this planner shares runs
-    /// with the planners it sees, serving the run-name patterns its pins allow (`serve`,
-    /// empty: all; `refuse`). Absent: the planner is alone, owns every run it serves and reads
-    /// no fleet token. See `crate::fleet`.
-    pub fleet: Option<Pins>,
+    /// Membership of a fleet of planners (`[fleet]`: etcd endpoints, lease, pins). Absent: a
+    /// single daemon that owns every run in its data directory and needs no etcd.
+    pub fleet: Option<FleetConfig>,
     /// The least share of the cores a retraining gets while plans leave it no idle time, in
     /// (0, 1]: plans come first, but a retraining that finds plans running before a
     /// minibatch waits at most `(1 − share) / share` times as long as its last minibatch
@@ -79,6 +77,62 @@ pub struct MetricsConfig {
     pub listen: Option<std::net::SocketAddr>,
 }
 
+/// `[fleet]`: this planner is one of several sharing a data directory, and etcd decides which
+/// of them owns each run (see `crate::fleet`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct FleetConfig {
+    /// The etcd cluster's client endpoints, e.g. `["http://10.0.0.5:2379"]` (at least one).
+    pub etcd: Vec<String>,
+    /// Seconds an etcd lease lives without renewal: how long a dead owner's runs wait before
+    /// another planner may take them, and the bound on how long a planner cut off from etcd
+    /// may keep acknowledging (it stops a fifth of this, at least 1 s, earlier).
+    #[serde(default = "FleetConfig::default_lease_ttl")]
+    pub lease_ttl_seconds: u64,
+    /// Run-name patterns this planner serves (empty: all): a preference, see `crate::fleet`.
+    #[serde(default)]
+    pub serve: Vec<String>,
+    /// Run-name patterns this planner never serves, whatever `serve` says.
+    #[serde(default)]
+    pub refuse: Vec<String>,
+}
+
+impl FleetConfig {
+    fn default_lease_ttl() -> u64 {
+        10
+    }
+
+    /// Shortest and longest lease accepted: below 3 s a renewal has no room for a retry;
+    /// beyond 5 minutes a dead owner's runs wait too long.
+    pub const LEASE_TTL_SECONDS: std::ops::RangeInclusive<u64> = 3..=300;
+
+    /// The pins: `serve` and `refuse`.
+    pub fn pins(&self) -> Pins {
+        Pins {
+            serve: self.serve.clone(),
+            refuse: self.refuse.clone(),
+        }
+    }
+
+    fn validate(&self) -> Result<(), ConfigError> {
+        self.pins().validate()?;
+        if self.etcd.is_empty() {
+            return Err(ConfigError::Fleet(
+                "`etcd` must list at least one endpoint (a fleet's ownership lives in etcd)".into(),
+            ));
+        }
+        if !Self::LEASE_TTL_SECONDS.contains(&self.lease_ttl_seconds) {
+            return Err(ConfigError::Fleet(format!(
+                "lease_ttl_seconds = {} is outside {}..={}",
+                self.lease_ttl_seconds,
+                Self::LEASE_TTL_SECONDS.start(),
+                Self::LEASE_TTL_SECONDS.end()
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// `[storage]`: how much of its experience a run keeps.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
@@ -95,6 +149,11 @@ pub struct StorageConfig {
     /// Most bytes the replay logs of all open runs may hold together: at the budget every run
     /// refuses what it would store, with an error naming this setting. Default 8 GiB.
     pub max_total_replay_bytes: u64,
+    /// Acknowledge a step only once it is on stable storage (one `fdatasync` per batch of
+    /// appends, shared by the agents storing at the same moment), so a host's power loss
+    /// loses nothing acknowledged. Absent: on in a fleet (`[fleet]`), off for a single daemon
+    /// (which syncs at every episode end and hands every step to the OS before answering).
+    pub sync_every_step: Option<bool>,
 }
 
 impl Default for StorageConfig {
@@ -103,7 +162,15 @@ impl Default for StorageConfig {
             replay_capacity: None,
             max_run_replay_bytes: 1 << 30,
             max_total_replay_bytes: 8 << 30,
+            sync_every_step: None,
         }
+    }
+}
+
+impl ServiceConfig {
+    /// Whether steps are synced to stable storage before they are acknowledged.
+    pub fn sync_every_step(&self) -> bool {
+        self.storage.sync_every_step.unwrap_or(self.fleet.is_some())
     }
 }
 
@@ -154,6 +221,8 @@ pub enum ConfigError {
     PlannerId(#[from] proto::keys::InvalidName),
     #[error("[fleet]: {0}")]
     Pins(#[from] PinsError),
+    #[error("[fleet]: {0}")]
+    Fleet(String),
     #[error(transparent)]
     Limits(#[from] InvalidLimits),
     #[error("retraining_share = {0} must be above 0 and at most 1")]
@@ -180,8 +249,8 @@ impl ServiceConfig {
     /// Checks what serde cannot, the declared tasks included.
     pub fn validate(&self) -> Result<(), ConfigError> {
         proto::validate_name(&self.planner_id)?;
-        if let Some(pins) = &self.fleet {
-            pins.validate()?;
+        if let Some(fleet) = &self.fleet {
+            fleet.validate()?;
         }
         self.limits.validate()?;
         if !(self.retraining_share > 0.0 && self.retraining_share <= 1.0) {
@@ -224,13 +293,16 @@ mod tests {
             population = 50
             inference_precision = "f32"
             [fleet]
+            etcd = ["http://127.0.0.1:2379"]
             serve = ["ant-*"]
             "#,
         )
         .unwrap();
-        let pins = config.fleet.as_ref().expect("[fleet] is configured");
-        assert_eq!(pins.serve, vec!["ant-*".to_string()]);
-        assert!(pins.refuse.is_empty());
+        let fleet = config.fleet.as_ref().unwrap();
+        assert_eq!(fleet.serve, vec!["ant-*".to_string()]);
+        assert!(fleet.refuse.is_empty());
+        assert_eq!(fleet.lease_ttl_seconds, 10);
+        assert!(ServiceConfig::default().fleet.is_none());
         let alone: ServiceConfig = toml::from_str("planner_id = \"solo\"").unwrap();
         assert_eq!(alone.fleet, None, "no [fleet]: a planner alone");
         config.validate().unwrap();
@@ -263,13 +335,21 @@ mod tests {
 
     #[test]
     fn rejects_bad_pins() {
-        let config: ServiceConfig = toml::from_str("[fleet]\nrefuse = [\"a/b\"]").unwrap();
+        let config: ServiceConfig =
+            toml::from_str("[fleet]\netcd = [\"http://e:2379\"]\nrefuse = [\"a/b\"]").unwrap();
         let err = config.validate().unwrap_err();
         assert!(
             err.to_string()
                 .starts_with("[fleet]: invalid run-name pattern"),
             "{err}"
         );
+        for bad in [
+            "[fleet]\netcd = []",
+            "[fleet]\netcd = [\"e\"]\nlease_ttl_seconds = 1",
+        ] {
+            let config: ServiceConfig = toml::from_str(bad).unwrap();
+            assert!(config.validate().is_err(), "{bad}");
+        }
     }
 
     /// The shipped example listens on loopback only, and its `[limits]` block states the

@@ -1,20 +1,27 @@
-//! What one planner knows of the fleet: the live planners (with their pins, once fetched) and
-//! the live run leases, both from Zenoh liveliness. Pure data, so the ownership rule is tested
-//! without a network.
+//! What one planner knows of the fleet's other planners: the live ones (with their pins, once
+//! fetched), from Zenoh liveliness. It decides *preference* only (which planner should take a
+//! free run); etcd alone decides ownership (see [`super::etcd`]). Pure data, so the placement
+//! rule is tested without a network.
 //!
-//! The rule, the same on every planner: **a run belongs to the live holder of its newest lease;
-//! a run without one belongs to the planner that rendezvous hashing picks among the live
-//! planners whose pins allow it.** A planner that comes back therefore takes nothing from a
-//! live holder; runs only move when their holder goes (dies, stops, or steps down).
+//! The rule, the same on every planner: **a free run is preferred on the planner that
+//! rendezvous hashing picks among the live planners whose pins allow it.** A planner that
+//! comes back therefore changes only the preference for free runs, never who holds a run.
+//!
+//! Liveliness tokens can be declared by anyone the router lets through, so what they say is
+//! bounded: names must be valid, and at most [`MAX_PLANNERS`] are kept (further ones are
+//! ignored until some leave).
 
 use super::placement;
 use crate::config::Pins;
 use std::collections::BTreeMap;
 
-/// Who owns a run, as this planner sees it.
+/// Most planners one planner keeps track of.
+pub const MAX_PLANNERS: usize = 256;
+
+/// Who a free run is preferred on, as this planner sees it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Owner {
-    /// `planner` holds the run's lease at `epoch`.
+    /// `planner` holds the run's owner key in etcd, created at fencing token `epoch`.
     Holder { planner: String, epoch: u64 },
     /// Nobody holds it; rendezvous hashing places it on `planner`.
     Placed { planner: String },
@@ -23,7 +30,7 @@ pub enum Owner {
 }
 
 impl Owner {
-    /// The owning planner, if any.
+    /// The owning (or preferred) planner, if any.
     pub fn planner(&self) -> Option<&str> {
         match self {
             Owner::Holder { planner, .. } | Owner::Placed { planner } => Some(planner),
@@ -32,20 +39,22 @@ impl Owner {
     }
 }
 
-/// The live planners and leases.
+/// The live planners.
 #[derive(Clone, Debug, Default)]
 pub struct View {
     /// Live planners; `None` until their pins are known (they count as allowing every run
     /// meanwhile, so a planner is never left out for lack of an answer).
     planners: BTreeMap<String, Option<Pins>>,
-    /// Live leases: run → epoch → planner.
-    leases: BTreeMap<String, BTreeMap<u64, String>>,
 }
 
 impl View {
-    /// A planner token appeared (pins not known yet), unless it is already known.
+    /// A planner token appeared (pins not known yet), unless it is already known, its name is
+    /// not a valid name, or [`MAX_PLANNERS`] are known already. Returns whether it was added.
     pub fn planner_joined(&mut self, planner: &str) -> bool {
-        if self.planners.contains_key(planner) {
+        if self.planners.contains_key(planner)
+            || self.planners.len() >= MAX_PLANNERS
+            || proto::validate_name(planner).is_err()
+        {
             return false;
         }
         self.planners.insert(planner.to_string(), None);
@@ -64,37 +73,13 @@ impl View {
         self.planners.remove(planner).is_some()
     }
 
-    pub fn lease_taken(&mut self, run: &str, epoch: u64, planner: &str) {
-        self.leases
-            .entry(run.to_string())
-            .or_default()
-            .insert(epoch, planner.to_string());
-    }
-
-    pub fn lease_dropped(&mut self, run: &str, epoch: u64, planner: &str) {
-        if let Some(held) = self.leases.get_mut(run) {
-            if held.get(&epoch).is_some_and(|p| p == planner) {
-                held.remove(&epoch);
-            }
-            if held.is_empty() {
-                self.leases.remove(run);
-            }
-        }
-    }
-
     /// The live planners, by id.
     pub fn planners(&self) -> impl Iterator<Item = &str> {
         self.planners.keys().map(String::as_str)
     }
 
-    /// The owner of `run` by the rule in the module's docs.
-    pub fn owner(&self, run: &str) -> Owner {
-        if let Some((epoch, planner)) = self.leases.get(run).and_then(|l| l.last_key_value()) {
-            return Owner::Holder {
-                planner: planner.clone(),
-                epoch: *epoch,
-            };
-        }
+    /// The planner a free `run` is preferred on.
+    pub fn placed(&self, run: &str) -> Owner {
         let candidates = self
             .planners
             .iter()
@@ -122,31 +107,6 @@ mod tests {
     }
 
     #[test]
-    fn a_live_holder_keeps_its_run_and_its_departure_frees_it() {
-        let mut v = view(&["pa", "pb", "pc"]);
-        let placed = v.owner("r").planner().unwrap().to_string();
-        let holder = if placed == "pa" { "pb" } else { "pa" };
-        v.lease_taken("r", 3, holder);
-        assert_eq!(
-            v.owner("r"),
-            Owner::Holder {
-                planner: holder.into(),
-                epoch: 3
-            }
-        );
-        // A newer lease wins over an older one still visible.
-        v.lease_taken("r", 4, "pc");
-        assert_eq!(v.owner("r").planner(), Some("pc"));
-        v.lease_dropped("r", 4, "pc");
-        v.lease_dropped("r", 3, holder);
-        assert_eq!(v.owner("r"), Owner::Placed { planner: placed });
-        // A drop that names another holder changes nothing.
-        v.lease_taken("r", 5, "pa");
-        v.lease_dropped("r", 5, "pb");
-        assert_eq!(v.owner("r").planner(), Some("pa"));
-    }
-
-    #[test]
     fn pins_exclude_planners_and_unknown_pins_allow_everything() {
         let mut v = view(&["pa", "pb"]);
         v.set_pins(
@@ -157,7 +117,7 @@ mod tests {
             },
         );
         for i in 0..50 {
-            assert_eq!(v.owner(&format!("cartpole-{i}")).planner(), Some("pb"));
+            assert_eq!(v.placed(&format!("cartpole-{i}")).planner(), Some("pb"));
         }
         v.set_pins(
             "pb",
@@ -166,11 +126,28 @@ mod tests {
                 refuse: vec!["cartpole-*".into()],
             },
         );
-        assert_eq!(v.owner("cartpole-1"), Owner::Nobody);
+        assert_eq!(v.placed("cartpole-1"), Owner::Nobody);
         assert!(v.planner_left("pb"));
         assert!(!v.planner_left("pb"));
         v.planner_joined("pc");
-        assert_eq!(v.owner("cartpole-1").planner(), Some("pc"));
+        assert_eq!(v.placed("cartpole-1").planner(), Some("pc"));
         assert!(!v.planner_joined("pc"), "a second Put changes nothing");
+    }
+
+    /// Forged planner tokens cannot grow the view without bound, nor add names that are not
+    /// names.
+    #[test]
+    fn the_view_keeps_valid_names_only_and_at_most_its_bound() {
+        let mut v = View::default();
+        assert!(!v.planner_joined("a/b"));
+        assert!(!v.planner_joined("**"));
+        assert!(!v.planner_joined(""));
+        for i in 0..10_000 {
+            v.planner_joined(&format!("forged-{i}"));
+        }
+        assert_eq!(v.planners().count(), MAX_PLANNERS);
+        assert!(!v.planner_joined("late"));
+        assert!(v.planner_left("forged-0"));
+        assert!(v.planner_joined("late"));
     }
 }

@@ -160,9 +160,28 @@ impl RunDir {
     /// file exclusively (synced, and the directory synced), so no two planners ever hold the
     /// same epoch. Fails with [`PersistError::EpochTaken`] if another planner created it first.
     pub fn claim_epoch_after(&self, seen: u64, planner: &str) -> Result<u64, PersistError> {
+        self.claim_epoch(seen + 1, planner)
+    }
+
+    /// Records that `planner` took the run at fencing token `token` (granted by etcd, so no
+    /// other planner ever records the same one): the newest token on disk is the floor of
+    /// the next one, and the fence that [`RunDir::current_epoch`] readers check.
+    /// Recording a token this planner recorded already (it took the run again under the same
+    /// owner key) is not an error.
+    pub fn record_token(&self, token: u64, planner: &str) -> Result<u64, PersistError> {
+        match self.claim_epoch(token, planner) {
+            Err(PersistError::EpochTaken { .. })
+                if self.epoch_holder(token).as_deref() == Some(planner) =>
+            {
+                Ok(token)
+            }
+            claimed => claimed,
+        }
+    }
+
+    fn claim_epoch(&self, epoch: u64, planner: &str) -> Result<u64, PersistError> {
         let dir = self.epochs_dir();
         fs::create_dir_all(&dir).map_err(io_error(&dir))?;
-        let epoch = seen + 1;
         let path = dir.join(format!("{epoch:020}"));
         let mut file = match fs::OpenOptions::new()
             .write(true)

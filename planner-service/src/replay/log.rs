@@ -434,6 +434,11 @@ impl LogFile for File {
 pub struct LogSyncer {
     path: PathBuf,
     target: Arc<Mutex<SyncTarget>>,
+    /// Appends made to the log so far (a sequence number, not bytes).
+    appended: Arc<std::sync::atomic::AtomicU64>,
+    /// The appends known durable; held across a group commit's fsync, so that the callers
+    /// waiting behind it find their appends covered and sync nothing more.
+    durable: Arc<Mutex<u64>>,
 }
 
 /// The file a [`LogSyncer`] syncs, and whether its name in the directory is not yet durable.
@@ -451,7 +456,30 @@ impl LogSyncer {
                 file: Arc::new(file.try_clone()?),
                 directory_unsynced: false,
             })),
+            appended: Arc::default(),
+            durable: Arc::default(),
         })
+    }
+
+    /// The number of appends made so far: what [`LogSyncer::sync_through`] is given to make
+    /// one's own appends durable.
+    pub fn appended(&self) -> u64 {
+        self.appended.load(std::sync::atomic::Ordering::SeqCst)
+    }
+
+    /// Group commit: returns once the first `appends` appends are on stable storage, with one
+    /// fsync for every batch of callers. A caller that finds an fsync under way waits for it,
+    /// and the next fsync covers every append made until it starts, so agents that store at
+    /// the same moment share one fsync instead of queueing one each.
+    pub fn sync_through(&self, appends: u64) -> Result<(), LogError> {
+        let mut durable = self.durable.lock().unwrap_or_else(PoisonError::into_inner);
+        if *durable >= appends {
+            return Ok(());
+        }
+        let covered = self.appended();
+        self.sync()?;
+        *durable = covered;
+        Ok(())
     }
 
     fn target(&self) -> std::sync::MutexGuard<'_, SyncTarget> {
@@ -514,6 +542,12 @@ pub struct ReplayLog {
     end: u64,
     /// A failed write may have left bytes after `end` that could not be cut yet.
     dirty: bool,
+    /// Other planners may append to this file (a fleet: a new owner writes to the file a
+    /// fenced one still has open). Then nothing here ever cuts or replaces the file: a
+    /// failed write's partial bytes stay (readers skip them as a damaged record) rather than
+    /// being cut off at this writer's idea of the end, which would delete what the other
+    /// wrote after it.
+    shared: bool,
 }
 
 impl ReplayLog {
@@ -584,6 +618,7 @@ impl ReplayLog {
                 syncer,
                 end,
                 dirty: false,
+                shared: false,
             },
             recovered,
         ))
@@ -642,11 +677,15 @@ impl ReplayLog {
             path: self.path.clone(),
             source,
         };
-        if self.dirty {
+        if self.dirty && !self.shared {
             self.file.truncate_to(self.end).map_err(io)?;
             self.dirty = false;
         }
         if let Err(e) = self.file.append_bytes(&bytes) {
+            if self.shared {
+                tracing::warn!(path = %self.path.display(), error = %e, "a write to the shared replay log failed; its partial bytes stay (readers skip them)");
+                return Err(io(e));
+            }
             self.dirty = true;
             match self.file.truncate_to(self.end) {
                 Ok(()) => self.dirty = false,
@@ -657,6 +696,9 @@ impl ReplayLog {
             return Err(io(e));
         }
         self.end += bytes.len() as u64;
+        self.syncer
+            .appended
+            .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         Ok(())
     }
 
@@ -665,7 +707,10 @@ impl ReplayLog {
     /// as a failed write is): after a failed `fsync` Linux may drop the pages it could not
     /// write and report a later `fsync` of them as a success, so records whose sync failed
     /// are never counted as stored; the caller refuses what they came from, and the records
-    /// are written afresh when it is sent again. Returns the time the sync took.
+    /// are written afresh when it is sent again. A shared file ([`ReplayLog::share`]) is never
+    /// cut: other planners may have appended after these records, so they stay and the
+    /// caller's refusal alone keeps them from counting (readers of a fleet's log skip records
+    /// of a fenced owner's token). Returns the time the sync took.
     pub fn append_synced(&mut self, records: &[Record]) -> Result<Duration, LogError> {
         let before = self.end;
         self.append(records)?;
@@ -680,6 +725,10 @@ impl ReplayLog {
             .and_then(|()| self.syncer.sync_directory_if_swapped());
         let took = started.elapsed();
         if let Err(e) = synced {
+            if self.shared {
+                tracing::warn!(path = %self.path.display(), error = %e, "syncing the shared replay log failed; its records stay (a shared file is never cut)");
+                return Err(e);
+            }
             self.end = before;
             self.dirty = true;
             match self.file.truncate_to(before) {
@@ -691,6 +740,17 @@ impl ReplayLog {
             return Err(e);
         }
         Ok(took)
+    }
+
+    /// Marks the file as shared with other planners' writers: from now on it is never cut
+    /// (a failed write leaves its partial bytes) nor rewritten (see [`ReplayLog::is_shared`]).
+    pub fn share(&mut self) {
+        self.shared = true;
+    }
+
+    /// Whether other planners may append to this file; then it is never compacted in place.
+    pub fn is_shared(&self) -> bool {
+        self.shared
     }
 
     /// Starts rewriting the log without the records `keep` refuses (a compaction), in three
@@ -1296,6 +1356,72 @@ pub(crate) mod tests {
         let (_, rec) = ReplayLog::open(&path).unwrap();
         assert_eq!(rec.records, vec![transition(0), transition(1)]);
         assert_eq!((rec.truncated_bytes, rec.damaged_regions), (0, 0));
+    }
+
+    /// Two owners' handles on one shared file: the fenced owner's write fails half-way (a
+    /// full disk) after the new owner appended its claim and records. Nothing the new owner
+    /// wrote is cut: the half record stays, a damaged region readers skip.
+    #[test]
+    fn a_fenced_owners_failed_write_deletes_nothing_of_the_new_owners() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        let full = Arc::new(AtomicBool::new(false));
+        let disk = full.clone();
+        let (mut stale, _) =
+            ReplayLog::open_with(&path, |file| Box::new(FillingDisk { file, full: disk })).unwrap();
+        stale.share();
+        stale.append(&[transition(0)]).unwrap();
+        let (mut owner, rec) = ReplayLog::open(&path).unwrap();
+        owner.share();
+        assert_eq!(rec.records, vec![transition(0)]);
+        let claim = Record::Claim {
+            epoch: 9,
+            planner: "new".into(),
+        };
+        owner
+            .append(&[claim.clone(), transition(1), transition(2)])
+            .unwrap();
+        full.store(true, Ordering::SeqCst);
+        assert!(stale.append(&[transition(3)]).is_err());
+        // The fenced owner tries again (its next step): still failing, still cutting nothing.
+        assert!(stale.append(&[transition(4)]).is_err());
+        owner.append(&[transition(5)]).unwrap();
+        drop((stale, owner));
+        let (_, rec) = ReplayLog::open(&path).unwrap();
+        assert_eq!(
+            rec.records,
+            vec![
+                transition(0),
+                claim,
+                transition(1),
+                transition(2),
+                transition(5)
+            ]
+        );
+        assert!(rec.damaged_regions >= 1);
+    }
+
+    /// Group commit: appends are counted, and a sync through a count covers every append up
+    /// to it; a caller whose appends are covered syncs nothing more.
+    #[test]
+    fn a_group_commit_covers_every_append_made_before_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = temp_path(&dir);
+        let (mut log, _) = ReplayLog::open(&path).unwrap();
+        let syncer = log.syncer();
+        assert_eq!(syncer.appended(), 0);
+        log.append(&[transition(0)]).unwrap();
+        let mine = syncer.appended();
+        log.append(&[transition(1)]).unwrap();
+        assert_eq!(syncer.appended(), 2);
+        syncer.sync_through(mine).unwrap();
+        assert_eq!(
+            *syncer.durable.lock().unwrap(),
+            2,
+            "the sync covered both appends"
+        );
+        syncer.sync_through(2).unwrap();
+        assert_eq!(*syncer.durable.lock().unwrap(), 2);
     }
 
     #[test]

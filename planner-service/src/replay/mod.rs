@@ -483,6 +483,9 @@ impl ReplayBuffer {
         let Some(log) = &mut self.log else {
             return Ok(None);
         };
+        if log.is_shared() {
+            return Ok(None);
+        }
         let evicted = self.evicted.clone();
         let dropped = evicted.clone();
         let rewrite = log.start_rewrite(self.epoch, move |record| match record {
@@ -543,6 +546,14 @@ impl ReplayBuffer {
     pub fn compact_if_due(&mut self) -> Result<(), ReplayError> {
         let only = std::cell::RefCell::new(self);
         compact_log(|| std::cell::RefMut::map(only.borrow_mut(), |b| &mut **b))
+    }
+
+    /// Shares the log's file with other planners' writers (a fleet): it is never cut nor
+    /// compacted in place from now on; `replay_capacity` then bounds the memory only.
+    pub fn share_log(&mut self) {
+        if let Some(log) = &mut self.log {
+            log.share();
+        }
     }
 
     /// A handle that syncs the log to disk without holding the buffer (`None` in memory).

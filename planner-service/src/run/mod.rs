@@ -38,6 +38,12 @@ pub struct Hosting {
     /// Where the run times its replay log's fsyncs and its retrainings (the daemon's metrics
     /// registry serves them).
     pub histograms: RunHistograms,
+    /// Acknowledge a step only once it is on stable storage (`[storage] sync_every_step`):
+    /// every store is followed by a group commit ([`crate::replay::LogSyncer::sync_through`]).
+    pub sync_every_step: bool,
+    /// Other planners share the run's directory (a fleet): its replay log is never cut nor
+    /// compacted in place (see [`crate::replay::ReplayLog::share`]).
+    pub shared_dir: bool,
 }
 
 /// The daemon's replay byte budgets: each run's log at most `per_run` bytes, all runs' logs
@@ -318,6 +324,9 @@ impl Run {
         let disk = hosting.log_disk.clone();
         let mut buffer =
             ReplayBuffer::open_with(&dir.replay_log(), task, |file| disk.open(&name, file))?;
+        if hosting.shared_dir {
+            buffer.share_log();
+        }
         buffer.claim(epoch, planner)?;
         buffer.set_capacity(hosting.replay_capacity)?;
         buffer.compact_if_due()?;
@@ -684,16 +693,25 @@ impl Run {
                 .map_err(StoreError::Budget)?;
         }
         let mut buffer = self.lock_buffer();
-        // Every episode end, finished or abandoned, is synced to disk before it counts, under
-        // the buffer's lock: a failed sync then takes back exactly this step's records (no
-        // other agent of the run appended meanwhile), and the agent is refused with a
-        // storage error and sends the step again. Only this run's agents wait for the sync.
-        if accepted.finished.is_some() || accepted.abandoned.is_some() {
+        // With `sync_every_step`, this store is durable before it is acknowledged: the
+        // appends so far (this one among them) are synced in a group commit below, after the
+        // buffer's lock is released, so the agents storing at the same moment share one sync.
+        // Otherwise every episode end, finished or abandoned, is synced to disk before it
+        // counts, under the buffer's lock: a failed sync then takes back exactly this step's
+        // records (no other agent of the run appended meanwhile), and the agent is refused
+        // with a storage error and sends the step again. Only this run's agents wait for it.
+        let episode_end = accepted.finished.is_some() || accepted.abandoned.is_some();
+        if episode_end && !self.hosting.sync_every_step {
             let took = buffer.append_synced(records)?;
             self.observe_fsync(took);
         } else {
             buffer.append(records)?;
         }
+        let durable = self
+            .hosting
+            .sync_every_step
+            .then(|| buffer.syncer().map(|s| (s.appended(), s)))
+            .flatten();
         // Capacity may have evicted old transitions: the tally follows the buffer's length,
         // set under the buffer's lock (the order is always buffer, then tally) so that two
         // agents' appends cannot leave it at the earlier one's length. A finished episode is
@@ -708,6 +726,12 @@ impl Run {
             }
         }
         drop(buffer);
+        if let Some((appends, syncer)) = &durable {
+            let started = std::time::Instant::now();
+            let synced = syncer.sync_through(*appends);
+            self.observe_fsync(Some(started.elapsed()));
+            synced.map_err(ReplayError::from)?;
+        }
         self.compact_log();
         for summary in [&accepted.abandoned, &accepted.finished]
             .into_iter()
@@ -975,6 +999,8 @@ mod tests {
             replay_budget: Arc::new(ReplayBudget::unbounded()),
             log_disk: LogDisk::direct(),
             histograms: RunHistograms::default(),
+            sync_every_step: false,
+            shared_dir: false,
         }
     }
 

@@ -68,6 +68,8 @@ pub struct Metrics {
     /// The codes refused so far, for the status report (a family cannot be listed).
     refused_codes: Mutex<BTreeSet<String>>,
     wildcards_dropped: Counter,
+    /// Failed tries to open a stored run (each is retried after a backoff).
+    open_failures: Counter,
     models_version: Family<RunLabel, Gauge>,
     replay_transitions: Family<RunLabel, Gauge>,
     episodes: Family<RunLabel, Gauge>,
@@ -98,6 +100,7 @@ impl Default for Metrics {
         let plan_step_backs = Family::default();
         let refused = Family::default();
         let wildcards_dropped = Counter::default();
+        let open_failures = Counter::default();
         let models_version = Family::default();
         let replay_transitions = Family::default();
         let episodes = Family::default();
@@ -174,6 +177,11 @@ impl Default for Metrics {
             wildcards_dropped.clone(),
         );
         registry.register(
+            "run_open_failures",
+            "Failed tries to open a stored run (each is retried after a backoff)",
+            open_failures.clone(),
+        );
+        registry.register(
             "models_version",
             "Version of the models serving a run",
             models_version.clone(),
@@ -220,6 +228,7 @@ impl Default for Metrics {
             refused,
             refused_codes: Mutex::default(),
             wildcards_dropped,
+            open_failures,
             models_version,
             replay_transitions,
             episodes,
@@ -297,6 +306,11 @@ impl Metrics {
     /// A message on a wildcard key, dropped.
     pub fn record_wildcard(&self) {
         self.wildcards_dropped.inc();
+    }
+
+    /// A stored run could not be opened (it is tried again later).
+    pub fn record_open_failure(&self) {
+        self.open_failures.inc();
     }
 
     pub fn wildcards_dropped(&self) -> u64 {

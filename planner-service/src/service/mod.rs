@@ -4,11 +4,14 @@
 //! ```text
 //! attach query ──▶ Service::attach ──▶ Run (created or joined) + agent worker task
 //! obs sample ────▶ Service::route ───▶ agent worker (in order) ──▶ validate → store → act
-//! fleet change ──▶ Service::rebalance ──▶ step down from lost runs, take over free ones
+//! fleet change ──▶ steward task ──▶ Service::rebalance: step down from lost runs, take free ones
 //! ```
-//! In a fleet of planners ([`crate::fleet`]) the service serves only the runs it owns: it
-//! stays silent on other runs' attach queries and observations, so the owner's answer is the
-//! only one. A planner with no peers owns every run.
+//! In a fleet of planners ([`crate::fleet`]) the service serves only the runs it owns (etcd
+//! says which): it stays silent on other runs' attach queries and observations, so the
+//! owner's answer is the only one, and acknowledges a step only while its etcd lease is valid.
+//! A single daemon (no `[fleet]`) owns every run. Taking runs over and stepping down run on
+//! a steward task of their own, beside serving: a slow takeover delays no other run's actions
+//! and no shutdown.
 //! Each agent has one worker task, so its observations are handled strictly in order while
 //! agents (and runs) proceed concurrently; planning and storing (replay writes and fsyncs) run
 //! on the blocking pool, and training on the run's trainer task, so none of them stalls the
@@ -22,8 +25,8 @@ pub mod status;
 mod worker;
 
 use crate::config::{Preset, ServiceConfig};
-use crate::fleet::{Fleet, FleetError, Owner};
-use crate::persist::{self, PersistError, RunDir};
+use crate::fleet::Fleet;
+use crate::persist::{self, RunDir};
 use crate::run::{EventSink, Hosting, LogDisk, Run};
 use crate::trainer::TrainLimits;
 use proto::{
@@ -83,6 +86,10 @@ const ZENOH_HEADROOM: u64 = 64 << 10;
 /// Attach requests handled at once (each may open a run: disk I/O and model construction);
 /// beyond this a request is refused at once instead of queueing without bound.
 const CONCURRENT_ATTACHES: usize = 8;
+
+/// Most attach queries for free runs preferred on another planner that wait out the free-run
+/// grace at once (each holds only its query until then).
+const FREE_RUN_WAITS: usize = 64;
 
 struct AgentHandle {
     tx: mpsc::Sender<Incoming>,
@@ -232,8 +239,9 @@ impl SpecTask {
     }
 }
 
-/// How often the daemon checks whether a stored run's next try at opening is due.
-const OPEN_RETRY_TICK: std::time::Duration = std::time::Duration::from_millis(500);
+/// How often the steward looks at the fleet even when nothing woke it: a free run's grace
+/// running out, a set-aside run's retry falling due, a lease that ran out without an event.
+const STEWARD_TICK: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// The first wait before a stored run whose opening failed on an I/O error is tried again;
 /// it doubles with every failure, up to [`MAX_OPEN_RETRY`].
@@ -250,12 +258,6 @@ struct Retrying {
     reason: String,
 }
 
-/// Why taking a run over failed, on the blocking pool.
-enum Taking {
-    Fleet(FleetError),
-    Open(crate::run::OpenError),
-}
-
 /// The planner daemon.
 pub struct Service {
     config: ServiceConfig,
@@ -265,19 +267,25 @@ pub struct Service {
     fleet: Arc<Fleet>,
     runs: Mutex<HashMap<String, RunHandle>>,
     /// Stored runs that could not be opened, with the reason: listed by `status`, refused at
-    /// attach, left on disk untouched for the operator.
+    /// attach, left on disk untouched for the operator. In a fleet its owner key is released
+    /// at once, so another planner may try it.
     failed: Mutex<BTreeMap<String, String>>,
     /// Stored runs whose opening failed on an I/O error that may pass: tried again with
-    /// backoff, listed by `status` meanwhile.
+    /// backoff, listed by `status` meanwhile (released for the other planners meanwhile).
     retrying: Mutex<BTreeMap<String, Retrying>>,
     /// Stored runs left closed because opening them would go beyond a budget (`max_runs`,
     /// `[storage] max_total_replay_bytes`), with the budget: listed by `status`, opened when an
     /// agent attaches once the budget allows, refused with the reason until then.
     dormant: Mutex<BTreeMap<String, String>>,
+    /// Stored runs nobody holds, since when this planner has seen them free (a fleet
+    /// planner takes one it is not preferred on once it has been free for a grace period).
+    free_since: Mutex<HashMap<String, std::time::Instant>>,
     /// Held while a new run is opened (off the event loop), so that two agents attaching to
     /// the same new run at once open it once. Hosted runs are joined without it.
     opening: tokio::sync::Mutex<()>,
     attach_slots: Arc<Semaphore>,
+    /// Attach queries for free runs preferred elsewhere, waiting out the grace.
+    free_run_waits: Arc<Semaphore>,
     /// Raised at shutdown: every run's training stops before its next minibatch.
     cancel_training: Arc<AtomicBool>,
     /// Every run's plans, given the cores by earliest deadline; retraining yields to them
@@ -345,15 +353,9 @@ impl Service {
         let session = zenoh::open(zconfig).await.map_err(zenoh_err)?;
         let keys = Keys::new(&config.prefix);
         let planner_id = config.planner_id.clone();
-        let (fleet, mut fleet_changes) = match &config.fleet {
-            Some(pins) => {
-                Fleet::join(
-                    session.clone(),
-                    keys.clone(),
-                    planner_id.clone(),
-                    pins.clone(),
-                )
-                .await?
+        let fleet = match &config.fleet {
+            Some(fleet) => {
+                Fleet::join(session.clone(), keys.clone(), planner_id.clone(), fleet).await?
             }
             None => Fleet::alone(session.clone(), keys.clone(), planner_id.clone()),
         };
@@ -376,8 +378,10 @@ impl Service {
             failed: Mutex::new(BTreeMap::new()),
             retrying: Mutex::new(BTreeMap::new()),
             dormant: Mutex::new(BTreeMap::new()),
+            free_since: Mutex::new(HashMap::new()),
             opening: tokio::sync::Mutex::new(()),
             attach_slots: Arc::new(Semaphore::new(CONCURRENT_ATTACHES)),
+            free_run_waits: Arc::new(Semaphore::new(FREE_RUN_WAITS)),
             cancel_training: Arc::new(AtomicBool::new(false)),
             plans,
             replay_budget,
@@ -388,11 +392,7 @@ impl Service {
         crate::nn::peak::measure_in_background();
         // Resume the stored runs that are ours (all of them for a planner without peers).
         service.rebalance().await;
-        let _alive = session
-            .liveliness()
-            .declare_token(keys.planner_alive(&planner_id))
-            .await
-            .map_err(zenoh_err)?;
+        service.fleet.show_presence().await;
         let attach = session
             .declare_queryable(keys.all_attach())
             .await
@@ -414,11 +414,10 @@ impl Service {
             Some(addr) => Some(service.serve_metrics(addr).await?),
             None => None,
         };
+        let steward = service.spawn_steward();
         tracing::info!(planner = %planner_id, prefix = %keys.prefix(), "planner serving");
 
         tokio::pin!(shutdown);
-        let mut retries = tokio::time::interval(OPEN_RETRY_TICK);
-        retries.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             // Biased: observations are drained before liveliness changes. Zenoh delivers an
             // agent's last observation before its token's deletion, but they arrive on two
@@ -443,22 +442,38 @@ impl Service {
                     Ok(token) => service.liveliness(token),
                     Err(e) => { tracing::error!(error = %e, "liveliness subscriber closed"); break; }
                 },
-                _ = retries.tick(), if service.open_retry_due() => service.rebalance().await,
-                Some(()) = fleet_changes.recv() => {
-                    // One rebalance covers every change queued so far.
-                    while fleet_changes.try_recv().is_ok() {}
-                    service.rebalance().await;
-                }
                 () = &mut shutdown => break,
             }
         }
         tracing::info!("shutting down");
+        // A takeover in progress is abandoned where it stands: a run it created the owner key
+        // of is freed with the lease, below.
+        steward.abort();
         if let Some(endpoint) = metrics_endpoint {
             endpoint.abort();
         }
         service.stop().await;
+        service.fleet.leave().await;
         session.close().await.map_err(zenoh_err)?;
         Ok(())
+    }
+
+    /// Starts the steward: it rebalances whenever the fleet changed (changes coalesce: one
+    /// rebalance covers all that came meanwhile) and every [`STEWARD_TICK`], on a task of its
+    /// own, so the serve loop never waits for a takeover.
+    fn spawn_steward(self: &Arc<Self>) -> JoinHandle<()> {
+        let service = self.clone();
+        let changes = self.fleet.changes();
+        self.runtime.spawn(async move {
+            loop {
+                tokio::select! {
+                    () = changes.notified() => {}
+                    () = tokio::time::sleep(STEWARD_TICK) => {}
+                }
+                service.fleet.show_presence().await;
+                service.rebalance().await;
+            }
+        })
     }
 
     /// Serves the metrics as Prometheus text on `addr` (`GET /metrics`) on a task of its own.
@@ -555,8 +570,17 @@ impl Service {
             && !self.fleet.is_mine(run)
         {
             tracing::debug!(%run, owner = ?self.fleet.owner(run), "attach for a run owned elsewhere");
+            if self.fleet.in_fleet() && !self.fleet.has_owner_key(run) {
+                self.attach_if_still_free(run.to_string(), query);
+            }
             return;
         }
+        self.attach_in_a_slot(query);
+    }
+
+    /// Attaches on a task of its own in one of the attach slots, or refuses at once when all
+    /// [`CONCURRENT_ATTACHES`] are in hand.
+    fn attach_in_a_slot(self: &Arc<Self>, query: zenoh::query::Query) {
         match self.attach_slots.clone().try_acquire_owned() {
             Ok(slot) => {
                 let service = self.clone();
@@ -578,6 +602,39 @@ impl Service {
                 });
             }
         }
+    }
+
+    /// An attach for a run nobody holds, preferred on another planner: that planner should
+    /// take it at once, but it may be cut off from etcd, or not a planner at all (a forged
+    /// token). After [`crate::fleet::FREE_GRACE`], if the run is still free, this planner
+    /// takes it (etcd lets only one of the planners that try succeed; the others stay
+    /// silent). At most [`FREE_RUN_WAITS`] queries wait so at once (beyond that they are left to
+    /// the other planners); waiting takes no attach slot, so the runs this planner owns keep
+    /// theirs.
+    fn attach_if_still_free(self: &Arc<Self>, run: String, query: zenoh::query::Query) {
+        let Ok(waiting) = self.free_run_waits.clone().try_acquire_owned() else {
+            return;
+        };
+        let service = self.clone();
+        // The grace counts from when the steward first saw the run free, not from this query:
+        // an agent asking again after its owner went waits only what is left of it.
+        let free_for = self
+            .free_since
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(&run)
+            .map_or(std::time::Duration::ZERO, std::time::Instant::elapsed);
+        self.runtime.spawn(async move {
+            tokio::time::sleep(crate::fleet::FREE_GRACE.saturating_sub(free_for)).await;
+            if !service.fleet.has_owner_key(&run)
+                && service
+                    .fleet
+                    .may_take_unpreferred(&run, crate::fleet::FREE_GRACE)
+            {
+                service.attach_in_a_slot(query);
+            }
+            drop(waiting);
+        });
     }
 
     async fn attach(&self, query: zenoh::query::Query) {
@@ -738,6 +795,14 @@ impl Service {
                 token_gone: false,
             },
         );
+        if !self.fleet.may_acknowledge(run_name, run.epoch()) {
+            // This planner's lease ran out (or the run moved) meanwhile: its answer must not
+            // be the one the agent acts on.
+            if let Some(agent) = handle.agents.remove(&request.agent) {
+                agent.task.abort();
+            }
+            return Err(Refusal::Contended);
+        }
         let models = run.models();
         tracing::info!(run = %run_name, agent = %request.agent, task = %run.spec().task, method = %run.preset().method, "agent attached");
         Ok(AttachAccepted {
@@ -950,6 +1015,8 @@ impl Service {
             replay_budget: self.replay_budget.clone(),
             log_disk: self.log_disk.clone(),
             histograms: self.outbox.metrics.for_run(name),
+            sync_every_step: self.config.sync_every_step(),
+            shared_dir: self.fleet.in_fleet(),
         };
         let internal = |why: String| {
             Refusal::Report(ErrorReport::new(
@@ -963,30 +1030,34 @@ impl Service {
                 format!("cannot open run `{name}` now ({why}): attach again later"),
             ))
         };
+        let token = match self.fleet.take(name, &dir).await {
+            Ok(token) => token,
+            Err(e) if e.is_contended() => return Err(Refusal::Contended),
+            Err(crate::fleet::FleetError::Etcd(e)) => {
+                tracing::info!(run = %name, error = %e, "cannot take the run over now");
+                return Err(Refusal::Contended);
+            }
+            Err(e @ crate::fleet::FleetError::Persist(crate::persist::PersistError::Io { .. })) => {
+                return Err(transient(format!("cannot take it over: {e}")));
+            }
+            Err(e) => return Err(internal(format!("cannot take it over: {e}"))),
+        };
         let (fleet, planner, owned) = (
             self.fleet.clone(),
             self.config.planner_id.clone(),
             name.to_string(),
         );
         let opened = tokio::task::spawn_blocking(move || {
-            let epoch = fleet.take(&owned, &dir).map_err(Taking::Fleet)?;
-            Run::open(owned.clone(), spec, preset, dir, hosting, (epoch, &planner)).map_err(|e| {
+            Run::open(owned.clone(), spec, preset, dir, hosting, (token, &planner)).map_err(|e| {
                 fleet.step_down(&owned, format!("the run could not be opened: {e}"));
-                Taking::Open(e)
+                e
             })
         })
         .await;
         match opened {
             Ok(Ok(run)) => Ok(run),
-            Ok(Err(Taking::Fleet(FleetError::Persist(PersistError::EpochTaken { .. })))) => {
-                Err(Refusal::Contended)
-            }
-            Ok(Err(Taking::Fleet(e @ FleetError::Persist(PersistError::Io { .. })))) => {
-                Err(transient(format!("cannot take it over: {e}")))
-            }
-            Ok(Err(Taking::Fleet(e))) => Err(internal(format!("cannot take it over: {e}"))),
-            Ok(Err(Taking::Open(e))) if e.is_transient() => Err(transient(e.to_string())),
-            Ok(Err(Taking::Open(e))) => Err(internal(e.to_string())),
+            Ok(Err(e)) if e.is_transient() => Err(transient(e.to_string())),
+            Ok(Err(e)) => Err(internal(e.to_string())),
             Err(e) => {
                 self.fleet
                     .step_down(name, format!("opening the run failed: {e}"));
@@ -1017,20 +1088,24 @@ impl Service {
         );
     }
 
-    /// Brings the runs this planner hosts in line with the fleet's view: steps down from the
-    /// runs another planner now owns (a newer lease, a newer epoch on disk, or reported fenced
-    /// by a worker), then takes over every stored run that is free and placed here. At start
-    /// this resumes a restarted daemon's runs (all stored runs, for a planner without peers):
-    /// status lists them at once, their trainers catch up with episodes stored after the last
-    /// checkpoint, and agents re-attach to them. Runs are opened newest first (by their replay
-    /// log's last write) while the budgets allow ([`Service::opening_budget`]: `max_runs`, the
-    /// total replay bytes), so that a restart stays inside the memory a running daemon may
-    /// use; the others stay dormant, on disk untouched, listed by `status`, and open on an
-    /// agent's attach once a budget allows (refused with the budget's name until then). A run
-    /// that cannot be opened
-    /// (over today's limits, damaged, even one whose opening panics) is set aside: logged,
-    /// listed by `status` as failed with the reason, refused at attach, not tried again by
-    /// this daemon, and left on disk untouched; the daemon serves the others.
+    /// Brings the runs this planner hosts in line with the fleet: steps down from the runs it
+    /// may no longer serve (its etcd lease ran out, etcd names another owner, a newer token
+    /// on disk, or reported fenced by a worker), then takes over every stored run that is
+    /// free and preferred here (or free for [`crate::fleet::FREE_GRACE`], wherever it is
+    /// preferred). At start this resumes a restarted daemon's runs (every stored run, for a
+    /// single daemon): status lists them at once, their trainers catch up with episodes stored
+    /// after the last checkpoint, and agents re-attach to them. Runs are opened newest first
+    /// (by their replay log's last write) while the budgets allow ([`Service::opening_budget`]:
+    /// `max_runs`, the total replay bytes), so that a restart stays inside the memory a running
+    /// daemon may use; the others stay dormant, on disk untouched, listed by `status`, and open
+    /// on an agent's attach once a budget allows (refused with the budget's name until then).
+    /// A run whose opening failed on an I/O error that may pass (a full disk, etcd
+    /// unreachable while writing) is retried with a backoff, listed by `status` meanwhile. A
+    /// run that cannot be opened (over today's limits, damaged, even one whose opening panics)
+    /// is set aside: logged, listed by `status` as failed with the reason, refused at attach,
+    /// not tried again by this daemon, and left on disk untouched; the daemon serves the
+    /// others. Either way its owner key is released, so another planner may open it. Every
+    /// disk read runs on the blocking pool.
     async fn rebalance(&self) {
         let mut lost: Vec<(String, String)> = self
             .fleet
@@ -1039,61 +1114,110 @@ impl Service {
             .map(|run| {
                 (
                     run,
-                    "its epoch on disk is newer than this planner's".to_string(),
+                    "its token on disk is newer than this planner's".to_string(),
                 )
             })
             .collect();
-        {
-            let runs = self.runs.lock().unwrap_or_else(PoisonError::into_inner);
-            for (name, handle) in runs.iter() {
-                if let Owner::Holder { planner, epoch } = self.fleet.owner(name)
-                    && planner != self.config.planner_id
-                {
-                    lost.push((name.clone(), format!("{planner} holds it at epoch {epoch}")));
-                } else if let Err(e) = handle.run.check_owner() {
-                    lost.push((name.clone(), e.to_string()));
-                }
-            }
-        }
+        lost.extend(self.fleet.lost_runs());
+        let hosted: Vec<Arc<Run>> = self
+            .runs
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .values()
+            .map(|h| h.run.clone())
+            .collect();
+        let fenced = tokio::task::spawn_blocking(move || {
+            hosted
+                .iter()
+                .filter_map(|run| {
+                    run.check_owner()
+                        .err()
+                        .map(|e| (run.name().to_string(), e.to_string()))
+                })
+                .collect::<Vec<_>>()
+        })
+        .await
+        .unwrap_or_default();
+        lost.extend(fenced);
         for (name, reason) in lost {
             self.step_down(&name, reason).await;
         }
-        let mut stored = match persist::stored_runs(&self.config.data_dir) {
-            Ok(stored) => stored,
-            Err(e) => {
+        self.fleet.release_strays().await;
+        let data_dir = self.config.data_dir.clone();
+        let listed = tokio::task::spawn_blocking(move || {
+            let mut stored = persist::stored_runs(&data_dir)?;
+            // Newest first: the runs in use resume before the long finished ones.
+            let last_written = |dir: &RunDir| {
+                std::fs::metadata(dir.replay_log())
+                    .and_then(|m| m.modified())
+                    .ok()
+            };
+            stored.sort_by_cached_key(|(_, dir)| std::cmp::Reverse(last_written(dir)));
+            Ok::<_, crate::persist::PersistError>(stored)
+        })
+        .await;
+        let stored = match listed {
+            Ok(Ok(stored)) => stored,
+            Ok(Err(e)) => {
                 tracing::error!(error = %e, "cannot list stored runs; none taken over");
                 return;
             }
+            Err(e) => {
+                tracing::error!(error = %e, "listing stored runs failed; none taken over");
+                return;
+            }
         };
-        // Newest first: the runs in use resume before the long finished ones.
-        let last_written = |dir: &RunDir| {
-            std::fs::metadata(dir.replay_log())
-                .and_then(|m| m.modified())
-                .ok()
+        let now = std::time::Instant::now();
+        let candidates: Vec<(String, RunDir)> = {
+            let mut free_since = self
+                .free_since
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            let free: std::collections::HashSet<String> = stored
+                .iter()
+                .map(|(name, _)| name.clone())
+                .filter(|name| !self.fleet.has_owner_key(name))
+                .collect();
+            free_since.retain(|name, _| free.contains(name));
+            stored
+                .into_iter()
+                .filter(|(name, _)| {
+                    if self.is_hosted(name) {
+                        return false;
+                    }
+                    if self.fleet.is_mine(name) {
+                        return true;
+                    }
+                    if !free.contains(name) {
+                        return false;
+                    }
+                    let since = *free_since.entry(name.clone()).or_insert(now);
+                    self.fleet.may_take_unpreferred(name, now - since)
+                })
+                .collect()
         };
-        stored.sort_by_cached_key(|(_, dir)| std::cmp::Reverse(last_written(dir)));
         let mut dormant = BTreeMap::new();
-        for (name, dir) in stored {
+        for (name, dir) in candidates {
             let set_aside = self
                 .failed
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
                 .contains_key(&name);
-            if set_aside
-                || self.is_hosted(&name)
-                || !self.fleet.is_mine(&name)
-                || self.open_retry_waits(&name)
-            {
+            if set_aside || self.is_hosted(&name) || self.open_retry_waits(&name) {
                 continue;
             }
-            let spec = match dir.read_spec() {
-                Ok(Some(spec)) => spec,
-                Ok(None) => {
-                    tracing::warn!(run = %name, "stored run has no run.json; it resumes when an agent attaches");
+            let spec = match tokio::task::spawn_blocking(move || dir.read_spec()).await {
+                Ok(Ok(Some(spec))) => spec,
+                Ok(Ok(None)) => {
+                    tracing::debug!(run = %name, "stored run has no run.json; it resumes when an agent attaches");
+                    continue;
+                }
+                Ok(Err(e)) => {
+                    self.set_aside(&name, format!("cannot read its spec: {e}"));
                     continue;
                 }
                 Err(e) => {
-                    self.set_aside(&name, format!("cannot read its spec: {e}"));
+                    self.set_aside(&name, format!("reading its spec failed: {e}"));
                     continue;
                 }
             };
@@ -1115,7 +1239,7 @@ impl Service {
                 Err(Refusal::Transient(report)) => self.retry_open_later(&name, report.message),
                 Err(Refusal::Report(report)) => self.set_aside(&name, report.message),
                 Err(Refusal::Contended) => {
-                    tracing::info!(run = %name, "another planner took the run over first");
+                    tracing::debug!(run = %name, "another planner holds the run, or etcd cannot be reached");
                 }
             }
         }
@@ -1166,19 +1290,10 @@ impl Service {
             .is_some_and(|r| r.next_at > std::time::Instant::now())
     }
 
-    /// Whether a stored run's next try at opening is due.
-    fn open_retry_due(&self) -> bool {
-        let now = std::time::Instant::now();
-        self.retrying
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .values()
-            .any(|r| r.next_at <= now)
-    }
-
     /// Opening stored run `name` failed on an I/O error that may pass: it is tried again
     /// after a backoff that doubles with every failure, from [`FIRST_OPEN_RETRY`] up to
-    /// [`MAX_OPEN_RETRY`], and `status` lists it meanwhile.
+    /// [`MAX_OPEN_RETRY`] (the steward looks every [`STEWARD_TICK`]), and `status` lists it
+    /// meanwhile. Its owner key is released already, so another planner may open it first.
     fn retry_open_later(&self, name: &str, reason: String) {
         let mut retrying = self.retrying.lock().unwrap_or_else(PoisonError::into_inner);
         let attempts = retrying.get(name).map_or(0, |r| r.attempts) + 1;
@@ -1186,6 +1301,7 @@ impl Service {
             .saturating_mul(1 << attempts.saturating_sub(1).min(16))
             .min(MAX_OPEN_RETRY);
         tracing::warn!(run = %name, attempts, retry_in_s = backoff.as_secs_f64(), "cannot open a stored run now, trying again later: {reason}");
+        self.outbox.metrics.record_open_failure();
         retrying.insert(
             name.to_string(),
             Retrying {
@@ -1196,8 +1312,11 @@ impl Service {
         );
     }
 
+    /// Sets stored run `run` aside for good (for this daemon): it cannot be opened here. Its
+    /// owner key (if it was taken) is released already, so another planner may try it.
     fn set_aside(&self, run: &str, reason: String) {
         tracing::error!(%run, "stored run set aside, not resumed: {reason}");
+        self.outbox.metrics.record_open_failure();
         self.failed
             .lock()
             .unwrap_or_else(PoisonError::into_inner)

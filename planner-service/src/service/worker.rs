@@ -225,6 +225,22 @@ impl AgentWorker {
             .deadline_ms
             .map(|ms| incoming.received + Duration::from_millis(u64::from(ms)));
         let action = self.act(&msg, deadline).await.map_err(position)?;
+        // The action acknowledges the step: in a fleet, only while this planner's etcd lease
+        // is valid by its own clock and it still holds the run at its token. Checked after
+        // planning, right before sending, so a lease that ran out during planning counts.
+        if !self
+            .fleet
+            .may_acknowledge(self.run.name(), self.run.epoch())
+        {
+            self.fleet.report_fenced(self.run.name());
+            return Err(position(ErrorReport::new(
+                ErrorCode::NotAttached,
+                format!(
+                    "this planner may no longer serve run `{}` (its ownership lease ran out or the run moved): attach again",
+                    self.run.name()
+                ),
+            )));
+        }
         self.session.acted(msg.step, &action.action);
         let key = self.outbox.keys().act(self.run.name(), &self.name);
         self.outbox.publish(&key, &action, incoming.encoding).await;

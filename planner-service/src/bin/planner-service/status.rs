@@ -103,6 +103,18 @@ pub struct FleetReport {
     pub planners: Vec<String>,
     pub pins: PinsReport,
     pub events: Vec<EventReport>,
+    /// The planner's etcd lease (absent for a single daemon).
+    pub lease: Option<LeaseReport>,
+}
+
+/// A fleet planner's etcd lease (a lenient mirror of `fleet::LeaseStatus`).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct LeaseReport {
+    pub valid_for_seconds: f64,
+    pub ttl_seconds: f64,
+    pub reachable: bool,
+    pub failures: u64,
 }
 
 #[derive(Clone, Debug, Default, Deserialize, PartialEq)]
@@ -526,6 +538,20 @@ fn render_fleet(out: &mut String, fleet: &FleetReport) {
                 list(&fleet.pins.serve)
             },
             list(&fleet.pins.refuse),
+        );
+    }
+    if let Some(lease) = &fleet.lease {
+        let _ = writeln!(
+            out,
+            "etcd lease: valid {:.1} s more (ttl {:.0} s); etcd {}; {} failures to reach it",
+            lease.valid_for_seconds,
+            lease.ttl_seconds,
+            if lease.reachable {
+                "reachable"
+            } else {
+                "UNREACHABLE"
+            },
+            lease.failures
         );
     }
     let events = &fleet.events[fleet.events.len().saturating_sub(EVENTS_SHOWN)..];

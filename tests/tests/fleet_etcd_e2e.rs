@@ -1,0 +1,597 @@
+//! A fleet whose ownership lives in a real etcd: three planner processes behind a Zenoh router
+//! (in this process, multicast scouting off, free ports), one etcd (started here on free
+//! loopback ports, killed when the test ends, also on failure), one shared data directory.
+//!
+//! - the owner SIGKILLed mid-episode, again and again across the three planners: no
+//!   acknowledged transition is lost, every episode is accounted for, and no planner ever
+//!   acknowledged a step after a newer owner had (checked from the actions the agent received);
+//! - a planner cut off from etcd stops acknowledging within its lease TTL and its run moves;
+//! - a planner cut off from the router takes no run, and nothing acknowledged is lost;
+//! - forged planner and lease tokens (10,000 names, huge epochs) move no run and keep the
+//!   planner's view and memory bounded.
+
+use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
+use ebmpc_e2e::config::{PlannerConfig, Sizes};
+use ebmpc_e2e::etcd::Etcd;
+use ebmpc_e2e::proxy::Proxy;
+use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data};
+use planner_service::replay::ReplayBuffer;
+use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
+use std::collections::{BTreeMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// The planners' lease: short, so that a dead owner's runs move within seconds.
+const TTL_SECONDS: u64 = 3;
+const STEPS: u32 = 10;
+
+fn spec() -> RunSpec {
+    RunSpec {
+        task: Builtin::Cartpole.name().into(),
+        preset: Some("cem".into()),
+        overrides: Default::default(),
+        mode: TrainMode::Async,
+        seed: 5,
+        task_spec: None,
+    }
+}
+
+/// A fleet planner's configuration: connects to `router` only, owns through `etcd`.
+fn config(id: &str, router: &str, etcd: &str) -> String {
+    PlannerConfig::new(id, Sizes::TINY)
+        .exploration_episodes(2)
+        .line(format!("connect = [\"{router}\"]"))
+        .in_fleet(etcd, TTL_SECONDS)
+        .toml()
+}
+
+fn start(dir: &Path, data: &Path, id: &str, router: &str, etcd: &str) -> Guarded {
+    serve_data(&dir.join(id), data, &config(id, router, etcd), None).expect("planner serves")
+}
+
+fn replay_path(data: &Path, run: &str) -> PathBuf {
+    data.join("runs").join(run).join("replay.log")
+}
+
+/// A transition's exact bits.
+fn key(obs: &[f32], act: &[f32], next: &[f32]) -> Vec<u32> {
+    obs.iter()
+        .chain(act)
+        .chain(next)
+        .map(|x| x.to_bits())
+        .collect()
+}
+
+/// What an agent was told, to check the replay and the fencing against.
+#[derive(Default)]
+struct Ledger {
+    acknowledged: HashSet<Vec<u32>>,
+    /// Episodes started; `true` once their end was acknowledged.
+    episodes: BTreeMap<u32, bool>,
+    /// Every action received, with its fencing token, in the order received.
+    tokens: Vec<u64>,
+    /// When the last action came.
+    last_action: Option<Instant>,
+}
+
+impl Ledger {
+    /// The tokens of the actions received never go back: once a newer owner answered, no
+    /// older one did (actions are published by each owner in order, and an owner that lost
+    /// the run sends nothing after its lease's margin).
+    fn check_one_owner_at_a_time(&self) {
+        for pair in self.tokens.windows(2) {
+            assert!(
+                pair[0] <= pair[1],
+                "an action of token {} came after one of token {}: two planners acknowledged at once",
+                pair[1],
+                pair[0]
+            );
+        }
+    }
+
+    /// Checks the stored replay of `run` against the ledger: every acknowledged transition is
+    /// there, every episode is finished or interrupted. Returns the number acknowledged.
+    fn check_replay(&self, data: &Path, run: &str, agent: &str) -> usize {
+        let buffer = ReplayBuffer::open(&replay_path(data, run), Builtin::Cartpole.task())
+            .expect("the replay opens");
+        let stored: HashSet<Vec<u32>> = (0..buffer.len())
+            .map(|i| {
+                let (o, a, n) = buffer.transitions().row(i);
+                key(o, a, n)
+            })
+            .collect();
+        let lost = self
+            .acknowledged
+            .iter()
+            .filter(|t| !stored.contains(*t))
+            .count();
+        assert_eq!(
+            lost,
+            0,
+            "{lost} of {} acknowledged transitions lost",
+            self.acknowledged.len()
+        );
+        for (&episode, &ended) in &self.episodes {
+            let records: Vec<_> = buffer
+                .episodes()
+                .iter()
+                .filter(|e| e.agent == agent && e.episode == episode)
+                .collect();
+            let accounted = match records.as_slice() {
+                [one] => {
+                    one.end == EpisodeEnd::TimeLimit
+                        || (!ended && one.end == EpisodeEnd::Interrupted)
+                }
+                _ => false,
+            };
+            assert!(
+                accounted,
+                "episode {episode} (ended: {ended}) is recorded as {records:?}"
+            );
+        }
+        self.acknowledged.len()
+    }
+}
+
+/// One agent stepping a toy system.
+struct Agent {
+    client: Client,
+    system: ToySystem,
+    episode: u32,
+    /// The episode whose end was sent and its last transition, acknowledged by the next
+    /// episode's first action.
+    ending: Option<(u32, Vec<u32>)>,
+}
+
+impl Agent {
+    async fn new(
+        endpoint: &str,
+        run: &str,
+        episode: u32,
+        seed: u32,
+    ) -> (Self, proto::AttachAccepted) {
+        let client = Client::connect(endpoint, run, "a").await.unwrap();
+        let accepted = client.attach(&spec()).await.unwrap();
+        let agent = Agent {
+            client,
+            system: ToySystem::new(seed),
+            episode: episode.max(accepted.next_episode),
+            ending: None,
+        };
+        (agent, accepted)
+    }
+
+    /// Attaches again (to whichever planner owns the run now) and starts a new episode; an
+    /// episode end still unacknowledged is left unconfirmed (the new owner's first action
+    /// says nothing about what the old one stored).
+    async fn reattach(&mut self) -> proto::AttachAccepted {
+        let accepted = self.client.attach(&spec()).await.unwrap();
+        self.ending = None;
+        self.episode = (self.episode + 1).max(accepted.next_episode);
+        accepted
+    }
+
+    /// Sends `msg` and waits up to `wait` for its action, recording every action's token.
+    /// `None`: no action came (an error report, or silence).
+    async fn exchange(
+        &self,
+        msg: &Observation,
+        wait: Duration,
+        ledger: &mut Ledger,
+    ) -> Option<Vec<f32>> {
+        self.client.send(msg).await.unwrap();
+        let deadline = Instant::now() + wait;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return None;
+            }
+            match self.client.answer(left).await {
+                Ok(Answer::Action(a)) => {
+                    ledger.tokens.push(a.epoch);
+                    ledger.last_action = Some(Instant::now());
+                    if (a.episode, a.step) == (msg.episode, msg.step) {
+                        return Some(a.action);
+                    }
+                }
+                Ok(Answer::Error(_)) | Err(_) => return None,
+            }
+        }
+    }
+
+    /// Plays whole episodes until `stop()` says so or an answer does not come within `wait`;
+    /// returns the number of actions received.
+    async fn play(
+        &mut self,
+        ledger: &mut Ledger,
+        wait: Duration,
+        stop: impl Fn(usize) -> bool,
+    ) -> usize {
+        let mut actions = 0;
+        loop {
+            let mut obs = self.system.state.to_vec();
+            let first = Observation::new(self.episode, 0, obs.clone(), None, None);
+            let Some(mut action) = self.exchange(&first, wait, ledger).await else {
+                return actions;
+            };
+            actions += 1;
+            if let Some((ended, last)) = self.ending.take() {
+                ledger.acknowledged.insert(last);
+                ledger.episodes.insert(ended, true);
+            }
+            for step in 1..=STEPS {
+                let reward = self.system.step(&action);
+                let next = self.system.state.to_vec();
+                if step == STEPS {
+                    let end = Some(EpisodeEnd::TimeLimit);
+                    let msg = Observation::new(self.episode, step, next.clone(), Some(reward), end);
+                    self.client.send(&msg).await.unwrap();
+                    self.ending = Some((self.episode, key(&obs, &action, &next)));
+                    break;
+                }
+                let msg = Observation::new(self.episode, step, next.clone(), Some(reward), None);
+                let Some(next_action) = self.exchange(&msg, wait, ledger).await else {
+                    // The episode is left unfinished: the next play starts a new one.
+                    self.episode += 1;
+                    return actions;
+                };
+                actions += 1;
+                ledger.acknowledged.insert(key(&obs, &action, &next));
+                ledger.episodes.entry(self.episode).or_insert(false);
+                obs = next;
+                action = next_action;
+                if stop(actions) {
+                    self.episode += 1;
+                    return actions;
+                }
+            }
+            self.episode += 1;
+            if stop(actions) {
+                return actions;
+            }
+        }
+    }
+}
+
+/// The run names each live planner's status lists.
+async fn hosted(session: &zenoh::Session, planners: &[&str]) -> BTreeMap<String, Vec<String>> {
+    let mut owners: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    for planner in planners {
+        if let Ok(report) = status(session, planner).await {
+            for run in report.runs {
+                owners
+                    .entry(run.name)
+                    .or_default()
+                    .push(planner.to_string());
+            }
+        }
+    }
+    owners
+}
+
+/// The owner is SIGKILLed mid-episode, round after round, across three planners.
+#[test]
+fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
+    let kills: usize = std::env::var("EBMPC_FLEET_KILLS")
+        .ok()
+        .and_then(|k| k.parse().ok())
+        .unwrap_or(20);
+    let dir = TempDir::new("fleet-kill");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let ids = ["pa", "pb", "pc"];
+    let mut planners: BTreeMap<&str, Guarded> = ids
+        .iter()
+        .map(|id| (*id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint)))
+        .collect();
+    let run = "killed";
+    let mut ledger = Ledger::default();
+    let mut episode = 0;
+    let mut last_token = 0;
+    let mut owners_seen = BTreeMap::new();
+    let started = Instant::now();
+    // The last planner killed: restarted once another planner took the run over, so the run
+    // moves between planners rather than back to the one it prefers.
+    let mut dead: Option<&str> = None;
+    for round in 0..kills {
+        let (owner, token) = rt.block_on(async {
+            let (mut agent, accepted) = Agent::new(&endpoint, run, episode, round as u32).await;
+            if let Some(id) = dead.take() {
+                planners.insert(id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+            }
+            assert!(
+                accepted.epoch > last_token,
+                "round {round}: token {} after {last_token}",
+                accepted.epoch
+            );
+            // Play a random number of steps (past an episode end now and then), then kill
+            // the owner while the agent keeps stepping.
+            let steps = 3 + (round * 7) % 17;
+            agent
+                .play(&mut ledger, Duration::from_secs(20), |n| n >= steps)
+                .await;
+            planners
+                .get_mut(accepted.planner_id.as_str())
+                .unwrap()
+                .signal("KILL")
+                .unwrap();
+            agent
+                .play(&mut ledger, Duration::from_secs(2), |_| false)
+                .await;
+            episode = agent.episode + 1;
+            (accepted.planner_id, accepted.epoch)
+        });
+        last_token = token;
+        *owners_seen.entry(owner.clone()).or_insert(0) += 1;
+        let victim = planners.get_mut(owner.as_str()).unwrap();
+        victim.wait(Duration::from_secs(10)).unwrap();
+        dead = ids.iter().find(|p| **p == owner).copied();
+    }
+    if let Some(id) = dead {
+        planners.insert(id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+    }
+    eprintln!(
+        "{kills} kills in {:.0} s, owners {owners_seen:?}, {} actions",
+        started.elapsed().as_secs_f64(),
+        ledger.tokens.len()
+    );
+    assert!(
+        owners_seen.len() >= 2,
+        "the run moved between planners: {owners_seen:?}"
+    );
+    ledger.check_one_owner_at_a_time();
+    for (_, planner) in planners.iter_mut() {
+        planner.terminate(Duration::from_secs(20)).unwrap();
+    }
+    let acknowledged = ledger.check_replay(&data, run, "a");
+    assert!(acknowledged > kills, "{acknowledged} acknowledged");
+}
+
+/// A planner cut off from etcd stops acknowledging within its lease's TTL, and its run moves
+/// to a planner that can reach etcd; nothing acknowledged is lost, and after the link heals
+/// the cut-off planner takes nothing back.
+#[test]
+fn a_planner_cut_off_from_etcd_stops_acknowledging_and_its_run_moves() {
+    let dir = TempDir::new("fleet-etcd-cut");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let upstream = etcd.endpoint.trim_start_matches("http://").parse().unwrap();
+    let link = Proxy::start(upstream).unwrap();
+    let through = format!("http://127.0.0.1:{}", link.port);
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    // pa alone first, so the run is created there.
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &through);
+    let run = "cut";
+    let mut ledger = Ledger::default();
+    let mut others = Vec::new();
+    let new_owner = rt.block_on(async {
+        let (mut agent, accepted) = Agent::new(&endpoint, run, 0, 1).await;
+        assert_eq!(accepted.planner_id, "pa");
+        let token = accepted.epoch;
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| n >= 2 * STEPS as usize)
+            .await;
+        for id in ["pb", "pc"] {
+            others.push(start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+        }
+        let again = agent.reattach().await;
+        assert_eq!(
+            (again.planner_id.as_str(), again.epoch),
+            ("pa", token),
+            "a held run stays with its holder"
+        );
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| n >= 5)
+            .await;
+        link.cut();
+        let cut_at = Instant::now();
+        // The agent keeps stepping: pa answers until its lease's margin, then no more.
+        agent
+            .play(&mut ledger, Duration::from_secs(2 * TTL_SECONDS), |_| false)
+            .await;
+        let last_ack = ledger.last_action.unwrap().saturating_duration_since(cut_at);
+        assert!(
+            last_ack < Duration::from_secs(TTL_SECONDS),
+            "pa kept acknowledging {last_ack:?} after its etcd link was cut (lease TTL {TTL_SECONDS} s)"
+        );
+        // Another planner takes the run at a newer token once pa's lease expired.
+        let moved = agent.reattach().await;
+        assert_ne!(moved.planner_id, "pa");
+        assert!(moved.epoch > token);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| n >= STEPS as usize + 2)
+            .await;
+        // Heal: pa gets a new lease and takes nothing back.
+        link.heal();
+        tokio::time::sleep(Duration::from_secs(TTL_SECONDS + 2)).await;
+        let owners = hosted(&agent.client.session, &["pa", "pb", "pc"]).await;
+        assert_eq!(owners.get(run), Some(&vec![moved.planner_id.clone()]), "{owners:?}");
+        let pa_status = status(&agent.client.session, "pa").await.unwrap();
+        assert!(
+            pa_status.fleet.lease.is_some_and(|l| l.valid_for_seconds > 0.0),
+            "pa renewed its lease"
+        );
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| n >= 3)
+            .await;
+        moved.planner_id
+    });
+    eprintln!("the run moved to {new_owner}");
+    ledger.check_one_owner_at_a_time();
+    pa.terminate(Duration::from_secs(20)).unwrap();
+    for planner in &mut others {
+        planner.terminate(Duration::from_secs(20)).unwrap();
+    }
+    ledger.check_replay(&data, run, "a");
+}
+
+/// A planner whose router link is cut sees no other planner and prefers every run, but etcd
+/// names their owners: it takes none, before or after the link heals, and the agents of the
+/// runs (served by the other planners) lose nothing.
+#[test]
+fn a_planner_cut_off_from_the_router_takes_no_run() {
+    let dir = TempDir::new("fleet-router-cut");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let mut planners: Vec<Guarded> = ["pa", "pb"]
+        .iter()
+        .map(|id| start(dir.path(), &data, id, &endpoint, &etcd.endpoint))
+        .collect();
+    let runs = ["r0", "r1", "r2", "r3"];
+    let upstream = endpoint.trim_start_matches("tcp/").parse().unwrap();
+    let link = Proxy::start(upstream).unwrap();
+    let mut ledgers: Vec<Ledger> = runs.iter().map(|_| Ledger::default()).collect();
+    rt.block_on(async {
+        let mut agents = Vec::new();
+        for (i, run) in runs.iter().enumerate() {
+            let (mut agent, _) = Agent::new(&endpoint, run, 0, i as u32).await;
+            agent
+                .play(&mut ledgers[i], Duration::from_secs(20), |n| n >= 3)
+                .await;
+            agents.push(agent);
+        }
+        let session = open_session(&endpoint).await.unwrap();
+        let before = hosted(&session, &["pa", "pb"]).await;
+        assert_eq!(before.len(), runs.len(), "{before:?}");
+        // pc joins through the link, then the link is cut while every agent keeps stepping.
+        planners.push(start(
+            dir.path(),
+            &data,
+            "pc",
+            &format!("tcp/127.0.0.1:{}", link.port),
+            &etcd.endpoint,
+        ));
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        link.cut();
+        let partition = Instant::now();
+        let mut rounds = 0;
+        while partition.elapsed() < Duration::from_secs(3 * TTL_SECONDS) {
+            for (agent, ledger) in agents.iter_mut().zip(&mut ledgers) {
+                let served = agent
+                    .play(ledger, Duration::from_secs(20), |n| n >= 4)
+                    .await;
+                assert!(
+                    served >= 4,
+                    "{}: not served during the partition",
+                    agent.client.run
+                );
+            }
+            rounds += 1;
+        }
+        assert!(rounds > 0);
+        link.heal();
+        tokio::time::sleep(Duration::from_secs(TTL_SECONDS)).await;
+        for (agent, ledger) in agents.iter_mut().zip(&mut ledgers) {
+            let served = agent
+                .play(ledger, Duration::from_secs(20), |n| n >= 4)
+                .await;
+            assert!(
+                served >= 4,
+                "{}: not served after the partition",
+                agent.client.run
+            );
+        }
+        let after = hosted(&session, &["pa", "pb", "pc"]).await;
+        assert_eq!(before, after, "runs moved: {before:?} -> {after:?}");
+        session.close().await.unwrap();
+    });
+    let pc_log = planners[2].log();
+    assert!(
+        !pc_log.contains("took the run"),
+        "pc took a run while cut off from the router:\n{pc_log}"
+    );
+    for planner in &mut planners {
+        planner.terminate(Duration::from_secs(20)).unwrap();
+    }
+    for (run, ledger) in runs.iter().zip(&ledgers) {
+        ledger.check_one_owner_at_a_time();
+        ledger.check_replay(&data, run, "a");
+    }
+}
+
+/// The resident memory of process `pid`, in KiB.
+fn rss_kib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap()
+}
+
+/// A client declares 10,000 planner tokens and lease tokens with huge epochs for a run the
+/// fleet holds: the run stays with its owner, which keeps answering its attach, and the
+/// planner's view of the fleet (and its memory) stays bounded.
+#[test]
+fn forged_planner_and_lease_tokens_move_no_run() {
+    let dir = TempDir::new("fleet-forged");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let run = "target";
+    let mut ledger = Ledger::default();
+    rt.block_on(async {
+        let (mut agent, accepted) = Agent::new(&endpoint, run, 0, 7).await;
+        assert_eq!(accepted.planner_id, "pa");
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| n >= 5)
+            .await;
+        let rss_before = rss_kib(pa.pid());
+        let forger = open_session(&endpoint).await.unwrap();
+        let mut tokens = Vec::new();
+        for i in 0..10_000 {
+            for key in [
+                format!("ebmpc/alive/planners/forged-{i}"),
+                format!("ebmpc/alive/leases/{run}/18446744073709551615/forged-{i}"),
+            ] {
+                tokens.push(forger.liveliness().declare_token(key).await.unwrap());
+            }
+        }
+        tokio::time::sleep(Duration::from_secs(TTL_SECONDS)).await;
+        let report = status(&forger, "pa").await.unwrap();
+        assert!(
+            report.fleet.planners.len() <= planner_service::fleet::view::MAX_PLANNERS,
+            "{} planners in the view",
+            report.fleet.planners.len()
+        );
+        assert_eq!(
+            report
+                .runs
+                .iter()
+                .map(|r| r.name.as_str())
+                .collect::<Vec<_>>(),
+            [run],
+            "the run stays with pa"
+        );
+        // The agent keeps being served, and a re-attach is answered by pa at the same token.
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| n >= 5)
+            .await;
+        let again = agent.client.attach(&spec()).await.unwrap();
+        assert_eq!(
+            (again.planner_id.as_str(), again.epoch),
+            ("pa", accepted.epoch)
+        );
+        let rss_after = rss_kib(pa.pid());
+        assert!(
+            rss_after < rss_before + 64 * 1024,
+            "pa grew from {rss_before} KiB to {rss_after} KiB under forged tokens"
+        );
+        drop(tokens);
+        forger.close().await.unwrap();
+    });
+    ledger.check_one_owner_at_a_time();
+    pa.terminate(Duration::from_secs(20)).unwrap();
+    ledger.check_replay(&data, run, "a");
+}
