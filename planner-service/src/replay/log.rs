@@ -573,18 +573,7 @@ impl ReplayLog {
         open_rw(path)
             .and_then(|mut f| f.read_to_end(&mut bytes))
             .map_err(io)?;
-        let recovered = if is_current_format(&bytes) {
-            let version = u32::from_le_bytes(
-                bytes[MAGIC.len()..FILE_HEADER_LEN]
-                    .try_into()
-                    .expect("4 bytes"),
-            );
-            if version > FORMAT_VERSION {
-                return Err(LogError::Format {
-                    path: path.to_path_buf(),
-                    found: version,
-                });
-            }
+        let recovered = if let Some(version) = current_version(path, &bytes)? {
             let (mut recovered, good_len) = scan(&bytes);
             if version < FORMAT_VERSION {
                 // Same records, new version: written whole, so a crash leaves either file.
@@ -638,18 +627,7 @@ impl ReplayLog {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Recovered::default()),
             Err(e) => return Err(io(e)),
         };
-        if is_current_format(&bytes) {
-            let version = u32::from_le_bytes(
-                bytes[MAGIC.len()..FILE_HEADER_LEN]
-                    .try_into()
-                    .expect("4 bytes"),
-            );
-            if version > FORMAT_VERSION {
-                return Err(LogError::Format {
-                    path: path.to_path_buf(),
-                    found: version,
-                });
-            }
+        if current_version(path, &bytes)?.is_some() {
             Ok(scan(&bytes).0)
         } else if bytes.len() < FILE_HEADER_LEN
             && MAGIC.starts_with(&bytes[..bytes.len().min(MAGIC.len())])
@@ -955,6 +933,26 @@ fn open_append(path: &Path) -> std::io::Result<File> {
         .append(true)
         .create(true)
         .open(path)
+}
+
+/// The format version of a file in the current format (`None`: empty, a torn header, or the
+/// old format), refusing a version newer than this build reads.
+fn current_version(path: &Path, bytes: &[u8]) -> Result<Option<u32>, LogError> {
+    if !is_current_format(bytes) {
+        return Ok(None);
+    }
+    let version = u32::from_le_bytes(
+        bytes[MAGIC.len()..FILE_HEADER_LEN]
+            .try_into()
+            .expect("4 bytes"),
+    );
+    if version > FORMAT_VERSION {
+        return Err(LogError::Format {
+            path: path.to_path_buf(),
+            found: version,
+        });
+    }
+    Ok(Some(version))
 }
 
 fn is_current_format(bytes: &[u8]) -> bool {
