@@ -97,7 +97,7 @@ def ebmpc(planner, task, regularizer, precision, calls, warmup, threads):
     cpu_ms = optional(r"CPU\s+([\d.]+) ms per call")
     return dict(
         text=text,
-        median_ms=float(field(r"per plan\s+([\d.]+) ms median")),
+        median_ms=float(field(r"per call\s+([\d.]+) ms median")),
         best_ms=float(field(r"([\d.]+) ms best")),
         cpu_ms=float(cpu_ms) if cpu_ms else None,
         cpu_share=int(share) / 100 if share else None,
