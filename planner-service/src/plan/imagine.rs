@@ -21,7 +21,16 @@
 //! - **Non-finite returns** (a diverging model) are reported as `-inf`, so they never win.
 //! - **Batching.** The whole population advances one horizon step at a time, so every network
 //!   call is a large matrix product. The population is split into one chunk per rayon thread;
-//!   each chunk owns its buffers and scratch and runs single-threaded kernels. Within a chunk
+//!   each chunk owns its buffers and scratch and runs single-threaded kernels.
+//! - **Scoring in blocks of steps.** Only the dynamics must run step by step (each step's
+//!   states come from the last). The reward, the termination and the energy of a transition
+//!   depend on that transition alone, so a chunk keeps its imagined trajectory and scores
+//!   several steps' transitions in one network call, at least [`SCORE_ROWS`] rows. With many
+//!   threads a chunk holds few candidates (500 over 16 threads: 32 rows), and a network called
+//!   on so few rows streams all its weights (the paper's energy network: 2 MB in bf16, more
+//!   than a core's L2) from the shared cache for every 32 rows; a block of steps reuses them
+//!   over hundreds. The returns are summed step by step in the same order, so they are exactly
+//!   those of scoring each step as it is imagined. Within a chunk
 //!   the rows are ordered particle-major with particles grouped by ensemble member, so each
 //!   member sees one contiguous block of rows.
 //! - **Several agents at once** ([`evaluate_batch`]). The populations of several agents of one
@@ -136,22 +145,28 @@ struct WorkChunk {
     /// Per candidate: its action sequence (`horizon × act_dim`) and its return.
     seqs: Vec<f32>,
     out: Vec<f32>,
-    /// Rows are `particles × candidates`: states before and after the step, the step's actions,
-    /// Gaussian noise for sampling, and the step's reward and energy per row.
-    state: Vec<f32>,
-    next: Vec<f32>,
-    act: Vec<f32>,
-    noise: Vec<f32>,
+    /// Rows are `particles × candidates`, stored step-major: the imagined states of steps
+    /// `0..=horizon` (step 0 the observation), the actions of steps `0..horizon`, and per
+    /// step and row the transition's reward, energy and whether its next state ends the
+    /// episode. Step `t`'s transitions are `states[t]`, `acts[t]` → `states[t + 1]`, so a
+    /// block of steps is one contiguous slice of each.
+    states: Vec<f32>,
+    acts: Vec<f32>,
     reward: Vec<f32>,
     energy: Vec<f32>,
-    /// Per row: whether the step's next state ends the episode; accumulated regularised return,
-    /// accumulated energy, still alive.
     terminal: Vec<bool>,
+    /// Gaussian noise of one step's rows, for sampling.
+    noise: Vec<f32>,
+    /// Per row: accumulated regularised return, accumulated energy, still alive.
     ret: Vec<f32>,
     energy_sum: Vec<f32>,
     alive: Vec<bool>,
-    /// The first time step the chunk has not imagined yet in the evaluation in hand.
+    /// The first time step the chunk has not imagined yet in the evaluation in hand, and
+    /// the first it has not scored yet.
     next_step: usize,
+    scored: usize,
+    /// Steps scored together: enough for [`SCORE_ROWS`] rows (set by [`Workspace::prepare`]).
+    steps_per_score: usize,
     /// Ensemble members of the models last imagined with.
     members: usize,
     /// The task's formulas' working memory (it depends on the task only).
@@ -510,49 +525,48 @@ impl Workspace {
             reward,
             termination,
         } = learned;
-        let (o, a) = (ctx.task.obs_dim, ctx.task.act_dim);
-        let seq = ctx.horizon * a;
+        let (o, a, h) = (ctx.task.obs_dim, ctx.task.act_dim, ctx.horizon);
         for chunk in &mut self.chunks[..chunks] {
             let n = chunk.candidates;
             let rows = ctx.particles * n;
-            if rows > chunk.rows {
-                chunk.state.resize(rows * o, 0.0);
-                chunk.next.resize(rows * o, 0.0);
-                chunk.act.resize(rows * a, 0.0);
-                chunk.noise.resize(rows * o, 0.0);
-                chunk.reward.resize(rows, 0.0);
-                chunk.energy.resize(rows, 0.0);
-                chunk.terminal.resize(rows, false);
-                chunk.ret.resize(rows, 0.0);
-                chunk.energy_sum.resize(rows, 0.0);
-                chunk.alive.resize(rows, true);
-                chunk.rows = rows;
-            }
-            if chunk.seqs.len() < n * seq {
-                chunk.seqs.resize(n * seq, 0.0);
-                chunk.out.resize(n, 0.0);
-            }
-            let rows = chunk.rows;
+            grow(&mut chunk.states, (h + 1) * rows * o, 0.0);
+            grow(&mut chunk.acts, h * rows * a, 0.0);
+            grow(&mut chunk.reward, h * rows, 0.0);
+            grow(&mut chunk.energy, h * rows, 0.0);
+            grow(&mut chunk.terminal, h * rows, false);
+            grow(&mut chunk.noise, rows * o, 0.0);
+            grow(&mut chunk.ret, rows, 0.0);
+            grow(&mut chunk.energy_sum, rows, 0.0);
+            grow(&mut chunk.alive, rows, true);
+            grow(&mut chunk.seqs, n * h * a, 0.0);
+            grow(&mut chunk.out, n, 0.0);
+            chunk.rows = chunk.rows.max(rows);
+            chunk.steps_per_score = steps_per_score(rows, h);
+            let (rows, scored) = (chunk.rows, rows * chunk.steps_per_score);
             let fits = chunk.scratch.as_ref().is_some_and(|s| {
                 s.dynamics.fits(dynamics, rows)
-                    && s.energy.fits(regularizer, rows)
+                    && s.energy.fits(regularizer, scored)
                     && match (reward, &s.reward) {
                         (None, _) => true,
-                        (Some(m), Some(r)) => r.fits(m, rows),
+                        (Some(m), Some(r)) => r.fits(m, scored),
                         (Some(_), None) => false,
                     }
                     && match (termination, &s.termination) {
                         (None, _) => true,
-                        (Some(m), Some(t)) => t.fits(m, rows),
+                        (Some(m), Some(t)) => t.fits(m, scored),
                         (Some(_), None) => false,
                     }
             });
             if !fits {
+                // Room for the largest block this chunk has scored or may score: a batch of
+                // fewer rows scores more steps at once, up to the same row count.
+                // (⌈SCORE_ROWS / r⌉ steps of r ≤ rows rows are fewer than SCORE_ROWS + rows.)
+                let scored = (SCORE_ROWS + rows - 1).min(rows * h).max(scored);
                 chunk.scratch = Some(Scratch {
                     dynamics: dynamics.scratch(rows),
-                    energy: regularizer.scratch(rows),
-                    reward: reward.map(|m| m.scratch(rows)),
-                    termination: termination.map(|m| m.scratch(rows)),
+                    energy: regularizer.scratch(scored),
+                    reward: reward.map(|m| m.scratch(scored)),
+                    termination: termination.map(|m| m.scratch(scored)),
                 });
             }
         }
@@ -569,17 +583,18 @@ impl WorkChunk {
             obs: Vec::new(),
             seqs: Vec::new(),
             out: Vec::new(),
-            state: Vec::new(),
-            next: Vec::new(),
-            act: Vec::new(),
-            noise: Vec::new(),
+            states: Vec::new(),
+            acts: Vec::new(),
             reward: Vec::new(),
             energy: Vec::new(),
             terminal: Vec::new(),
+            noise: Vec::new(),
             ret: Vec::new(),
             energy_sum: Vec::new(),
             alive: Vec::new(),
             next_step: 0,
+            scored: 0,
+            steps_per_score: 1,
             members: 1,
             formulas: task.formula_scratch(),
             task,
@@ -622,21 +637,23 @@ impl WorkChunk {
     }
 
     /// Rolls the chunk's candidates forward over the time `steps` (a solve's steps in order,
-    /// from 0: a range starting at 0 starts the rollout over), accumulating per-row returns;
-    /// with `record`, also writes each step's mean reward and energy over all rows.
+    /// from 0: a range starting at 0 starts the rollout over), scoring the imagined steps in
+    /// blocks of [`WorkChunk::steps_per_score`] (and the last ones once the horizon is
+    /// reached) and accumulating per-row returns; with `record`, also writes each step's mean
+    /// reward and energy over all rows.
     fn imagine(
         &mut self,
         ctx: &Context,
-        (dynamics, regularizer, learned): (&Ensemble, &Regularizer, Learned<'_>),
+        models: (&Ensemble, &Regularizer, Learned<'_>),
         mut record: Option<(&mut [f32], &mut [f32])>,
         steps: Range<usize>,
     ) {
+        let (dynamics, _, _) = models;
         let (o, a, h) = (ctx.task.obs_dim, ctx.task.act_dim, ctx.horizon);
         let n = self.candidates;
         let rows = ctx.particles * n;
         let members = dynamics.members();
         let used = members.min(ctx.particles);
-        let with_energy = !matches!(regularizer, Regularizer::None);
         if steps.start == 0 {
             let mut first_slot = 0;
             for member in 0..used {
@@ -644,7 +661,7 @@ impl WorkChunk {
                 for b in 0..self.segments.len() {
                     let block = self.block(first_slot, slots, b);
                     let obs = &self.obs[b * o..(b + 1) * o];
-                    for s in self.state[block.start * o..block.end * o].chunks_exact_mut(o) {
+                    for s in self.states[block.start * o..block.end * o].chunks_exact_mut(o) {
                         s.copy_from_slice(obs);
                     }
                 }
@@ -653,10 +670,11 @@ impl WorkChunk {
             self.ret[..rows].fill(0.0);
             self.energy_sum[..rows].fill(0.0);
             self.alive[..rows].fill(true);
-            self.energy[..rows].fill(0.0);
+            self.scored = 0;
         }
-        let scratch = self.scratch.as_mut().expect("prepared before imagining");
         for t in steps {
+            // Step t's rows of the trajectory buffers.
+            let (st, at) = (t * rows * o, t * rows * a);
             // Per member and agent: row `k·len + i` of the block is the member's particle slot
             // `k` of the agent's candidate `i`. Each agent draws its rows' noise from its own
             // stream, member by member, in the order it draws it alone.
@@ -667,12 +685,12 @@ impl WorkChunk {
                     let seg = self.segments[b];
                     let start = first_slot * n + slots * seg.offset;
                     let block = start..start + slots * seg.len;
-                    for slot in
-                        self.act[block.start * a..block.end * a].chunks_exact_mut(seg.len * a)
+                    for slot in self.acts[at + block.start * a..at + block.end * a]
+                        .chunks_exact_mut(seg.len * a)
                     {
                         for (i, row) in slot.chunks_exact_mut(a).enumerate() {
-                            let at = (seg.offset + i) * h * a + t * a;
-                            row.copy_from_slice(&self.seqs[at..at + a]);
+                            let from = (seg.offset + i) * h * a + t * a;
+                            row.copy_from_slice(&self.seqs[from..from + a]);
                         }
                     }
                     if ctx.sample {
@@ -684,6 +702,8 @@ impl WorkChunk {
                 }
                 first_slot += slots;
             }
+            let scratch = self.scratch.as_mut().expect("prepared before imagining");
+            let (now, later) = self.states.split_at_mut(st + rows * o);
             let mut first_slot = 0;
             for member in 0..used {
                 let slots = particles_of_member(ctx.particles, members, member);
@@ -691,79 +711,95 @@ impl WorkChunk {
                 let noise = ctx.sample.then(|| &self.noise[r0 * o..r1 * o]);
                 dynamics.predict_next(
                     member,
-                    &self.state[r0 * o..r1 * o],
-                    &self.act[r0 * a..r1 * a],
+                    &now[st + r0 * o..st + r1 * o],
+                    &self.acts[at + r0 * a..at + r1 * a],
                     r1 - r0,
                     &mut scratch.dynamics,
                     noise,
-                    &mut self.next[r0 * o..r1 * o],
+                    &mut later[r0 * o..r1 * o],
                 );
                 first_slot += slots;
             }
-            if with_energy {
-                regularizer.energy(
-                    &self.state[..rows * o],
-                    &self.act[..rows * a],
-                    &self.next[..rows * o],
-                    rows,
-                    &mut scratch.energy,
-                    &mut self.energy[..rows],
-                );
+            if t + 1 - self.scored == self.steps_per_score || t + 1 == h {
+                self.score(ctx, models, record.as_mut(), self.scored..t + 1);
+                self.scored = t + 1;
             }
-            // The whole chunk's rewards and terminations per step: the reward model's forward
-            // pass, or the task's formula through the block evaluator (builtin code row by row).
-            // Rows that ended earlier are scored too and then ignored: cheaper than gathering
-            // the live ones.
-            if let Some(model) = learned.reward {
-                let scratch = scratch
-                    .reward
-                    .as_mut()
-                    .expect("prepared for the reward model");
-                model.predict(
-                    &self.state[..rows * o],
-                    &self.act[..rows * a],
-                    &self.next[..rows * o],
-                    rows,
-                    scratch,
-                    &mut self.reward[..rows],
-                );
-            } else {
-                ctx.task.rewards(
-                    &self.state[..rows * o],
-                    &self.act[..rows * a],
-                    &self.next[..rows * o],
-                    &mut self.formulas,
-                    &mut self.reward[..rows],
-                );
-            }
-            ended(
-                ctx.task,
-                learned.termination,
-                &self.next[..rows * o],
-                rows,
-                (&mut self.formulas, scratch.termination.as_mut()),
-                &mut self.terminal[..rows],
+        }
+        self.members = members;
+    }
+
+    /// Scores the imagined transitions of `steps` (the next ones not scored yet) in one call
+    /// per network or formula, then adds them to the rows' returns step by step, in order.
+    fn score(
+        &mut self,
+        ctx: &Context,
+        (_, regularizer, learned): (&Ensemble, &Regularizer, Learned<'_>),
+        mut record: Option<&mut (&mut [f32], &mut [f32])>,
+        steps: Range<usize>,
+    ) {
+        let (o, a) = (ctx.task.obs_dim, ctx.task.act_dim);
+        let rows = ctx.particles * self.candidates;
+        let m = steps.len() * rows;
+        let (t0, t1) = (steps.start, steps.end);
+        let state = &self.states[t0 * rows * o..t1 * rows * o];
+        let next = &self.states[(t0 + 1) * rows * o..(t1 + 1) * rows * o];
+        let act = &self.acts[t0 * rows * a..t1 * rows * a];
+        let (reward, energy) = (
+            &mut self.reward[t0 * rows..t1 * rows],
+            &mut self.energy[t0 * rows..t1 * rows],
+        );
+        let scratch = self.scratch.as_mut().expect("prepared before imagining");
+        if matches!(regularizer, Regularizer::None) {
+            energy.fill(0.0);
+        } else {
+            regularizer.energy(state, act, next, m, &mut scratch.energy, energy);
+        }
+        // The rewards and terminations of the whole block: the reward model's forward pass, or
+        // the task's formula through the block evaluator (builtin code row by row). Rows that
+        // ended earlier are scored too and then ignored: cheaper than gathering the live ones.
+        if let Some(model) = learned.reward {
+            let scratch = scratch
+                .reward
+                .as_mut()
+                .expect("prepared for the reward model");
+            model.predict(state, act, next, m, scratch, reward);
+        } else {
+            ctx.task
+                .rewards(state, act, next, &mut self.formulas, reward);
+        }
+        ended(
+            ctx.task,
+            learned.termination,
+            next,
+            m,
+            (&mut self.formulas, scratch.termination.as_mut()),
+            &mut self.terminal[t0 * rows..t1 * rows],
+        );
+        for t in steps {
+            let step = t * rows..(t + 1) * rows;
+            let (reward, energy) = (
+                &mut self.reward[step.clone()],
+                &mut self.energy[step.clone()],
             );
+            let terminal = &self.terminal[step];
             for r in 0..rows {
                 if !self.alive[r] {
-                    self.reward[r] = 0.0;
-                    self.energy[r] = 0.0;
+                    reward[r] = 0.0;
+                    energy[r] = 0.0;
                     continue;
                 }
-                self.ret[r] += self.reward[r] - ctx.energy_weight * self.energy[r];
-                self.energy_sum[r] += self.energy[r];
-                if self.terminal[r] {
+                self.ret[r] += reward[r] - ctx.energy_weight * energy[r];
+                self.energy_sum[r] += energy[r];
+                if terminal[r] {
                     self.alive[r] = false;
                 }
             }
             if let Some((rewards, energies)) = record.as_mut() {
                 let inv = 1.0 / rows as f32;
-                rewards[t] = self.reward[..rows].iter().sum::<f32>() * inv;
-                energies[t] = self.energy[..rows].iter().sum::<f32>() * inv;
+                rewards[t] = reward.iter().sum::<f32>() * inv;
+                energies[t] = energy.iter().sum::<f32>() * inv;
             }
-            std::mem::swap(&mut self.state, &mut self.next);
         }
-        self.members = members;
     }
 
     /// The rows of agent `b`'s candidate `i`, particle slot by slot.
@@ -827,6 +863,23 @@ pub(super) fn ended(
             out,
         ),
         None => task.terminations(next, formulas, out),
+    }
+}
+
+/// Rows a chunk scores per network call at least (when its horizon has that many): enough
+/// that the networks' weights are reused over many rows once loaded into a core's caches.
+const SCORE_ROWS: usize = 512;
+
+/// Steps scored together by a chunk of `rows` rows over a horizon of `horizon` steps.
+fn steps_per_score(rows: usize, horizon: usize) -> usize {
+    SCORE_ROWS.div_ceil(rows.max(1)).clamp(1, horizon.max(1))
+}
+
+/// Makes `v` at least `len` long (new elements `value`); never shrinks, so a buffer sized
+/// for a larger batch serves a smaller one without allocating.
+fn grow<T: Clone>(v: &mut Vec<T>, len: usize, value: T) {
+    if v.len() < len {
+        v.resize(len, value);
     }
 }
 
@@ -991,6 +1044,50 @@ mod tests {
                 );
                 assert_eq!(returns, again);
             }
+        }
+    }
+
+    /// A chunk scores its imagined steps in blocks of at least `SCORE_ROWS` rows: one step per
+    /// block when it has that many rows, ragged blocks of several steps (6, then 3) for 100
+    /// rows, the whole horizon in one block for a single row. The returns are identical
+    /// whatever the blocks, and those of the step-by-step reading.
+    #[test]
+    fn returns_do_not_depend_on_how_steps_are_grouped_for_scoring() {
+        let task = Builtin::Cartpole.task();
+        let (horizon, population, alpha) = (9, SCORE_ROWS + 88, 0.3);
+        assert_eq!(
+            (steps_per_score(population, horizon), steps_per_score(100, horizon)),
+            (1, 6)
+        );
+        let obs = [0.1, 2.5, -0.2, 0.4];
+        let actions = random_sequences(task, population, horizon, 4);
+        let regularizer = deen(Builtin::Cartpole, 2);
+        let dynamics = ensemble(Builtin::Cartpole, 1, 3);
+        let config = cem(horizon, population, 1);
+        let mut by_chunks = Vec::new();
+        for chunks in [1, population / 100, population] {
+            let mut imagination = Imagination::new(task, &config, alpha, false, chunks, 0);
+            let mut returns = vec![0.0; population];
+            imagination.evaluate(
+                &obs,
+                &actions,
+                &dynamics,
+                &regularizer,
+                crate::plan::Learned::NONE,
+                &mut returns,
+                None,
+            );
+            by_chunks.push(returns);
+        }
+        assert_eq!(by_chunks[0], by_chunks[1], "one step per block vs 6 + 3");
+        assert_eq!(by_chunks[0], by_chunks[2], "one step per block vs the whole horizon");
+        for (i, seq) in actions
+            .chunks_exact(horizon * task.act_dim)
+            .enumerate()
+            .step_by(97)
+        {
+            let (expected, _) = reference(task, &obs, seq, &dynamics, 0, &regularizer, alpha);
+            assert_close(by_chunks[0][i], expected, &format!("candidate {i}"));
         }
     }
 
