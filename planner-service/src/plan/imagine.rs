@@ -1056,7 +1056,10 @@ mod tests {
         let task = Builtin::Cartpole.task();
         let (horizon, population, alpha) = (9, SCORE_ROWS + 88, 0.3);
         assert_eq!(
-            (steps_per_score(population, horizon), steps_per_score(100, horizon)),
+            (
+                steps_per_score(population, horizon),
+                steps_per_score(100, horizon)
+            ),
             (1, 6)
         );
         let obs = [0.1, 2.5, -0.2, 0.4];
@@ -1080,7 +1083,10 @@ mod tests {
             by_chunks.push(returns);
         }
         assert_eq!(by_chunks[0], by_chunks[1], "one step per block vs 6 + 3");
-        assert_eq!(by_chunks[0], by_chunks[2], "one step per block vs the whole horizon");
+        assert_eq!(
+            by_chunks[0], by_chunks[2],
+            "one step per block vs the whole horizon"
+        );
         for (i, seq) in actions
             .chunks_exact(horizon * task.act_dim)
             .enumerate()
