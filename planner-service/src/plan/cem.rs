@@ -18,11 +18,21 @@
 //! All buffers are allocated in [`Cem::new`]; [`Cem::optimize`] allocates nothing.
 
 use super::anytime::IterationClock;
-use super::sequence::{CemOutcome, PopulationObjective, SequenceBox, SteppedSearch, solve_alone};
+use super::sequence::{
+    CemOutcome, PopulationObjective, SequenceBox, SteppedSearch, solve_alone, stream_seed,
+};
 use super::settings::{CemConfig, ConfigError};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
+use rayon::prelude::*;
+
+/// Candidates drawn from one random stream. The population is drawn block by block in
+/// parallel: drawn alone, a half-cheetah population (500 sequences of 30 six-dimensional
+/// actions) takes about a millisecond per iteration, while 16 threads imagine it in a few.
+/// The blocks are fixed by the population, not by the threads, so a seed gives the same
+/// samples on any machine.
+const SAMPLE_BLOCK: usize = 32;
 
 /// A CEM optimiser for sequences of `horizon` actions within fixed bounds.
 #[derive(Debug)]
@@ -42,7 +52,8 @@ pub struct Cem {
     samples: Vec<f32>,
     returns: Vec<f32>,
     order: Vec<usize>,
-    rng: StdRng,
+    /// One random stream per [`SAMPLE_BLOCK`] candidates.
+    rngs: Vec<StdRng>,
     /// The solve in hand: iterations run, and the last one's elites' mean score.
     done: usize,
     elite_return: f32,
@@ -75,7 +86,9 @@ impl Cem {
             samples: vec![0.0; population * dim],
             returns: vec![0.0; population],
             order: (0..population).collect(),
-            rng: StdRng::seed_from_u64(seed),
+            rngs: (0..population.div_ceil(SAMPLE_BLOCK))
+                .map(|b| StdRng::seed_from_u64(stream_seed(seed, b)))
+                .collect(),
             done: 0,
             elite_return: f32::NEG_INFINITY,
             lower,
@@ -163,18 +176,25 @@ impl Cem {
             *s = capped.max(0.0).sqrt();
         }
         let dim = self.mean.len();
-        for candidate in self.samples.chunks_exact_mut(dim) {
-            for ((((x, &m), &s), &lo), &hi) in candidate
-                .iter_mut()
-                .zip(&self.mean)
-                .zip(&self.std)
-                .zip(&self.lower)
-                .zip(&self.upper)
-            {
-                // ±2σ lies within the bounds by the cap above; the clamp only absorbs rounding.
-                *x = (m + s * truncated_standard_normal(&mut self.rng)).clamp(lo, hi);
-            }
-        }
+        let (mean, std, lower, upper) = (&self.mean, &self.std, &self.lower, &self.upper);
+        self.samples
+            .par_chunks_mut(SAMPLE_BLOCK * dim)
+            .zip(&mut self.rngs)
+            .for_each(|(block, rng)| {
+                for candidate in block.chunks_exact_mut(dim) {
+                    for ((((x, &m), &s), &lo), &hi) in candidate
+                        .iter_mut()
+                        .zip(mean)
+                        .zip(std)
+                        .zip(lower)
+                        .zip(upper)
+                    {
+                        // ±2σ lies within the bounds by the cap above; the clamp only absorbs
+                        // rounding.
+                        *x = (m + s * truncated_standard_normal(rng)).clamp(lo, hi);
+                    }
+                }
+            });
     }
 
     /// Selects the elites and moves the distribution towards them; returns their mean score.
@@ -414,26 +434,30 @@ mod tests {
     #[test]
     fn finds_a_maximiser_on_the_bound_and_never_leaves_the_bounds() {
         // The unconstrained optimum (2.5) lies outside [−1, 1]: the best feasible action is 1.
-        let mut cem = Cem::new(config(4), &[-1.0], &[1.0], 3).unwrap();
-        let mut objective = Quadratic {
-            target: vec![2.5; 4],
-            lower: -1.0,
-            upper: 1.0,
-            out_of_bounds: 0,
-            calls: 0,
-        };
-        cem.optimize(&mut objective, &mut IterationClock::default());
-        assert_eq!(objective.out_of_bounds, 0);
         // The cap on the variance near a bound slows the approach to it (as in PETS), so the
-        // mean gets close to the bound rather than onto it.
-        for &m in cem.mean() {
-            assert!(m > 0.9 && m <= 1.0, "{:?}", cem.mean());
-        }
-        let average = cem.mean().iter().sum::<f32>() / 4.0;
-        assert!(average > 0.97, "{:?}", cem.mean());
-        for &a in cem.population() {
-            assert!((-1.0..=1.0).contains(&a));
-        }
+        // mean gets close to the bound rather than onto it, by how much depends on the draws:
+        // over 30 seeds, every solve's mean ends above 0.9 on average, most above 0.98.
+        let mut averages: Vec<f32> = (0..30)
+            .map(|seed| {
+                let mut cem = Cem::new(config(4), &[-1.0], &[1.0], seed).unwrap();
+                let mut objective = Quadratic {
+                    target: vec![2.5; 4],
+                    lower: -1.0,
+                    upper: 1.0,
+                    out_of_bounds: 0,
+                    calls: 0,
+                };
+                cem.optimize(&mut objective, &mut IterationClock::default());
+                assert_eq!(objective.out_of_bounds, 0);
+                for &a in cem.population().iter().chain(cem.mean()) {
+                    assert!((-1.0..=1.0).contains(&a), "seed {seed}: {a}");
+                }
+                cem.mean().iter().sum::<f32>() / 4.0
+            })
+            .collect();
+        averages.sort_by(f32::total_cmp);
+        assert!(averages[0] > 0.9, "{averages:?}");
+        assert!(averages[averages.len() / 2] > 0.98, "{averages:?}");
     }
 
     #[test]

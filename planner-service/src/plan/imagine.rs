@@ -49,6 +49,7 @@
 use crate::dynamics::{DynamicsScratch, Ensemble};
 use crate::energy::{EnergyScratch, Regularizer};
 use crate::plan::Learned;
+use crate::plan::sequence::stream_seed;
 use crate::plan::settings::CemConfig;
 use crate::reward::RewardScratch;
 use crate::sched::Preempt;
@@ -227,7 +228,7 @@ impl Imagination {
         let chunk_len = population.div_ceil(chunks);
         let streams = (0..population.div_ceil(chunk_len))
             .map(|c| Stream {
-                rng: StdRng::seed_from_u64(seed_for_chunk(seed, c)),
+                rng: StdRng::seed_from_u64(stream_seed(seed, c)),
                 candidate_energy: vec![0.0; chunk_len],
             })
             .collect();
@@ -477,14 +478,6 @@ pub fn evaluate_batch<R: Rollout>(
                 .copy_from_slice(&chunk.out[s.offset..s.offset + s.len]);
         }
     }
-}
-
-/// Decorrelated seeds for the chunks' noise generators (splitmix64 of seed and chunk index).
-fn seed_for_chunk(seed: u64, chunk: usize) -> u64 {
-    let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(chunk as u64 + 1));
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
 }
 
 impl Workspace {

@@ -16,6 +16,15 @@ pub trait PopulationObjective {
     fn evaluate(&mut self, actions: &[f32], returns: &mut [f32]);
 }
 
+/// Decorrelated seeds for the random streams a search or an imagination splits its draws
+/// into, so that each stream can be drawn on its own thread (splitmix64 of seed and index).
+pub fn stream_seed(seed: u64, index: usize) -> u64 {
+    let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(index as u64 + 1));
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
 /// What one solve did.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CemOutcome {
