@@ -16,9 +16,10 @@ use proto::Task;
 /// CEM (the paper's), iCEM or Adam, built from one [`CemConfig`].
 #[derive(Debug)]
 pub(super) enum Search {
-    Cem(Cem),
-    Icem(Icem),
-    /// Boxed: its rollout memory and Adam state make it twice the size of the others.
+    // Each boxed: their sizes differ by hundreds of bytes (iCEM's random stream and
+    // colored-noise state, Adam's rollout memory), and a planner holds exactly one.
+    Cem(Box<Cem>),
+    Icem(Box<Icem>),
     Adam(Box<AdamPlanner>),
 }
 
@@ -31,8 +32,8 @@ impl Search {
     ) -> Result<Self, ConfigError> {
         let (lower, upper) = (&task.action_low[..], &task.action_high[..]);
         Ok(match config.optimizer {
-            Optimizer::Cem => Search::Cem(Cem::new(config, lower, upper, seed)?),
-            Optimizer::Icem => Search::Icem(Icem::new(config, lower, upper, seed)?),
+            Optimizer::Cem => Search::Cem(Box::new(Cem::new(config, lower, upper, seed)?)),
+            Optimizer::Icem => Search::Icem(Box::new(Icem::new(config, lower, upper, seed)?)),
             Optimizer::Adam => Search::Adam(Box::new(AdamPlanner::new(
                 task,
                 config,
@@ -71,8 +72,8 @@ impl Search {
     /// ([`Search::solve_gradient`]).
     pub fn stepped(&mut self) -> Option<&mut dyn SteppedSearch> {
         match self {
-            Search::Cem(s) => Some(s),
-            Search::Icem(s) => Some(s),
+            Search::Cem(s) => Some(s.as_mut()),
+            Search::Icem(s) => Some(s.as_mut()),
             Search::Adam(_) => None,
         }
     }
