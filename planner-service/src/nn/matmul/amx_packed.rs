@@ -24,13 +24,6 @@
 //! The epilogue stores the accumulators to a stack buffer and runs the same AVX-512 code as
 //! the vector kernels on each 16-wide row: bias, activation (the bf16-grade one when the
 //! output is stored as bf16), and an f32 or bf16-pair store.
-//!
-//! **The epilogue overlaps the next block's products.** The tile unit multiplies while the
-//! vector units are free, and a block's epilogue (an activation with an exponential on 1,024
-//! elements) costs about as much as its products at the presets' depths (200–500). Run after
-//! the block, the epilogue would leave the tile unit idle meanwhile; so the accumulators go to
-//! one of two buffers and the block's epilogue runs a few rows at a time between the next
-//! block's depth steps ([`Pending`]), whose products proceed on the tile unit meanwhile.
 
 use super::packed::Encoding;
 use super::x86::{load_scalar, mask16};
@@ -39,7 +32,6 @@ use crate::nn::activation::Activation;
 use crate::nn::amx::{TILE_BYTES, TILE_ROWS, TileConfig, tile};
 use crate::nn::fastmath512::{softplus, softplus_for_bf16, swish, swish_for_bf16};
 use std::arch::x86_64::*;
-use std::ops::Range;
 
 /// Words (bf16 pairs or f32) of one full tile.
 pub(super) const TILE_WORDS: usize = TILE_ROWS * TILE_BYTES / 4;
@@ -81,9 +73,7 @@ struct Block {
 }
 
 /// Accumulates a block of `R` row blocks × `P` panels (`R, P ∈ {1, 2}`) over the whole depth
-/// and stores the accumulators to `acc` (tile `2r + p` for row block `r`, panel `p`), calling
-/// `between` after each depth step's products are issued (the previous block's epilogue runs
-/// there while the tile unit multiplies).
+/// and stores the accumulators to `acc` (tile `2r + p` for row block `r`, panel `p`).
 ///
 /// # Safety
 /// Tiles are available and configured by [`config`]; `blk` points inside the operands as
@@ -97,7 +87,6 @@ unsafe fn accumulate<const R: usize, const P: usize>(
     tail_chunk: bool,
     ld_y_bytes: usize,
     acc: &mut Tiles<4>,
-    mut between: impl FnMut(),
 ) {
     const A_TILE: usize = TILE_WORDS;
     let a1 = blk.a.wrapping_add(chunks * A_TILE);
@@ -137,7 +126,6 @@ unsafe fn accumulate<const R: usize, const P: usize>(
                 blk.y.cast::<u8>().wrapping_add(c * TILE_ROWS * ld_y_bytes),
                 ld_y_bytes,
             );
-            between();
         }
         if tail_chunk {
             // The staged tiles are 16 rows of 64 bytes; panel 2's follows panel 1's.
@@ -173,29 +161,20 @@ unsafe fn accumulate<const R: usize, const P: usize>(
     }
 }
 
-/// Row pairs of one accumulator tile: the epilogue's unit of work.
-const PAIRS: usize = TILE_ROWS / 2;
-
-/// Bias, activation and store of row pairs `pairs` (rows `2q, 2q + 1` for each `q`) of one
-/// accumulator tile holding rows `i0..i0 + 16` (those below `m`), columns `j0..j0 + cols`.
+/// Bias, activation and store of one accumulator tile: rows `i0..i0 + 16` (those below `m`),
+/// columns `j0..j0 + cols`.
 ///
 /// # Safety
 /// AVX-512 F, BW and BF16; the rows and columns named are inside the extents of `raw`.
 #[inline]
 #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
-unsafe fn epilogue(
-    raw: &PackedRaw,
-    acc: &[f32; TILE_WORDS],
-    (i0, j0, cols): (usize, usize, usize),
-    pairs: Range<usize>,
-) {
+unsafe fn epilogue(raw: &PackedRaw, acc: &[f32; TILE_WORDS], i0: usize, j0: usize, cols: usize) {
     let mask = mask16(cols, 0);
     let rows = TILE_ROWS.min(raw.m - i0);
-    let pairs = pairs.start..pairs.end.min(rows.div_ceil(2));
     let ld_c = raw.ld_c;
     if raw.bf16_out {
         let c = raw.c.wrapping_add(i0 / 2 * ld_c + j0);
-        for q in pairs {
+        for q in 0..rows.div_ceil(2) {
             // SAFETY: forwarded from the caller.
             let (lo, hi) = unsafe {
                 (
@@ -208,7 +187,7 @@ unsafe fn epilogue(
         }
     } else {
         let c = raw.c.wrapping_add(i0 * ld_c + j0);
-        for r in 2 * pairs.start..(2 * pairs.end).min(rows) {
+        for r in 0..rows {
             // SAFETY: forwarded from the caller.
             let v = unsafe { finish(raw, acc, i0, rows, r) };
             // SAFETY: row `i0 + r < m`, the masked columns `< n`.
@@ -249,50 +228,6 @@ unsafe fn finish(
     }
 }
 
-/// A block whose accumulators are stored and whose epilogue has not run in full yet: its
-/// `count` tiles, each `(index in the buffer, (first row, first column, columns))`, and the
-/// first of their `count · PAIRS` row-pair units still to do.
-#[derive(Default)]
-struct Pending {
-    tiles: [(usize, (usize, usize, usize)); 4],
-    count: usize,
-    done: usize,
-    /// Units per call of [`Pending::advance`]: the block's units spread over the next block's
-    /// depth steps.
-    per_step: usize,
-}
-
-impl Pending {
-    /// Runs the next `per_step` units of the epilogue on `acc`.
-    ///
-    /// # Safety
-    /// As for [`epilogue`], for every tile of the block.
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
-    unsafe fn advance(&mut self, raw: &PackedRaw, acc: &Tiles<4>, units: usize) {
-        let end = (self.done + units).min(self.count * PAIRS);
-        while self.done < end {
-            let (t, q) = (self.done / PAIRS, self.done % PAIRS);
-            let last = PAIRS.min(q + end - self.done);
-            // SAFETY: forwarded from the caller.
-            let (index, place) = self.tiles[t];
-            unsafe { epilogue(raw, &acc.0[index], place, q..last) };
-            self.done += last - q;
-        }
-    }
-
-    /// Runs whatever is left of the epilogue.
-    ///
-    /// # Safety
-    /// As for [`Pending::advance`].
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
-    unsafe fn finish(&mut self, raw: &PackedRaw, acc: &Tiles<4>) {
-        // SAFETY: forwarded from the caller.
-        unsafe { self.advance(raw, acc, usize::MAX / 2) };
-    }
-}
-
 /// Copies pair rows `row0..steps` of panels `p0..p0 + count` of `Y` into zero-padded tiles.
 fn stage_tail(raw: &PackedRaw, row0: usize, p0: usize, count: usize, tail: &mut Tiles<GROUP>) {
     let rows = raw.steps - row0;
@@ -326,16 +261,7 @@ pub(super) unsafe fn drive(raw: &PackedRaw) {
     let whole = raw.n / PANEL; // full-width panels
     let ld_y_bytes = raw.ld_y * 4;
     let mut tail = Tiles::<GROUP>([[0.0; TILE_WORDS]; GROUP]);
-    // Two accumulator buffers: the block in hand stores to one while the last block's
-    // epilogue reads the other.
-    let mut acc = [
-        Tiles::<4>([[0.0; TILE_WORDS]; 4]),
-        Tiles::<4>([[0.0; TILE_WORDS]; 4]),
-    ];
-    let mut cur = 0;
-    let mut pending = Pending::default();
-    // Depth steps per block, among which the last block's epilogue is spread.
-    let per_step = (4 * PAIRS).div_ceil(full.max(1));
+    let mut acc = Tiles::<4>([[0.0; TILE_WORDS]; 4]);
     let main = config(PANEL);
     let ragged = config(raw.n % PANEL);
     // SAFETY: tiles are available (the caller's contract); `config` is valid.
@@ -362,54 +288,42 @@ pub(super) unsafe fn drive(raw: &PackedRaw) {
                     y: raw.y.wrapping_add(p * PANEL),
                     tail: tail.0[p - g0].as_ptr(),
                 };
-                let (first, second) = acc.split_at_mut(1);
-                let (into, last) = if cur == 0 {
-                    (&mut first[0], &second[0])
-                } else {
-                    (&mut second[0], &first[0])
-                };
-                // SAFETY: AVX-512 F, BW and BF16 (this function's features) for the epilogue.
-                let between = || unsafe { pending.advance(raw, last, pending.per_step) };
                 // SAFETY: the block's rows, panels and depth are inside the operands.
                 unsafe {
                     match (two_rows, two_cols) {
-                        (true, true) => accumulate::<2, 2>(
-                            &blk, chunks, full, tail_chunk, ld_y_bytes, into, between,
-                        ),
-                        (true, false) => accumulate::<2, 1>(
-                            &blk, chunks, full, tail_chunk, ld_y_bytes, into, between,
-                        ),
-                        (false, true) => accumulate::<1, 2>(
-                            &blk, chunks, full, tail_chunk, ld_y_bytes, into, between,
-                        ),
-                        (false, false) => accumulate::<1, 1>(
-                            &blk, chunks, full, tail_chunk, ld_y_bytes, into, between,
-                        ),
+                        (true, true) => {
+                            accumulate::<2, 2>(&blk, chunks, full, tail_chunk, ld_y_bytes, &mut acc)
+                        }
+                        (true, false) => {
+                            accumulate::<2, 1>(&blk, chunks, full, tail_chunk, ld_y_bytes, &mut acc)
+                        }
+                        (false, true) => {
+                            accumulate::<1, 2>(&blk, chunks, full, tail_chunk, ld_y_bytes, &mut acc)
+                        }
+                        (false, false) => {
+                            accumulate::<1, 1>(&blk, chunks, full, tail_chunk, ld_y_bytes, &mut acc)
+                        }
                     }
                 }
-                // SAFETY: the last block's tiles are inside `C`.
-                unsafe { pending.finish(raw, last) };
                 let cols_of = |q: usize| PANEL.min(raw.n - q * PANEL);
-                pending = Pending {
-                    per_step,
-                    ..Pending::default()
-                };
                 for r in 0..1 + usize::from(two_rows) {
                     for c in 0..1 + usize::from(two_cols) {
-                        pending.tiles[pending.count] = (
-                            2 * r + c,
-                            ((b + r) * TILE_ROWS, (p + c) * PANEL, cols_of(p + c)),
-                        );
-                        pending.count += 1;
+                        // SAFETY: row block `b + r` and panel `p + c` are inside `C`.
+                        unsafe {
+                            epilogue(
+                                raw,
+                                &acc.0[2 * r + c],
+                                (b + r) * TILE_ROWS,
+                                (p + c) * PANEL,
+                                cols_of(p + c),
+                            )
+                        };
                     }
                 }
-                cur = 1 - cur;
                 p += 1 + usize::from(two_cols);
             }
         }
     }
-    // SAFETY: the last block's tiles are inside `C`.
-    unsafe { pending.finish(raw, &acc[1 - cur]) };
     // SAFETY: tiles are available.
     unsafe { tile::release() };
 }

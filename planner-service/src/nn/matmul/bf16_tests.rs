@@ -131,13 +131,16 @@ fn bf16_layers_match_the_reference_on_ragged_shapes() {
     }
     // The AMX kernel's edges lie at 16 and 32 rows, columns and pairs and at groups of 128
     // columns: the extra shapes cross each (several row-block pairs and a lone block, whole
-    // and ragged depth chunks, several column groups with a ragged last panel).
+    // and ragged depth chunks, several column groups with a ragged last panel), the last two
+    // at the depths of the presets' networks (256 and 517, every kind of block).
     let shapes = super::RAGGED_SHAPES.iter().chain(&[
         (17, 16, 32),
         (33, 145, 70),
         (64, 256, 64),
         (48, 129, 33),
         (80, 300, 130),
+        (49, 150, 256),
+        (33, 47, 517),
     ]);
     for &(m, n, k) in shapes {
         for (weights, amx, out) in [
