@@ -976,6 +976,29 @@ mod tests {
         (ret, seq.len() / a)
     }
 
+    /// The returns of `actions` from `obs` scored by `imagination` alone (no other agent, no
+    /// rival plan), with the task's own reward and termination.
+    fn scores(
+        imagination: &mut Imagination,
+        obs: &[f32],
+        actions: &[f32],
+        dynamics: &Ensemble,
+        regularizer: &Regularizer,
+    ) -> Vec<f32> {
+        let ctx = imagination.ctx;
+        let mut returns = vec![0.0; actions.len() / (ctx.horizon * ctx.task.act_dim)];
+        imagination.evaluate(
+            obs,
+            actions,
+            dynamics,
+            regularizer,
+            crate::plan::Learned::NONE,
+            &mut returns,
+            None,
+        );
+        returns
+    }
+
     fn assert_close(a: f32, b: f32, what: &str) {
         assert!(
             (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
@@ -1007,16 +1030,7 @@ mod tests {
             for chunks in [1, 2, 3, 7] {
                 let config = cem(horizon, population, particles);
                 let mut imagination = Imagination::new(task, &config, alpha, false, chunks, 0);
-                let mut returns = vec![0.0; population];
-                imagination.evaluate(
-                    &obs,
-                    &actions,
-                    &dynamics,
-                    &regularizer,
-                    crate::plan::Learned::NONE,
-                    &mut returns,
-                    None,
-                );
+                let returns = scores(&mut imagination, &obs, &actions, &dynamics, &regularizer);
                 for (i, (r, e)) in returns.iter().zip(&expected).enumerate() {
                     assert_close(
                         *r,
@@ -1025,16 +1039,7 @@ mod tests {
                     );
                 }
                 // A second call reuses every buffer and gives the same answer.
-                let mut again = vec![0.0; population];
-                imagination.evaluate(
-                    &obs,
-                    &actions,
-                    &dynamics,
-                    &regularizer,
-                    crate::plan::Learned::NONE,
-                    &mut again,
-                    None,
-                );
+                let again = scores(&mut imagination, &obs, &actions, &dynamics, &regularizer);
                 assert_eq!(returns, again);
             }
         }
@@ -1063,16 +1068,7 @@ mod tests {
         let mut by_chunks = Vec::new();
         for chunks in [1, population / 100, population] {
             let mut imagination = Imagination::new(task, &config, alpha, false, chunks, 0);
-            let mut returns = vec![0.0; population];
-            imagination.evaluate(
-                &obs,
-                &actions,
-                &dynamics,
-                &regularizer,
-                crate::plan::Learned::NONE,
-                &mut returns,
-                None,
-            );
+            let returns = scores(&mut imagination, &obs, &actions, &dynamics, &regularizer);
             by_chunks.push(returns);
         }
         assert_eq!(by_chunks[0], by_chunks[1], "one step per block vs 6 + 3");
@@ -1186,16 +1182,7 @@ mod tests {
         let regularizer = deen(Builtin::Cartpole, 5);
         let score = |alpha: f32, reg: &Regularizer| {
             let mut imagination = Imagination::new(task, &cem(5, 4, 1), alpha, false, 2, 0);
-            let mut returns = vec![0.0; 4];
-            imagination.evaluate(
-                &obs,
-                &actions,
-                &dynamics,
-                reg,
-                crate::plan::Learned::NONE,
-                &mut returns,
-                None,
-            );
+            let returns = scores(&mut imagination, &obs, &actions, &dynamics, reg);
             let energies: Vec<f32> = (0..4).map(|i| imagination.candidate_energy(i)).collect();
             (returns, energies)
         };
@@ -1253,15 +1240,12 @@ mod tests {
         let actions = random_sequences(task, population, horizon, 2);
         let mut imagination =
             Imagination::new(task, &cem(horizon, population, 2), 0.0, false, 2, 0);
-        let mut returns = vec![0.0; population];
-        imagination.evaluate(
+        let returns = scores(
+            &mut imagination,
             &obs,
             &actions,
             &dynamics,
             &Regularizer::None,
-            crate::plan::Learned::NONE,
-            &mut returns,
-            None,
         );
         for (seq, r) in actions.chunks_exact(horizon * task.act_dim).zip(&returns) {
             let (expected, steps) =
@@ -1275,15 +1259,12 @@ mod tests {
         // Without the fall the same model earns strictly more over the horizon.
         delta[0] = 0.0;
         let standing = constant_delta_ant(&delta);
-        let mut upright = vec![0.0; population];
-        imagination.evaluate(
+        let upright = scores(
+            &mut imagination,
             &obs,
             &actions,
             &standing,
             &Regularizer::None,
-            crate::plan::Learned::NONE,
-            &mut upright,
-            None,
         );
         for (r, u) in returns.iter().zip(&upright) {
             assert!(u > r, "{u} should exceed {r}");
@@ -1391,15 +1372,12 @@ mod tests {
             let dynamics = constant_delta(task, &delta);
             let mut imagination =
                 Imagination::new(task, &cem(horizon, population, 2), 0.0, false, 2, 0);
-            let mut returns = vec![0.0; population];
-            imagination.evaluate(
+            let returns = scores(
+                &mut imagination,
                 &obs,
                 &actions,
                 &dynamics,
                 &Regularizer::None,
-                crate::plan::Learned::NONE,
-                &mut returns,
-                None,
             );
             (returns, dynamics)
         };
@@ -1427,15 +1405,12 @@ mod tests {
         obs[0] = 0.55;
         let actions = random_sequences(task, 3, 4, 0);
         let mut imagination = Imagination::new(task, &cem(4, 3, 1), 0.0, false, 1, 0);
-        let mut returns = vec![0.0; 3];
-        imagination.evaluate(
+        let returns = scores(
+            &mut imagination,
             &obs,
             &actions,
             &dynamics,
             &Regularizer::None,
-            crate::plan::Learned::NONE,
-            &mut returns,
-            None,
         );
         assert!(
             returns.iter().all(|&r| r == f32::NEG_INFINITY),
@@ -1570,30 +1545,18 @@ mod tests {
         let energy = deen(Builtin::Cartpole, 4);
         let mut imagination =
             Imagination::new(task, &cem(horizon, population, 1), 0.01, false, 3, 0);
-        let mut full = vec![0.0; population];
-        imagination.evaluate(
-            &obs,
-            &actions,
-            &dynamics,
-            &energy,
-            crate::plan::Learned::NONE,
-            &mut full,
-            None,
-        );
+        let full = scores(&mut imagination, &obs, &actions, &dynamics, &energy);
         let full_energy: Vec<f32> = (0..population)
             .map(|i| imagination.candidate_energy(i))
             .collect();
         let seq = horizon * task.act_dim;
         for n in [9, 4, 1] {
-            let mut part = vec![0.0; n];
-            imagination.evaluate(
+            let part = scores(
+                &mut imagination,
                 &obs,
                 &actions[..n * seq],
                 &dynamics,
                 &energy,
-                crate::plan::Learned::NONE,
-                &mut part,
-                None,
             );
             for i in 0..n {
                 assert_close(
@@ -1620,17 +1583,13 @@ mod tests {
         let run = |sample: bool, seed: u64| {
             let mut imagination =
                 Imagination::new(task, &cem(horizon, population, 4), 0.0, sample, 2, seed);
-            let mut returns = vec![0.0; population];
-            imagination.evaluate(
+            scores(
+                &mut imagination,
                 &obs,
                 &actions,
                 &dynamics,
                 &Regularizer::None,
-                crate::plan::Learned::NONE,
-                &mut returns,
-                None,
-            );
-            returns
+            )
         };
         let sampled = run(true, 1);
         assert_eq!(sampled, run(true, 1));
