@@ -25,7 +25,7 @@
 //! - **Scoring in blocks of steps.** Only the dynamics must run step by step (each step's
 //!   states come from the last). The reward, the termination and the energy of a transition
 //!   depend on that transition alone, so a chunk keeps its imagined trajectory and scores
-//!   several steps' transitions in one network call, at least [`SCORE_ROWS`] rows. With many
+//!   several steps' transitions in one network call, at least `SCORE_ROWS` (512) rows. With many
 //!   threads a chunk holds few candidates (500 over 16 threads: 32 rows), and a network called
 //!   on so few rows streams all its weights (the paper's energy network: 2 MB in bf16, more
 //!   than a core's L2) from the shared cache for every 32 rows; a block of steps reuses them
