@@ -290,9 +290,22 @@ impl Planner {
 
     /// The replay buffer the daemon keeps for `run` of `task` (open it once the daemon stopped).
     pub fn replay(&self, run: &str, task: Builtin) -> Result<ReplayBuffer> {
-        let path = self.data_dir.join("runs").join(run).join("replay.log");
-        ReplayBuffer::open(&path, task.task()).with_context(|| format!("open {}", path.display()))
+        let path = self.data_dir.join("runs").join(run);
+        ReplayBuffer::read(&path, task.task()).with_context(|| format!("read {}", path.display()))
     }
+}
+
+/// The newest replay segment of `run` stored in `data_dir` (the file its owner writes to).
+///
+/// # Panics
+/// If the run has no replay stored.
+pub fn newest_replay_segment(data_dir: &Path, run: &str) -> PathBuf {
+    let root = data_dir.join("runs").join(run);
+    let newest = planner_service::replay::segments::list(&root)
+        .expect("the run's replay segments can be listed")
+        .pop()
+        .expect("the run has stored replay");
+    root.join(newest.name())
 }
 
 /// Starts `planner-service serve` with `config` (TOML) written to `dir/planner.toml`, serving

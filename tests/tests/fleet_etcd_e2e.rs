@@ -8,14 +8,16 @@
 //! - a planner cut off from etcd stops acknowledging within its lease TTL and its run moves;
 //! - a planner cut off from the router takes no run, and nothing acknowledged is lost;
 //! - forged planner and lease tokens (10,000 names, huge epochs) move no run and keep the
-//!   planner's view and memory bounded.
+//!   planner's view and memory bounded;
+//! - stale owners appending to their own old replay segments after a takeover add nothing to
+//!   the run.
 
 use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::etcd::Etcd;
 use ebmpc_e2e::proxy::Proxy;
 use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data};
-use planner_service::replay::ReplayBuffer;
+use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, ReplayLog};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -49,8 +51,8 @@ fn start(dir: &Path, data: &Path, id: &str, router: &str, etcd: &str) -> Guarded
     serve_data(&dir.join(id), data, &config(id, router, etcd), None).expect("planner serves")
 }
 
-fn replay_path(data: &Path, run: &str) -> PathBuf {
-    data.join("runs").join(run).join("replay.log")
+fn run_path(data: &Path, run: &str) -> PathBuf {
+    data.join("runs").join(run)
 }
 
 /// A transition's exact bits.
@@ -92,8 +94,8 @@ impl Ledger {
     /// Checks the stored replay of `run` against the ledger: every acknowledged transition is
     /// there, every episode is finished or interrupted. Returns the number acknowledged.
     fn check_replay(&self, data: &Path, run: &str, agent: &str) -> usize {
-        let buffer = ReplayBuffer::open(&replay_path(data, run), Builtin::Cartpole.task())
-            .expect("the replay opens");
+        let buffer = ReplayBuffer::read(&run_path(data, run), Builtin::Cartpole.task())
+            .expect("the replay reads");
         let stored: HashSet<Vec<u32>> = (0..buffer.len())
             .map(|i| {
                 let (o, a, n) = buffer.transitions().row(i);
@@ -594,4 +596,147 @@ fn forged_planner_and_lease_tokens_move_no_run() {
     ledger.check_one_owner_at_a_time();
     pa.terminate(Duration::from_secs(20)).unwrap();
     ledger.check_replay(&data, run, "a");
+}
+
+/// What a stale owner writes: transitions and an episode end under its old token, marked by
+/// an observation no agent sends, appended to its own (old) replay segment.
+fn stale_records(token: u64) -> Vec<Record> {
+    let mut records: Vec<Record> = (0..3)
+        .map(|step| Record::Transition {
+            epoch: token,
+            agent: "a".into(),
+            episode: STALE_EPISODE,
+            step,
+            obs: vec![STALE_MARK; 4],
+            act: vec![0.0],
+            origin: ActionOrigin::Planned,
+            next_obs: vec![STALE_MARK; 4],
+            reward: 1.0,
+        })
+        .collect();
+    records.push(Record::EpisodeEnd {
+        epoch: token,
+        agent: "a".into(),
+        episode: STALE_EPISODE,
+        steps: 3,
+        episode_return: 3.0,
+        end: EpisodeEnd::TimeLimit,
+    });
+    records
+}
+
+const STALE_MARK: f32 = 4242.5;
+const STALE_EPISODE: u32 = 999_999;
+
+/// Appends `stale_records(token)` to `segment` as its old owner would if it had lost its
+/// lease without noticing (its process paused, its clock slow): the file is its own, so it
+/// appends like any owner does.
+fn write_as_stale_owner(segment: &Path, token: u64) {
+    let (mut log, _) = ReplayLog::open(segment).expect("the stale owner's segment opens");
+    log.append(&stale_records(token)).unwrap();
+    let read = ReplayLog::read(segment).unwrap();
+    assert!(
+        read.records
+            .iter()
+            .any(|r| matches!(r, Record::Transition { obs, .. } if obs[0] == STALE_MARK)),
+        "the stale records are in the old segment"
+    );
+}
+
+/// Two stale owners (each a term that a newer one took over) append to their own old
+/// segments after the takeover: none of it reaches the run, as read by the owners that open
+/// it later and by a reader, and nothing acknowledged is lost.
+#[test]
+fn a_stale_writers_late_appends_never_reach_the_run() {
+    let dir = TempDir::new("fleet-stale-writer");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let run = "stale";
+    let mut ledger = Ledger::default();
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let mut pb = None;
+    let mut pc = None;
+    rt.block_on(async {
+        let (mut agent, first) = Agent::new(&endpoint, run, 0, 3).await;
+        assert_eq!(first.planner_id, "pa");
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 2 * STEPS as usize + 3
+            })
+            .await;
+        let pa_segment = ebmpc_e2e::newest_replay_segment(&data, run);
+        // pa loses the run: its process stops (as if paused) and pb takes over at a newer
+        // token once pa's lease expired.
+        pa.signal("KILL").unwrap();
+        pa.wait(Duration::from_secs(10)).unwrap();
+        pb = Some(start(dir.path(), &data, "pb", &endpoint, &etcd.endpoint));
+        let second = agent.reattach().await;
+        assert_eq!(second.planner_id, "pb");
+        assert!(second.epoch > first.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize + 4
+            })
+            .await;
+        // pa, stale, writes on to its segment after pb read it.
+        write_as_stale_owner(&pa_segment, first.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize
+            })
+            .await;
+        let pb_segment = ebmpc_e2e::newest_replay_segment(&data, run);
+        assert_ne!(pb_segment, pa_segment, "each term writes its own segment");
+        // pb loses the run too; pc takes it over, reading both older segments.
+        pb.as_mut().unwrap().signal("KILL").unwrap();
+        pb.as_mut().unwrap().wait(Duration::from_secs(10)).unwrap();
+        pc = Some(start(dir.path(), &data, "pc", &endpoint, &etcd.endpoint));
+        let third = agent.reattach().await;
+        assert_eq!(third.planner_id, "pc");
+        assert!(third.epoch > second.epoch);
+        // Both stale owners write on after pc read their segments.
+        write_as_stale_owner(&pa_segment, first.epoch);
+        write_as_stale_owner(&pb_segment, second.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 2 * STEPS as usize
+            })
+            .await;
+    });
+    // pc is stopped and pa opens the run once more (a fourth term, reading all three).
+    pc.as_mut()
+        .unwrap()
+        .terminate(Duration::from_secs(20))
+        .unwrap();
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    rt.block_on(async {
+        let (mut agent, fourth) = Agent::new(&endpoint, run, 1000, 4).await;
+        assert_eq!(fourth.planner_id, "pa");
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize
+            })
+            .await;
+    });
+    pa.terminate(Duration::from_secs(20)).unwrap();
+    ledger.check_one_owner_at_a_time();
+    let acknowledged = ledger.check_replay(&data, run, "a");
+    assert!(
+        acknowledged > 4 * STEPS as usize,
+        "{acknowledged} acknowledged"
+    );
+    let stored = ReplayBuffer::read(&run_path(&data, run), Builtin::Cartpole.task()).unwrap();
+    let stale_rows = (0..stored.len())
+        .filter(|&i| stored.transitions().row(i).0[0] == STALE_MARK)
+        .count();
+    assert_eq!(stale_rows, 0, "a stale owner's transitions reached the run");
+    assert!(
+        stored.episodes().iter().all(|e| e.episode != STALE_EPISODE),
+        "a stale owner's episode reached the run"
+    );
+    let segments = planner_service::replay::segments::list(&run_path(&data, run)).unwrap();
+    assert!(segments.len() >= 4, "one segment per term: {segments:?}");
 }

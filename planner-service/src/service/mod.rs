@@ -948,9 +948,7 @@ impl Service {
             ))
             .into());
         }
-        let stored = RunDir::new(&self.config.data_dir, name)
-            .replay_log()
-            .exists();
+        let stored = RunDir::new(&self.config.data_dir, name).has_replay();
         if let Err(budget) = self.opening_budget(stored) {
             if !stored {
                 return Err(refuse(budget).into());
@@ -1017,6 +1015,10 @@ impl Service {
             histograms: self.outbox.metrics.for_run(name),
             sync_every_step: self.config.sync_every_step(),
             shared_dir: self.fleet.in_fleet(),
+            still_owner: {
+                let fleet = self.fleet.clone();
+                Arc::new(move |run: &str, token: u64| fleet.may_acknowledge(run, token))
+            },
         };
         let internal = |why: String| {
             Refusal::Report(ErrorReport::new(
@@ -1147,11 +1149,7 @@ impl Service {
         let listed = tokio::task::spawn_blocking(move || {
             let mut stored = persist::stored_runs(&data_dir)?;
             // Newest first: the runs in use resume before the long finished ones.
-            let last_written = |dir: &RunDir| {
-                std::fs::metadata(dir.replay_log())
-                    .and_then(|m| m.modified())
-                    .ok()
-            };
+            let last_written = |dir: &RunDir| dir.replay_last_written();
             stored.sort_by_cached_key(|(_, dir)| std::cmp::Reverse(last_written(dir)));
             Ok::<_, crate::persist::PersistError>(stored)
         })
