@@ -322,6 +322,19 @@ pub fn serve_data(
     config: &str,
     listen: Option<&str>,
 ) -> Result<Guarded> {
+    let mut process = spawn_planner(dir, data_dir, config, listen)?;
+    process.wait_for_log("planner serving", Duration::from_secs(60))?;
+    Ok(process)
+}
+
+/// As [`serve_data`], without waiting for the planner to serve (it may be resuming its
+/// stored runs).
+pub fn spawn_planner(
+    dir: &Path,
+    data_dir: &Path,
+    config: &str,
+    listen: Option<&str>,
+) -> Result<Guarded> {
     std::fs::create_dir_all(dir)?;
     let config_path = dir.join("planner.toml");
     std::fs::write(&config_path, config)?;
@@ -335,9 +348,7 @@ pub fn serve_data(
     }
     cmd.env("RUST_LOG", "info,zenoh=warn");
     let log = dir.join(format!("planner-{}.log", free_port()));
-    let mut process = Guarded::spawn("planner-service", cmd, log)?;
-    process.wait_for_log("planner serving", Duration::from_secs(60))?;
-    Ok(process)
+    Guarded::spawn("planner-service", cmd, log)
 }
 
 /// A Zenoh router in this process, listening on `endpoint` (multicast scouting off), as a

@@ -10,7 +10,9 @@
 //! - forged planner and lease tokens (10,000 names, huge epochs) move no run and keep the
 //!   planner's view and memory bounded;
 //! - stale owners appending to their own old replay segments after a takeover add nothing to
-//!   the run.
+//!   the run;
+//! - a planner given SIGTERM in the middle of a stuck takeover exits within 10 s and the run
+//!   moves.
 
 use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
@@ -739,4 +741,100 @@ fn a_stale_writers_late_appends_never_reach_the_run() {
     );
     let segments = planner_service::replay::segments::list(&run_path(&data, run)).unwrap();
     assert!(segments.len() >= 4, "one segment per term: {segments:?}");
+}
+
+/// SIGTERM to `planner` once it logged that it took a run over (and then stuck in opening
+/// it): it must exit cleanly within 10 s. Returns how long it took.
+fn terminate_mid_takeover(planner: &mut Guarded, name: &str) -> Duration {
+    planner
+        .wait_for_log("took the run", Duration::from_secs(30))
+        .unwrap_or_else(|e| panic!("{name} starts taking the run over: {e}"));
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(
+        !planner.log().contains("run opened"),
+        "{name}'s takeover was still under way at SIGTERM:\n{}",
+        planner.log()
+    );
+    let term = Instant::now();
+    planner.signal("TERM").unwrap();
+    let status = planner
+        .wait(Duration::from_secs(10))
+        .unwrap_or_else(|e| panic!("{name} exits within 10 s of SIGTERM: {e}"));
+    let took = term.elapsed();
+    assert!(status.success(), "{name} exit: {status}\n{}", planner.log());
+    assert!(took < Duration::from_secs(10), "{name} took {took:?}");
+    took
+}
+
+/// A planner given SIGTERM in the middle of a takeover (its opening of the run stuck in a
+/// read of the run's replay, as on a stalled mount: the newest segment is swapped for a FIFO
+/// nobody writes) exits within 10 s and releases the run with its lease; both as a serving
+/// planner whose steward takes a dead owner's run over, and as a planner resuming stored runs
+/// at its start. Once the replay is readable again another planner owns and serves the run
+/// at a newer token with nothing acknowledged lost.
+#[test]
+fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
+    let dir = TempDir::new("fleet-sigterm-takeover");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let run = "stuck";
+    let mut ledger = Ledger::default();
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let (first, episode) = rt.block_on(async {
+        let (mut agent, first) = Agent::new(&endpoint, run, 0, 9).await;
+        assert_eq!(first.planner_id, "pa");
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 2 * STEPS as usize + 5
+            })
+            .await;
+        (first, agent.episode)
+    });
+    let mut pb = start(dir.path(), &data, "pb", &endpoint, &etcd.endpoint);
+    // The owner dies, and the run's replay stalls before pb takes it over (after the TTL):
+    // reading its newest segment blocks until a writer comes, which none does.
+    pa.signal("KILL").unwrap();
+    pa.wait(Duration::from_secs(10)).unwrap();
+    let segment = ebmpc_e2e::newest_replay_segment(&data, run);
+    let aside = segment.with_extension("aside");
+    std::fs::rename(&segment, &aside).unwrap();
+    let made = std::process::Command::new("mkfifo")
+        .arg(&segment)
+        .status()
+        .unwrap();
+    assert!(made.success(), "mkfifo");
+    let by_steward = terminate_mid_takeover(&mut pb, "pb (serving)");
+    // A planner starting while the replay still stalls resumes the run at its start: stuck
+    // the same way, and stopped the same way.
+    let mut pc = ebmpc_e2e::spawn_planner(
+        &dir.path().join("pc"),
+        &data,
+        &config("pc", &endpoint, &etcd.endpoint),
+        None,
+    )
+    .unwrap();
+    let at_start = terminate_mid_takeover(&mut pc, "pc (starting)");
+    eprintln!(
+        "SIGTERM in the middle of a takeover: exited after {by_steward:?} (serving), {at_start:?} (starting)"
+    );
+    // The mount recovers; another planner takes the run at once (the leases were revoked).
+    std::fs::remove_file(&segment).unwrap();
+    std::fs::rename(&aside, &segment).unwrap();
+    let mut pd = start(dir.path(), &data, "pd", &endpoint, &etcd.endpoint);
+    rt.block_on(async {
+        let (mut agent, moved) = Agent::new(&endpoint, run, episode + 1, 10).await;
+        assert_eq!(moved.planner_id, "pd");
+        assert!(moved.epoch > first.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize + 3
+            })
+            .await;
+    });
+    pd.terminate(Duration::from_secs(20)).unwrap();
+    ledger.check_one_owner_at_a_time();
+    ledger.check_replay(&data, run, "a");
 }
