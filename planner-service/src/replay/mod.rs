@@ -101,6 +101,8 @@ pub struct ReplayBuffer {
     root: Option<PathBuf>,
     /// The earlier segments this term's data continues from, each with its length that counts.
     earlier: Vec<(PathBuf, u64)>,
+    /// The fencing token of this term (its segments are named by it).
+    token: u64,
     /// The planner holding this term (named in the segments it writes).
     planner: String,
     /// Asked before removing superseded segments (see [`OwnerCheck`]).
@@ -164,6 +166,7 @@ impl ReplayBuffer {
             log: None,
             root: None,
             earlier: Vec::new(),
+            token: 0,
             planner: String::new(),
             still_owner: OwnerCheck::alone(),
             left_open: Vec::new(),
@@ -228,6 +231,7 @@ impl ReplayBuffer {
         buffer.log = Some(opened.log);
         buffer.root = Some(root.to_path_buf());
         buffer.earlier = opened.earlier;
+        buffer.token = token;
         buffer.planner = planner.to_string();
         buffer.still_owner = still_owner;
         buffer.epoch = buffer.epoch.max(token);
@@ -597,7 +601,7 @@ impl ReplayBuffer {
                 .and_then(|n| n.to_str())
                 .unwrap_or_default()
         ));
-        let target = segments::next_segment(&root, current, self.epoch)?;
+        let target = segments::next_segment(&root, current, self.token)?;
         let evicted = self.evicted.clone();
         let dropped = evicted.clone();
         let plan = RewritePlan {
@@ -610,13 +614,13 @@ impl ReplayBuffer {
                 },
                 // A base: the new segment holds everything kept, so no earlier one counts.
                 Record::Term {
-                    epoch: self.epoch,
+                    epoch: self.token,
                     planner: self.planner.clone(),
                     reads: Vec::new(),
                 },
             ],
             earlier: self.earlier.clone(),
-            held_epoch: self.epoch,
+            held_epoch: self.token,
             newer_term: Box::new(move || segments::newest_token(&root)),
         };
         let rewrite = log.start_rewrite(plan, move |record| match record {
