@@ -722,8 +722,12 @@ impl ReplayLog {
             path: path.to_path_buf(),
             source,
         };
-        if let Some(dir) = path.parent() {
+        if let Some(dir) = path.parent()
+            && !dir.is_dir()
+        {
+            // A new directory: its own entry must be durable too.
             std::fs::create_dir_all(dir).map_err(io)?;
+            sync_directory(dir).map_err(io)?;
         }
         let mut framed = Vec::new();
         for record in records {
