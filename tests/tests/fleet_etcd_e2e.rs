@@ -12,7 +12,10 @@
 //! - stale owners appending to their own old replay segments after a takeover add nothing to
 //!   the run;
 //! - a planner given SIGTERM in the middle of a stuck takeover exits within 10 s and the run
-//!   moves.
+//!   moves;
+//! - with `replay_capacity`, owners killed round after round compact the run across the
+//!   segments of earlier terms: nothing of the newest episodes is lost, the replay stays
+//!   bounded, superseded segments are removed.
 
 use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
@@ -70,6 +73,8 @@ fn key(obs: &[f32], act: &[f32], next: &[f32]) -> Vec<u32> {
 #[derive(Default)]
 struct Ledger {
     acknowledged: HashSet<Vec<u32>>,
+    /// The acknowledged transitions of each episode.
+    by_episode: BTreeMap<u32, HashSet<Vec<u32>>>,
     /// Episodes started; `true` once their end was acknowledged.
     episodes: BTreeMap<u32, bool>,
     /// Every action received, with its fencing token, in the order received.
@@ -220,7 +225,8 @@ impl Agent {
             };
             actions += 1;
             if let Some((ended, last)) = self.ending.take() {
-                ledger.acknowledged.insert(last);
+                ledger.acknowledged.insert(last.clone());
+                ledger.by_episode.entry(ended).or_default().insert(last);
                 ledger.episodes.insert(ended, true);
             }
             for step in 1..=STEPS {
@@ -241,6 +247,11 @@ impl Agent {
                 };
                 actions += 1;
                 ledger.acknowledged.insert(key(&obs, &action, &next));
+                ledger
+                    .by_episode
+                    .entry(self.episode)
+                    .or_default()
+                    .insert(key(&obs, &action, &next));
                 ledger.episodes.entry(self.episode).or_insert(false);
                 obs = next;
                 action = next_action;
@@ -837,4 +848,150 @@ fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
     pd.terminate(Duration::from_secs(20)).unwrap();
     ledger.check_one_owner_at_a_time();
     ledger.check_replay(&data, run, "a");
+}
+
+/// Owners SIGKILLed round after round while `[storage] replay_capacity` makes each of them
+/// evict and compact the run's replay across the segments of earlier terms: every episode
+/// stays accounted for, the newest episodes' acknowledged transitions are all kept, the
+/// replay on disk stays bounded, and superseded segments are removed.
+#[test]
+fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay() {
+    const CAPACITY: usize = 40;
+    let dir = TempDir::new("fleet-compaction");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let bounded = |id: &str| {
+        format!(
+            "{}\n[storage]\nreplay_capacity = {CAPACITY}\n",
+            config(id, &endpoint, &etcd.endpoint)
+        )
+    };
+    let ids = ["pa", "pb", "pc"];
+    let mut planners: BTreeMap<&str, Guarded> = ids
+        .iter()
+        .map(|id| {
+            let planner = serve_data(&dir.path().join(id), &data, &bounded(id), None);
+            (*id, planner.expect("planner serves"))
+        })
+        .collect();
+    let run = "bounded";
+    let mut ledger = Ledger::default();
+    let mut episode = 0;
+    let rounds = 5;
+    for round in 0..rounds {
+        let owner = rt.block_on(async {
+            let (mut agent, accepted) = Agent::new(&endpoint, run, episode, round).await;
+            // Past the capacity every round, so each owner evicts and compacts.
+            agent
+                .play(&mut ledger, Duration::from_secs(20), |n| {
+                    n >= 6 * STEPS as usize + 3
+                })
+                .await;
+            planners[accepted.planner_id.as_str()]
+                .signal("KILL")
+                .unwrap();
+            agent
+                .play(&mut ledger, Duration::from_secs(2), |_| false)
+                .await;
+            episode = agent.episode + 1;
+            accepted.planner_id
+        });
+        let id = ids.iter().find(|p| **p == owner).copied().unwrap();
+        planners
+            .get_mut(id)
+            .unwrap()
+            .wait(Duration::from_secs(10))
+            .unwrap();
+        let restarted = serve_data(&dir.path().join(id), &data, &bounded(id), None);
+        planners.insert(id, restarted.expect("planner serves"));
+    }
+    // The last owner plays on: at least two whole episodes, the newest of the run.
+    rt.block_on(async {
+        let (mut agent, _) = Agent::new(&endpoint, run, episode, 99).await;
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 3 * STEPS as usize + 3
+            })
+            .await;
+    });
+    for planner in planners.values_mut() {
+        planner.terminate(Duration::from_secs(20)).unwrap();
+    }
+    ledger.check_one_owner_at_a_time();
+    let root = run_path(&data, run);
+    let stored = ReplayBuffer::read(&root, Builtin::Cartpole.task()).unwrap();
+    let held: HashSet<Vec<u32>> = (0..stored.len())
+        .map(|i| {
+            let (o, a, n) = stored.transitions().row(i);
+            key(o, a, n)
+        })
+        .collect();
+    for (&episode, &ended) in &ledger.episodes {
+        let records: Vec<_> = stored
+            .episodes()
+            .iter()
+            .filter(|e| e.episode == episode)
+            .collect();
+        let accounted = match records.as_slice() {
+            [one] => {
+                one.end == EpisodeEnd::TimeLimit || (!ended && one.end == EpisodeEnd::Interrupted)
+            }
+            _ => false,
+        };
+        assert!(
+            accounted,
+            "episode {episode} (ended: {ended}) is recorded as {records:?}"
+        );
+    }
+    let finished: Vec<u32> = ledger
+        .episodes
+        .iter()
+        .filter(|(_, ended)| **ended)
+        .map(|(e, _)| *e)
+        .collect();
+    for episode in finished.iter().rev().take(2) {
+        let missing = ledger.by_episode[episode]
+            .iter()
+            .filter(|t| !held.contains(*t))
+            .count();
+        assert_eq!(
+            missing, 0,
+            "episode {episode}: {missing} acknowledged transitions lost"
+        );
+    }
+    assert!(
+        ledger.acknowledged.len() > 3 * CAPACITY,
+        "{} acknowledged",
+        ledger.acknowledged.len()
+    );
+    assert!(
+        stored.len() <= 2 * CAPACITY + STEPS as usize,
+        "{} transitions on disk: the replay was not compacted",
+        stored.len()
+    );
+    let segments = planner_service::replay::segments::list(&root).unwrap();
+    assert!(
+        segments.len() < rounds as usize + 1,
+        "superseded segments removed: {segments:?}"
+    );
+    // Every planner's log, the killed ones' too: compactions ran and removed segments.
+    let mut logs = String::new();
+    for id in ids {
+        for entry in std::fs::read_dir(dir.path().join(id)).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "log") {
+                logs.push_str(&std::fs::read_to_string(&path).unwrap());
+            }
+        }
+    }
+    let compactions = logs.matches("compacted the replay log").count();
+    let removed = logs.matches("removed a superseded replay segment").count();
+    eprintln!("{compactions} compactions, {removed} superseded segments removed");
+    assert!(
+        compactions >= 2 && removed >= 2,
+        "{compactions} compactions, {removed} removed"
+    );
 }
