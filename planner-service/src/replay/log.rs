@@ -432,7 +432,8 @@ pub enum LogError {
 #[derive(Debug, Default)]
 pub struct Recovered {
     pub records: Vec<Record>,
-    /// Bytes cut off a torn tail (0 for a clean file).
+    /// Bytes of a torn tail (0 for a clean file): cut off when a single log is opened for
+    /// writing ([`ReplayLog::open`]), ignored when a run is read (its segments are read only).
     pub truncated_bytes: u64,
     /// Damaged stretches in the middle of the file that were skipped.
     pub damaged_regions: u32,
