@@ -2,9 +2,10 @@
 //! continue an unfinished run.
 //!
 //! The daemon keeps a run in `<out>/planner/runs/<run>/` (see `planner_service::persist`):
-//! its spec (`run.json`), its replay log and its newest two model checkpoints, plus ownership
-//! epochs that only matter to the daemon that wrote them. The resumable state is the spec, the
-//! replay log and the newest checkpoint, in one gzip-compressed tar file beside the run's
+//! its spec (`run.json`), its replay (one segment file per ownership term under `replay/`, and
+//! `replay.log` for a run stored before segments) and its newest two model checkpoints, plus
+//! ownership epochs that only matter to the daemon that wrote them. The resumable state is the
+//! spec, the replay files and the newest checkpoint, in one gzip-compressed tar file beside the run's
 //! episode file, `runs/<stem>.state.tar.gz` (a few MB for the paper's largest runs), so that
 //! it can be committed with the experiment folder while `planner/` is not. A sitting packs it
 //! for every run it leaves unfinished, unpacks it before the daemon starts when the daemon's
@@ -16,6 +17,7 @@
 use flate2::Compression;
 use flate2::read::GzDecoder;
 use flate2::write::GzEncoder;
+use planner_service::replay::segments::{self, SegmentId};
 use std::fs::File;
 use std::io;
 use std::path::{Path, PathBuf};
@@ -23,16 +25,19 @@ use std::path::{Path, PathBuf};
 /// File name suffix of a run's packed state.
 pub const SUFFIX: &str = ".state.tar.gz";
 
-/// The files of the run directory `run_dir` that make up its resumable state: the spec, the
-/// replay log and the newest checkpoint (by version number), whichever exist.
+/// The files of the run directory `run_dir` that make up its resumable state, relative to
+/// it: the spec, the replay files and the newest checkpoint (by version number), whichever
+/// exist.
 pub fn state_files(run_dir: &Path) -> io::Result<Vec<PathBuf>> {
     let mut files = Vec::new();
-    for name in ["run.json", "replay.log"] {
-        let path = run_dir.join(name);
-        if path.is_file() {
-            files.push(path);
-        }
+    if run_dir.join("run.json").is_file() {
+        files.push(PathBuf::from("run.json"));
     }
+    files.extend(
+        segments::list(run_dir)?
+            .into_iter()
+            .map(|id| PathBuf::from(id.name())),
+    );
     let newest = std::fs::read_dir(run_dir)?
         .filter_map(|e| {
             let name = e.ok()?.file_name().into_string().ok()?;
@@ -45,25 +50,24 @@ pub fn state_files(run_dir: &Path) -> io::Result<Vec<PathBuf>> {
         })
         .max();
     if let Some((_, name)) = newest {
-        files.push(run_dir.join(name));
+        files.push(PathBuf::from(name));
     }
     Ok(files)
 }
 
 /// Packs the resumable state of `run_dir` into `archive` (written to a temporary file and
 /// renamed, so an interrupted pack leaves the previous archive). Returns the archive's size in
-/// bytes, or `None` when the run directory holds no replay log (nothing to resume from).
+/// bytes, or `None` when the run directory holds no replay (nothing to resume from).
 pub fn pack(run_dir: &Path, archive: &Path) -> io::Result<Option<u64>> {
-    if !run_dir.join("replay.log").is_file() {
+    if segments::list(run_dir)?.is_empty() {
         return Ok(None);
     }
     let tmp = archive.with_extension("tmp");
     {
         let file = File::create(&tmp)?;
         let mut tar = tar::Builder::new(GzEncoder::new(file, Compression::default()));
-        for path in state_files(run_dir)? {
-            let name = path.file_name().expect("a file in the run directory");
-            tar.append_path_with_name(&path, name)?;
+        for name in state_files(run_dir)? {
+            tar.append_path_with_name(run_dir.join(&name), &name)?;
         }
         let file = tar.into_inner()?.finish()?;
         file.sync_all()?;
@@ -72,11 +76,11 @@ pub fn pack(run_dir: &Path, archive: &Path) -> io::Result<Option<u64>> {
     Ok(Some(std::fs::metadata(archive)?.len()))
 }
 
-/// Unpacks `archive` into `run_dir` (created) unless `run_dir` already holds a replay log:
-/// the daemon's own copy is at least as new as any archive it was packed from. Returns whether
-/// it unpacked. Only plain files directly in the run directory are accepted.
+/// Unpacks `archive` into `run_dir` (created) unless `run_dir` already holds replay: the
+/// daemon's own copy is at least as new as any archive it was packed from. Returns whether it
+/// unpacked. Only plain files directly in the run directory and replay segments are accepted.
 pub fn unpack(archive: &Path, run_dir: &Path) -> io::Result<bool> {
-    if run_dir.join("replay.log").is_file() {
+    if !segments::list(run_dir)?.is_empty() {
         return Ok(false);
     }
     std::fs::create_dir_all(run_dir)?;
@@ -84,12 +88,16 @@ pub fn unpack(archive: &Path, run_dir: &Path) -> io::Result<bool> {
     for entry in tar.entries()? {
         let mut entry = entry?;
         let path = entry.path()?.into_owned();
-        let plain = entry.header().entry_type().is_file()
-            && path.components().count() == 1
+        let in_run = path.components().count() == 1
             && matches!(
                 path.components().next(),
                 Some(std::path::Component::Normal(_))
             );
+        let segment = path
+            .to_str()
+            .and_then(SegmentId::parse)
+            .is_some_and(|id| id != SegmentId::Legacy);
+        let plain = entry.header().entry_type().is_file() && (in_run || segment);
         if !plain {
             return Err(io::Error::new(
                 io::ErrorKind::InvalidData,
@@ -99,6 +107,9 @@ pub fn unpack(archive: &Path, run_dir: &Path) -> io::Result<bool> {
                     path.display()
                 ),
             ));
+        }
+        if segment {
+            std::fs::create_dir_all(run_dir.join(segments::DIR))?;
         }
         entry.unpack(run_dir.join(&path))?;
     }
@@ -123,6 +134,8 @@ mod tests {
             .flat_map(|i| (i % 97).to_le_bytes())
             .collect();
         write(&run.join("replay.log"), &log);
+        let segment = run.join("replay/00000000000000000004-000000.log");
+        write(&segment, b"the newer term");
         write(&run.join("models-00000009.safetensors"), b"older");
         write(&run.join("models-00000010.safetensors"), b"newest");
         write(&run.join("epochs/00000000000000000003"), b"planner-1");
@@ -142,9 +155,18 @@ mod tests {
         names.sort();
         assert_eq!(
             names,
-            ["models-00000010.safetensors", "replay.log", "run.json"]
+            [
+                "models-00000010.safetensors",
+                "replay",
+                "replay.log",
+                "run.json"
+            ]
         );
         assert_eq!(std::fs::read(fresh.join("replay.log")).unwrap(), log);
+        assert_eq!(
+            std::fs::read(fresh.join("replay/00000000000000000004-000000.log")).unwrap(),
+            b"the newer term"
+        );
         assert_eq!(
             std::fs::read(fresh.join("models-00000010.safetensors")).unwrap(),
             b"newest"

@@ -28,12 +28,13 @@ use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-/// No planning: exploration never ends, so every action is random. (`{top}` takes the planner
-/// id and, in a fleet, the router to connect to.)
+/// No planning: exploration outlasts the bench (the most episodes `[limits]` allows, far more
+/// than a round plays), so every action is random. (`{top}` takes the planner id and, in a
+/// fleet, the router to connect to.)
 const CONFIG: &str = r#"
 max_agents_per_run = 64
 [overrides]
-exploration_episodes = 1000000
+exploration_episodes = 1000
 # The trainer still runs after every episode; keep it negligible.
 dynamics_hidden_layers = 1
 dynamics_hidden_size = 8

@@ -290,9 +290,22 @@ impl Planner {
 
     /// The replay buffer the daemon keeps for `run` of `task` (open it once the daemon stopped).
     pub fn replay(&self, run: &str, task: Builtin) -> Result<ReplayBuffer> {
-        let path = self.data_dir.join("runs").join(run).join("replay.log");
-        ReplayBuffer::open(&path, task.task()).with_context(|| format!("open {}", path.display()))
+        let path = self.data_dir.join("runs").join(run);
+        ReplayBuffer::read(&path, task.task()).with_context(|| format!("read {}", path.display()))
     }
+}
+
+/// The newest replay segment of `run` stored in `data_dir` (the file its owner writes to).
+///
+/// # Panics
+/// If the run has no replay stored.
+pub fn newest_replay_segment(data_dir: &Path, run: &str) -> PathBuf {
+    let root = data_dir.join("runs").join(run);
+    let newest = planner_service::replay::segments::list(&root)
+        .expect("the run's replay segments can be listed")
+        .pop()
+        .expect("the run has stored replay");
+    root.join(newest.name())
 }
 
 /// Starts `planner-service serve` with `config` (TOML) written to `dir/planner.toml`, serving
@@ -304,6 +317,19 @@ pub fn serve(dir: &Path, config: &str, listen: Option<&str>) -> Result<Guarded> 
 
 /// As [`serve`], with the data directory `data_dir` (planners of a fleet share one).
 pub fn serve_data(
+    dir: &Path,
+    data_dir: &Path,
+    config: &str,
+    listen: Option<&str>,
+) -> Result<Guarded> {
+    let mut process = spawn_planner(dir, data_dir, config, listen)?;
+    process.wait_for_log("planner serving", Duration::from_secs(60))?;
+    Ok(process)
+}
+
+/// As [`serve_data`], without waiting for the planner to serve (it may be resuming its
+/// stored runs).
+pub fn spawn_planner(
     dir: &Path,
     data_dir: &Path,
     config: &str,
@@ -322,9 +348,7 @@ pub fn serve_data(
     }
     cmd.env("RUST_LOG", "info,zenoh=warn");
     let log = dir.join(format!("planner-{}.log", free_port()));
-    let mut process = Guarded::spawn("planner-service", cmd, log)?;
-    process.wait_for_log("planner serving", Duration::from_secs(60))?;
-    Ok(process)
+    Guarded::spawn("planner-service", cmd, log)
 }
 
 /// A Zenoh router in this process, listening on `endpoint` (multicast scouting off), as a

@@ -39,7 +39,7 @@ fn spec() -> RunSpec {
 fn set_last_written(data_dir: &Path, newest_first: &[&str]) {
     let now = SystemTime::now();
     for (age, run) in newest_first.iter().enumerate() {
-        let log = data_dir.join("runs").join(run).join("replay.log");
+        let log = ebmpc_e2e::newest_replay_segment(data_dir, run);
         let file = std::fs::File::options().write(true).open(&log).unwrap();
         file.set_modified(now - Duration::from_secs(60 * age as u64))
             .unwrap();
@@ -105,8 +105,8 @@ fn a_restart_opens_stored_runs_only_within_max_runs_and_the_replay_budget() {
     });
     planner.stop().unwrap();
     let data_dir = planner.data_dir.clone();
-    let stored = |run: &str| data_dir.join("runs").join(run).join("replay.log");
-    assert!(stored("r2").exists(), "the dormant run stays on disk");
+    let stored = |run: &str| planner_service::persist::RunDir::new(&data_dir, run).has_replay();
+    assert!(stored("r2"), "the dormant run stays on disk");
 
     // Restarted with room for every run but a replay budget of one byte: the newest run opens
     // (the budget is not reached before it), then the budget is, and the others stay closed.
@@ -132,7 +132,7 @@ fn a_restart_opens_stored_runs_only_within_max_runs_and_the_replay_budget() {
     });
     planner.stop().unwrap();
     for run in RUNS {
-        assert!(stored(run).exists(), "run {run} is kept on disk");
+        assert!(stored(run), "run {run} is kept on disk");
     }
 }
 
@@ -148,7 +148,7 @@ fn a_transient_open_error_is_retried_until_the_run_opens() {
         client.attach(&spec()).await.unwrap();
     });
     planner.stop().unwrap();
-    let log = planner.data_dir.join("runs").join("t").join("replay.log");
+    let log = ebmpc_e2e::newest_replay_segment(&planner.data_dir, "t");
     let aside = log.with_extension("aside");
     let bytes = std::fs::metadata(&log).unwrap().len();
     std::fs::rename(&log, &aside).unwrap();

@@ -8,14 +8,21 @@
 //! - a planner cut off from etcd stops acknowledging within its lease TTL and its run moves;
 //! - a planner cut off from the router takes no run, and nothing acknowledged is lost;
 //! - forged planner and lease tokens (10,000 names, huge epochs) move no run and keep the
-//!   planner's view and memory bounded.
+//!   planner's view and memory bounded;
+//! - stale owners appending to their own old replay segments after a takeover add nothing to
+//!   the run;
+//! - a planner given SIGTERM in the middle of a stuck takeover exits within 10 s and the run
+//!   moves;
+//! - with `replay_capacity`, owners killed round after round compact the run across the
+//!   segments of earlier terms: nothing of the newest episodes is lost, the replay stays
+//!   bounded, superseded segments are removed.
 
 use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::etcd::Etcd;
 use ebmpc_e2e::proxy::Proxy;
 use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data};
-use planner_service::replay::ReplayBuffer;
+use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, ReplayLog};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -49,8 +56,8 @@ fn start(dir: &Path, data: &Path, id: &str, router: &str, etcd: &str) -> Guarded
     serve_data(&dir.join(id), data, &config(id, router, etcd), None).expect("planner serves")
 }
 
-fn replay_path(data: &Path, run: &str) -> PathBuf {
-    data.join("runs").join(run).join("replay.log")
+fn run_path(data: &Path, run: &str) -> PathBuf {
+    data.join("runs").join(run)
 }
 
 /// A transition's exact bits.
@@ -66,6 +73,8 @@ fn key(obs: &[f32], act: &[f32], next: &[f32]) -> Vec<u32> {
 #[derive(Default)]
 struct Ledger {
     acknowledged: HashSet<Vec<u32>>,
+    /// The acknowledged transitions of each episode.
+    by_episode: BTreeMap<u32, HashSet<Vec<u32>>>,
     /// Episodes started; `true` once their end was acknowledged.
     episodes: BTreeMap<u32, bool>,
     /// Every action received, with its fencing token, in the order received.
@@ -92,8 +101,8 @@ impl Ledger {
     /// Checks the stored replay of `run` against the ledger: every acknowledged transition is
     /// there, every episode is finished or interrupted. Returns the number acknowledged.
     fn check_replay(&self, data: &Path, run: &str, agent: &str) -> usize {
-        let buffer = ReplayBuffer::open(&replay_path(data, run), Builtin::Cartpole.task())
-            .expect("the replay opens");
+        let buffer = ReplayBuffer::read(&run_path(data, run), Builtin::Cartpole.task())
+            .expect("the replay reads");
         let stored: HashSet<Vec<u32>> = (0..buffer.len())
             .map(|i| {
                 let (o, a, n) = buffer.transitions().row(i);
@@ -216,7 +225,8 @@ impl Agent {
             };
             actions += 1;
             if let Some((ended, last)) = self.ending.take() {
-                ledger.acknowledged.insert(last);
+                ledger.acknowledged.insert(last.clone());
+                ledger.by_episode.entry(ended).or_default().insert(last);
                 ledger.episodes.insert(ended, true);
             }
             for step in 1..=STEPS {
@@ -237,6 +247,11 @@ impl Agent {
                 };
                 actions += 1;
                 ledger.acknowledged.insert(key(&obs, &action, &next));
+                ledger
+                    .by_episode
+                    .entry(self.episode)
+                    .or_default()
+                    .insert(key(&obs, &action, &next));
                 ledger.episodes.entry(self.episode).or_insert(false);
                 obs = next;
                 action = next_action;
@@ -594,4 +609,389 @@ fn forged_planner_and_lease_tokens_move_no_run() {
     ledger.check_one_owner_at_a_time();
     pa.terminate(Duration::from_secs(20)).unwrap();
     ledger.check_replay(&data, run, "a");
+}
+
+/// What a stale owner writes: transitions and an episode end under its old token, marked by
+/// an observation no agent sends, appended to its own (old) replay segment.
+fn stale_records(token: u64) -> Vec<Record> {
+    let mut records: Vec<Record> = (0..3)
+        .map(|step| Record::Transition {
+            epoch: token,
+            agent: "a".into(),
+            episode: STALE_EPISODE,
+            step,
+            obs: vec![STALE_MARK; 4],
+            act: vec![0.0],
+            origin: ActionOrigin::Planned,
+            next_obs: vec![STALE_MARK; 4],
+            reward: 1.0,
+        })
+        .collect();
+    records.push(Record::EpisodeEnd {
+        epoch: token,
+        agent: "a".into(),
+        episode: STALE_EPISODE,
+        steps: 3,
+        episode_return: 3.0,
+        end: EpisodeEnd::TimeLimit,
+    });
+    records
+}
+
+const STALE_MARK: f32 = 4242.5;
+const STALE_EPISODE: u32 = 999_999;
+
+/// Appends `stale_records(token)` to `segment` as its old owner would if it had lost its
+/// lease without noticing (its process paused, its clock slow): the file is its own, so it
+/// appends like any owner does.
+fn write_as_stale_owner(segment: &Path, token: u64) {
+    let (mut log, _) = ReplayLog::open(segment).expect("the stale owner's segment opens");
+    log.append(&stale_records(token)).unwrap();
+    let read = ReplayLog::read(segment).unwrap();
+    assert!(
+        read.records
+            .iter()
+            .any(|r| matches!(r, Record::Transition { obs, .. } if obs[0] == STALE_MARK)),
+        "the stale records are in the old segment"
+    );
+}
+
+/// Two stale owners (each a term that a newer one took over) append to their own old
+/// segments after the takeover: none of it reaches the run, as read by the owners that open
+/// it later and by a reader, and nothing acknowledged is lost.
+#[test]
+fn a_stale_writers_late_appends_never_reach_the_run() {
+    let dir = TempDir::new("fleet-stale-writer");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let run = "stale";
+    let mut ledger = Ledger::default();
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let mut pb = None;
+    let mut pc = None;
+    rt.block_on(async {
+        let (mut agent, first) = Agent::new(&endpoint, run, 0, 3).await;
+        assert_eq!(first.planner_id, "pa");
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 2 * STEPS as usize + 3
+            })
+            .await;
+        let pa_segment = ebmpc_e2e::newest_replay_segment(&data, run);
+        // pa loses the run: its process stops (as if paused) and pb takes over at a newer
+        // token once pa's lease expired.
+        pa.signal("KILL").unwrap();
+        pa.wait(Duration::from_secs(10)).unwrap();
+        pb = Some(start(dir.path(), &data, "pb", &endpoint, &etcd.endpoint));
+        let second = agent.reattach().await;
+        assert_eq!(second.planner_id, "pb");
+        assert!(second.epoch > first.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize + 4
+            })
+            .await;
+        // pa, stale, writes on to its segment after pb read it.
+        write_as_stale_owner(&pa_segment, first.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize
+            })
+            .await;
+        let pb_segment = ebmpc_e2e::newest_replay_segment(&data, run);
+        assert_ne!(pb_segment, pa_segment, "each term writes its own segment");
+        // pb loses the run too; pc takes it over, reading both older segments.
+        pb.as_mut().unwrap().signal("KILL").unwrap();
+        pb.as_mut().unwrap().wait(Duration::from_secs(10)).unwrap();
+        pc = Some(start(dir.path(), &data, "pc", &endpoint, &etcd.endpoint));
+        let third = agent.reattach().await;
+        assert_eq!(third.planner_id, "pc");
+        assert!(third.epoch > second.epoch);
+        // Both stale owners write on after pc read their segments.
+        write_as_stale_owner(&pa_segment, first.epoch);
+        write_as_stale_owner(&pb_segment, second.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 2 * STEPS as usize
+            })
+            .await;
+    });
+    // pc is stopped and pa opens the run once more (a fourth term, reading all three).
+    pc.as_mut()
+        .unwrap()
+        .terminate(Duration::from_secs(20))
+        .unwrap();
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    rt.block_on(async {
+        let (mut agent, fourth) = Agent::new(&endpoint, run, 1000, 4).await;
+        assert_eq!(fourth.planner_id, "pa");
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize
+            })
+            .await;
+    });
+    pa.terminate(Duration::from_secs(20)).unwrap();
+    ledger.check_one_owner_at_a_time();
+    let acknowledged = ledger.check_replay(&data, run, "a");
+    assert!(
+        acknowledged > 4 * STEPS as usize,
+        "{acknowledged} acknowledged"
+    );
+    let stored = ReplayBuffer::read(&run_path(&data, run), Builtin::Cartpole.task()).unwrap();
+    let stale_rows = (0..stored.len())
+        .filter(|&i| stored.transitions().row(i).0[0] == STALE_MARK)
+        .count();
+    assert_eq!(stale_rows, 0, "a stale owner's transitions reached the run");
+    assert!(
+        stored.episodes().iter().all(|e| e.episode != STALE_EPISODE),
+        "a stale owner's episode reached the run"
+    );
+    let segments = planner_service::replay::segments::list(&run_path(&data, run)).unwrap();
+    assert!(segments.len() >= 4, "one segment per term: {segments:?}");
+}
+
+/// SIGTERM to `planner` once it logged that it took a run over (and then stuck in opening
+/// it): it must exit cleanly within 10 s. Returns how long it took.
+fn terminate_mid_takeover(planner: &mut Guarded, name: &str) -> Duration {
+    planner
+        .wait_for_log("took the run", Duration::from_secs(30))
+        .unwrap_or_else(|e| panic!("{name} starts taking the run over: {e}"));
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(
+        !planner.log().contains("run opened"),
+        "{name}'s takeover was still under way at SIGTERM:\n{}",
+        planner.log()
+    );
+    let term = Instant::now();
+    planner.signal("TERM").unwrap();
+    let status = planner
+        .wait(Duration::from_secs(10))
+        .unwrap_or_else(|e| panic!("{name} exits within 10 s of SIGTERM: {e}"));
+    let took = term.elapsed();
+    assert!(status.success(), "{name} exit: {status}\n{}", planner.log());
+    assert!(took < Duration::from_secs(10), "{name} took {took:?}");
+    took
+}
+
+/// A planner given SIGTERM in the middle of a takeover (its opening of the run stuck in a
+/// read of the run's replay, as on a stalled mount: the newest segment is swapped for a FIFO
+/// nobody writes) exits within 10 s and releases the run with its lease; both as a serving
+/// planner whose steward takes a dead owner's run over, and as a planner resuming stored runs
+/// at its start. Once the replay is readable again another planner owns and serves the run
+/// at a newer token with nothing acknowledged lost.
+#[test]
+fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
+    let dir = TempDir::new("fleet-sigterm-takeover");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let run = "stuck";
+    let mut ledger = Ledger::default();
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let (first, episode) = rt.block_on(async {
+        let (mut agent, first) = Agent::new(&endpoint, run, 0, 9).await;
+        assert_eq!(first.planner_id, "pa");
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 2 * STEPS as usize + 5
+            })
+            .await;
+        (first, agent.episode)
+    });
+    let mut pb = start(dir.path(), &data, "pb", &endpoint, &etcd.endpoint);
+    // The owner dies, and the run's replay stalls before pb takes it over (after the TTL):
+    // reading its newest segment blocks until a writer comes, which none does.
+    pa.signal("KILL").unwrap();
+    pa.wait(Duration::from_secs(10)).unwrap();
+    let segment = ebmpc_e2e::newest_replay_segment(&data, run);
+    let aside = segment.with_extension("aside");
+    std::fs::rename(&segment, &aside).unwrap();
+    let made = std::process::Command::new("mkfifo")
+        .arg(&segment)
+        .status()
+        .unwrap();
+    assert!(made.success(), "mkfifo");
+    let by_steward = terminate_mid_takeover(&mut pb, "pb (serving)");
+    // A planner starting while the replay still stalls resumes the run at its start: stuck
+    // the same way, and stopped the same way.
+    let mut pc = ebmpc_e2e::spawn_planner(
+        &dir.path().join("pc"),
+        &data,
+        &config("pc", &endpoint, &etcd.endpoint),
+        None,
+    )
+    .unwrap();
+    let at_start = terminate_mid_takeover(&mut pc, "pc (starting)");
+    eprintln!(
+        "SIGTERM in the middle of a takeover: exited after {by_steward:?} (serving), {at_start:?} (starting)"
+    );
+    // The mount recovers; another planner takes the run at once (the leases were revoked).
+    std::fs::remove_file(&segment).unwrap();
+    std::fs::rename(&aside, &segment).unwrap();
+    let mut pd = start(dir.path(), &data, "pd", &endpoint, &etcd.endpoint);
+    rt.block_on(async {
+        let (mut agent, moved) = Agent::new(&endpoint, run, episode + 1, 10).await;
+        assert_eq!(moved.planner_id, "pd");
+        assert!(moved.epoch > first.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize + 3
+            })
+            .await;
+    });
+    pd.terminate(Duration::from_secs(20)).unwrap();
+    ledger.check_one_owner_at_a_time();
+    ledger.check_replay(&data, run, "a");
+}
+
+/// Owners SIGKILLed round after round while `[storage] replay_capacity` makes each of them
+/// evict and compact the run's replay across the segments of earlier terms: every episode
+/// stays accounted for, the newest episodes' acknowledged transitions are all kept, the
+/// replay on disk stays bounded, and superseded segments are removed.
+#[test]
+fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay() {
+    const CAPACITY: usize = 40;
+    let dir = TempDir::new("fleet-compaction");
+    let data = dir.path().join("shared-data");
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let bounded = |id: &str| {
+        format!(
+            "{}\n[storage]\nreplay_capacity = {CAPACITY}\n",
+            config(id, &endpoint, &etcd.endpoint)
+        )
+    };
+    let ids = ["pa", "pb", "pc"];
+    let mut planners: BTreeMap<&str, Guarded> = ids
+        .iter()
+        .map(|id| {
+            let planner = serve_data(&dir.path().join(id), &data, &bounded(id), None);
+            (*id, planner.expect("planner serves"))
+        })
+        .collect();
+    let run = "bounded";
+    let mut ledger = Ledger::default();
+    let mut episode = 0;
+    let rounds = 5;
+    for round in 0..rounds {
+        let owner = rt.block_on(async {
+            let (mut agent, accepted) = Agent::new(&endpoint, run, episode, round).await;
+            // Past the capacity every round, so each owner evicts and compacts.
+            agent
+                .play(&mut ledger, Duration::from_secs(20), |n| {
+                    n >= 6 * STEPS as usize + 3
+                })
+                .await;
+            planners[accepted.planner_id.as_str()]
+                .signal("KILL")
+                .unwrap();
+            agent
+                .play(&mut ledger, Duration::from_secs(2), |_| false)
+                .await;
+            episode = agent.episode + 1;
+            accepted.planner_id
+        });
+        let id = ids.iter().find(|p| **p == owner).copied().unwrap();
+        planners
+            .get_mut(id)
+            .unwrap()
+            .wait(Duration::from_secs(10))
+            .unwrap();
+        let restarted = serve_data(&dir.path().join(id), &data, &bounded(id), None);
+        planners.insert(id, restarted.expect("planner serves"));
+    }
+    // The last owner plays on: at least two whole episodes, the newest of the run.
+    rt.block_on(async {
+        let (mut agent, _) = Agent::new(&endpoint, run, episode, 99).await;
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 3 * STEPS as usize + 3
+            })
+            .await;
+    });
+    for planner in planners.values_mut() {
+        planner.terminate(Duration::from_secs(20)).unwrap();
+    }
+    ledger.check_one_owner_at_a_time();
+    let root = run_path(&data, run);
+    let stored = ReplayBuffer::read(&root, Builtin::Cartpole.task()).unwrap();
+    let held: HashSet<Vec<u32>> = (0..stored.len())
+        .map(|i| {
+            let (o, a, n) = stored.transitions().row(i);
+            key(o, a, n)
+        })
+        .collect();
+    for (&episode, &ended) in &ledger.episodes {
+        let records: Vec<_> = stored
+            .episodes()
+            .iter()
+            .filter(|e| e.episode == episode)
+            .collect();
+        let accounted = match records.as_slice() {
+            [one] => {
+                one.end == EpisodeEnd::TimeLimit || (!ended && one.end == EpisodeEnd::Interrupted)
+            }
+            _ => false,
+        };
+        assert!(
+            accounted,
+            "episode {episode} (ended: {ended}) is recorded as {records:?}"
+        );
+    }
+    let finished: Vec<u32> = ledger
+        .episodes
+        .iter()
+        .filter(|(_, ended)| **ended)
+        .map(|(e, _)| *e)
+        .collect();
+    for episode in finished.iter().rev().take(2) {
+        let missing = ledger.by_episode[episode]
+            .iter()
+            .filter(|t| !held.contains(*t))
+            .count();
+        assert_eq!(
+            missing, 0,
+            "episode {episode}: {missing} acknowledged transitions lost"
+        );
+    }
+    assert!(
+        ledger.acknowledged.len() > 3 * CAPACITY,
+        "{} acknowledged",
+        ledger.acknowledged.len()
+    );
+    assert!(
+        stored.len() <= 2 * CAPACITY + STEPS as usize,
+        "{} transitions on disk: the replay was not compacted",
+        stored.len()
+    );
+    let segments = planner_service::replay::segments::list(&root).unwrap();
+    assert!(
+        segments.len() < rounds as usize + 1,
+        "superseded segments removed: {segments:?}"
+    );
+    // Every planner's log, the killed ones' too: compactions ran and removed segments.
+    let mut logs = String::new();
+    for id in ids {
+        for entry in std::fs::read_dir(dir.path().join(id)).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "log") {
+                logs.push_str(&std::fs::read_to_string(&path).unwrap());
+            }
+        }
+    }
+    let compactions = logs.matches("compacted the replay log").count();
+    let removed = logs.matches("removed a superseded replay segment").count();
+    eprintln!("{compactions} compactions, {removed} superseded segments removed");
+    assert!(
+        compactions >= 2 && removed >= 2,
+        "{compactions} compactions, {removed} removed"
+    );
 }

@@ -15,7 +15,7 @@ use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::etcd::Etcd;
 use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data, status_cli};
-use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, ReplayLog};
+use planner_service::replay::{ActionOrigin, Record, ReplayBuffer};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
@@ -348,8 +348,8 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         }
         for r in 0..RUNS {
             let run = format!("run-{r}");
-            let path = data.join("runs").join(&run).join("replay.log");
-            let buffer = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
+            let path = data.join("runs").join(&run);
+            let buffer = ReplayBuffer::read(&path, Builtin::Cartpole.task()).unwrap();
             let stored: HashSet<Vec<u32>> = (0..buffer.len())
                 .map(|i| {
                     let (o, a, n) = buffer.transitions().row(i);
@@ -370,7 +370,9 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
             }
             assert!(acked > 0);
             // Agent `b` applied clipped actions: the replay holds those, marked applied.
-            let (_, recovered) = ReplayLog::open(&path).unwrap();
+            let recovered = planner_service::replay::segments::read(&path)
+                .unwrap()
+                .recovered;
             let mut origins = BTreeMap::new();
             for record in &recovered.records {
                 if let Record::Transition {

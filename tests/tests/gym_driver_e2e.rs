@@ -160,7 +160,7 @@ fn pip_installed_package_learns_the_inverted_pendulum_with_its_own_planner_and_r
     // The run lives in the per-user data directory, named after the environment ...
     let data = dir.path().join("xdg/ebmpc");
     assert!(
-        data.join("runs/InvertedPendulum-v5/replay.log").is_file(),
+        planner_service::persist::RunDir::new(&data, "InvertedPendulum-v5").has_replay(),
         "{log}"
     );
     let planner_log = std::fs::read_to_string(data.join("planner.log")).unwrap();

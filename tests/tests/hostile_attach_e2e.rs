@@ -444,8 +444,8 @@ fn hostile_attaches_are_refused_and_the_daemon_keeps_serving() {
     runs.sort();
     assert_eq!(runs, ["custom", "good"], "no refused run reached the disk");
     let custom_task = proto::Task::intern(custom_task(), &Default::default()).unwrap();
-    let path = planner.data_dir.join("runs/custom/replay.log");
-    let replay = planner_service::replay::ReplayBuffer::open(&path, custom_task).unwrap();
+    let path = planner.data_dir.join("runs/custom");
+    let replay = planner_service::replay::ReplayBuffer::read(&path, custom_task).unwrap();
     assert_eq!(replay.len(), 10);
     assert_eq!(planner.replay("good", Builtin::Cartpole).unwrap().len(), 60);
 

@@ -107,11 +107,8 @@ fn a_pumping_agent_is_refused_at_the_replay_budgets_and_the_restart_stays_inside
     planner.stop().unwrap();
 
     // On disk: each log inside its budget, all of them inside the total.
-    let log_bytes = |run: &str| {
-        std::fs::metadata(planner.data_dir.join("runs").join(run).join("replay.log"))
-            .unwrap()
-            .len()
-    };
+    let log_bytes =
+        |run: &str| planner_service::persist::RunDir::new(&planner.data_dir, run).replay_bytes();
     let (a, b) = (log_bytes("pump-a"), log_bytes("pump-b"));
     assert!(a <= PER_RUN + ONE_STORE, "{a} bytes");
     assert!(a + b <= TOTAL + 2 * ONE_STORE, "{a} + {b} bytes");

@@ -275,8 +275,8 @@ fn a_run_whose_disk_is_held_never_delays_another_runs_actions() {
     // Everything each agent sent is in its run's log: one transition per answered step and
     // the episode's last, each `next_obs` the state sent, and the episode finished.
     for (run, states) in [(SLOW, slow_states), (FAST, fast_states)] {
-        let path = dir.path().join("data/runs").join(run).join("replay.log");
-        let buffer = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
+        let path = dir.path().join("data/runs").join(run);
+        let buffer = ReplayBuffer::read(&path, Builtin::Cartpole.task()).unwrap();
         let stored: Vec<f32> = (0..buffer.len())
             .map(|i| buffer.transitions().row(i).2[0])
             .collect();

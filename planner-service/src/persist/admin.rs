@@ -196,7 +196,7 @@ pub fn list_runs(data_dir: &Path) -> Result<Vec<RunEntry>, AdminError> {
         .into_iter()
         .map(|(name, dir)| {
             let spec = dir.read_spec().ok().flatten();
-            let replay_bytes = fs::metadata(dir.replay_log()).map_or(0, |m| m.len());
+            let replay_bytes = dir.replay_bytes();
             let checkpoints = fs::read_dir(dir.root())
                 .map_err(io_error(dir.root()))?
                 .filter_map(|e| e.ok()?.file_name().into_string().ok())
@@ -225,11 +225,12 @@ fn existing_run(data_dir: &Path, name: &str) -> Result<RunDir, AdminError> {
     Ok(dir)
 }
 
-/// Every intact record of run `name`'s replay log, read without writing anything, so it is
-/// safe while a daemon serves (records appended meanwhile may be missing, never half-read).
+/// Every intact record of run `name`'s replay, in order, as its owner would read it (see
+/// `crate::replay::segments`), without writing anything, so it is safe while a daemon serves
+/// (records appended meanwhile may be missing, never half-read).
 pub fn read_replay(data_dir: &Path, name: &str) -> Result<crate::replay::Recovered, AdminError> {
     let dir = existing_run(data_dir, name)?;
-    Ok(crate::replay::ReplayLog::read(&dir.replay_log())?)
+    Ok(crate::replay::segments::read(dir.root())?.recovered)
 }
 
 /// Deletes run `name` and everything it stored, unless a daemon serves `data_dir`.
@@ -276,7 +277,7 @@ mod tests {
             task_spec: None,
         })
         .unwrap();
-        fs::write(dir.replay_log(), [0u8; 100]).unwrap();
+        fs::write(dir.root().join(crate::replay::segments::LEGACY), [0u8; 100]).unwrap();
     }
 
     #[test]
@@ -417,7 +418,9 @@ mod tests {
         use crate::replay::{ActionOrigin, Record, ReplayLog};
         let data = tempfile::tempdir().unwrap();
         store_run(data.path(), "r");
-        let path = RunDir::new(data.path(), "r").replay_log();
+        let path = RunDir::new(data.path(), "r")
+            .root()
+            .join(crate::replay::segments::LEGACY);
         fs::remove_file(&path).unwrap();
         let transition = Record::Transition {
             epoch: 1,

@@ -2,7 +2,9 @@
 //!
 //! ```text
 //! {data_dir}/runs/{run}/run.json                     the run's spec (task, preset, overrides, mode, seed)
-//! {data_dir}/runs/{run}/replay.log                   every transition (see crate::replay)
+//! {data_dir}/runs/{run}/replay/{token}-{seq}.log     every transition, one file per ownership
+//!                                                    term (see crate::replay::segments)
+//! {data_dir}/runs/{run}/replay.log                   the replay of a run stored before segments
 //! {data_dir}/runs/{run}/models-{version:08}.safetensors   model checkpoints, newest two kept
 //! {data_dir}/runs/{run}/epochs/{epoch:020}           ownership epochs (the planner id inside)
 //! ```
@@ -92,8 +94,19 @@ impl RunDir {
         &self.root
     }
 
-    pub fn replay_log(&self) -> PathBuf {
-        self.root.join("replay.log")
+    /// Whether the run has stored replay (a segment, or the log from before segments).
+    pub fn has_replay(&self) -> bool {
+        crate::replay::segments::list(&self.root).is_ok_and(|found| !found.is_empty())
+    }
+
+    /// Bytes of the run's replay files on disk.
+    pub fn replay_bytes(&self) -> u64 {
+        crate::replay::segments::bytes_on_disk(&self.root)
+    }
+
+    /// When the run last stored a transition (its newest replay segment's last write).
+    pub fn replay_last_written(&self) -> Option<std::time::SystemTime> {
+        crate::replay::segments::last_written(&self.root)
     }
 
     fn spec_path(&self) -> PathBuf {

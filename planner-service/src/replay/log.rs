@@ -32,6 +32,11 @@
 //! Format 4 names the task in the header by its name string (tasks became data: any name a
 //! catalog or an agent's spec gives). A header of formats 1–3 (the task as an index of the old
 //! closed enum) is read as that task's name; such a log is upgraded like a format-2 one.
+//!
+//! Format 5 is one file per ownership term (a *segment*, see `super::segments`): it is created
+//! whole holding its header and a [`Record::Term`] naming the earlier segments it continues
+//! from, and only its term's owner ever appends to it. A file of an older format is read as it
+//! is (the oldest segment of its run) and never written again.
 
 use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
@@ -47,8 +52,9 @@ const MAX_RECORD: u32 = 16 << 20;
 const MAGIC: &[u8; 8] = b"EBMPCRL\0";
 
 /// The format version written after [`MAGIC`] (3: ownership epochs and applied actions; 4: the
-/// header names its task by name).
-const FORMAT_VERSION: u32 = 4;
+/// header names its task by name; 5: one file per ownership term, each starting with a
+/// [`Record::Term`]).
+const FORMAT_VERSION: u32 = 5;
 
 /// Bytes of the file header: magic and version.
 const FILE_HEADER_LEN: usize = MAGIC.len() + 4;
@@ -75,6 +81,15 @@ pub enum Record {
     },
     /// Planner `planner` took the run over at `epoch`.
     Claim { epoch: u64, planner: String },
+    /// The second record of every segment file (see `super::segments`): the ownership term it
+    /// belongs to (`epoch`, the fencing token, and the `planner`), and the earlier segments
+    /// the run's data continues from, each up to the length this term found it at. Never
+    /// part of the records a buffer holds.
+    Term {
+        epoch: u64,
+        planner: String,
+        reads: Vec<SegmentRead>,
+    },
     /// One transition `(s, a, s')` with its reward, from `agent`'s `episode` at `step`; `act`
     /// is the action the agent applied if it said so, else the one planned (`origin` says which).
     Transition {
@@ -104,7 +119,7 @@ impl Record {
     /// are never stale).
     pub fn epoch(&self) -> Option<u64> {
         match self {
-            Record::Header { .. } | Record::Claim { .. } => None,
+            Record::Header { .. } | Record::Claim { .. } | Record::Term { .. } => None,
             Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => Some(*epoch),
         }
     }
@@ -112,10 +127,20 @@ impl Record {
     /// Puts the entry under ownership epoch `to` (the header and claims carry none).
     pub fn set_epoch(&mut self, to: u64) {
         match self {
-            Record::Header { .. } | Record::Claim { .. } => {}
+            Record::Header { .. } | Record::Claim { .. } | Record::Term { .. } => {}
             Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => *epoch = to,
         }
     }
+}
+
+/// An earlier segment a term continues from, and how many of its bytes count: what a stale
+/// writer appended to it after this term read it lies beyond `len` and is never read.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SegmentRead {
+    /// The file, relative to the run's directory (`replay.log` or `replay/{token}-{seq}.log`).
+    pub name: String,
+    /// Bytes of it that count: the end of its last intact record when this term read it.
+    pub len: u64,
 }
 
 /// Which action a stored transition holds.
@@ -182,6 +207,11 @@ enum OnDisk {
         task: String,
         obs_dim: u32,
         act_dim: u32,
+    },
+    Term {
+        epoch: u64,
+        planner: String,
+        reads: Vec<SegmentRead>,
     },
 }
 
@@ -263,6 +293,15 @@ impl From<OnDisk> for Record {
                 end,
             },
             OnDisk::Claim { epoch, planner } => Record::Claim { epoch, planner },
+            OnDisk::Term {
+                epoch,
+                planner,
+                reads,
+            } => Record::Term {
+                epoch,
+                planner,
+                reads,
+            },
             OnDisk::Transition {
                 epoch,
                 agent,
@@ -316,6 +355,15 @@ impl From<Record> for OnDisk {
                 act_dim,
             },
             Record::Claim { epoch, planner } => OnDisk::Claim { epoch, planner },
+            Record::Term {
+                epoch,
+                planner,
+                reads,
+            } => OnDisk::Term {
+                epoch,
+                planner,
+                reads,
+            },
             Record::Transition {
                 epoch,
                 agent,
@@ -384,7 +432,8 @@ pub enum LogError {
 #[derive(Debug, Default)]
 pub struct Recovered {
     pub records: Vec<Record>,
-    /// Bytes cut off a torn tail (0 for a clean file).
+    /// Bytes of a torn tail (0 for a clean file): cut off when a single log is opened for
+    /// writing ([`ReplayLog::open`]), ignored when a run is read (its segments are read only).
     pub truncated_bytes: u64,
     /// Damaged stretches in the middle of the file that were skipped.
     pub damaged_regions: u32,
@@ -424,12 +473,12 @@ impl LogFile for File {
 /// A handle that forces the log's written bytes to disk. It is separate from the writer so
 /// that fsync runs on the blocking pool without holding the replay buffer's lock.
 ///
-/// Every clone syncs the log's *current* file: a compaction swaps the file under the log's
-/// path (see [`ReplayLog::finish_rewrite`]), and a store that appended to the old file and
-/// syncs after the swap must make the new file durable, since the new file is the one the path
-/// names from then on (it holds a copy of what the old one held). After a swap the directory
-/// entry is synced once too, by the first sync that comes, before anything written to the new
-/// file is acknowledged.
+/// Every clone syncs the log's *current* file: a compaction moves writing to a new file (see
+/// [`ReplayLog::finish_rewrite`]), and a store that appended to the old file and syncs after
+/// the swap must make the new file durable, since the new file is the one that counts from
+/// then on (it holds a copy of what the old one held). After a swap the directory entry is
+/// synced once too, by the first sync that comes, before anything written to the new file is
+/// acknowledged.
 #[derive(Clone, Debug)]
 pub struct LogSyncer {
     path: PathBuf,
@@ -542,11 +591,11 @@ pub struct ReplayLog {
     end: u64,
     /// A failed write may have left bytes after `end` that could not be cut yet.
     dirty: bool,
-    /// Other planners may append to this file (a fleet: a new owner writes to the file a
-    /// fenced one still has open). Then nothing here ever cuts or replaces the file: a
-    /// failed write's partial bytes stay (readers skip them as a damaged record) rather than
-    /// being cut off at this writer's idea of the end, which would delete what the other
-    /// wrote after it.
+    /// Other planners may read this file while it is written (a fleet: a newer owner records
+    /// how far it read this segment, and its data continues from there). Then nothing here
+    /// ever cuts the file: a failed write's partial bytes stay (readers skip them as a damaged
+    /// record) rather than being cut off, since records written after a cut could land
+    /// inside the length a newer owner recorded.
     shared: bool,
 }
 
@@ -618,29 +667,92 @@ impl ReplayLog {
     /// is cut or migrated, so this is safe beside a daemon that is appending. A log in the
     /// format before the current one is read as well; an empty or missing file holds nothing.
     pub fn read(path: &Path) -> Result<Recovered, LogError> {
+        Ok(Self::read_prefix(path, None)?.0)
+    }
+
+    /// As [`ReplayLog::read`], reading only the first `limit` bytes of the file (all of it for
+    /// `None`); also returns the end of the last intact record read (the file's length that
+    /// counts). A missing file holds nothing.
+    pub fn read_prefix(path: &Path, limit: Option<u64>) -> Result<(Recovered, u64), LogError> {
         let io = |source| LogError::Io {
             path: path.to_path_buf(),
             source,
         };
-        let bytes = match std::fs::read(path) {
-            Ok(bytes) => bytes,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Recovered::default()),
+        let mut bytes = Vec::new();
+        match File::open(path) {
+            Ok(file) => {
+                file.take(limit.unwrap_or(u64::MAX))
+                    .read_to_end(&mut bytes)
+                    .map_err(io)?;
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Ok((Recovered::default(), 0));
+            }
             Err(e) => return Err(io(e)),
-        };
+        }
         if current_version(path, &bytes)?.is_some() {
-            Ok(scan(&bytes).0)
+            Ok(scan(&bytes))
         } else if bytes.len() < FILE_HEADER_LEN
             && MAGIC.starts_with(&bytes[..bytes.len().min(MAGIC.len())])
         {
-            Ok(Recovered::default())
+            Ok((Recovered::default(), 0))
         } else {
             let (records, parsed) = parse_legacy(&bytes);
-            Ok(Recovered {
-                records,
-                truncated_bytes: (bytes.len() - parsed) as u64,
-                ..Recovered::default()
-            })
+            Ok((
+                Recovered {
+                    records,
+                    truncated_bytes: (bytes.len() - parsed) as u64,
+                    ..Recovered::default()
+                },
+                parsed as u64,
+            ))
         }
+    }
+
+    /// Creates the new file at `path` holding `records` (a segment's header and term) and
+    /// opens it for appending, writing through `wrap(file)`. The file appears whole or not at
+    /// all: it is written to a temporary file, synced, linked to `path` (which fails if `path`
+    /// exists: no file is ever replaced) and the directory synced, so it is durable before
+    /// anything appended to it is acknowledged.
+    pub fn create_with(
+        path: &Path,
+        records: &[Record],
+        wrap: impl FnOnce(File) -> Box<dyn LogFile>,
+    ) -> Result<Self, LogError> {
+        let io = |source| LogError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        if let Some(dir) = path.parent()
+            && !dir.is_dir()
+        {
+            // A new directory: its own entry must be durable too.
+            std::fs::create_dir_all(dir).map_err(io)?;
+            sync_directory(dir).map_err(io)?;
+        }
+        let mut framed = Vec::new();
+        for record in records {
+            encode_record(path, record, &mut framed)?;
+        }
+        let tmp = path.with_extension("log.tmp");
+        let mut file = File::create(&tmp).map_err(io)?;
+        file.write_all(MAGIC).map_err(io)?;
+        file.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io)?;
+        file.write_all(&framed).map_err(io)?;
+        file.sync_all().map_err(io)?;
+        drop(file);
+        publish(&tmp, path).map_err(io)?;
+        let file = open_append(path).map_err(io)?;
+        let end = file.metadata().map_err(io)?.len();
+        let syncer = LogSyncer::new(path, &file).map_err(io)?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            file: wrap(file),
+            syncer,
+            end,
+            dirty: false,
+            shared: false,
+        })
     }
 
     /// Appends `records` in one write and hands them to the OS (they survive the process
@@ -686,9 +798,8 @@ impl ReplayLog {
     /// write and report a later `fsync` of them as a success, so records whose sync failed
     /// are never counted as stored; the caller refuses what they came from, and the records
     /// are written afresh when it is sent again. A shared file ([`ReplayLog::share`]) is never
-    /// cut: other planners may have appended after these records, so they stay and the
-    /// caller's refusal alone keeps them from counting (readers of a fleet's log skip records
-    /// of a fenced owner's token). Returns the time the sync took.
+    /// cut: a newer owner may have read past these records, so they stay (unacknowledged, and
+    /// stored again when the step is sent again). Returns the time the sync took.
     pub fn append_synced(&mut self, records: &[Record]) -> Result<Duration, LogError> {
         let before = self.end;
         self.append(records)?;
@@ -720,38 +831,37 @@ impl ReplayLog {
         Ok(took)
     }
 
-    /// Marks the file as shared with other planners' writers: from now on it is never cut
-    /// (a failed write leaves its partial bytes) nor rewritten (see [`ReplayLog::is_shared`]).
+    /// Marks the file as read by other planners while it is written: from now on it is
+    /// never cut (a failed write leaves its partial bytes).
     pub fn share(&mut self) {
         self.shared = true;
     }
 
-    /// Whether other planners may append to this file; then it is never compacted in place.
-    pub fn is_shared(&self) -> bool {
-        self.shared
-    }
-
-    /// Starts rewriting the log without the records `keep` refuses (a compaction), in three
-    /// steps so that the caller holds its buffer's lock only for the first and the last, and
-    /// never across an fsync:
+    /// Starts rewriting the run's data without the records `keep` refuses (a compaction)
+    /// into a new segment `target` of this term, in three steps so that the caller holds its
+    /// buffer's lock only for the first and the last, and never across an fsync:
     ///
     /// 1. this call (lock held): cuts the bytes of a failed write, if any, and names the job;
-    /// 2. [`Rewrite::copy`] (no lock): copies the kept records into a new file and fsyncs it;
-    ///    called again, it copies what was appended since (the *catch-up*);
-    /// 3. [`ReplayLog::finish_rewrite`] (lock held): if the log has not grown since the last
-    ///    copy, renames the new file over it and writes on there; otherwise it hands the job
-    ///    back for another catch-up.
+    /// 2. [`Rewrite::copy`] (no lock): copies the kept records of the `earlier` segments (each
+    ///    up to its length that counts) and of this log into a temporary file, starting with
+    ///    `head` (the new segment's header and term), and fsyncs it; called again, it copies
+    ///    what was appended to this log since (the *catch-up*);
+    /// 3. [`ReplayLog::finish_rewrite`] (lock held): if this log has not grown since the last
+    ///    copy, gives the new file its name `target` (never replacing a file) and writes on
+    ///    there; otherwise it hands the job back for another catch-up.
     ///
-    /// A crash at any moment leaves the old log or the new one, each holding every record
-    /// acknowledged as durable (see [`LogSyncer`]). Writing continues on the new file through
-    /// the plain file: a wrapper given to [`ReplayLog::open_with`] is not carried over.
+    /// No file is changed: the old segments stay until the caller removes them once the new
+    /// one is durable, and a crash at any moment leaves the old segments (the new one is not
+    /// there, or not yet named by a durable directory entry) or the new one, each holding
+    /// every record acknowledged. Writing continues on the new file through the plain file: a
+    /// wrapper given to [`ReplayLog::create_with`] is not carried over.
     ///
-    /// A copy fails with [`LogError::Fenced`] if the file holds a claim newer than
-    /// `held_epoch`, the epoch the caller owns the run at: the new owner writes to this file,
-    /// and replacing it would lose what it wrote.
+    /// A copy fails with [`LogError::Fenced`] if `newer_term` names a term newer than
+    /// `held_epoch`, the one the caller owns the run at: the run has moved on, and the caller's
+    /// compaction must not become part of it.
     pub fn start_rewrite(
         &mut self,
-        held_epoch: u64,
+        plan: RewritePlan,
         keep: impl FnMut(&Record) -> bool + Send + 'static,
     ) -> Result<Rewrite, LogError> {
         if self.dirty {
@@ -765,18 +875,19 @@ impl ReplayLog {
         }
         Ok(Rewrite {
             path: self.path.clone(),
-            tmp: self.path.with_extension("log.compacting"),
+            tmp: plan.target.with_extension("log.compacting"),
+            plan,
             out: None,
             copied_to: 0,
-            held_epoch,
             keep: Box::new(keep),
         })
     }
 
     /// Ends a rewrite whose last [`Rewrite::copy`] reached the end of the log: the new file
-    /// replaces the log and writing continues there (`Ok(None)`). If records were appended
-    /// since that copy, nothing changes and the job comes back (`Ok(Some(job))`) for another
-    /// copy. The directory entry is synced by the next [`LogSyncer::sync`], outside any lock.
+    /// gets its name and writing continues there (`Ok(None)`; this log's path is the new
+    /// segment's from then on). If records were appended since that copy, nothing changes
+    /// and the job comes back (`Ok(Some(job))`) for another copy. The directory entry is
+    /// synced by the next [`LogSyncer::sync`], outside any lock.
     pub fn finish_rewrite(&mut self, job: Rewrite) -> Result<Option<Rewrite>, LogError> {
         let io = |source| LogError::Io {
             path: self.path.clone(),
@@ -790,12 +901,26 @@ impl ReplayLog {
         if on_disk != job.copied_to || job.out.is_none() {
             return Ok(Some(job));
         }
-        std::fs::rename(&job.tmp, &self.path).map_err(io)?;
-        let mut file = open_append(&self.path).map_err(io)?;
+        if let Some(found) = (job.plan.newer_term)().filter(|&t| t > job.plan.held_epoch) {
+            let held = job.plan.held_epoch;
+            job.abandon();
+            return Err(LogError::Fenced {
+                path: self.path.clone(),
+                held,
+                found,
+            });
+        }
+        let target = job.plan.target.clone();
+        std::fs::hard_link(&job.tmp, &target).map_err(io)?;
+        if let Err(e) = std::fs::remove_file(&job.tmp) {
+            tracing::warn!(path = %job.tmp.display(), error = %e, "cannot remove a compaction's temporary name");
+        }
+        let mut file = open_append(&target).map_err(io)?;
         let end = file.metadata().map_err(io)?.len();
         file.truncate_to(end).map_err(io)?;
         self.syncer.swap(&file).map_err(io)?;
         self.file = Box::new(file);
+        self.path = target;
         self.end = end;
         Ok(None)
     }
@@ -815,15 +940,30 @@ impl ReplayLog {
     }
 }
 
+/// What a compaction writes (see [`ReplayLog::start_rewrite`]).
+pub struct RewritePlan {
+    /// The new segment.
+    pub target: PathBuf,
+    /// Its first records: the header and its term.
+    pub head: Vec<Record>,
+    /// The earlier segments the log continues from, each with its length that counts.
+    pub earlier: Vec<(PathBuf, u64)>,
+    /// The ownership term the caller holds.
+    pub held_epoch: u64,
+    /// The newest term that has a segment, if any is newer than the caller's.
+    pub newer_term: Box<dyn Fn() -> Option<u64> + Send>,
+}
+
 /// A compaction in progress (see [`ReplayLog::start_rewrite`]): the new file being written
 /// beside the log and how far into the log it has copied.
 pub struct Rewrite {
+    /// The segment being compacted (the one its term appends to).
     path: PathBuf,
     tmp: PathBuf,
+    plan: RewritePlan,
     out: Option<File>,
     /// Bytes of the log copied (or skipped as refused) so far.
     copied_to: u64,
-    held_epoch: u64,
     keep: Box<dyn FnMut(&Record) -> bool + Send>,
 }
 
@@ -831,30 +971,44 @@ impl std::fmt::Debug for Rewrite {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Rewrite")
             .field("path", &self.path)
+            .field("target", &self.plan.target)
             .field("copied_to", &self.copied_to)
-            .field("held_epoch", &self.held_epoch)
+            .field("held_epoch", &self.plan.held_epoch)
             .finish_non_exhaustive()
     }
 }
 
 impl Rewrite {
-    /// Copies the log's records after the last copy into the new file, keeping those `keep`
-    /// accepts, and fsyncs it. The first call reads the whole log (skipping damaged stretches,
-    /// as opening does); later calls read only what was appended since, up to the last whole
-    /// record (a write still under way is copied next time). Takes no lock: the buffer keeps
-    /// storing meanwhile.
+    /// Copies the records after the last copy into the new file, keeping those `keep`
+    /// accepts, and fsyncs it. The first call reads the earlier segments (up to their lengths
+    /// that count) and the whole log (skipping damaged stretches, as reading does); later calls
+    /// read only what was appended to the log since, up to the last whole record (a write
+    /// still under way is copied next time). Headers and terms are not copied: the new file
+    /// has its own. Takes no lock: the buffer keeps storing meanwhile.
     pub fn copy(&mut self) -> Result<(), LogError> {
         let io = |source| LogError::Io {
             path: self.path.clone(),
             source,
         };
+        if let Some(found) = (self.plan.newer_term)().filter(|&t| t > self.plan.held_epoch) {
+            return Err(LogError::Fenced {
+                path: self.path.clone(),
+                held: self.plan.held_epoch,
+                found,
+            });
+        }
         let mut source = File::open(&self.path).map_err(io)?;
         source.seek(SeekFrom::Start(self.copied_to)).map_err(io)?;
         let mut bytes = Vec::new();
         source.read_to_end(&mut bytes).map_err(io)?;
         let (records, consumed) = if self.out.is_none() {
+            let mut records = Vec::new();
+            for (earlier, len) in &self.plan.earlier {
+                records.extend(ReplayLog::read_prefix(earlier, Some(*len))?.0.records);
+            }
             let (recovered, good_end) = scan(&bytes);
-            (recovered.records, good_end)
+            records.extend(recovered.records);
+            (records, good_end)
         } else {
             let (mut records, mut at) = (Vec::new(), 0);
             while let Some((record, next)) = read_record(&bytes, at) {
@@ -863,23 +1017,12 @@ impl Rewrite {
             }
             (records, at as u64)
         };
-        if let Some(found) = records
-            .iter()
-            .filter_map(|r| match r {
-                Record::Claim { epoch, .. } => Some(*epoch),
-                _ => None,
-            })
-            .filter(|&e| e > self.held_epoch)
-            .max()
-        {
-            return Err(LogError::Fenced {
-                path: self.path.clone(),
-                held: self.held_epoch,
-                found,
-            });
-        }
         let mut framed = Vec::new();
-        for record in records.iter().filter(|r| (self.keep)(r)) {
+        for record in records
+            .iter()
+            .filter(|r| !matches!(r, Record::Header { .. } | Record::Term { .. }))
+            .filter(|r| (self.keep)(r))
+        {
             encode_record(&self.path, record, &mut framed)?;
         }
         let out = match &mut self.out {
@@ -888,6 +1031,11 @@ impl Rewrite {
                 let mut out = File::create(&self.tmp).map_err(io)?;
                 out.write_all(MAGIC).map_err(io)?;
                 out.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io)?;
+                let mut head = Vec::new();
+                for record in &self.plan.head {
+                    encode_record(&self.path, record, &mut head)?;
+                }
+                out.write_all(&head).map_err(io)?;
                 self.out.insert(out)
             }
         };
@@ -913,6 +1061,14 @@ fn sync_directory(path: &Path) -> std::io::Result<()> {
         Some(dir) => File::open(dir)?.sync_all(),
         None => Ok(()),
     }
+}
+
+/// Gives the finished file `tmp` its final name `path` without ever replacing a file there (a
+/// hard link fails if `path` exists), removes the temporary name and syncs the directory.
+fn publish(tmp: &Path, path: &Path) -> std::io::Result<()> {
+    std::fs::hard_link(tmp, path)?;
+    std::fs::remove_file(tmp)?;
+    sync_directory(path)
 }
 
 fn open_rw(path: &Path) -> std::io::Result<File> {
@@ -1201,16 +1357,29 @@ pub(crate) mod tests {
             log.append(&[transition(step)]).unwrap();
         }
         let early = log.syncer();
+        let target = dir.path().join("compacted.log");
+        let plan = RewritePlan {
+            target: target.clone(),
+            head: Vec::new(),
+            earlier: Vec::new(),
+            held_epoch: 1,
+            newer_term: Box::new(|| None),
+        };
         let mut job = log
             .start_rewrite(
-                1,
+                plan,
                 |r| !matches!(r, Record::Transition { step, .. } if *step < 3),
             )
             .unwrap();
         job.copy().unwrap();
         assert!(log.finish_rewrite(job).unwrap().is_none());
         let synced_inode = early.target().file.metadata().unwrap().ino();
-        assert_eq!(synced_inode, std::fs::metadata(&path).unwrap().ino());
+        assert_eq!(synced_inode, std::fs::metadata(&target).unwrap().ino());
+        assert_eq!(log.path(), target, "writing goes on in the new file");
+        assert!(
+            path.exists(),
+            "the old file is left for its owner to remove"
+        );
         assert!(early.target().directory_unsynced);
         early.sync().unwrap();
         assert!(
@@ -1219,7 +1388,7 @@ pub(crate) mod tests {
         );
         log.append(&[transition(6)]).unwrap();
         drop(log);
-        let (_, rec) = ReplayLog::open(&path).unwrap();
+        let (_, rec) = ReplayLog::open(&target).unwrap();
         assert_eq!(rec.records, (3..7).map(transition).collect::<Vec<_>>());
     }
 
@@ -1356,9 +1525,10 @@ pub(crate) mod tests {
         assert_eq!((rec.truncated_bytes, rec.damaged_regions), (0, 0));
     }
 
-    /// Two owners' handles on one shared file: the fenced owner's write fails half-way (a
-    /// full disk) after the new owner appended its claim and records. Nothing the new owner
-    /// wrote is cut: the half record stays, a damaged region readers skip.
+    /// Two handles on one file marked shared: one write fails half-way (a full disk) after
+    /// the other appended records. Nothing the other wrote is cut: the half record stays, a
+    /// damaged region readers skip. (A fleet's segment has one writer, but a newer owner may
+    /// have recorded a length of it that a cut would put new records under.)
     #[test]
     fn a_fenced_owners_failed_write_deletes_nothing_of_the_new_owners() {
         let dir = tempfile::tempdir().unwrap();

@@ -2,16 +2,53 @@
 //! and in an append-only log on disk so that a restarted daemon resumes with all of it.
 
 mod log;
+pub mod segments;
 
 #[cfg(test)]
 pub(crate) use log::tests as log_tests;
-pub use log::{ActionOrigin, LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog, Rewrite};
+pub use log::{
+    ActionOrigin, LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog, Rewrite, RewritePlan,
+    SegmentRead,
+};
 
 use crate::data::Transitions;
 use proto::{EpisodeEnd, Task};
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::ops::DerefMut;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Whether this planner still owns the run, asked just before it removes a superseded replay
+/// segment (a fleet: its lease is valid by its own clock and it holds the run at its token).
+#[derive(Clone)]
+pub struct OwnerCheck(pub Arc<dyn Fn() -> bool + Send + Sync>);
+
+impl OwnerCheck {
+    /// A planner alone owns its runs for as long as it has them open.
+    pub fn alone() -> Self {
+        Self(Arc::new(|| true))
+    }
+
+    pub fn holds(&self) -> bool {
+        (self.0)()
+    }
+}
+
+impl std::fmt::Debug for OwnerCheck {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("OwnerCheck")
+    }
+}
+
+/// The ownership term a buffer is opened for.
+pub struct Term<'a> {
+    /// The fencing token.
+    pub token: u64,
+    /// The planner holding it.
+    pub planner: &'a str,
+    /// Asked before a superseded segment is removed.
+    pub still_owner: OwnerCheck,
+}
 
 /// A finished episode, as stored.
 #[derive(Clone, Debug, PartialEq)]
@@ -58,7 +95,23 @@ pub struct ReplayBuffer {
     owners: Vec<(u32, u32)>,
     agents: Vec<String>,
     episodes: Vec<EpisodeSummary>,
+    /// The writer of this term's segment (see [`segments`]), `None` in memory only.
     log: Option<ReplayLog>,
+    /// The run's directory, where its segments are (`None` in memory only).
+    root: Option<PathBuf>,
+    /// The earlier segments this term's data continues from, each with its length that counts.
+    earlier: Vec<(PathBuf, u64)>,
+    /// The fencing token of this term (its segments are named by it).
+    token: u64,
+    /// The planner holding this term (named in the segments it writes).
+    planner: String,
+    /// Asked before removing superseded segments (see [`OwnerCheck`]).
+    still_owner: OwnerCheck,
+    /// Episodes found open when the run was read, as their interrupted ends (recorded once
+    /// the buffer has its log).
+    left_open: Vec<Record>,
+    /// Segments a finished compaction superseded, to remove once its segment is durable.
+    superseded: Vec<PathBuf>,
     /// The ownership epoch of the newest claim: what this buffer writes under, and below which
     /// records are stale.
     epoch: u64,
@@ -111,6 +164,13 @@ impl ReplayBuffer {
             agents: Vec::new(),
             episodes: Vec::new(),
             log: None,
+            root: None,
+            earlier: Vec::new(),
+            token: 0,
+            planner: String::new(),
+            still_owner: OwnerCheck::alone(),
+            left_open: Vec::new(),
+            superseded: Vec::new(),
             epoch: 0,
             stale_skipped: 0,
             capacity: None,
@@ -121,33 +181,98 @@ impl ReplayBuffer {
         }
     }
 
-    /// Opens the buffer stored at `path` (creating it), recovering every intact record except
-    /// stale ones: an entry whose epoch is below that of a claim before it was written by a
-    /// planner that had lost the run, and is skipped (with a warning).
+    /// Opens the run stored in directory `root` (creating it) as its owner at fencing token
+    /// `token`, held by `planner`: reads every intact record of its segments (see
+    /// [`segments`]) except stale ones (an entry whose epoch is below that of a claim before
+    /// it, written to a shared log by a planner that had lost the run, is skipped with a
+    /// warning), then starts this term's own segment, which continues from them and records
+    /// the claim. Refused with [`LogError::Fenced`] if a newer term has a segment already.
     ///
     /// Episodes the log holds transitions of but no end (the daemon stopped in their middle)
     /// are recorded as interrupted here: their transitions stay (they were acknowledged), and
     /// their agents continue with the next episode number rather than resuming a stale one.
-    pub fn open(path: &Path, task: &'static Task) -> Result<Self, ReplayError> {
-        Self::from_log(ReplayLog::open(path)?, task)
+    pub fn open(
+        root: &Path,
+        task: &'static Task,
+        token: u64,
+        planner: &str,
+    ) -> Result<Self, ReplayError> {
+        let term = Term {
+            token,
+            planner,
+            still_owner: OwnerCheck::alone(),
+        };
+        Self::open_with(root, task, term, |file| Box::new(file))
     }
 
-    /// As [`ReplayBuffer::open`], writing through `wrap(file)` (tests inject a failing disk).
+    /// As [`ReplayBuffer::open`] for `term`, writing through `wrap(file)` (tests inject a
+    /// failing disk).
     pub fn open_with(
-        path: &Path,
+        root: &Path,
         task: &'static Task,
+        term: Term<'_>,
         wrap: impl FnOnce(std::fs::File) -> Box<dyn LogFile>,
     ) -> Result<Self, ReplayError> {
-        Self::from_log(ReplayLog::open_with(path, wrap)?, task)
+        let Term {
+            token,
+            planner,
+            still_owner,
+        } = term;
+        let mut view = segments::read(root)?;
+        let recovered = std::mem::take(&mut view.recovered);
+        let mut buffer = Self::from_records(root, recovered, &view.missing, task)?;
+        let header = Record::Header {
+            task: task.name().to_string(),
+            obs_dim: task.obs_dim as u32,
+            act_dim: task.act_dim as u32,
+        };
+        let opened = segments::create(root, &view, header, (token, planner), wrap)?;
+        let garbage: Vec<PathBuf> = view.garbage.iter().map(|id| root.join(id.name())).collect();
+        buffer.log = Some(opened.log);
+        buffer.root = Some(root.to_path_buf());
+        buffer.earlier = opened.earlier;
+        buffer.token = token;
+        buffer.planner = planner.to_string();
+        buffer.still_owner = still_owner;
+        buffer.epoch = buffer.epoch.max(token);
+        let left_open = std::mem::take(&mut buffer.left_open);
+        if !left_open.is_empty() {
+            buffer.append(left_open)?;
+            if let Some(syncer) = buffer.syncer() {
+                syncer.sync()?;
+            }
+        }
+        if !garbage.is_empty() {
+            let still_owner = buffer.still_owner.clone();
+            segments::remove(root, &garbage, &|| still_owner.holds());
+        }
+        Ok(buffer)
     }
 
-    fn from_log(
-        (mut log, recovered): (ReplayLog, Recovered),
+    /// The run stored in directory `root` as [`ReplayBuffer::open`] would find it, writing
+    /// nothing (safe beside its owner; for tools and tests). Episodes left open are recorded
+    /// as interrupted in memory only.
+    pub fn read(root: &Path, task: &'static Task) -> Result<Self, ReplayError> {
+        let view = segments::read(root)?;
+        let mut buffer = Self::from_records(root, view.recovered, &view.missing, task)?;
+        let left_open = std::mem::take(&mut buffer.left_open);
+        for record in &left_open {
+            buffer.apply(record);
+        }
+        Ok(buffer)
+    }
+
+    /// A buffer holding the run's `recovered` records (no log yet), with the episodes left open
+    /// in `left_open`, for the caller to record.
+    fn from_records(
+        root: &Path,
+        recovered: Recovered,
+        missing: &[String],
         task: &'static Task,
     ) -> Result<Self, ReplayError> {
-        let path = log.path().to_path_buf();
+        let path = root.join(segments::DIR);
         if recovered.truncated_bytes > 0 {
-            tracing::warn!(path = %path.display(), bytes = recovered.truncated_bytes, "cut a torn tail off the replay log");
+            tracing::warn!(path = %path.display(), bytes = recovered.truncated_bytes, "ignored a torn tail of the replay log");
         }
         if recovered.damaged_regions > 0 {
             tracing::warn!(path = %path.display(), regions = recovered.damaged_regions, bytes = recovered.damaged_bytes, "skipped damaged records in the replay log; every intact record is kept");
@@ -162,17 +287,16 @@ impl ReplayBuffer {
         }
         if recovered.truncated_bytes > 0 {
             damage.push(format!(
-                "a torn tail of {} bytes cut off",
+                "a torn tail of {} bytes ignored",
                 recovered.truncated_bytes
             ));
         }
+        if !missing.is_empty() {
+            damage.push(format!("segments missing or short: {}", missing.join(", ")));
+        }
         let mut records = recovered.records.into_iter().peekable();
         match records.peek() {
-            None => log.append(&[Record::Header {
-                task: task.name().to_string(),
-                obs_dim: task.obs_dim as u32,
-                act_dim: task.act_dim as u32,
-            }])?,
+            None => {}
             Some(Record::Header { task: found, .. }) if found == task.name() => {
                 records.next();
             }
@@ -231,25 +355,18 @@ impl ReplayBuffer {
                 Record::EpisodeEnd { agent, episode, .. } => {
                     open_episodes.remove(&(agent.clone(), *episode));
                 }
-                Record::Header { .. } | Record::Claim { .. } => {}
+                Record::Header { .. } | Record::Claim { .. } | Record::Term { .. } => {}
             }
             buffer.apply(&record);
         }
         if buffer.stale_skipped > 0 {
             tracing::warn!(path = %path.display(), records = buffer.stale_skipped, epoch = buffer.epoch, "skipped records a planner wrote after it had lost the run");
         }
-        let left_open: Vec<Record> = open_episodes
+        buffer.left_open = open_episodes
             .into_values()
             .inspect(|summary| tracing::warn!(path = %path.display(), agent = %summary.agent, episode = summary.episode, steps = summary.steps, "episode left open by a stopped daemon recorded as interrupted"))
             .map(Record::from)
             .collect();
-        buffer.log = Some(log);
-        if !left_open.is_empty() {
-            buffer.append(left_open)?;
-            if let Some(syncer) = buffer.syncer() {
-                syncer.sync()?;
-            }
-        }
         Ok(buffer)
     }
 
@@ -264,13 +381,16 @@ impl ReplayBuffer {
                     && next_obs.len() == self.task.obs_dim
                     && act.len() == self.task.act_dim
             }
-            Record::Header { .. } | Record::Claim { .. } | Record::EpisodeEnd { .. } => true,
+            Record::Header { .. }
+            | Record::Claim { .. }
+            | Record::Term { .. }
+            | Record::EpisodeEnd { .. } => true,
         }
     }
 
     fn apply(&mut self, record: &Record) {
         match record {
-            Record::Header { .. } => {}
+            Record::Header { .. } | Record::Term { .. } => {}
             Record::Claim { epoch, .. } => self.epoch = self.epoch.max(*epoch),
             Record::Transition {
                 agent,
@@ -382,19 +502,6 @@ impl ReplayBuffer {
         Ok(sync_took)
     }
 
-    /// Takes the buffer over for `planner` at ownership `epoch` (above every earlier claim):
-    /// records the claim, synced, and writes everything after it under `epoch`.
-    pub fn claim(&mut self, epoch: u64, planner: &str) -> Result<(), ReplayError> {
-        self.append(vec![Record::Claim {
-            epoch,
-            planner: planner.to_string(),
-        }])?;
-        if let Some(syncer) = self.syncer() {
-            syncer.sync()?;
-        }
-        Ok(())
-    }
-
     /// The ownership epoch this buffer writes under.
     pub fn epoch(&self) -> u64 {
         self.epoch
@@ -483,16 +590,47 @@ impl ReplayBuffer {
         let Some(log) = &mut self.log else {
             return Ok(None);
         };
-        if log.is_shared() {
+        let Some(root) = self.root.clone() else {
             return Ok(None);
-        }
+        };
+        let current = segments::SegmentId::parse(&format!(
+            "{}/{}",
+            segments::DIR,
+            log.path()
+                .file_name()
+                .and_then(|n| n.to_str())
+                .unwrap_or_default()
+        ));
+        let target = segments::next_segment(&root, current, self.token)?;
         let evicted = self.evicted.clone();
         let dropped = evicted.clone();
-        let rewrite = log.start_rewrite(self.epoch, move |record| match record {
+        let plan = RewritePlan {
+            target: root.join(target.name()),
+            head: vec![
+                Record::Header {
+                    task: self.task.name().to_string(),
+                    obs_dim: self.task.obs_dim as u32,
+                    act_dim: self.task.act_dim as u32,
+                },
+                // A base: the new segment holds everything kept, so no earlier one counts.
+                Record::Term {
+                    epoch: self.token,
+                    planner: self.planner.clone(),
+                    reads: Vec::new(),
+                },
+            ],
+            earlier: self.earlier.clone(),
+            held_epoch: self.token,
+            newer_term: Box::new(move || segments::newest_token(&root)),
+        };
+        let rewrite = log.start_rewrite(plan, move |record| match record {
             Record::Transition { agent, episode, .. } => {
                 !dropped.contains(&(agent.clone(), *episode))
             }
-            Record::Header { .. } | Record::Claim { .. } | Record::EpisodeEnd { .. } => true,
+            Record::Header { .. }
+            | Record::Claim { .. }
+            | Record::Term { .. }
+            | Record::EpisodeEnd { .. } => true,
         })?;
         self.compacting = true;
         Ok(Some(Compaction {
@@ -503,7 +641,9 @@ impl ReplayBuffer {
     }
 
     /// Step 3 of [`compact_log`] (under the buffer's lock): puts the compacted file in place,
-    /// or hands the job back if records were appended since its last copy.
+    /// or hands the job back if records were appended since its last copy. Once in place, the
+    /// segments it supersedes are in `superseded`, for [`compact_log`] to remove once the new
+    /// one is durable.
     fn finish_compaction(&mut self, job: Compaction) -> Result<Option<Compaction>, ReplayError> {
         let Compaction {
             rewrite,
@@ -515,6 +655,7 @@ impl ReplayBuffer {
             rewrite.abandon();
             return Ok(None);
         };
+        let before = log.path().to_path_buf();
         match log.finish_rewrite(rewrite) {
             Ok(Some(rewrite)) => Ok(Some(Compaction {
                 rewrite,
@@ -522,6 +663,11 @@ impl ReplayBuffer {
                 transitions,
             })),
             Ok(None) => {
+                self.superseded = std::mem::take(&mut self.earlier)
+                    .into_iter()
+                    .map(|(path, _)| path)
+                    .chain([before])
+                    .collect();
                 tracing::info!(path = %log.path().display(), removed = transitions, kept = self.transitions.len(), "compacted the replay log");
                 self.evicted.retain(|e| !evicted.contains(e));
                 self.evicted_on_disk -= transitions;
@@ -548,8 +694,8 @@ impl ReplayBuffer {
         compact_log(|| std::cell::RefMut::map(only.borrow_mut(), |b| &mut **b))
     }
 
-    /// Shares the log's file with other planners' writers (a fleet): it is never cut nor
-    /// compacted in place from now on; `replay_capacity` then bounds the memory only.
+    /// Marks this term's segment as read by other planners (a fleet: a newer owner records
+    /// how far it read it): a failed write's bytes are never cut from it from now on.
     pub fn share_log(&mut self) {
         if let Some(log) = &mut self.log {
             log.share();
@@ -578,9 +724,11 @@ impl ReplayBuffer {
         self.transitions.len()
     }
 
-    /// Bytes of the buffer's log file (0 for a buffer in memory only).
+    /// Bytes of the run's data on disk: the lengths that count of the earlier segments and
+    /// this term's segment (0 for a buffer in memory only).
     pub fn log_bytes(&self) -> u64 {
-        self.log.as_ref().map_or(0, ReplayLog::len_bytes)
+        self.earlier.iter().map(|(_, len)| len).sum::<u64>()
+            + self.log.as_ref().map_or(0, ReplayLog::len_bytes)
     }
 
     pub fn is_empty(&self) -> bool {
@@ -611,9 +759,11 @@ const CATCH_UPS: usize = 4;
 /// held, so the run's agents keep storing (and its trainer keeps reading) meanwhile, and what
 /// they append during the copy is copied too before the swap (see [`ReplayLog::start_rewrite`]).
 ///
-/// A planner that lost the run (a newer claim is in the log) does not compact: its records
-/// must not replace the new owner's file. The compaction is skipped, and this planner steps
-/// down at its next ownership check.
+/// The compaction writes a new segment of this term holding everything kept (see
+/// [`segments`]); the segments it supersedes are removed once it is durable, and only while
+/// the buffer's [`OwnerCheck`] says this planner still owns the run. A planner that lost the
+/// run (a newer term has a segment) does not compact: the compaction is skipped, and this
+/// planner steps down at its next ownership check.
 pub fn compact_log<G: DerefMut<Target = ReplayBuffer>>(
     lock: impl Fn() -> G,
 ) -> Result<(), ReplayError> {
@@ -631,14 +781,32 @@ pub fn compact_log<G: DerefMut<Target = ReplayBuffer>>(
                 e => Err(e.into()),
             };
         }
-        let behind = lock().finish_compaction(job)?;
+        let behind = match lock().finish_compaction(job) {
+            Err(ReplayError::Log(LogError::Fenced { path, held, found })) => {
+                tracing::warn!(path = %path.display(), held, found, "the run was claimed by another planner; the log is not compacted");
+                return Ok(());
+            }
+            behind => behind?,
+        };
         match behind {
             Some(again) => job = again,
             None => {
-                // The new file's name in its directory becomes durable here, off the lock.
-                let syncer = lock().syncer();
+                // The new file's name in its directory becomes durable here, off the lock;
+                // then the segments it supersedes go, while this planner still owns the run.
+                let (syncer, superseded, root, still_owner) = {
+                    let mut buffer = lock();
+                    (
+                        buffer.syncer(),
+                        std::mem::take(&mut buffer.superseded),
+                        buffer.root.clone(),
+                        buffer.still_owner.clone(),
+                    )
+                };
                 if let Some(syncer) = syncer {
                     syncer.sync()?;
+                }
+                if let Some(root) = root {
+                    segments::remove(&root, &superseded, &|| still_owner.holds());
                 }
                 return Ok(());
             }
@@ -671,13 +839,22 @@ mod tests {
         }
     }
 
+    /// The run's segment files, oldest first.
+    fn segment_files(root: &std::path::Path) -> Vec<std::path::PathBuf> {
+        segments::list(root)
+            .unwrap()
+            .into_iter()
+            .map(|id| root.join(id.name()))
+            .collect()
+    }
+
     /// Stores one finished 10-step episode of agent `a` in the log at `path` and closes it;
     /// returns what the buffer held and the episode's summary.
     fn store_one_episode(
         path: &std::path::Path,
         task: &'static Task,
     ) -> (Transitions, EpisodeSummary) {
-        let mut buffer = ReplayBuffer::open(path, task).unwrap();
+        let mut buffer = ReplayBuffer::open(path, task, 1, "p").unwrap();
         for step in 0..10 {
             buffer.append(vec![transition("a", 0, step, 0.5)]).unwrap();
         }
@@ -695,14 +872,14 @@ mod tests {
     #[test]
     fn a_reopened_buffer_holds_everything_stored() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
         let (snapshot, summary) = store_one_episode(&path, task);
 
-        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        let reopened = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         assert_eq!(reopened.transitions(), &snapshot);
         assert_eq!(reopened.episodes(), &[summary]);
-        let err = ReplayBuffer::open(&path, Builtin::Ant.task()).unwrap_err();
+        let err = ReplayBuffer::open(&path, Builtin::Ant.task(), 1, "p").unwrap_err();
         assert!(err.to_string().contains("holds task cartpole"), "{err}");
     }
 
@@ -711,19 +888,25 @@ mod tests {
     #[test]
     fn a_damaged_header_costs_only_the_header() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        assert_eq!(ReplayBuffer::open(&path, task).unwrap().damage(), None);
+        assert_eq!(
+            ReplayBuffer::open(&path, task, 1, "p").unwrap().damage(),
+            None
+        );
         let (snapshot, summary) = store_one_episode(&path, task);
-        // The task's name appears first in the header record: damage one of its bytes.
-        let mut bytes = std::fs::read(&path).unwrap();
-        let at = bytes
-            .windows(b"cartpole".len())
-            .position(|w| w == b"cartpole")
-            .expect("the header names the task");
-        bytes[at + 2] ^= 0xff;
-        std::fs::write(&path, &bytes).unwrap();
-        let mut reopened = ReplayBuffer::open(&path, task).unwrap();
+        // The task's name appears first in the header record: damage one of its bytes, in
+        // every segment (each starts with a header).
+        for file in segment_files(&path) {
+            let mut bytes = std::fs::read(&file).unwrap();
+            let at = bytes
+                .windows(b"cartpole".len())
+                .position(|w| w == b"cartpole")
+                .expect("the header names the task");
+            bytes[at + 2] ^= 0xff;
+            std::fs::write(&file, &bytes).unwrap();
+        }
+        let mut reopened = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         assert_eq!(reopened.transitions(), &snapshot);
         assert_eq!(reopened.episodes(), std::slice::from_ref(&summary));
         let damage = reopened.damage().expect("the damage is reported");
@@ -731,23 +914,23 @@ mod tests {
         // It stores on, and opens again the same way.
         reopened.append(vec![transition("a", 1, 0, 1.0)]).unwrap();
         drop(reopened);
-        let again = ReplayBuffer::open(&path, task).unwrap();
+        let again = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         assert_eq!(again.len(), 11);
         // A file of records with no header and no damage is not a replay log of this run.
-        let foreign = dir.path().join("foreign.log");
-        let mut log = ReplayLog::open(&foreign).unwrap().0;
+        let foreign = dir.path().join("foreign");
+        let mut log = ReplayLog::open(&foreign.join(segments::LEGACY)).unwrap().0;
         log.append(&[transition("a", 0, 0, 0.5)]).unwrap();
         drop(log);
-        let err = ReplayBuffer::open(&foreign, task).unwrap_err();
+        let err = ReplayBuffer::open(&foreign, task, 1, "p").unwrap_err();
         assert!(matches!(err, ReplayError::MissingHeader { .. }), "{err}");
     }
 
     #[test]
     fn an_episode_left_open_is_recorded_as_interrupted_on_reopening() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        let mut buffer = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         for step in 0..3 {
             buffer
                 .append(vec![
@@ -770,7 +953,7 @@ mod tests {
             .unwrap();
         drop(buffer); // as if the daemon was killed: a's episode 4 never ended
 
-        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        let reopened = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         assert_eq!(reopened.len(), 6, "every stored transition is kept");
         // b's episode terminated: its last step (the newest row, after a's) is marked as the
         // end a learned termination trains on; a's interrupted one marks nothing.
@@ -789,31 +972,35 @@ mod tests {
         assert_eq!(reopened.episodes()[1], interrupted);
         drop(reopened);
         // Recorded once: opening again finds nothing left open.
-        let again = ReplayBuffer::open(&path, task).unwrap();
+        let again = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         assert_eq!(again.episodes().len(), 2);
     }
 
     #[test]
     fn an_intact_record_of_the_wrong_dimension_is_skipped_on_reopening() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        drop(ReplayBuffer::open(&path, task).unwrap());
+        drop(ReplayBuffer::open(&path, task, 1, "p").unwrap());
         // Written straight to the log (as a buggy older build or a hand edit could): the
         // buffer itself refuses such a record.
-        let (mut log, _) = ReplayLog::open(&path).unwrap();
+        let newest = segment_files(&path).pop().unwrap();
+        let (mut log, _) = ReplayLog::open(&newest).unwrap();
         let mut wrong = transition("a", 0, 1, 1.0);
         if let Record::Transition { obs, .. } = &mut wrong {
             obs.push(9.0);
         }
-        log.append(&[
+        let mut records = [
             transition("a", 0, 0, 1.0),
             wrong.clone(),
             transition("a", 0, 2, 1.0),
-        ])
-        .unwrap();
+        ];
+        for record in &mut records {
+            record.set_epoch(1);
+        }
+        log.append(&records).unwrap();
         drop(log);
-        let mut reopened = ReplayBuffer::open(&path, task).unwrap();
+        let mut reopened = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         assert_eq!(reopened.len(), 2);
         let err = reopened.append(vec![wrong]).unwrap_err();
         assert!(matches!(err, ReplayError::Dimension { .. }), "{err}");
@@ -823,14 +1010,14 @@ mod tests {
     #[test]
     fn an_episode_numbered_u32_max_resumes_without_overflow() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        let mut buffer = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         buffer
             .append(vec![transition("a", u32::MAX, u32::MAX, 1.0)])
             .unwrap();
         drop(buffer);
-        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        let reopened = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         assert_eq!(reopened.episodes()[0].steps, u32::MAX);
     }
 
@@ -861,9 +1048,9 @@ mod tests {
     #[test]
     fn a_capacity_evicts_the_oldest_whole_episodes_and_keeps_the_log_bounded() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        let mut buffer = ReplayBuffer::open(&path, task).unwrap();
+        let mut buffer = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         buffer.set_capacity(Some(10)).unwrap();
         // An episode of agent b stays open the whole time: it is never evicted.
         buffer.append(vec![transition("b", 0, 0, 9.0)]).unwrap();
@@ -879,7 +1066,7 @@ mod tests {
         let kept = buffer.transitions().clone();
         drop(buffer);
         // The log was compacted: it holds at most twice the capacity, plus what is open.
-        let unbounded = ReplayBuffer::open(&path, task).unwrap();
+        let unbounded = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         assert!(unbounded.len() <= 2 * 10 + 1, "{} on disk", unbounded.len());
         assert_eq!(
             unbounded.episodes().len(),
@@ -888,51 +1075,109 @@ mod tests {
         );
         drop(unbounded);
         // Reopened with the same capacity, the buffer holds exactly what it held.
-        let mut reopened = ReplayBuffer::open(&path, task).unwrap();
+        let mut reopened = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         reopened.set_capacity(Some(10)).unwrap();
         assert_eq!(reopened.transitions(), &kept);
     }
 
-    /// A planner that lost the run (a newer claim is in the log) and wrote on: its records are
-    /// skipped on reading, the new owner's are kept, and the applied actions are kept as such.
+    /// A planner that lost the run and wrote on to its own segment after the new owner read
+    /// it: those records are never read, the new owner's are, and the applied actions are
+    /// kept as such.
     #[test]
-    fn records_of_a_fenced_owner_are_skipped_and_origins_kept() {
+    fn a_stale_writers_appends_after_the_takeover_never_reach_the_run() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
-        old_owner.claim(1, "pa").unwrap();
+        let mut old_owner = ReplayBuffer::open(&path, task, 1, "pa").unwrap();
+        old_owner.share_log();
         old_owner.append(vec![transition("a", 0, 0, 1.0)]).unwrap();
-        let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
-        assert_eq!((new_owner.epoch(), new_owner.len()), (1, 1));
-        new_owner.claim(2, "pb").unwrap();
+        let mut new_owner = ReplayBuffer::open(&path, task, 2, "pb").unwrap();
+        assert_eq!((new_owner.epoch(), new_owner.len()), (2, 1));
         let mut applied = transition("a", 0, 1, 1.0);
         if let Record::Transition { act, origin, .. } = &mut applied {
             *act = vec![-3.0];
             *origin = ActionOrigin::Applied;
         }
         new_owner.append(vec![applied]).unwrap();
-        // The old owner, partitioned, still writes under epoch 1.
+        // The old owner, partitioned, still writes to its own segment under token 1.
         old_owner.append(vec![transition("a", 0, 1, 1.0)]).unwrap();
-        drop((old_owner, new_owner));
-
-        let reopened = ReplayBuffer::open(&path, task).unwrap();
-        assert_eq!(reopened.epoch(), 2);
-        assert_eq!(reopened.stale_skipped(), 1);
+        old_owner.append(episode("a", 5, 3)).unwrap();
+        drop(new_owner);
+        // A third owner reads the old owner's segment only as far as the second read it,
+        // even though the second owner is gone and the old one wrote on.
+        let third = ReplayBuffer::open(&path, task, 3, "pc").unwrap();
+        old_owner.append(vec![transition("a", 0, 2, 1.0)]).unwrap();
+        drop((old_owner, third));
+        let reopened = ReplayBuffer::read(&path, task).unwrap();
+        assert_eq!(reopened.epoch(), 3);
         assert_eq!(reopened.len(), 2);
         assert_eq!(reopened.origins(), &[PLANNED, ActionOrigin::Applied]);
         assert_eq!(reopened.transitions().row(1).1, &[-3.0]);
+        assert!(
+            reopened.episodes().iter().all(|e| e.episode != 5),
+            "the stale writer's episode is not in the run"
+        );
+        // An owner older than the newest segment cannot start a segment.
+        let err = ReplayBuffer::open(&path, task, 2, "pb").unwrap_err();
+        assert!(
+            matches!(err, ReplayError::Log(LogError::Fenced { found: 3, .. })),
+            "{err}"
+        );
     }
 
-    /// Eviction keeps each transition's origin with it, and a planner that lost the run does
-    /// not compact the log the new owner writes to (that would replace the new owner's file).
+    /// A run stored before segments (one `replay.log`) opens with every record; the file is
+    /// never written again, is listed by the first segment, and the first compaction removes it.
+    #[test]
+    fn a_run_stored_before_segments_opens_and_is_compacted_into_segments() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().to_path_buf();
+        let task = Builtin::Cartpole.task();
+        let legacy = path.join(segments::LEGACY);
+        let (mut log, _) = ReplayLog::open(&legacy).unwrap();
+        log.append(&[Record::Header {
+            task: "cartpole".into(),
+            obs_dim: 4,
+            act_dim: 1,
+        }])
+        .unwrap();
+        log.append(&[Record::Claim {
+            epoch: 4,
+            planner: "old".into(),
+        }])
+        .unwrap();
+        for e in 0..3 {
+            let mut records = episode("a", e, 4);
+            for record in &mut records {
+                record.set_epoch(4);
+            }
+            log.append(&records).unwrap();
+        }
+        drop(log);
+        let before = std::fs::read(&legacy).unwrap();
+        let mut buffer = ReplayBuffer::open(&path, task, 5, "p").unwrap();
+        assert_eq!((buffer.len(), buffer.episodes().len()), (12, 3));
+        assert_eq!(std::fs::read(&legacy).unwrap(), before, "never written");
+        buffer.append(episode("b", 0, 2)).unwrap();
+        buffer.set_capacity(Some(4)).unwrap();
+        buffer.compact_if_due().unwrap();
+        assert!(!legacy.exists(), "superseded by the compacted segment");
+        let files = segment_files(&path);
+        assert_eq!(files.len(), 1, "{files:?}");
+        drop(buffer);
+        let reopened = ReplayBuffer::read(&path, task).unwrap();
+        assert_eq!(reopened.episodes().len(), 4);
+        assert!(reopened.len() <= 8, "{} kept", reopened.len());
+    }
+
+    /// Eviction keeps each transition's origin with it; a planner that lost the run does not
+    /// compact (its segment would not be part of the run), and a segment a stale writer
+    /// created after the takeover is ignored and removed by the next owner.
     #[test]
     fn eviction_keeps_origins_aligned_and_a_fenced_owner_never_compacts() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        let mut old_owner = ReplayBuffer::open(&path, task).unwrap();
-        old_owner.claim(1, "pa").unwrap();
+        let mut old_owner = ReplayBuffer::open(&path, task, 1, "pa").unwrap();
         old_owner.set_capacity(Some(4)).unwrap();
         for e in 0..3 {
             let mut records = episode("a", e, 4);
@@ -949,38 +1194,41 @@ mod tests {
             old_owner.origins(),
             &[ActionOrigin::Applied, PLANNED, PLANNED, PLANNED]
         );
-        // Compacted (8 evicted ≥ 4 kept): the log holds the claim and the newest episode.
-        let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
+        assert_eq!(segment_files(&path).len(), 1, "compacted into one segment");
+        let mut new_owner = ReplayBuffer::open(&path, task, 2, "pb").unwrap();
         assert_eq!(new_owner.len(), 4);
-        new_owner.claim(2, "pb").unwrap();
         new_owner.append(episode("b", 0, 2)).unwrap();
-        let before = std::fs::read(&path).unwrap();
-        // The old owner, fenced without knowing, evicts again: the log stays as it is.
+        let files = segment_files(&path);
+        // The old owner, fenced without knowing, evicts again: it compacts nothing.
         for e in 3..6 {
             old_owner.append(episode("a", e, 4)).unwrap();
             old_owner.compact_if_due().unwrap();
         }
-        let after = std::fs::read(&path).unwrap();
-        assert_eq!(after[..before.len()], before[..], "nothing rewritten");
+        assert_eq!(segment_files(&path), files, "no segment made or removed");
+        // A segment the stale writer managed to create anyway is ignored, and the next owner
+        // removes it.
+        let late = path.join(segments::SegmentId::Term { token: 1, seq: 9 }.name());
+        std::fs::copy(&files[0], &late).unwrap();
         drop((old_owner, new_owner));
-        let reopened = ReplayBuffer::open(&path, task).unwrap();
-        assert_eq!(reopened.epoch(), 2);
+        let reopened = ReplayBuffer::open(&path, task, 3, "pc").unwrap();
+        assert_eq!(reopened.epoch(), 3);
         assert_eq!(
             reopened.len(),
             6,
-            "the new owner's transitions are all kept"
+            "the new owner's transitions are all kept, the stale ones none"
         );
-        assert_eq!(reopened.stale_skipped(), 3 * 5);
+        assert!(!late.exists(), "garbage removed at opening");
     }
+
     /// The buffer's lock is free while a compaction copies and fsyncs (its steps 1 and 3 are
     /// the only ones that take it): agents append meanwhile, the compaction catches up with
     /// what they wrote before it swaps files, and nothing they stored is lost.
     #[test]
     fn appends_during_a_compaction_are_caught_up_and_kept() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        let buffer = std::sync::Mutex::new(ReplayBuffer::open(&path, task).unwrap());
+        let buffer = std::sync::Mutex::new(ReplayBuffer::open(&path, task, 1, "p").unwrap());
         let lock = || buffer.lock().unwrap();
         lock().set_capacity(Some(4)).unwrap();
         for e in 0..3 {
@@ -1006,7 +1254,7 @@ mod tests {
         let kept = lock().transitions().clone();
         drop(buffer);
 
-        let reopened = ReplayBuffer::open(&path, task).unwrap();
+        let reopened = ReplayBuffer::open(&path, task, 1, "p").unwrap();
         let agents: Vec<&str> = reopened
             .episodes()
             .iter()
@@ -1023,38 +1271,39 @@ mod tests {
         assert_eq!(bounded.transitions(), &kept);
     }
 
-    /// A claim by another planner that lands during the copy stops the compaction: the new
-    /// owner's file is never replaced, and the half-written copy is removed.
+    /// A newer term that starts during the copy stops the compaction: no segment of the
+    /// fenced term is made, nothing is removed, and the half-written copy is removed.
     #[test]
-    fn a_claim_appended_during_a_compaction_fences_it() {
+    fn a_takeover_during_a_compaction_fences_it() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let task = Builtin::Cartpole.task();
-        let old_owner = std::sync::Mutex::new(ReplayBuffer::open(&path, task).unwrap());
+        let old_owner = std::sync::Mutex::new(ReplayBuffer::open(&path, task, 1, "pa").unwrap());
         let lock = || old_owner.lock().unwrap();
-        lock().claim(1, "pa").unwrap();
         lock().set_capacity(Some(4)).unwrap();
         for e in 0..3 {
             lock().append(episode("a", e, 4)).unwrap();
         }
         let mut job = lock().start_compaction().unwrap().expect("due");
         job.rewrite.copy().unwrap();
-        let mut new_owner = ReplayBuffer::open(&path, task).unwrap();
-        new_owner.claim(2, "pb").unwrap();
-        let before = std::fs::read(&path).unwrap();
-        let mut job = lock()
-            .finish_compaction(job)
+        let new_owner = ReplayBuffer::open(&path, task, 2, "pb").unwrap();
+        let files = segment_files(&path);
+        let err = lock().finish_compaction(job).unwrap_err();
+        assert!(
+            matches!(err, ReplayError::Log(LogError::Fenced { found: 2, .. })),
+            "{err}"
+        );
+        assert_eq!(segment_files(&path), files, "nothing made or removed");
+        let leftovers: Vec<_> = std::fs::read_dir(path.join(segments::DIR))
             .unwrap()
-            .expect("the log grew");
-        assert!(matches!(
-            job.rewrite.copy(),
-            Err(LogError::Fenced { found: 2, .. })
-        ));
-        lock().abandon_compaction(job);
-        assert_eq!(std::fs::read(&path).unwrap(), before, "nothing rewritten");
-        assert!(!path.with_extension("log.compacting").exists());
+            .map(|e| e.unwrap().file_name())
+            .filter(|n| n.to_string_lossy().contains("compacting"))
+            .collect();
+        assert!(leftovers.is_empty(), "{leftovers:?}");
         // The driver reports the same refusal as a skipped compaction, not a failure.
         compact_log(lock).unwrap();
-        assert_eq!(std::fs::read(&path).unwrap(), before);
+        assert_eq!(segment_files(&path), files);
+        drop(new_owner);
+        assert_eq!(ReplayBuffer::read(&path, task).unwrap().len(), 12);
     }
 }

@@ -7,7 +7,7 @@ use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
-use crate::replay::{self, EpisodeSummary, LogFile, Record, ReplayBuffer, ReplayError};
+use crate::replay::{self, EpisodeSummary, LogFile, OwnerCheck, Record, ReplayBuffer, ReplayError};
 use crate::sched::background::run_in_background;
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
@@ -41,10 +41,17 @@ pub struct Hosting {
     /// Acknowledge a step only once it is on stable storage (`[storage] sync_every_step`):
     /// every store is followed by a group commit ([`crate::replay::LogSyncer::sync_through`]).
     pub sync_every_step: bool,
-    /// Other planners share the run's directory (a fleet): its replay log is never cut nor
-    /// compacted in place (see [`crate::replay::ReplayLog::share`]).
+    /// Other planners share the run's directory (a fleet): a newer owner may read this
+    /// term's replay segment, so nothing is ever cut from it (see
+    /// [`crate::replay::ReplayLog::share`]).
     pub shared_dir: bool,
+    /// Whether this planner still owns run `run` at fencing token `token` (its lease valid by
+    /// its own clock): asked before a superseded replay segment is removed.
+    pub still_owner: StillOwner,
 }
+
+/// Whether this planner still owns a run (by name) at a fencing token.
+pub type StillOwner = Arc<dyn Fn(&str, u64) -> bool + Send + Sync>;
 
 /// The daemon's replay byte budgets: each run's log at most `per_run` bytes, all runs' logs
 /// together at most `total` (a run's replay in memory is about its log's size, so these bound
@@ -322,12 +329,20 @@ impl Run {
     ) -> Result<Arc<Self>, OpenError> {
         let task = preset.task;
         let disk = hosting.log_disk.clone();
+        let still_owner = {
+            let (check, run) = (hosting.still_owner.clone(), name.clone());
+            OwnerCheck(Arc::new(move || check(&run, epoch)))
+        };
+        let term = replay::Term {
+            token: epoch,
+            planner,
+            still_owner,
+        };
         let mut buffer =
-            ReplayBuffer::open_with(&dir.replay_log(), task, |file| disk.open(&name, file))?;
+            ReplayBuffer::open_with(dir.root(), task, term, |file| disk.open(&name, file))?;
         if hosting.shared_dir {
             buffer.share_log();
         }
-        buffer.claim(epoch, planner)?;
         buffer.set_capacity(hosting.replay_capacity)?;
         buffer.compact_if_due()?;
         let mut models = match dir.load_models(task, &preset)? {
@@ -980,10 +995,19 @@ mod tests {
         )
     }
 
+    /// The term tests open their buffers at.
+    fn test_term() -> replay::Term<'static> {
+        replay::Term {
+            token: 1,
+            planner: "p",
+            still_owner: OwnerCheck::alone(),
+        }
+    }
+
     /// A run whose replay log writes through a disk that fills up while `full` is set.
     fn run_on_a_filling_disk(path: &std::path::Path, full: Arc<AtomicBool>) -> Arc<Run> {
         run_on(
-            ReplayBuffer::open_with(path, Builtin::Cartpole.task(), |file| {
+            ReplayBuffer::open_with(path, Builtin::Cartpole.task(), test_term(), |file| {
                 Box::new(FillingDisk { file, full })
             })
             .unwrap(),
@@ -1001,6 +1025,7 @@ mod tests {
             histograms: RunHistograms::default(),
             sync_every_step: false,
             shared_dir: false,
+            still_owner: Arc::new(|_: &str, _: u64| true),
         }
     }
 
@@ -1012,7 +1037,7 @@ mod tests {
     #[tokio::test]
     async fn a_full_disk_refuses_the_step_loses_nothing_acknowledged_and_the_agent_resends() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let full = Arc::new(AtomicBool::new(false));
         let run = run_on_a_filling_disk(&path, full.clone());
         let mut session = AgentSession::new("a", 200);
@@ -1044,7 +1069,7 @@ mod tests {
         assert_eq!(run.next_episode("a"), 1);
         drop(run);
         // Every transition is on disk exactly once, and the episode ended once.
-        let reopened = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
+        let reopened = ReplayBuffer::read(&path, Builtin::Cartpole.task()).unwrap();
         assert_eq!(reopened.len(), 4);
         let states: Vec<f32> = (0..4).map(|i| reopened.transitions().row(i).0[0]).collect();
         assert_eq!(states, vec![0.0, 1.0, 2.0, 3.0]);
@@ -1084,11 +1109,11 @@ mod tests {
     #[tokio::test]
     async fn a_failed_fsync_refuses_the_step_as_storage_and_the_resend_stores_it_once() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let failing = Arc::new(AtomicBool::new(false));
         let buffer = {
             let failing = failing.clone();
-            ReplayBuffer::open_with(&path, Builtin::Cartpole.task(), |file| {
+            ReplayBuffer::open_with(&path, Builtin::Cartpole.task(), test_term(), |file| {
                 Box::new(FailingSync { file, failing })
             })
             .unwrap()
@@ -1117,7 +1142,7 @@ mod tests {
         assert_eq!(stored.must_cover, Some(1));
         assert_eq!((run.tally().transitions, run.tally().episodes), (4, 1));
         drop(run);
-        let reopened = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
+        let reopened = ReplayBuffer::read(&path, Builtin::Cartpole.task()).unwrap();
         assert_eq!(reopened.len(), 4);
         assert_eq!(reopened.episodes().len(), 1);
         assert_eq!(reopened.episodes()[0].steps, 4);
@@ -1131,7 +1156,7 @@ mod tests {
         const STEPS: u32 = 4;
         const EPISODES: u32 = 100;
         let dir = tempfile::tempdir().unwrap();
-        let run = run_on_a_filling_disk(&dir.path().join("replay.log"), Default::default());
+        let run = run_on_a_filling_disk(dir.path(), Default::default());
         let done = Arc::new(AtomicBool::new(false));
         let reader = {
             let (run, done) = (run.clone(), done.clone());
@@ -1179,7 +1204,7 @@ mod tests {
     #[tokio::test]
     async fn an_abandoned_episode_is_stored_as_interrupted_and_numbered_past() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("replay.log");
+        let path = dir.path().to_path_buf();
         let run = run_on_a_filling_disk(&path, Default::default());
         let mut session = AgentSession::new("a", 200);
         run.accept(&mut session, &obs(0, 0, None)).await.unwrap();
@@ -1193,7 +1218,7 @@ mod tests {
         assert_eq!(run.next_episode("a"), 1);
         assert_eq!(run.next_episode("b"), 0);
         drop(run);
-        let reopened = ReplayBuffer::open(&path, Builtin::Cartpole.task()).unwrap();
+        let reopened = ReplayBuffer::read(&path, Builtin::Cartpole.task()).unwrap();
         assert_eq!(reopened.len(), 1);
         assert_eq!(reopened.episodes().len(), 1);
         assert_eq!(reopened.episodes()[0].end, EpisodeEnd::Interrupted);

@@ -243,6 +243,11 @@ impl SpecTask {
 /// running out, a set-aside run's retry falling due, a lease that ran out without an event.
 const STEWARD_TICK: std::time::Duration = std::time::Duration::from_secs(1);
 
+/// How long a starting planner waits for its stored runs to be resumed before it serves:
+/// normally all of them are open by then (so `status` lists them before any agent returns),
+/// but a run whose disk stalls must not keep the planner from serving the others.
+const RESUME_WAIT: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// The first wait before a stored run whose opening failed on an I/O error is tried again;
 /// it doubles with every failure, up to [`MAX_OPEN_RETRY`].
 const FIRST_OPEN_RETRY: std::time::Duration = std::time::Duration::from_secs(1);
@@ -390,9 +395,37 @@ impl Service {
             started: std::time::Instant::now(),
         });
         crate::nn::peak::measure_in_background();
-        // Resume the stored runs that are ours (all of them for a planner without peers).
-        service.rebalance().await;
-        service.fleet.show_presence().await;
+        tokio::pin!(shutdown);
+        // Resume the stored runs that are ours (all of them for a planner without peers) on a
+        // task of its own, waiting for it at most RESUME_WAIT, and never past a SIGTERM: a run
+        // whose disk stalls delays neither serving the others nor stopping.
+        // The sender goes when the task ends, however it ends.
+        let (resumed, resumed_rx) = tokio::sync::oneshot::channel::<()>();
+        let resume = {
+            let service = service.clone();
+            tokio::spawn(async move {
+                service.rebalance().await;
+                service.fleet.show_presence().await;
+                drop(resumed);
+            })
+        };
+        let resuming = resume.abort_handle();
+        tokio::select! {
+            biased;
+            () = &mut shutdown => {
+                tracing::info!("shutting down while resuming stored runs; the takeover is abandoned");
+                resuming.abort();
+                service.stop().await;
+                service.fleet.leave().await;
+                session.close().await.map_err(zenoh_err)?;
+                return Ok(());
+            }
+            waited = tokio::time::timeout(RESUME_WAIT, resumed_rx) => {
+                if waited.is_err() {
+                    tracing::warn!(waited_s = RESUME_WAIT.as_secs(), "resuming the stored runs takes long (a stalled disk?); serving meanwhile");
+                }
+            }
+        }
         let attach = session
             .declare_queryable(keys.all_attach())
             .await
@@ -414,10 +447,9 @@ impl Service {
             Some(addr) => Some(service.serve_metrics(addr).await?),
             None => None,
         };
-        let steward = service.spawn_steward();
+        let steward = service.spawn_steward(resume);
         tracing::info!(planner = %planner_id, prefix = %keys.prefix(), "planner serving");
 
-        tokio::pin!(shutdown);
         loop {
             // Biased: observations are drained before liveliness changes. Zenoh delivers an
             // agent's last observation before its token's deletion, but they arrive on two
@@ -448,6 +480,7 @@ impl Service {
         tracing::info!("shutting down");
         // A takeover in progress is abandoned where it stands: a run it created the owner key
         // of is freed with the lease, below.
+        resuming.abort();
         steward.abort();
         if let Some(endpoint) = metrics_endpoint {
             endpoint.abort();
@@ -461,10 +494,16 @@ impl Service {
     /// Starts the steward: it rebalances whenever the fleet changed (changes coalesce: one
     /// rebalance covers all that came meanwhile) and every [`STEWARD_TICK`], on a task of its
     /// own, so the serve loop never waits for a takeover.
-    fn spawn_steward(self: &Arc<Self>) -> JoinHandle<()> {
+    /// It starts once `resume` (the first rebalance, at start) is done.
+    fn spawn_steward(self: &Arc<Self>, resume: JoinHandle<()>) -> JoinHandle<()> {
         let service = self.clone();
         let changes = self.fleet.changes();
         self.runtime.spawn(async move {
+            if let Err(e) = resume.await
+                && e.is_panic()
+            {
+                tracing::error!(error = %e, "resuming the stored runs panicked; the steward goes on");
+            }
             loop {
                 tokio::select! {
                     () = changes.notified() => {}
@@ -948,9 +987,7 @@ impl Service {
             ))
             .into());
         }
-        let stored = RunDir::new(&self.config.data_dir, name)
-            .replay_log()
-            .exists();
+        let stored = RunDir::new(&self.config.data_dir, name).has_replay();
         if let Err(budget) = self.opening_budget(stored) {
             if !stored {
                 return Err(refuse(budget).into());
@@ -1017,6 +1054,10 @@ impl Service {
             histograms: self.outbox.metrics.for_run(name),
             sync_every_step: self.config.sync_every_step(),
             shared_dir: self.fleet.in_fleet(),
+            still_owner: {
+                let fleet = self.fleet.clone();
+                Arc::new(move |run: &str, token: u64| fleet.may_acknowledge(run, token))
+            },
         };
         let internal = |why: String| {
             Refusal::Report(ErrorReport::new(
@@ -1147,11 +1188,7 @@ impl Service {
         let listed = tokio::task::spawn_blocking(move || {
             let mut stored = persist::stored_runs(&data_dir)?;
             // Newest first: the runs in use resume before the long finished ones.
-            let last_written = |dir: &RunDir| {
-                std::fs::metadata(dir.replay_log())
-                    .and_then(|m| m.modified())
-                    .ok()
-            };
+            let last_written = |dir: &RunDir| dir.replay_last_written();
             stored.sort_by_cached_key(|(_, dir)| std::cmp::Reverse(last_written(dir)));
             Ok::<_, crate::persist::PersistError>(stored)
         })
