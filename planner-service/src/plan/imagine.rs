@@ -166,8 +166,6 @@ struct WorkChunk {
     /// the first it has not scored yet.
     next_step: usize,
     scored: usize,
-    /// Steps scored together: enough for [`SCORE_ROWS`] rows (set by [`Workspace::prepare`]).
-    steps_per_score: usize,
     /// Ensemble members of the models last imagined with.
     members: usize,
     /// The task's formulas' working memory (it depends on the task only).
@@ -534,8 +532,7 @@ impl Workspace {
             grow(&mut chunk.seqs, n * h * a, 0.0);
             grow(&mut chunk.out, n, 0.0);
             chunk.rows = chunk.rows.max(rows);
-            chunk.steps_per_score = steps_per_score(rows, h);
-            let (rows, scored) = (chunk.rows, rows * chunk.steps_per_score);
+            let (rows, scored) = (chunk.rows, rows * steps_per_score(rows, h));
             let fits = chunk.scratch.as_ref().is_some_and(|s| {
                 s.dynamics.fits(dynamics, rows)
                     && s.energy.fits(regularizer, scored)
@@ -587,7 +584,6 @@ impl WorkChunk {
             alive: Vec::new(),
             next_step: 0,
             scored: 0,
-            steps_per_score: 1,
             members: 1,
             formulas: task.formula_scratch(),
             task,
@@ -631,7 +627,7 @@ impl WorkChunk {
 
     /// Rolls the chunk's candidates forward over the time `steps` (a solve's steps in order,
     /// from 0: a range starting at 0 starts the rollout over), scoring the imagined steps in
-    /// blocks of [`WorkChunk::steps_per_score`] (and the last ones once the horizon is
+    /// blocks of [`steps_per_score`] (and the last ones once the horizon is
     /// reached) and accumulating per-row returns; with `record`, also writes each step's mean
     /// reward and energy over all rows.
     fn imagine(
@@ -713,7 +709,7 @@ impl WorkChunk {
                 );
                 first_slot += slots;
             }
-            if t + 1 - self.scored == self.steps_per_score || t + 1 == h {
+            if t + 1 - self.scored == steps_per_score(rows, h) || t + 1 == h {
                 self.score(ctx, models, record.as_mut(), self.scored..t + 1);
                 self.scored = t + 1;
             }
