@@ -446,6 +446,31 @@ mod tests {
         dynamics
     }
 
+    /// One plan from `obs` with no regulariser, no learned parts and no deadline.
+    fn plan_alone<'p>(
+        planner: &'p mut MpcPlanner,
+        obs: &[f32],
+        dynamics: &Ensemble,
+    ) -> PlanOutcome<'p> {
+        planner.plan(
+            obs,
+            dynamics,
+            &Regularizer::None,
+            crate::plan::Learned::NONE,
+            None,
+        )
+    }
+
+    /// Pushes the cart left from the right of the centre and right from the left (the reward
+    /// is at the centre), with the warm start forgotten in between.
+    fn assert_plans_towards_the_reward(planner: &mut MpcPlanner, dynamics: &Ensemble) {
+        let right = plan_alone(planner, &[0.5, PI, 0.0, 0.0], dynamics);
+        assert!(right.action[0] < -1.0, "{right:?}");
+        planner.reset();
+        let left = plan_alone(planner, &[-0.5, PI, 0.0, 0.0], dynamics);
+        assert!(left.action[0] > 1.0, "{left:?}");
+    }
+
     fn config() -> CemConfig {
         CemConfig {
             horizon: 8,
@@ -466,28 +491,14 @@ mod tests {
         let dynamics = learned_cart();
         let task = Builtin::Cartpole.task();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 3).unwrap();
-        let right = planner.plan(
-            &[0.5, PI, 0.0, 0.0],
-            &dynamics,
-            &Regularizer::None,
-            crate::plan::Learned::NONE,
-            None,
-        );
-        assert!(right.action[0] < -1.0, "{right:?}");
+        let right = plan_alone(&mut planner, &[0.5, PI, 0.0, 0.0], &dynamics);
         assert!(
             right.predicted_return > 5.0 && right.predicted_return <= 8.0,
             "{right:?}"
         );
         assert_eq!((right.iterations, right.mean_energy), (5, 0.0));
         planner.reset();
-        let left = planner.plan(
-            &[-0.5, PI, 0.0, 0.0],
-            &dynamics,
-            &Regularizer::None,
-            crate::plan::Learned::NONE,
-            None,
-        );
-        assert!(left.action[0] > 1.0, "{left:?}");
+        assert_plans_towards_the_reward(&mut planner, &dynamics);
     }
 
     #[test]
@@ -536,48 +547,14 @@ mod tests {
         let obs = [0.5, PI, 0.0, 0.0];
         let mut a = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
         let mut b = MpcPlanner::new(task, config(), 0.0, false, 9).unwrap();
-        let first = a
-            .plan(
-                &obs,
-                &dynamics,
-                &Regularizer::None,
-                crate::plan::Learned::NONE,
-                None,
-            )
-            .action[0];
-        assert_eq!(
-            first,
-            b.plan(
-                &obs,
-                &dynamics,
-                &Regularizer::None,
-                crate::plan::Learned::NONE,
-                None
-            )
-            .action[0]
-        );
+        let first = plan_alone(&mut a, &obs, &dynamics).action[0];
+        assert_eq!(first, plan_alone(&mut b, &obs, &dynamics).action[0]);
         // The warm start is the plan shifted by one step, with the neutral action appended.
         let plan = a.search.mean().to_vec();
         assert_eq!(plan[plan.len() - 1], 0.0);
-        let second = a
-            .plan(
-                &obs,
-                &dynamics,
-                &Regularizer::None,
-                crate::plan::Learned::NONE,
-                None,
-            )
-            .action[0];
+        let second = plan_alone(&mut a, &obs, &dynamics).action[0];
         b.reset();
-        let fresh = b
-            .plan(
-                &obs,
-                &dynamics,
-                &Regularizer::None,
-                crate::plan::Learned::NONE,
-                None,
-            )
-            .action[0];
+        let fresh = plan_alone(&mut b, &obs, &dynamics).action[0];
         assert_ne!(
             second, fresh,
             "warm and cold starts drew from different distributions"
@@ -589,13 +566,7 @@ mod tests {
         let dynamics = learned_cart();
         let task = Builtin::Cartpole.task();
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 2).unwrap();
-        planner.plan(
-            &[0.5, PI, 0.0, 0.0],
-            &dynamics,
-            &Regularizer::None,
-            crate::plan::Learned::NONE,
-            None,
-        );
+        plan_alone(&mut planner, &[0.5, PI, 0.0, 0.0], &dynamics);
         let warm = planner.search.mean().to_vec();
         let imagined = planner.imagine_plan(
             &[0.5, PI, 0.0, 0.0],
@@ -655,16 +626,7 @@ mod tests {
         let mut imagination = Imagination::new(task, &preset.cem, 0.0, false, 2, 6);
         let mut obs = [0.5, PI, 0.0, 0.0];
         for _ in 0..3 {
-            let planned = planner
-                .plan(
-                    &obs,
-                    &dynamics,
-                    &Regularizer::None,
-                    crate::plan::Learned::NONE,
-                    None,
-                )
-                .action
-                .to_vec();
+            let planned = plan_alone(&mut planner, &obs, &dynamics).action.to_vec();
             cem.optimize(
                 &mut Imagined {
                     imagination: &mut imagination,
@@ -688,23 +650,7 @@ mod tests {
         cfg.population = 50;
         cfg.elites = 10;
         let mut planner = MpcPlanner::new(task, cfg, 0.0, false, 3).unwrap();
-        let right = planner.plan(
-            &[0.5, PI, 0.0, 0.0],
-            &dynamics,
-            &Regularizer::None,
-            crate::plan::Learned::NONE,
-            None,
-        );
-        assert!(right.action[0] < -1.0, "{right:?}");
-        planner.reset();
-        let left = planner.plan(
-            &[-0.5, PI, 0.0, 0.0],
-            &dynamics,
-            &Regularizer::None,
-            crate::plan::Learned::NONE,
-            None,
-        );
-        assert!(left.action[0] > 1.0, "{left:?}");
+        assert_plans_towards_the_reward(&mut planner, &dynamics);
     }
 
     #[test]
@@ -714,13 +660,7 @@ mod tests {
         let task = Builtin::Cartpole.task();
         let obs = [0.5, PI, 0.0, 0.0];
         let mut planner = MpcPlanner::new(task, config(), 0.0, false, 4).unwrap();
-        let first = planner.plan(
-            &obs,
-            &dynamics,
-            &Regularizer::None,
-            crate::plan::Learned::NONE,
-            None,
-        );
+        let first = plan_alone(&mut planner, &obs, &dynamics);
         assert!(first.iterations > 0 && !first.cut, "{first:?}");
         // The warm start is the plan shifted by one step: its first action is what a plan
         // that cannot run one iteration answers.
