@@ -981,6 +981,17 @@ mod tests {
         dynamics: &Ensemble,
         regularizer: &Regularizer,
     ) -> Vec<f32> {
+        scores_shared(imagination, obs, actions, (dynamics, regularizer), None)
+    }
+
+    /// [`scores`], for a plan sharing the cores with `preempt` when given.
+    fn scores_shared(
+        imagination: &mut Imagination,
+        obs: &[f32],
+        actions: &[f32],
+        (dynamics, regularizer): (&Ensemble, &Regularizer),
+        preempt: Option<&dyn Preempt>,
+    ) -> Vec<f32> {
         let ctx = imagination.ctx;
         let mut returns = vec![0.0; actions.len() / (ctx.horizon * ctx.task.act_dim)];
         imagination.evaluate(
@@ -990,9 +1001,51 @@ mod tests {
             regularizer,
             crate::plan::Learned::NONE,
             &mut returns,
-            None,
+            preempt,
         );
         returns
+    }
+
+    /// What the shared-plan tests score: cartpole with sampled transitions (each chunk's
+    /// random stream) and a DEEN, everything that could drift if stepping through the horizon
+    /// in pieces changed the order of the work.
+    struct SharedCase {
+        obs: [f32; 4],
+        horizon: usize,
+        actions: Vec<f32>,
+        dynamics: Ensemble,
+        energy: Regularizer,
+        config: CemConfig,
+    }
+
+    impl SharedCase {
+        fn new() -> Self {
+            let (horizon, population) = (6, 9);
+            Self {
+                obs: [0.1, 2.0, 0.0, 0.3],
+                horizon,
+                actions: random_sequences(Builtin::Cartpole.task(), population, horizon, 3),
+                dynamics: ensemble(Builtin::Cartpole, 2, 5),
+                energy: deen(Builtin::Cartpole, 6),
+                config: cem(horizon, population, 2),
+            }
+        }
+
+        fn imagination(&self, chunks: usize) -> Imagination {
+            Imagination::new(
+                Builtin::Cartpole.task(),
+                &self.config,
+                0.01,
+                true,
+                chunks,
+                11,
+            )
+        }
+
+        fn scores(&self, imagination: &mut Imagination, preempt: Option<&dyn Preempt>) -> Vec<f32> {
+            let models = (&self.dynamics, &self.energy);
+            scores_shared(imagination, &self.obs, &self.actions, models, preempt)
+        }
     }
 
     fn assert_close(a: f32, b: f32, what: &str) {
@@ -1416,44 +1469,19 @@ mod tests {
 
     #[test]
     fn a_shared_plan_may_step_back_between_imagined_steps_and_scores_exactly_the_same() {
-        // Sampled transitions (each chunk's random stream) and DEEN: everything that could
-        // drift if stepping through the horizon in pieces changed the order of the work.
-        let task = Builtin::Cartpole.task();
-        let obs = [0.1, 2.0, 0.0, 0.3];
-        let (horizon, population) = (6, 9);
-        let actions = random_sequences(task, population, horizon, 3);
-        let dynamics = ensemble(Builtin::Cartpole, 2, 5);
-        let energy = deen(Builtin::Cartpole, 6);
-        let config = cem(horizon, population, 2);
-        let mut alone = Imagination::new(task, &config, 0.01, true, 2, 11);
-        let mut shared = Imagination::new(task, &config, 0.01, true, 2, 11);
+        let case = SharedCase::new();
+        let mut alone = case.imagination(2);
+        let mut shared = case.imagination(2);
         let preempt = crate::plan::anytime::CountingPreempt::default();
         for round in 1..=2 {
-            let (mut a, mut b) = (vec![0.0; population], vec![0.0; population]);
-            alone.evaluate(
-                &obs,
-                &actions,
-                &dynamics,
-                &energy,
-                crate::plan::Learned::NONE,
-                &mut a,
-                None,
-            );
-            shared.evaluate(
-                &obs,
-                &actions,
-                &dynamics,
-                &energy,
-                crate::plan::Learned::NONE,
-                &mut b,
-                Some(&preempt),
-            );
+            let a = case.scores(&mut alone, None);
+            let b = case.scores(&mut shared, Some(&preempt));
             assert_eq!(a, b, "round {round}");
             assert!(a.iter().all(|r| r.is_finite()), "{a:?}");
             // Between every two of the horizon's steps, never before the first.
             assert_eq!(
                 preempt.0.load(std::sync::atomic::Ordering::SeqCst),
-                round * (horizon - 1)
+                round * (case.horizon - 1)
             );
         }
     }
@@ -1484,47 +1512,21 @@ mod tests {
 
     #[test]
     fn shared_chunks_meet_only_when_a_rival_waits_and_score_exactly_the_same() {
-        let task = Builtin::Cartpole.task();
-        let obs = [0.1, 2.0, 0.0, 0.3];
-        let (horizon, population) = (6, 9);
-        let actions = random_sequences(task, population, horizon, 3);
-        let dynamics = ensemble(Builtin::Cartpole, 2, 5);
-        let energy = deen(Builtin::Cartpole, 6);
-        let config = cem(horizon, population, 2);
-        let mut alone = Imagination::new(task, &config, 0.01, true, 3, 11);
-        let mut a = vec![0.0; population];
-        alone.evaluate(
-            &obs,
-            &actions,
-            &dynamics,
-            &energy,
-            Learned::NONE,
-            &mut a,
-            None,
-        );
+        let case = SharedCase::new();
+        let a = case.scores(&mut case.imagination(3), None);
         // Nobody waits: every chunk looks after each of its steps but the last, nobody meets.
         // A rival at the 4th look: one step-back, the stopped chunk then finishes its steps.
         for at in [0, 4] {
-            let mut shared = Imagination::new(task, &config, 0.01, true, 3, 11);
             let rival = RivalOnce {
                 at,
                 ..Default::default()
             };
-            let mut b = vec![0.0; population];
-            shared.evaluate(
-                &obs,
-                &actions,
-                &dynamics,
-                &energy,
-                Learned::NONE,
-                &mut b,
-                Some(&rival),
-            );
+            let b = case.scores(&mut case.imagination(3), Some(&rival));
             assert_eq!(a, b, "rival at look {at}");
             let step_backs = rival.step_backs.load(std::sync::atomic::Ordering::SeqCst);
             let looks = rival.looks.load(std::sync::atomic::Ordering::SeqCst);
             assert_eq!(step_backs, usize::from(at > 0), "rival at look {at}");
-            assert_eq!(looks, 3 * (horizon - 1), "rival at look {at}");
+            assert_eq!(looks, 3 * (case.horizon - 1), "rival at look {at}");
         }
         assert!(a.iter().all(|r| r.is_finite()), "{a:?}");
     }
