@@ -637,47 +637,13 @@ mod tests {
         // model (layers, size, epochs, batch), DEEN (layers, size, epochs, batch, σ, α),
         // CEM iterations — the paper's columns Cartpole, Reacher, Pusher, Half-cheetah, Ant.
         type Row = (Builtin, [usize; 4], [usize; 4], f32, f32, usize);
+        #[rustfmt::skip]
         let table: [Row; 5] = [
-            (
-                Builtin::Cartpole,
-                [3, 200, 500, 32],
-                [3, 200, 500, 32],
-                0.1,
-                0.001,
-                5,
-            ),
-            (
-                Builtin::Reacher3d,
-                [3, 200, 500, 32],
-                [3, 200, 500, 32],
-                0.1,
-                0.001,
-                5,
-            ),
-            (
-                Builtin::Pusher,
-                [3, 200, 100, 32],
-                [3, 200, 100, 32],
-                0.1,
-                0.01,
-                5,
-            ),
-            (
-                Builtin::HalfCheetah,
-                [4, 200, 300, 128],
-                [5, 500, 100, 32],
-                0.37,
-                0.05,
-                5,
-            ),
-            (
-                Builtin::Ant,
-                [4, 400, 600, 400],
-                [3, 300, 800, 64],
-                0.9,
-                0.035,
-                7,
-            ),
+            (Builtin::Cartpole,    [3, 200, 500, 32],  [3, 200, 500, 32], 0.1,  0.001, 5),
+            (Builtin::Reacher3d,   [3, 200, 500, 32],  [3, 200, 500, 32], 0.1,  0.001, 5),
+            (Builtin::Pusher,      [3, 200, 100, 32],  [3, 200, 100, 32], 0.1,  0.01,  5),
+            (Builtin::HalfCheetah, [4, 200, 300, 128], [5, 500, 100, 32], 0.37, 0.05,  5),
+            (Builtin::Ant,         [4, 400, 600, 400], [3, 300, 800, 64], 0.9,  0.035, 7),
         ];
         for (task, model, deen, sigma, alpha, iterations) in table {
             for method in METHODS {
