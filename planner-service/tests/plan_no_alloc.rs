@@ -243,6 +243,62 @@ fn reward_model(
     })
 }
 
+/// Every model a plan of `spec` may use, trained briefly (`epochs`) on `data`, running
+/// `inference`: the dynamics ensemble, a DEEN, and the reward and termination models where
+/// the task learns them.
+struct Models {
+    dynamics: Ensemble,
+    deen: Regularizer,
+    reward: Option<RewardModel>,
+    termination: Option<TerminationModel>,
+}
+
+impl Models {
+    fn trained(
+        spec: &'static Task,
+        data: &Transitions,
+        epochs: usize,
+        inference: Inference,
+        rng: &mut StdRng,
+    ) -> Self {
+        let dynamics_config = DynamicsConfig {
+            hidden_layers: 2,
+            hidden_size: 32,
+            ensemble_size: 3,
+            ..Default::default()
+        };
+        let mut dynamics = Ensemble::new(spec, &dynamics_config, rng);
+        dynamics.fit(data, epochs, rng);
+        let energy_config = EnergyConfig {
+            hidden_layers: 2,
+            hidden_size: 24,
+            ..Default::default()
+        };
+        let (obs_dim, act_dim) = (spec.obs_dim, spec.act_dim);
+        let mut deen =
+            Regularizer::new(RegularizerKind::Deen, &energy_config, obs_dim, act_dim, rng);
+        deen.fit(data, epochs, rng);
+        inference.apply(&mut dynamics, &mut deen);
+        Self {
+            dynamics,
+            deen,
+            reward: reward_model(spec, data, inference, rng),
+            termination: termination_model(spec, data, inference, rng),
+        }
+    }
+}
+
+/// The learned parts of a plan: whichever of the two models exist.
+fn learned_parts<'a>(
+    reward: &'a Option<RewardModel>,
+    termination: &'a Option<TerminationModel>,
+) -> Learned<'a> {
+    Learned {
+        reward: reward.as_ref(),
+        termination: termination.as_ref(),
+    }
+}
+
 fn allocates_nothing_after_warm_up_in(
     pool: &rayon::ThreadPool,
     spec: &'static Task,
@@ -251,34 +307,13 @@ fn allocates_nothing_after_warm_up_in(
 ) {
     let mut rng = StdRng::seed_from_u64(0);
     let data = random_transitions(spec, 256, &mut rng);
-    let dynamics_config = DynamicsConfig {
-        hidden_layers: 2,
-        hidden_size: 32,
-        ensemble_size: 3,
-        ..Default::default()
-    };
-    let mut dynamics = Ensemble::new(spec, &dynamics_config, &mut rng);
-    dynamics.fit(&data, 1, &mut rng);
-    let energy_config = EnergyConfig {
-        hidden_layers: 2,
-        hidden_size: 24,
-        ..Default::default()
-    };
-    let mut deen = Regularizer::new(
-        RegularizerKind::Deen,
-        &energy_config,
-        spec.obs_dim,
-        spec.act_dim,
-        &mut rng,
-    );
-    deen.fit(&data, 1, &mut rng);
-    inference.apply(&mut dynamics, &mut deen);
-    let reward = reward_model(spec, &data, inference, &mut rng);
-    let termination = termination_model(spec, &data, inference, &mut rng);
-    let learned = Learned {
-        reward: reward.as_ref(),
-        termination: termination.as_ref(),
-    };
+    let Models {
+        dynamics,
+        deen,
+        reward,
+        termination,
+    } = Models::trained(spec, &data, 1, inference, &mut rng);
+    let learned = learned_parts(&reward, &termination);
 
     let cem = CemConfig {
         horizon: 7,
@@ -381,23 +416,13 @@ fn allocates_nothing_after_warm_up_in(
 
     // A retrained model of the same shapes, packed before the swap, plans without allocating
     // from its very first call.
-    let mut dynamics = Ensemble::new(spec, &dynamics_config, &mut rng);
-    dynamics.fit(&data, 2, &mut rng);
-    let mut deen = Regularizer::new(
-        RegularizerKind::Deen,
-        &energy_config,
-        spec.obs_dim,
-        spec.act_dim,
-        &mut rng,
-    );
-    deen.fit(&data, 2, &mut rng);
-    inference.apply(&mut dynamics, &mut deen);
-    let reward = reward_model(spec, &data, inference, &mut rng);
-    let termination = termination_model(spec, &data, inference, &mut rng);
-    let learned = Learned {
-        reward: reward.as_ref(),
-        termination: termination.as_ref(),
-    };
+    let Models {
+        dynamics,
+        deen,
+        reward,
+        termination,
+    } = Models::trained(spec, &data, 2, inference, &mut rng);
+    let learned = learned_parts(&reward, &termination);
     pack(&dynamics, &deen, learned);
     let (allocations, outcome) = pool.install(|| {
         ALLOCATIONS.store(0, Ordering::SeqCst);
