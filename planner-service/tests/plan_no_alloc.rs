@@ -13,9 +13,13 @@
 //! The calls run inside a rayon pool, as the service runs them: a call from a thread outside
 //! the pool goes through rayon's global job injector, a queue that allocates a block every 63
 //! injected jobs. That allocation belongs to rayon, not to the planner, and is why the test
-//! counts inside the pool. One pool serves every case: a dropped pool's threads exit in the
-//! background, and an exiting thread hands its unreclaimed garbage to crossbeam-epoch's global
-//! queue (an allocation), which on a loaded machine lands in the next case's count.
+//! counts inside the pool.
+//!
+//! Only the pool's threads are watched: the planner runs on them and nowhere else, while other
+//! threads of the process allocate for reasons of their own at any time — the test harness
+//! prints a notice when a test runs over 60 seconds (it does on a loaded machine), and a
+//! thread exiting hands its unreclaimed garbage to crossbeam-epoch's global queue. One pool
+//! serves every case, so no thread of an earlier case's pool is still exiting.
 //!
 //! This file holds a single test so no other test's allocations can interleave with the count.
 
@@ -32,18 +36,30 @@ use proto::{Builtin, InferencePrecision, Task};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
-/// Counts allocations (and reallocations) while `COUNTING` is on, on every thread.
+/// Counts allocations (and reallocations) while `COUNTING` is on, on the watched threads.
 struct CountingAllocator;
 
 static COUNTING: AtomicBool = AtomicBool::new(false);
 static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
 
+thread_local! {
+    /// Set on the planning pool's threads when they start (no destructor, so the allocator may
+    /// read it at any point of a thread's life).
+    static WATCHED: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Whether an allocation now counts.
+fn counted() -> bool {
+    COUNTING.load(Ordering::Relaxed) && WATCHED.with(Cell::get)
+}
+
 // SAFETY: every method forwards to the system allocator unchanged; the counters are atomics.
 unsafe impl GlobalAlloc for CountingAllocator {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.load(Ordering::Relaxed) {
+        if counted() {
             ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
         }
         // SAFETY: forwarded with the caller's layout.
@@ -51,7 +67,7 @@ unsafe impl GlobalAlloc for CountingAllocator {
     }
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.load(Ordering::Relaxed) {
+        if counted() {
             ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
         }
         // SAFETY: forwarded with the caller's layout.
@@ -59,7 +75,7 @@ unsafe impl GlobalAlloc for CountingAllocator {
     }
 
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.load(Ordering::Relaxed) {
+        if counted() {
             ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
         }
         // SAFETY: forwarded unchanged; the caller upholds `realloc`'s contract.
@@ -150,6 +166,7 @@ fn planning_allocates_nothing_after_warm_up() {
     let formulas = Task::intern(formulas, &SpecBounds::default()).unwrap();
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(2)
+        .start_handler(|_| WATCHED.with(|w| w.set(true)))
         .build()
         .unwrap();
     for spec in [Builtin::Ant.task(), learned, formulas] {
@@ -440,9 +457,13 @@ fn allocates_nothing_after_warm_up_in(
     );
 
     // The counter does see allocations, so a zero above is meaningful.
-    COUNTING.store(true, Ordering::SeqCst);
-    let plan = planner.imagine_plan(&obs, &dynamics, &deen, learned);
-    COUNTING.store(false, Ordering::SeqCst);
+    let (allocations, plan) = pool.install(|| {
+        ALLOCATIONS.store(0, Ordering::SeqCst);
+        COUNTING.store(true, Ordering::SeqCst);
+        let plan = planner.imagine_plan(&obs, &dynamics, &deen, learned);
+        COUNTING.store(false, Ordering::SeqCst);
+        (ALLOCATIONS.load(Ordering::SeqCst), plan)
+    });
     assert_eq!(plan.actions.len(), 7 * spec.act_dim);
-    assert!(ALLOCATIONS.load(Ordering::SeqCst) > 0);
+    assert!(allocations > 0);
 }
