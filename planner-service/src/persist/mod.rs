@@ -245,8 +245,9 @@ impl RunDir {
         self.root.join(id.file_name())
     }
 
-    /// Stored checkpoints, newest first: by term, then by models version.
-    fn checkpoints(&self) -> Result<Vec<CheckpointId>, PersistError> {
+    /// Stored checkpoints, newest first: by term, then by models version (the order loading
+    /// tries them in).
+    pub fn checkpoints(&self) -> Result<Vec<CheckpointId>, PersistError> {
         let entries = match fs::read_dir(&self.root) {
             Ok(entries) => entries,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
