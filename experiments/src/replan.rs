@@ -215,7 +215,7 @@ mod tests {
         std::fs::create_dir_all(dir).unwrap();
         let run = RunDir::at(dir);
         run.write_spec(&spec).unwrap();
-        run.save_models(&models, task).unwrap();
+        run.save_models(1, &models, task).unwrap();
     }
 
     fn replan(dir: &Path, overrides: PlannerOverrides) -> Result<ReplanReport> {

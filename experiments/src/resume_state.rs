@@ -17,6 +17,7 @@
 use flate2::Compression;
 use flate2::read::GzDecoder;
 use flate2::write::GzEncoder;
+use planner_service::persist::RunDir;
 use planner_service::replay::segments::{self, SegmentId};
 use std::fs::File;
 use std::io;
@@ -26,8 +27,8 @@ use std::path::{Path, PathBuf};
 pub const SUFFIX: &str = ".state.tar.gz";
 
 /// The files of the run directory `run_dir` that make up its resumable state, relative to
-/// it: the spec, the replay files and the newest checkpoint (by version number), whichever
-/// exist.
+/// it: the spec, the replay files and the newest checkpoint (the one loading tries first: the
+/// newest term's newest version), whichever exist.
 pub fn state_files(run_dir: &Path) -> io::Result<Vec<PathBuf>> {
     let mut files = Vec::new();
     if run_dir.join("run.json").is_file() {
@@ -38,19 +39,11 @@ pub fn state_files(run_dir: &Path) -> io::Result<Vec<PathBuf>> {
             .into_iter()
             .map(|id| PathBuf::from(id.name())),
     );
-    let newest = std::fs::read_dir(run_dir)?
-        .filter_map(|e| {
-            let name = e.ok()?.file_name().into_string().ok()?;
-            let version: u64 = name
-                .strip_prefix("models-")?
-                .strip_suffix(".safetensors")?
-                .parse()
-                .ok()?;
-            Some((version, name))
-        })
-        .max();
-    if let Some((_, name)) = newest {
-        files.push(PathBuf::from(name));
+    let checkpoints = RunDir::at(run_dir)
+        .checkpoints()
+        .map_err(io::Error::other)?;
+    if let Some(newest) = checkpoints.first() {
+        files.push(PathBuf::from(newest.file_name()));
     }
     Ok(files)
 }
@@ -136,8 +129,12 @@ mod tests {
         write(&run.join("replay.log"), &log);
         let segment = run.join("replay/00000000000000000004-000000.log");
         write(&segment, b"the newer term");
+        // Checkpoints of the layout from before terms, and a newer term's (of a lower
+        // version): the newer term's is the newest.
         write(&run.join("models-00000009.safetensors"), b"older");
-        write(&run.join("models-00000010.safetensors"), b"newest");
+        write(&run.join("models-00000010.safetensors"), b"old layout");
+        let newest = "models-00000000000000000004-00000003.safetensors";
+        write(&run.join(newest), b"newest");
         write(&run.join("epochs/00000000000000000003"), b"planner-1");
         let archive = dir.path().join("runs/ant-cem-s0.state.tar.gz");
         std::fs::create_dir_all(archive.parent().unwrap()).unwrap();
@@ -153,24 +150,13 @@ mod tests {
             .map(|e| e.unwrap().file_name().into_string().unwrap())
             .collect();
         names.sort();
-        assert_eq!(
-            names,
-            [
-                "models-00000010.safetensors",
-                "replay",
-                "replay.log",
-                "run.json"
-            ]
-        );
+        assert_eq!(names, [newest, "replay", "replay.log", "run.json"]);
         assert_eq!(std::fs::read(fresh.join("replay.log")).unwrap(), log);
         assert_eq!(
             std::fs::read(fresh.join("replay/00000000000000000004-000000.log")).unwrap(),
             b"the newer term"
         );
-        assert_eq!(
-            std::fs::read(fresh.join("models-00000010.safetensors")).unwrap(),
-            b"newest"
-        );
+        assert_eq!(std::fs::read(fresh.join(newest)).unwrap(), b"newest");
         // The daemon's own copy is never overwritten by an archive.
         write(&fresh.join("replay.log"), b"newer");
         assert!(!unpack(&archive, &fresh).unwrap());

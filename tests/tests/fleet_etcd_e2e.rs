@@ -15,16 +15,23 @@
 //!   moves;
 //! - with `replay_capacity`, owners killed round after round compact the run across the
 //!   segments of earlier terms: nothing of the newest episodes is lost, the replay stays
-//!   bounded, superseded segments are removed.
+//!   bounded, superseded segments are removed;
+//! - on a shared disk that fills up (a small tmpfs), a stale owner's failed writes delete
+//!   nothing of the new owner's: its segment, checkpoints and acknowledged transitions.
 
 use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::etcd::Etcd;
 use ebmpc_e2e::proxy::Proxy;
 use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data};
-use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, ReplayLog};
+use planner_service::config::Preset;
+use planner_service::models::Models;
+use planner_service::persist::{CheckpointId, PersistError, RunDir};
+use planner_service::replay::segments::SegmentId;
+use planner_service::replay::{ActionOrigin, LogFile, Record, ReplayBuffer, ReplayLog};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::collections::{BTreeMap, HashSet};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -641,12 +648,33 @@ fn stale_records(token: u64) -> Vec<Record> {
 const STALE_MARK: f32 = 4242.5;
 const STALE_EPISODE: u32 = 999_999;
 
-/// Appends `stale_records(token)` to `segment` as its old owner would if it had lost its
-/// lease without noticing (its process paused, its clock slow): the file is its own, so it
-/// appends like any owner does.
-fn write_as_stale_owner(segment: &Path, token: u64) {
-    let (mut log, _) = ReplayLog::open(segment).expect("the stale owner's segment opens");
-    log.append(&stale_records(token)).unwrap();
+/// The bytes a stale owner appends for `records`: framed by the replay log's own codec (a
+/// scratch log in `scratch` holding them, less its file header).
+fn framed(scratch: &Path, records: &[Record]) -> Vec<u8> {
+    let path = scratch.join("stale-frames.log");
+    let _ = std::fs::remove_file(&path);
+    let mut log = ReplayLog::create_with(&path, &[], |file| -> Box<dyn LogFile> { Box::new(file) })
+        .expect("a scratch log is created");
+    let header = log.len_bytes() as usize;
+    log.append(records).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::remove_file(&path).unwrap();
+    bytes[header..].to_vec()
+}
+
+/// Appends `frames` to `segment` as its old owner would if it had lost its lease without
+/// noticing (its process paused, its clock slow): the file is its own, so it appends to its
+/// end like any owner does (a writer's handle is in append mode).
+fn append_as_stale_owner(segment: &Path, frames: &[u8]) -> std::io::Result<()> {
+    let mut file = std::fs::OpenOptions::new().append(true).open(segment)?;
+    file.write_all(frames)?;
+    file.sync_data()
+}
+
+/// Appends `stale_records(token)` to `segment` as its stale owner, and checks they are in it.
+fn write_as_stale_owner(scratch: &Path, segment: &Path, token: u64) {
+    append_as_stale_owner(segment, &framed(scratch, &stale_records(token)))
+        .expect("the stale owner appends");
     let read = ReplayLog::read(segment).unwrap();
     assert!(
         read.records
@@ -695,7 +723,7 @@ fn a_stale_writers_late_appends_never_reach_the_run() {
             })
             .await;
         // pa, stale, writes on to its segment after pb read it.
-        write_as_stale_owner(&pa_segment, first.epoch);
+        write_as_stale_owner(dir.path(), &pa_segment, first.epoch);
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
                 n >= STEPS as usize
@@ -711,8 +739,8 @@ fn a_stale_writers_late_appends_never_reach_the_run() {
         assert_eq!(third.planner_id, "pc");
         assert!(third.epoch > second.epoch);
         // Both stale owners write on after pc read their segments.
-        write_as_stale_owner(&pa_segment, first.epoch);
-        write_as_stale_owner(&pb_segment, second.epoch);
+        write_as_stale_owner(dir.path(), &pa_segment, first.epoch);
+        write_as_stale_owner(dir.path(), &pb_segment, second.epoch);
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
                 n >= 2 * STEPS as usize
@@ -993,5 +1021,280 @@ fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay()
     assert!(
         compactions >= 2 && removed >= 2,
         "{compactions} compactions, {removed} removed"
+    );
+}
+
+/// A small tmpfs mounted over a directory for the life of the test (unmounted when dropped,
+/// also on failure), so that the disk really fills up.
+struct SmallDisk {
+    path: PathBuf,
+}
+
+impl SmallDisk {
+    /// Mounts a tmpfs of `mib` MiB at `path`. The test needs to mount it (root with
+    /// CAP_SYS_ADMIN, as the test machines run): it fails rather than skip without.
+    fn mount(path: &Path, mib: u32) -> Self {
+        std::fs::create_dir_all(path).unwrap();
+        let mounted = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={mib}m"), "ebmpc-test"])
+            .arg(path)
+            .status()
+            .expect("`mount` runs");
+        assert!(
+            mounted.success(),
+            "cannot mount a tmpfs at {} ({mounted}): this test fills a disk of its own and \
+             needs to run as root",
+            path.display()
+        );
+        Self {
+            path: path.to_path_buf(),
+        }
+    }
+
+    /// Fills the disk: `filler` grows until no byte more fits. Files that end inside a
+    /// page still have that page's slack to write into, as on any file system.
+    fn fill(&self, filler: &Path) {
+        let mut file = std::fs::File::create(filler).unwrap();
+        for chunk in [1 << 20, 4096, 1] {
+            let bytes = vec![0u8; chunk];
+            while file.write_all(&bytes).is_ok() {}
+        }
+        assert!(
+            std::fs::File::create(self.path.join("one-more")).is_ok_and(|mut f| f
+                .write_all(&[0; 8192])
+                .and_then(|()| f.sync_data())
+                .is_err()),
+            "the disk is full"
+        );
+        let _ = std::fs::remove_file(self.path.join("one-more"));
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        // Lazily: a planner killed a moment ago may still hold a file open.
+        let _ = std::process::Command::new("umount")
+            .arg("-l")
+            .arg(&self.path)
+            .status();
+    }
+}
+
+/// The checkpoints of term `token` in the run's directory, with their bytes.
+fn checkpoints_of(root: &Path, token: u64) -> BTreeMap<u64, Vec<u8>> {
+    std::fs::read_dir(root)
+        .unwrap()
+        .filter_map(|entry| {
+            let entry = entry.ok()?;
+            let id = CheckpointId::parse(entry.file_name().to_str()?)?;
+            (id.token == token).then(|| (id.version, std::fs::read(entry.path()).unwrap()))
+        })
+        .collect()
+}
+
+/// Waits until `planner` holds `run` with a checkpoint of its term on disk and is not
+/// training (so it writes nothing of its own meanwhile); returns its models version.
+async fn settled_with_a_checkpoint(
+    session: &zenoh::Session,
+    planner: &str,
+    run: &str,
+    root: &Path,
+) -> u64 {
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut last = None;
+    loop {
+        assert!(
+            Instant::now() < deadline,
+            "{planner} wrote no checkpoint of {run}"
+        );
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let Ok(report) = status(session, planner).await else {
+            continue;
+        };
+        let Some(held) = report.runs.into_iter().find(|r| r.name == run) else {
+            continue;
+        };
+        let on_disk = checkpoints_of(root, held.epoch);
+        let now = (held.models_version, held.training);
+        if !held.training && on_disk.contains_key(&held.models_version) && last == Some(now) {
+            return held.models_version;
+        }
+        last = Some(now);
+    }
+}
+
+/// The shared data directory is a small disk of its own that fills up while a stale owner
+/// (a term a newer owner took over, which has not noticed) keeps writing: its appends to
+/// its own replay segment fail part-way, its checkpoint save and its attempt at a new
+/// segment fail. None of that deletes or changes anything of the new owner's: its segment,
+/// its checkpoints, and every transition it acknowledged, before the disk filled, while it
+/// was full (a step is acknowledged only once stored) and after, survive into the next
+/// term; the next owner resumes from the new owner's newest checkpoint.
+#[test]
+fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners() {
+    let dir = TempDir::new("fleet-full-disk");
+    let data = dir.path().join("shared-data");
+    let disk = SmallDisk::mount(&data, 24);
+    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let endpoint = free_endpoint();
+    let rt = runtime();
+    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let run = "full";
+    let root = run_path(&data, run);
+    let mut ledger = Ledger::default();
+    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let mut pb = None;
+    let (stale_token, new_token, saved_version) = rt.block_on(async {
+        let (mut agent, first) = Agent::new(&endpoint, run, 0, 7).await;
+        assert_eq!(first.planner_id, "pa");
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 3 * STEPS as usize + 2
+            })
+            .await;
+        // pa loses the run (as if paused); pb takes it over at a newer token.
+        pa.signal("KILL").unwrap();
+        pa.wait(Duration::from_secs(10)).unwrap();
+        pb = Some(start(dir.path(), &data, "pb", &endpoint, &etcd.endpoint));
+        let second = agent.reattach().await;
+        assert_eq!(second.planner_id, "pb");
+        assert!(second.epoch > first.epoch);
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 3 * STEPS as usize + 2
+            })
+            .await;
+        let session = &agent.client.session;
+        let version = settled_with_a_checkpoint(session, "pb", run, &root).await;
+        let pa_segment = planner_service::replay::segments::list(&root)
+            .unwrap()
+            .into_iter()
+            .find(|id| matches!(id, SegmentId::Term { token, .. } if *token == first.epoch))
+            .map(|id| root.join(id.name()))
+            .expect("pa's segment");
+        let pb_segment = ebmpc_e2e::newest_replay_segment(&data, run);
+
+        // The disk fills up. Everything of pb's as it is now:
+        disk.fill(&data.join("filler"));
+        let pb_checkpoints = checkpoints_of(&root, second.epoch);
+        let pb_bytes = std::fs::read(&pb_segment).unwrap();
+        assert!(pb_checkpoints.contains_key(&version));
+
+        // pa, stale, writes on: more than its segment's last page holds, so the append
+        // fails part-way (a full disk's partial write, left where it lands).
+        let frames: Vec<u8> = framed(dir.path(), &stale_records(first.epoch)).repeat(40);
+        let appended = append_as_stale_owner(&pa_segment, &frames);
+        assert!(appended.is_err(), "the disk is full: {appended:?}");
+        // Its trainer's checkpoint, many versions ahead: refused.
+        let preset = Preset::new(Builtin::Cartpole.task(), Some("cem")).unwrap();
+        let mut models = Models::untrained(Builtin::Cartpole.task(), &preset, 1);
+        models.version = version + 100;
+        let saved = RunDir::at(&root).save_models(first.epoch, &models, Builtin::Cartpole.task());
+        assert!(
+            matches!(saved, Err(PersistError::NewerTerm { .. })),
+            "a stale checkpoint was written: {saved:?}"
+        );
+        // A compaction's new segment of its term: it cannot be created.
+        let late = root.join(
+            SegmentId::Term {
+                token: first.epoch,
+                seq: 1_000,
+            }
+            .name(),
+        );
+        let created = ReplayLog::create_with(
+            &late,
+            &stale_records(first.epoch),
+            |file| -> Box<dyn LogFile> { Box::new(file) },
+        );
+        assert!(created.is_err(), "the disk is full");
+        assert!(!late.exists());
+
+        // pb keeps serving: it acknowledges what still fits in its segment's last page,
+        // then refuses the step it cannot store (no action comes).
+        let before = ledger.acknowledged.len();
+        let answered = agent
+            .play(&mut ledger, Duration::from_secs(5), |n| {
+                n >= 20 * STEPS as usize
+            })
+            .await;
+        assert!(
+            answered < 20 * STEPS as usize,
+            "pb acknowledged {answered} steps on a full disk"
+        );
+        eprintln!(
+            "on the full disk pb acknowledged {} transitions, then refused a step",
+            ledger.acknowledged.len() - before
+        );
+        assert_eq!(
+            checkpoints_of(&root, second.epoch),
+            pb_checkpoints,
+            "pb's checkpoints are untouched"
+        );
+        let now = std::fs::read(&pb_segment).unwrap();
+        assert_eq!(
+            &now[..pb_bytes.len()],
+            pb_bytes.as_slice(),
+            "pb's segment is unchanged up to where it was"
+        );
+
+        // Space returns; the agent attaches again (its refused step left the episode open)
+        // and pb acknowledges again.
+        std::fs::remove_file(data.join("filler")).unwrap();
+        let again = agent.reattach().await;
+        assert_eq!(
+            (again.planner_id.as_str(), again.epoch),
+            ("pb", second.epoch)
+        );
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= 2 * STEPS as usize
+            })
+            .await;
+        (first.epoch, second.epoch, version)
+    });
+    // pb stops; pc opens the run, from pb's checkpoints and everything pb acknowledged.
+    pb.as_mut()
+        .unwrap()
+        .terminate(Duration::from_secs(20))
+        .unwrap();
+    let newest_of_pb = *checkpoints_of(&root, new_token)
+        .keys()
+        .max()
+        .expect("pb's checkpoints survive");
+    assert!(newest_of_pb >= saved_version);
+    let stale_save = CheckpointId {
+        token: stale_token,
+        version: saved_version + 100,
+    };
+    assert!(!root.join(stale_save.file_name()).exists());
+    let mut pc = start(dir.path(), &data, "pc", &endpoint, &etcd.endpoint);
+    rt.block_on(async {
+        let (mut agent, third) = Agent::new(&endpoint, run, 1000, 8).await;
+        assert_eq!(third.planner_id, "pc");
+        assert!(third.epoch > new_token);
+        let report = status(&agent.client.session, "pc").await.unwrap();
+        let held = report.runs.iter().find(|r| r.name == run).unwrap();
+        assert_eq!(
+            held.models_version, newest_of_pb,
+            "pc resumed from pb's newest checkpoint"
+        );
+        agent
+            .play(&mut ledger, Duration::from_secs(20), |n| {
+                n >= STEPS as usize
+            })
+            .await;
+    });
+    pc.terminate(Duration::from_secs(20)).unwrap();
+    ledger.check_one_owner_at_a_time();
+    let acknowledged = ledger.check_replay(&data, run, "a");
+    assert!(
+        acknowledged > 6 * STEPS as usize,
+        "{acknowledged} acknowledged"
+    );
+    let stored = ReplayBuffer::read(&root, Builtin::Cartpole.task()).unwrap();
+    assert!(
+        (0..stored.len()).all(|i| stored.transitions().row(i).0[0] != STALE_MARK),
+        "a stale owner's transitions reached the run"
     );
 }

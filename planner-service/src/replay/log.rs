@@ -432,14 +432,15 @@ pub enum LogError {
 #[derive(Debug, Default)]
 pub struct Recovered {
     pub records: Vec<Record>,
-    /// Bytes of a torn tail (0 for a clean file): cut off when a single log is opened for
-    /// writing ([`ReplayLog::open`]), ignored when a run is read (its segments are read only).
+    /// Bytes of a torn tail (0 for a clean file): ignored when a run is read (its segments
+    /// are read only, so nothing is cut).
     pub truncated_bytes: u64,
     /// Damaged stretches in the middle of the file that were skipped.
     pub damaged_regions: u32,
     /// Bytes in those stretches (they stay in the file; every open skips them again).
     pub damaged_bytes: u64,
-    /// Records read from a log in the old format, which was rewritten in this one.
+    /// Records read from a log in the old format, which was rewritten in this one (by
+    /// `ReplayLog::open`, tests only; reading never rewrites).
     pub migrated: bool,
 }
 
@@ -601,12 +602,17 @@ pub struct ReplayLog {
 
 impl ReplayLog {
     /// Opens (creating if needed) the log at `path`, reads every intact record, skips damaged
-    /// ones, cuts off a torn tail and migrates a log in the old format.
+    /// ones, cuts off a torn tail and migrates a log in the old format. Tests only: the
+    /// service never reopens a file for writing (a term writes only the segment it created,
+    /// [`ReplayLog::create_with`], and reads the others with [`ReplayLog::read_prefix`]), since
+    /// cutting or rewriting a file another planner may have read would break the fence.
+    #[cfg(test)]
     pub fn open(path: &Path) -> Result<(Self, Recovered), LogError> {
         Self::open_with(path, |file| Box::new(file))
     }
 
     /// As [`ReplayLog::open`], writing through `wrap(file)` (tests inject a failing disk).
+    #[cfg(test)]
     pub fn open_with(
         path: &Path,
         wrap: impl FnOnce(File) -> Box<dyn LogFile>,
@@ -663,7 +669,7 @@ impl ReplayLog {
     }
 
     /// Reads every intact record of the log at `path` without writing anything: a torn tail
-    /// and damaged stretches are skipped as [`ReplayLog::open`] would skip them, but nothing
+    /// and damaged stretches are skipped, but nothing
     /// is cut or migrated, so this is safe beside a daemon that is appending. A log in the
     /// format before the current one is read as well; an empty or missing file holds nothing.
     pub fn read(path: &Path) -> Result<Recovered, LogError> {
@@ -1071,6 +1077,7 @@ fn publish(tmp: &Path, path: &Path) -> std::io::Result<()> {
     sync_directory(path)
 }
 
+#[cfg(test)]
 fn open_rw(path: &Path) -> std::io::Result<File> {
     OpenOptions::new()
         .read(true)
@@ -1216,9 +1223,10 @@ fn parse_legacy(bytes: &[u8]) -> (Vec<Record>, usize) {
     (records, at)
 }
 
-/// Rewrites a log in the old format in the current one. If the old file had bytes after its
-/// last readable record, the old file is kept beside the new one as `*.v1-damaged`, so that
-/// nothing is deleted that someone might recover by hand.
+/// Rewrites a log in the old format in the current one (for [`ReplayLog::open`], tests only).
+/// If the old file had bytes after its last readable record, the old file is kept beside the
+/// new one as `*.v1-damaged`, so that nothing is deleted that someone might recover by hand.
+#[cfg(test)]
 fn migrate_legacy(path: &Path, bytes: &[u8]) -> Result<Recovered, LogError> {
     let io = |source| LogError::Io {
         path: path.to_path_buf(),
@@ -1246,7 +1254,8 @@ fn migrate_legacy(path: &Path, bytes: &[u8]) -> Result<Recovered, LogError> {
 }
 
 /// Writes a current-format file holding the already framed `records` atomically: a temporary
-/// file, fsynced, renamed over `path`, and the directory fsynced.
+/// file, fsynced, renamed over `path`, and the directory fsynced (for [`ReplayLog::open`]).
+#[cfg(test)]
 fn write_file(path: &Path, records: &[u8]) -> std::io::Result<()> {
     let tmp = path.with_extension("log.tmp");
     let mut file = File::create(&tmp)?;

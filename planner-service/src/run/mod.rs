@@ -891,8 +891,11 @@ impl Run {
             if let Some(dir) = &self.dir {
                 match self.check_owner() {
                     Err(e) => tracing::warn!(error = %e, "no checkpoint written"),
-                    Ok(()) => match dir.save_models(&models, self.task) {
+                    Ok(()) => match dir.save_models(self.epoch, &models, self.task) {
                         Ok(path) => tracing::debug!(path = %path.display(), "checkpoint written"),
+                        Err(e @ PersistError::NewerTerm { .. }) => {
+                            tracing::warn!(error = %e, "no checkpoint written: a newer owner took the run")
+                        }
                         Err(e) => tracing::error!(error = %e, "cannot write a checkpoint; the models are used anyway"),
                     },
                 }
