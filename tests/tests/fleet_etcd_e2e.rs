@@ -1308,9 +1308,12 @@ fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners(
         assert!(third.epoch > new_token);
         let report = status(&agent.client.session, "pc").await.unwrap();
         let held = report.runs.iter().find(|r| r.name == run).unwrap();
-        assert_eq!(
-            held.models_version, newest_of_pb,
-            "pc resumed from pb's newest checkpoint"
+        // pc opened the run at pb's newest version; it may have retrained once since, on the
+        // transitions pb stored after that checkpoint (a fresh start would be at 0 or 1).
+        assert!(
+            (newest_of_pb..=newest_of_pb + 1).contains(&held.models_version),
+            "pc resumed from pb's newest checkpoint {newest_of_pb}: at {}",
+            held.models_version
         );
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
