@@ -439,9 +439,6 @@ pub struct Recovered {
     pub damaged_regions: u32,
     /// Bytes in those stretches (they stay in the file; every open skips them again).
     pub damaged_bytes: u64,
-    /// Records read from a log in the old format, which was rewritten in this one (by
-    /// `ReplayLog::open`, tests only; reading never rewrites).
-    pub migrated: bool,
 }
 
 /// Where the log's bytes go: the file itself, or (in tests) a wrapper that fails like a full
@@ -601,8 +598,8 @@ pub struct ReplayLog {
 }
 
 impl ReplayLog {
-    /// Opens (creating if needed) the log at `path`, reads every intact record, skips damaged
-    /// ones, cuts off a torn tail and migrates a log in the old format. Tests only: the
+    /// Opens (creating if needed) the log at `path` in the current format, reads every intact
+    /// record, skips damaged ones and cuts off a torn tail. Tests only: the
     /// service never reopens a file for writing (a term writes only the segment it created,
     /// [`ReplayLog::create_with`], and reads the others with [`ReplayLog::read_prefix`]), since
     /// cutting or rewriting a file another planner may have read would break the fence.
@@ -629,13 +626,12 @@ impl ReplayLog {
             .and_then(|mut f| f.read_to_end(&mut bytes))
             .map_err(io)?;
         let recovered = if let Some(version) = current_version(path, &bytes)? {
-            let (mut recovered, good_len) = scan(&bytes);
-            if version < FORMAT_VERSION {
-                // Same records, new version: written whole, so a crash leaves either file.
-                write_file(path, &bytes[FILE_HEADER_LEN..good_len as usize]).map_err(io)?;
-                tracing::info!(path = %path.display(), from = version, "replay log upgraded to format {FORMAT_VERSION}");
-                recovered.migrated = true;
-            } else if recovered.truncated_bytes > 0 {
+            assert_eq!(
+                version, FORMAT_VERSION,
+                "older logs are read (ReplayLog::read), never written again"
+            );
+            let (recovered, good_len) = scan(&bytes);
+            if recovered.truncated_bytes > 0 {
                 let file = open_rw(path).map_err(io)?;
                 file.set_len(good_len).map_err(io)?;
                 file.sync_all().map_err(io)?;
@@ -648,7 +644,10 @@ impl ReplayLog {
             write_file(path, &[]).map_err(io)?;
             Recovered::default()
         } else {
-            migrate_legacy(path, &bytes)?
+            panic!(
+                "{}: a log of the first format is read, never written again",
+                path.display()
+            )
         };
         let file = open_append(path).map_err(io)?;
         let end = file.metadata().map_err(io)?.len();
@@ -670,7 +669,7 @@ impl ReplayLog {
 
     /// Reads every intact record of the log at `path` without writing anything: a torn tail
     /// and damaged stretches are skipped, but nothing
-    /// is cut or migrated, so this is safe beside a daemon that is appending. A log in the
+    /// is cut or rewritten, so this is safe beside a daemon that is appending. A log in the
     /// format before the current one is read as well; an empty or missing file holds nothing.
     pub fn read(path: &Path) -> Result<Recovered, LogError> {
         Ok(Self::read_prefix(path, None)?.0)
@@ -1223,36 +1222,6 @@ fn parse_legacy(bytes: &[u8]) -> (Vec<Record>, usize) {
     (records, at)
 }
 
-/// Rewrites a log in the old format in the current one (for [`ReplayLog::open`], tests only).
-/// If the old file had bytes after its last readable record, the old file is kept beside the
-/// new one as `*.v1-damaged`, so that nothing is deleted that someone might recover by hand.
-#[cfg(test)]
-fn migrate_legacy(path: &Path, bytes: &[u8]) -> Result<Recovered, LogError> {
-    let io = |source| LogError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let (records, parsed) = parse_legacy(bytes);
-    let mut out = Vec::with_capacity(bytes.len() + records.len() * SYNC.len() + FILE_HEADER_LEN);
-    for record in &records {
-        encode_record(path, record, &mut out)?;
-    }
-    let unread = bytes.len() - parsed;
-    if unread > 0 {
-        let kept = path.with_extension("log.v1-damaged");
-        std::fs::copy(path, &kept).map_err(io)?;
-        tracing::warn!(path = %path.display(), kept = %kept.display(), bytes = unread, "the old-format replay log has unreadable bytes after its last record; the original is kept");
-    }
-    write_file(path, &out).map_err(io)?;
-    tracing::info!(path = %path.display(), records = records.len(), "replay log migrated to format {FORMAT_VERSION}");
-    Ok(Recovered {
-        records,
-        truncated_bytes: unread as u64,
-        migrated: true,
-        ..Recovered::default()
-    })
-}
-
 /// Writes a current-format file holding the already framed `records` atomically: a temporary
 /// file, fsynced, renamed over `path`, and the directory fsynced (for [`ReplayLog::open`]).
 #[cfg(test)]
@@ -1348,10 +1317,7 @@ pub(crate) mod tests {
         drop(log);
         let (_, rec) = ReplayLog::open(&path).unwrap();
         assert_eq!(rec.records, (0..5).map(transition).collect::<Vec<_>>());
-        assert_eq!(
-            (rec.truncated_bytes, rec.damaged_regions, rec.migrated),
-            (0, 0, false)
-        );
+        assert_eq!((rec.truncated_bytes, rec.damaged_regions), (0, 0));
     }
 
     /// A syncer handed out before a compaction swapped the file syncs the new file afterwards
@@ -1462,7 +1428,7 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn a_log_in_the_old_format_is_migrated_without_losing_a_record() {
+    fn a_log_in_the_first_format_reads_every_record_and_stays_as_it_is() {
         let dir = tempfile::tempdir().unwrap();
         let path = temp_path(&dir);
         // The format written before this one: len | crc32(payload) | payload.
@@ -1476,21 +1442,14 @@ pub(crate) mod tests {
             expected.push(read);
         }
         std::fs::write(&path, &old).unwrap();
-        let (mut log, rec) = ReplayLog::open(&path).unwrap();
-        assert!(rec.migrated);
+        let rec = ReplayLog::read(&path).unwrap();
         assert_eq!(rec.records, expected);
-        log.append(&[transition(4)]).unwrap();
-        drop(log);
-        assert!(std::fs::read(&path).unwrap().starts_with(MAGIC));
-        let (_, rec) = ReplayLog::open(&path).unwrap();
-        assert!(!rec.migrated);
-        expected.push(transition(4));
-        assert_eq!(rec.records, expected);
-        assert!(!path.with_extension("log.v1-damaged").exists());
+        assert_eq!(rec.truncated_bytes, 0);
+        assert_eq!(std::fs::read(&path).unwrap(), old);
     }
 
     #[test]
-    fn an_old_format_log_with_a_torn_tail_keeps_its_original_beside_the_new_one() {
+    fn a_first_format_log_with_a_torn_tail_reads_up_to_it_and_stays_as_it_is() {
         let dir = tempfile::tempdir().unwrap();
         let path = temp_path(&dir);
         let (payload, read) = old_transition(0);
@@ -1499,13 +1458,10 @@ pub(crate) mod tests {
         old.extend_from_slice(&payload);
         old.extend_from_slice(&[7, 0, 0]);
         std::fs::write(&path, &old).unwrap();
-        let (_, rec) = ReplayLog::open(&path).unwrap();
+        let rec = ReplayLog::read(&path).unwrap();
         assert_eq!(rec.records, vec![read]);
         assert_eq!(rec.truncated_bytes, 3);
-        assert_eq!(
-            std::fs::read(path.with_extension("log.v1-damaged")).unwrap(),
-            old
-        );
+        assert_eq!(std::fs::read(&path).unwrap(), old);
     }
 
     #[test]
@@ -1614,7 +1570,7 @@ pub(crate) mod tests {
     }
 
     /// A format-3 log names its task by the old closed enum's index: it reads as the task's
-    /// name, the log is upgraded to format 4, and headers written from now on carry the name.
+    /// name, and headers written from now on carry the name.
     #[test]
     fn a_format_3_log_reads_its_task_index_as_a_name() {
         let old_header = OnDisk::HeaderV3 {
@@ -1639,22 +1595,18 @@ pub(crate) mod tests {
             obs_dim: 18,
             act_dim: 6,
         };
-        let (_, rec) = ReplayLog::open(&path).unwrap();
-        assert!(rec.migrated);
+        let rec = ReplayLog::read(&path).unwrap();
         assert_eq!(rec.records, [header.clone(), transition(0)]);
-        let (_, again) = ReplayLog::open(&path).unwrap();
-        assert!(!again.migrated);
-        assert_eq!(again.records, [header.clone(), transition(0)]);
+        assert_eq!(std::fs::read(&path).unwrap(), bytes);
         let written = postcard::to_stdvec(&OnDisk::from(header)).unwrap();
         assert_eq!(written[0], 6, "a new header is the appended variant");
     }
 
     /// A format-2 log (written before ownership epochs, its records encoded as that release
-    /// did) is upgraded to the current format on opening: every record reads as epoch 0 with
-    /// the planned action, a damaged record in it is still skipped, and new records append
-    /// after it.
+    /// did) reads as it is: every record as epoch 0 with the planned action, and a damaged
+    /// record in it is still skipped.
     #[test]
-    fn a_format_2_log_is_upgraded_and_extended() {
+    fn a_format_2_log_reads_as_epoch_0_with_the_planned_action() {
         /// The record type of the release before epochs, as it was.
         #[derive(Serialize)]
         enum OldRecord {
@@ -1718,15 +1670,10 @@ pub(crate) mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = temp_path(&dir);
         std::fs::write(&path, &bytes).unwrap();
-        let (mut log, rec) = ReplayLog::open(&path).unwrap();
-        assert!(rec.migrated);
+        let rec = ReplayLog::read(&path).unwrap();
         assert_eq!((rec.truncated_bytes, rec.damaged_regions), (0, 1));
         assert_eq!(rec.records.len(), 4);
-        let upgraded = std::fs::read(&path).unwrap();
-        assert_eq!(
-            upgraded[MAGIC.len()..FILE_HEADER_LEN],
-            FORMAT_VERSION.to_le_bytes()
-        );
+        assert_eq!(std::fs::read(&path).unwrap(), bytes, "read, not rewritten");
         assert_eq!(
             rec.records[0],
             Record::Header {
@@ -1751,19 +1698,9 @@ pub(crate) mod tests {
             }
         );
         assert_eq!(rec.records[2].epoch(), Some(0));
-        let claim = Record::Claim {
-            epoch: 1,
-            planner: "p".into(),
-        };
-        log.append(&[claim.clone(), transition(1)]).unwrap();
-        drop(log);
-        let (_, rec) = ReplayLog::open(&path).unwrap();
-        assert!(!rec.migrated);
-        assert_eq!(rec.records.len(), 6);
         assert_eq!(
             rec.records[3], rec.records[2],
             "both episode ends read alike"
         );
-        assert_eq!(rec.records[4..], [claim, transition(1)]);
     }
 }
