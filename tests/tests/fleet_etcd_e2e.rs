@@ -763,23 +763,36 @@ fn a_stale_writers_late_appends_never_reach_the_run() {
             .await;
     });
     pa.terminate(Duration::from_secs(20)).unwrap();
-    ledger.check_one_owner_at_a_time();
-    let acknowledged = ledger.check_replay(&data, run, "a");
-    assert!(
-        acknowledged > 4 * STEPS as usize,
-        "{acknowledged} acknowledged"
-    );
-    let stored = ReplayBuffer::read(&run_path(&data, run), Builtin::Cartpole.task()).unwrap();
-    let stale_rows = (0..stored.len())
-        .filter(|&i| stored.transitions().row(i).0[0] == STALE_MARK)
-        .count();
-    assert_eq!(stale_rows, 0, "a stale owner's transitions reached the run");
+    let stored = check_nothing_stale_reached(&ledger, &data, run, 4);
     assert!(
         stored.episodes().iter().all(|e| e.episode != STALE_EPISODE),
         "a stale owner's episode reached the run"
     );
     let segments = planner_service::replay::segments::list(&run_path(&data, run)).unwrap();
     assert!(segments.len() >= 4, "one segment per term: {segments:?}");
+}
+
+/// The end of a stale-writer test: one owner at a time, more than `rounds × STEPS`
+/// transitions acknowledged and every one stored, and none of the stale owner's (marked
+/// `STALE_MARK`) in the run. Returns the run's stored replay.
+fn check_nothing_stale_reached(
+    ledger: &Ledger,
+    data: &Path,
+    run: &str,
+    rounds: usize,
+) -> ReplayBuffer {
+    ledger.check_one_owner_at_a_time();
+    let acknowledged = ledger.check_replay(data, run, "a");
+    assert!(
+        acknowledged > rounds * STEPS as usize,
+        "{acknowledged} acknowledged"
+    );
+    let stored = ReplayBuffer::read(&run_path(data, run), Builtin::Cartpole.task()).unwrap();
+    assert!(
+        (0..stored.len()).all(|i| stored.transitions().row(i).0[0] != STALE_MARK),
+        "a stale owner's transitions reached the run"
+    );
+    stored
 }
 
 /// SIGTERM to `planner` once it logged that it took a run over (and then stuck in opening
@@ -1322,15 +1335,5 @@ fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners(
             .await;
     });
     pc.terminate(Duration::from_secs(20)).unwrap();
-    ledger.check_one_owner_at_a_time();
-    let acknowledged = ledger.check_replay(&data, run, "a");
-    assert!(
-        acknowledged > 6 * STEPS as usize,
-        "{acknowledged} acknowledged"
-    );
-    let stored = ReplayBuffer::read(&root, Builtin::Cartpole.task()).unwrap();
-    assert!(
-        (0..stored.len()).all(|i| stored.transitions().row(i).0[0] != STALE_MARK),
-        "a stale owner's transitions reached the run"
-    );
+    check_nothing_stale_reached(&ledger, &data, run, 6);
 }
