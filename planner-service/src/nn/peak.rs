@@ -113,6 +113,90 @@ impl std::fmt::Display for Peak {
     }
 }
 
+/// Whether the vector units keep their rate while the AMX tile unit multiplies: a round of four
+/// `TDPBF16PS` alone, and two amounts of independent 512-bit FMAs (one and two FMA ports' worth
+/// for the round's 64 cycles where a tile product issues every 16) alone and interleaved with
+/// the tile products (a quarter after each), in nanoseconds of thread CPU time per round, best
+/// of several trials.
+///
+/// This is what decides whether a tile kernel can hide its epilogue (bias, activation, bf16
+/// conversion: vector work on every output element) behind the next block's products: where
+/// the vector work interleaved takes no longer than the tiles alone it is hidden; where it
+/// takes its own time on top, the tile unit and the vectors share an execution port.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TileOverlap {
+    pub tiles_ns: f64,
+    /// Per amount of FMAs ([`OVERLAP_FMAS`]): alone, and interleaved with the tiles.
+    pub fmas: [(f64, f64); 2],
+}
+
+/// 512-bit FMAs per round in the two measurements of [`TileOverlap`].
+pub const OVERLAP_FMAS: [usize; 2] = [64, 128];
+
+impl TileOverlap {
+    /// Measures the loops on the calling thread (about 0.1 s); `None` without AMX-BF16 tiles
+    /// or a thread CPU clock.
+    pub fn measure() -> Option<Self> {
+        if !KernelPath::AmxBf16.is_available() || thread_cpu_time().is_none() {
+            return None;
+        }
+        const ROUNDS: u64 = 20_000;
+        let best = |f: &dyn Fn()| {
+            let mut best = f64::INFINITY;
+            for trial in 0..=30 {
+                let before = thread_cpu_time()?;
+                f();
+                let spent = thread_cpu_time()?.saturating_sub(before).as_secs_f64();
+                if trial > 0 {
+                    best = best.min(spent * 1e9 / ROUNDS as f64);
+                }
+            }
+            Some(best)
+        };
+        // SAFETY (every closure): AMX-BF16 tiles are available (checked above), and every CPU
+        // with them has AVX-512 F.
+        Some(Self {
+            tiles_ns: best(&|| unsafe { x86::tiles_beside_fmas::<true, 0>(ROUNDS) })?,
+            fmas: [
+                (
+                    best(&|| unsafe { x86::tiles_beside_fmas::<false, 2>(ROUNDS) })?,
+                    best(&|| unsafe { x86::tiles_beside_fmas::<true, 2>(ROUNDS) })?,
+                ),
+                (
+                    best(&|| unsafe { x86::tiles_beside_fmas::<false, 4>(ROUNDS) })?,
+                    best(&|| unsafe { x86::tiles_beside_fmas::<true, 4>(ROUNDS) })?,
+                ),
+            ],
+        })
+    }
+
+    /// The share of the `i`-th amount's vector time that the tile products hid: 1 where the two
+    /// ran side by side, 0 where they took turns.
+    pub fn hidden(&self, i: usize) -> f64 {
+        let (alone, both) = self.fmas[i];
+        ((self.tiles_ns + alone - both) / alone.min(self.tiles_ns)).clamp(0.0, 1.0)
+    }
+}
+
+impl std::fmt::Display for TileOverlap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "tile unit beside vector work, ns per round: 4 TDPBF16PS {:.1}",
+            self.tiles_ns
+        )?;
+        for (i, (count, (alone, both))) in OVERLAP_FMAS.iter().zip(self.fmas).enumerate() {
+            write!(
+                f,
+                "; {count} 512-bit FMAs {alone:.1}, interleaved with the tiles {both:.1} ({:.0}% \
+                 hidden)",
+                100.0 * self.hidden(i)
+            )?;
+        }
+        Ok(())
+    }
+}
+
 static BACKGROUND: std::sync::OnceLock<Peak> = std::sync::OnceLock::new();
 
 /// Measures the peaks once on a low-priority background thread (the daemon's start; about a
@@ -278,6 +362,65 @@ mod x86 {
         black_box(&out);
         (iterations * 4 * 16 * 16 * 32 * 2) as f64
     }
+
+    /// `rounds` of four `TDPBF16PS` (when `TILES`), each followed by `DEPTH` FMAs on each of
+    /// eight independent accumulators.
+    ///
+    /// # Safety
+    /// AMX-BF16 tiles and AVX-512 F must be available.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn tiles_beside_fmas<const TILES: bool, const DEPTH: usize>(rounds: u64) {
+        use crate::nn::amx::{TileConfig, tile};
+        let mut config = TileConfig::new();
+        for t in 0..8 {
+            config = config.with_tile(t, 16, 64);
+        }
+        #[repr(align(64))]
+        struct Operand([u32; 256]);
+        let ones = Operand([0x3f80_3f80; 256]);
+        let a = _mm512_set1_ps(black_box(1.000_000_1));
+        let b = _mm512_set1_ps(black_box(0.999_999_9));
+        let mut acc: [__m512; 8] = std::array::from_fn(|i| _mm512_set1_ps(0.001 * i as f32));
+        let fmas = |acc: &mut [__m512; 8]| {
+            for _ in 0..DEPTH {
+                for x in acc.iter_mut() {
+                    *x = _mm512_fmadd_ps(*x, a, b);
+                }
+            }
+        };
+        // SAFETY: the caller's contract; loads cover a 1 KiB array.
+        unsafe {
+            tile::load_config(&config);
+            tile::zero::<0>();
+            tile::zero::<1>();
+            tile::zero::<2>();
+            tile::zero::<3>();
+            tile::load::<4>(ones.0.as_ptr().cast(), 64);
+            tile::load::<5>(ones.0.as_ptr().cast(), 64);
+            tile::load::<6>(ones.0.as_ptr().cast(), 64);
+            tile::load::<7>(ones.0.as_ptr().cast(), 64);
+            for _ in 0..black_box(rounds) {
+                if TILES {
+                    tile::dpbf16ps::<0, 4, 6>();
+                }
+                fmas(&mut acc);
+                if TILES {
+                    tile::dpbf16ps::<1, 4, 7>();
+                }
+                fmas(&mut acc);
+                if TILES {
+                    tile::dpbf16ps::<2, 5, 6>();
+                }
+                fmas(&mut acc);
+                if TILES {
+                    tile::dpbf16ps::<3, 5, 7>();
+                }
+                fmas(&mut acc);
+            }
+            tile::release();
+        }
+        black_box(acc.iter().map(|&x| _mm512_reduce_add_ps(x)).sum::<f32>());
+    }
 }
 
 #[cfg(not(target_arch = "x86_64"))]
@@ -292,6 +435,9 @@ mod x86 {
         unreachable!("AVX2 is never detected off x86-64")
     }
     pub(super) unsafe fn amx_tiles(_: u64) -> f64 {
+        unreachable!("AMX is never detected off x86-64")
+    }
+    pub(super) unsafe fn tiles_beside_fmas<const TILES: bool, const DEPTH: usize>(_: u64) {
         unreachable!("AMX is never detected off x86-64")
     }
 }
@@ -337,6 +483,37 @@ mod tests {
         assert_eq!(high.max(low), high);
         assert_eq!(percent(50.0, Some(200.0)), "25%");
         assert_eq!(percent(50.0, None), "-");
+    }
+
+    #[test]
+    fn the_tile_overlap_probe_runs_where_tiles_exist() {
+        let overlap = TileOverlap::measure();
+        assert_eq!(
+            overlap.is_some(),
+            KernelPath::AmxBf16.is_available() && thread_cpu_time().is_some()
+        );
+        if let Some(o) = overlap {
+            assert!(o.tiles_ns.is_finite() && o.tiles_ns > 0.0, "{o:?}");
+            for (i, (alone, both)) in o.fmas.into_iter().enumerate() {
+                assert!(alone.is_finite() && alone > 0.0, "{o:?}");
+                // Interleaving never makes either loop's own work disappear.
+                assert!(both >= 0.9 * o.tiles_ns.max(alone), "{o:?}");
+                assert!((0.0..=1.0).contains(&o.hidden(i)));
+            }
+            // Twice the FMAs take longer alone.
+            assert!(o.fmas[1].0 > o.fmas[0].0, "{o:?}");
+        }
+        let measured = TileOverlap {
+            tiles_ns: 17.0,
+            fmas: [(8.5, 17.0), (17.0, 34.0)],
+        };
+        assert_eq!((measured.hidden(0), measured.hidden(1)), (1.0, 0.0));
+        let text = measured.to_string();
+        assert!(
+            text.contains("64 512-bit FMAs 8.5, interleaved with the tiles 17.0 (100% hidden)"),
+            "{text}"
+        );
+        assert!(text.contains("(0% hidden)"), "{text}");
     }
 
     #[test]

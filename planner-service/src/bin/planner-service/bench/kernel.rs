@@ -26,11 +26,12 @@
 use super::BenchError;
 use super::timing::{BATCHES, Clock, Timing, measure_for};
 use planner_service::nn::Activation;
+use planner_service::nn::aligned::AlignedBuf;
 use planner_service::nn::matmul::{
     Encoding, Init, MatMut, MatRef, PackedMatrix, matmul, matmul_packed, matmul_par, transpose,
     write_bf16_pairs,
 };
-use planner_service::nn::peak::{Peak, percent};
+use planner_service::nn::peak::{Peak, TileOverlap, percent};
 use planner_service::nn::simd::{SimdLevel, bf16_dot_available, level};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -150,6 +151,9 @@ pub struct LayerTiming {
     pub packed_bf16: Option<Throughput>,
     /// The same on weights packed as AMX tiles; `None` without AMX-BF16.
     pub packed_amx: Option<Throughput>,
+    /// The AMX layer with its bias but no activation: the difference to `packed_amx` is what
+    /// the activation in the epilogue costs.
+    pub packed_amx_bare: Option<Throughput>,
 }
 
 /// A bf16 network's first layer, output written as bf16 pairs, both ways.
@@ -199,6 +203,8 @@ pub struct KernelReport {
     pub first_layers: Vec<FirstLayerTiming>,
     pub products: Vec<ProductTiming>,
     pub transposes: Vec<TransposeTiming>,
+    /// Whether vector work runs beside the tile unit's products (`None` without AMX).
+    pub tile_overlap: Option<TileOverlap>,
     /// This core's peak, measured before and after the kernels (the higher): every f32 row is
     /// a fraction of the f32 FMA peak, every bf16 row of the bf16 dot peak (per CPU second, so
     /// the two-thread `matmul_par` rows too).
@@ -247,21 +253,29 @@ pub(super) fn run(s: &Settings) -> Result<KernelReport, BenchError> {
         first_layers,
         products,
         transposes,
+        tile_overlap: TileOverlap::measure(),
         peak: peak.max(Peak::measure()),
     })
 }
 
-fn random(rng: &mut StdRng, n: usize) -> Vec<f32> {
-    (0..n).map(|_| rng.random_range(-1.0..1.0)).collect()
+/// `n` random floats in a 64-byte aligned buffer, as the networks hold their operands (a
+/// plain `Vec` may start mid-line, so that every 64-byte row a kernel loads spans two cache
+/// lines: the AMX layers then run at about half their speed in the networks).
+fn random(rng: &mut StdRng, n: usize) -> AlignedBuf {
+    let mut buf = AlignedBuf::zeros(n);
+    for v in &mut buf.as_mut_slice()[..n] {
+        *v = rng.random_range(-1.0..1.0);
+    }
+    buf
 }
 
 /// A layer's random operands as the networks hold them: `w` is `k × m` (in × out), `h`
 /// feature-major `k × n` with rows padded to `ld`, a multiple of 16 floats, as the networks'
 /// scratch is.
 struct LayerOperands {
-    w: Vec<f32>,
-    h: Vec<f32>,
-    bias: Vec<f32>,
+    w: AlignedBuf,
+    h: AlignedBuf,
+    bias: AlignedBuf,
     ld: usize,
 }
 
@@ -287,7 +301,7 @@ fn time_layer(
     let Shape { m, n, k } = shape;
     let LayerOperands { w, h, bias, ld } = LayerOperands::random(shape, rng);
     let wt = MatRef::new(&w, k, m).t();
-    let mut c = vec![0.0; m * ld];
+    let mut c = AlignedBuf::zeros(m * ld);
 
     let general = measure_for(Clock::Thread, batch, || {
         matmul(
@@ -315,26 +329,28 @@ fn time_layer(
         black_box(&mut c);
     });
 
-    let bf16_layer = |packed: PackedMatrix| {
+    let bf16_layer = |packed: &PackedMatrix, act: Option<Activation>| {
         let pairs = Encoding::Bf16Pairs;
         let (y_rows, c_rows) = (pairs.storage_rows(k), pairs.storage_rows(m));
         let y = to_bf16_pairs(&h, k, n, ld);
-        let mut c = vec![0.0; c_rows * ld];
+        let mut c = AlignedBuf::zeros(c_rows * ld);
         measure_for(Clock::Thread, batch, || {
             matmul_packed(
                 MatMut::with_stride(&mut c, c_rows, n, ld),
                 pairs,
-                &packed,
+                packed,
                 MatRef::with_stride(&y, y_rows, n, ld),
                 &bias,
-                Some(act),
+                act,
             );
             black_box(&mut c);
         })
     };
-    let packed_bf16 = bf16.then(|| bf16_layer(PackedMatrix::pack_bf16(wt)));
-    let packed_amx = (bf16 && planner_service::nn::amx::available())
-        .then(|| bf16_layer(PackedMatrix::pack_bf16_tiles(wt)));
+    let packed_bf16 = bf16.then(|| bf16_layer(&PackedMatrix::pack_bf16(wt), Some(act)));
+    let tiles =
+        (bf16 && planner_service::nn::amx::available()).then(|| PackedMatrix::pack_bf16_tiles(wt));
+    let packed_amx = tiles.as_ref().map(|t| bf16_layer(t, Some(act)));
+    let packed_amx_bare = tiles.as_ref().map(|t| bf16_layer(t, None));
 
     LayerTiming {
         shape,
@@ -343,13 +359,14 @@ fn time_layer(
         packed_f32: Throughput::new(packed_f32, shape),
         packed_bf16: packed_bf16.map(|t| Throughput::new(t, shape)),
         packed_amx: packed_amx.map(|t| Throughput::new(t, shape)),
+        packed_amx_bare: packed_amx_bare.map(|t| Throughput::new(t, shape)),
     }
 }
 
 /// Feature-major `h` (`k` rows of `n` samples, row stride `ld`) in [`Encoding::Bf16Pairs`]:
 /// feature rows `2p` and `2p + 1` share storage row `p`.
-fn to_bf16_pairs(h: &[f32], k: usize, n: usize, ld: usize) -> Vec<f32> {
-    let mut y = vec![0.0; Encoding::Bf16Pairs.storage_rows(k) * ld];
+fn to_bf16_pairs(h: &[f32], k: usize, n: usize, ld: usize) -> AlignedBuf {
+    let mut y = AlignedBuf::zeros(Encoding::Bf16Pairs.storage_rows(k) * ld);
     convert_to_pairs(&mut y, h, k, n, ld);
     y
 }
@@ -374,7 +391,7 @@ fn time_first_layer(
     let wt = MatRef::new(&w, k, m).t();
     let pairs = Encoding::Bf16Pairs;
     let c_rows = pairs.storage_rows(m);
-    let mut c = vec![0.0; c_rows * ld];
+    let mut c = AlignedBuf::zeros(c_rows * ld);
 
     let packed = PackedMatrix::pack(wt);
     let f32_weights = measure_for(Clock::Thread, batch, || {
@@ -390,7 +407,7 @@ fn time_first_layer(
     });
 
     let packed = PackedMatrix::pack_bf16(wt);
-    let mut y = vec![0.0; pairs.storage_rows(k) * ld];
+    let mut y = AlignedBuf::zeros(pairs.storage_rows(k) * ld);
     let bf16_weights = measure_for(Clock::Thread, batch, || {
         convert_to_pairs(&mut y, black_box(&x), k, n, ld);
         matmul_packed(
@@ -417,7 +434,7 @@ fn time_product(shape: Shape, batch: Duration, rng: &mut StdRng) -> ProductTimin
     let Shape { m, n, k } = shape;
     let x = random(rng, m * k);
     let y = random(rng, k * n);
-    let mut c = vec![0.0; m * n];
+    let mut c = AlignedBuf::zeros(m * n);
     let mut ours_with = |clock, product: fn(MatMut<'_>, MatRef<'_>, MatRef<'_>, Init<'_>)| {
         measure_for(clock, batch, || {
             product(
@@ -468,11 +485,21 @@ fn time_product(shape: Shape, batch: Duration, rng: &mut StdRng) -> ProductTimin
 }
 
 fn time_transpose(rows: usize, cols: usize, batch: Duration) -> TransposeTiming {
-    let src: Vec<f32> = (0..rows * cols).map(|v| v as f32).collect();
+    let mut src = AlignedBuf::zeros(rows * cols);
+    for (i, v) in src.iter_mut().enumerate() {
+        *v = i as f32;
+    }
     let ld_dst = rows.div_ceil(16) * 16;
-    let mut dst = vec![0.0; cols * ld_dst];
+    let mut dst = AlignedBuf::zeros(cols * ld_dst);
     let t = measure_for(Clock::Thread, batch, || {
-        transpose(black_box(&src), rows, cols, cols, &mut dst, ld_dst);
+        transpose(
+            black_box(&src[..rows * cols]),
+            rows,
+            cols,
+            cols,
+            &mut dst,
+            ld_dst,
+        );
         black_box(&mut dst);
     });
     TransposeTiming {
@@ -522,6 +549,9 @@ impl fmt::Display for KernelReport {
              the share of the wall time the batches were on a CPU)\n  {}",
             self.simd, self.peak
         )?;
+        if let Some(o) = &self.tile_overlap {
+            write!(f, "\n  {o}")?;
+        }
         let (f32_peak, bf16_peak) = (self.peak.f32_gflops, self.peak.bf16_gflops);
         if !self.layers.is_empty() {
             write!(
@@ -542,6 +572,9 @@ impl fmt::Display for KernelReport {
                 }
                 if let Some(t) = &l.packed_amx {
                     write_row(f, "", "AMX tiles bf16, fused", t, self.peak.amx_gflops)?;
+                }
+                if let Some(t) = &l.packed_amx_bare {
+                    write_row(f, "", "AMX, bias only", t, self.peak.amx_gflops)?;
                 }
             }
             if !self.bf16_available {
@@ -641,7 +674,19 @@ mod tests {
             assert!(finite_positive(&l.packed_f32), "{l:?}");
             assert_eq!(l.packed_bf16.is_some(), report.bf16_available);
             assert!(l.packed_bf16.as_ref().is_none_or(finite_positive), "{l:?}");
+            let tiles = report.bf16_available && planner_service::nn::amx::available();
+            assert_eq!(l.packed_amx.is_some(), tiles);
+            assert_eq!(l.packed_amx_bare.is_some(), tiles);
+            assert!(l.packed_amx.as_ref().is_none_or(finite_positive), "{l:?}");
+            assert!(
+                l.packed_amx_bare.as_ref().is_none_or(finite_positive),
+                "{l:?}"
+            );
         }
+        assert_eq!(
+            report.tile_overlap.is_some(),
+            planner_service::nn::amx::available()
+        );
         if report.bf16_available {
             let [l] = &report.first_layers[..] else {
                 panic!("one first layer: {:?}", report.first_layers)
