@@ -11,6 +11,7 @@ pub mod bridge;
 pub mod client;
 pub mod config;
 pub mod etcd;
+pub mod fleet;
 pub mod kill_loop;
 pub mod proxy;
 pub mod python;

@@ -19,11 +19,11 @@
 //! - on a shared disk that fills up (a small tmpfs), a stale owner's failed writes delete
 //!   nothing of the new owner's: its segment, checkpoints and acknowledged transitions.
 
-use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
+use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
-use ebmpc_e2e::etcd::Etcd;
+use ebmpc_e2e::fleet::Fleet;
 use ebmpc_e2e::proxy::Proxy;
-use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data};
+use ebmpc_e2e::{Guarded, serve_data};
 use planner_service::config::Preset;
 use planner_service::models::Models;
 use planner_service::persist::{CheckpointId, PersistError, RunDir};
@@ -59,8 +59,9 @@ fn config(id: &str, router: &str, etcd: &str) -> String {
         .toml()
 }
 
-fn start(dir: &Path, data: &Path, id: &str, router: &str, etcd: &str) -> Guarded {
-    serve_data(&dir.join(id), data, &config(id, router, etcd), None).expect("planner serves")
+/// Starts fleet planner `id`, connected to the fleet's router and etcd.
+fn start(fleet: &Fleet, id: &str) -> Guarded {
+    fleet.planner(id, &config(id, &fleet.endpoint, &fleet.etcd.endpoint))
 }
 
 fn run_path(data: &Path, run: &str) -> PathBuf {
@@ -298,17 +299,11 @@ fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
         .ok()
         .and_then(|k| k.parse().ok())
         .unwrap_or(20);
-    let dir = TempDir::new("fleet-kill");
-    let data = dir.path().join("shared-data");
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let fleet = Fleet::start("fleet-kill");
+    let (data, endpoint, rt) = (&fleet.data, &fleet.endpoint, &fleet.rt);
     let ids = ["pa", "pb", "pc"];
-    let mut planners: BTreeMap<&str, Guarded> = ids
-        .iter()
-        .map(|id| (*id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint)))
-        .collect();
+    let mut planners: BTreeMap<&str, Guarded> =
+        ids.iter().map(|id| (*id, start(&fleet, id))).collect();
     let run = "killed";
     let mut ledger = Ledger::default();
     let mut episode = 0;
@@ -320,9 +315,9 @@ fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
     let mut dead: Option<&str> = None;
     for round in 0..kills {
         let (owner, token) = rt.block_on(async {
-            let (mut agent, accepted) = Agent::new(&endpoint, run, episode, round as u32).await;
+            let (mut agent, accepted) = Agent::new(endpoint, run, episode, round as u32).await;
             if let Some(id) = dead.take() {
-                planners.insert(id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+                planners.insert(id, start(&fleet, id));
             }
             assert!(
                 accepted.epoch > last_token,
@@ -353,7 +348,7 @@ fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
         dead = ids.iter().find(|p| **p == owner).copied();
     }
     if let Some(id) = dead {
-        planners.insert(id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+        planners.insert(id, start(&fleet, id));
     }
     eprintln!(
         "{kills} kills in {:.0} s, owners {owners_seen:?}, {} actions",
@@ -368,7 +363,7 @@ fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
     for (_, planner) in planners.iter_mut() {
         planner.terminate(Duration::from_secs(20)).unwrap();
     }
-    let acknowledged = ledger.check_replay(&data, run, "a");
+    let acknowledged = ledger.check_replay(data, run, "a");
     assert!(acknowledged > kills, "{acknowledged} acknowledged");
 }
 
@@ -377,29 +372,25 @@ fn the_owner_killed_mid_episode_again_and_again_loses_nothing_acknowledged() {
 /// the cut-off planner takes nothing back.
 #[test]
 fn a_planner_cut_off_from_etcd_stops_acknowledging_and_its_run_moves() {
-    let dir = TempDir::new("fleet-etcd-cut");
-    let data = dir.path().join("shared-data");
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
+    let fleet = Fleet::start("fleet-etcd-cut");
+    let (data, etcd, endpoint, rt) = (&fleet.data, &fleet.etcd, &fleet.endpoint, &fleet.rt);
     let upstream = etcd.endpoint.trim_start_matches("http://").parse().unwrap();
     let link = Proxy::start(upstream).unwrap();
     let through = format!("http://127.0.0.1:{}", link.port);
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
     // pa alone first, so the run is created there.
-    let mut pa = start(dir.path(), &data, "pa", &endpoint, &through);
+    let mut pa = fleet.planner("pa", &config("pa", endpoint, &through));
     let run = "cut";
     let mut ledger = Ledger::default();
     let mut others = Vec::new();
     let new_owner = rt.block_on(async {
-        let (mut agent, accepted) = Agent::new(&endpoint, run, 0, 1).await;
+        let (mut agent, accepted) = Agent::new(endpoint, run, 0, 1).await;
         assert_eq!(accepted.planner_id, "pa");
         let token = accepted.epoch;
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| n >= 2 * STEPS as usize)
             .await;
         for id in ["pb", "pc"] {
-            others.push(start(dir.path(), &data, id, &endpoint, &etcd.endpoint));
+            others.push(start(&fleet, id));
         }
         let again = agent.reattach().await;
         assert_eq!(
@@ -449,7 +440,7 @@ fn a_planner_cut_off_from_etcd_stops_acknowledging_and_its_run_moves() {
     for planner in &mut others {
         planner.terminate(Duration::from_secs(20)).unwrap();
     }
-    ledger.check_replay(&data, run, "a");
+    ledger.check_replay(data, run, "a");
 }
 
 /// A planner whose router link is cut sees no other planner and prefers every run, but etcd
@@ -457,16 +448,9 @@ fn a_planner_cut_off_from_etcd_stops_acknowledging_and_its_run_moves() {
 /// runs (served by the other planners) lose nothing.
 #[test]
 fn a_planner_cut_off_from_the_router_takes_no_run() {
-    let dir = TempDir::new("fleet-router-cut");
-    let data = dir.path().join("shared-data");
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
-    let mut planners: Vec<Guarded> = ["pa", "pb"]
-        .iter()
-        .map(|id| start(dir.path(), &data, id, &endpoint, &etcd.endpoint))
-        .collect();
+    let fleet = Fleet::start("fleet-router-cut");
+    let (data, etcd, endpoint, rt) = (&fleet.data, &fleet.etcd, &fleet.endpoint, &fleet.rt);
+    let mut planners: Vec<Guarded> = ["pa", "pb"].iter().map(|id| start(&fleet, id)).collect();
     let runs = ["r0", "r1", "r2", "r3"];
     let upstream = endpoint.trim_start_matches("tcp/").parse().unwrap();
     let link = Proxy::start(upstream).unwrap();
@@ -474,23 +458,18 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
     rt.block_on(async {
         let mut agents = Vec::new();
         for (i, run) in runs.iter().enumerate() {
-            let (mut agent, _) = Agent::new(&endpoint, run, 0, i as u32).await;
+            let (mut agent, _) = Agent::new(endpoint, run, 0, i as u32).await;
             agent
                 .play(&mut ledgers[i], Duration::from_secs(20), |n| n >= 3)
                 .await;
             agents.push(agent);
         }
-        let session = open_session(&endpoint).await.unwrap();
+        let session = open_session(endpoint).await.unwrap();
         let before = hosted(&session, &["pa", "pb"]).await;
         assert_eq!(before.len(), runs.len(), "{before:?}");
         // pc joins through the link, then the link is cut while every agent keeps stepping.
-        planners.push(start(
-            dir.path(),
-            &data,
-            "pc",
-            &format!("tcp/127.0.0.1:{}", link.port),
-            &etcd.endpoint,
-        ));
+        let through = format!("tcp/127.0.0.1:{}", link.port);
+        planners.push(fleet.planner("pc", &config("pc", &through, &etcd.endpoint)));
         tokio::time::sleep(Duration::from_secs(1)).await;
         link.cut();
         let partition = Instant::now();
@@ -535,7 +514,7 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
     }
     for (run, ledger) in runs.iter().zip(&ledgers) {
         ledger.check_one_owner_at_a_time();
-        ledger.check_replay(&data, run, "a");
+        ledger.check_replay(data, run, "a");
     }
 }
 
@@ -554,23 +533,19 @@ fn rss_kib(pid: u32) -> u64 {
 /// planner's view of the fleet (and its memory) stays bounded.
 #[test]
 fn forged_planner_and_lease_tokens_move_no_run() {
-    let dir = TempDir::new("fleet-forged");
-    let data = dir.path().join("shared-data");
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
-    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let fleet = Fleet::start("fleet-forged");
+    let (data, endpoint, rt) = (&fleet.data, &fleet.endpoint, &fleet.rt);
+    let mut pa = start(&fleet, "pa");
     let run = "target";
     let mut ledger = Ledger::default();
     rt.block_on(async {
-        let (mut agent, accepted) = Agent::new(&endpoint, run, 0, 7).await;
+        let (mut agent, accepted) = Agent::new(endpoint, run, 0, 7).await;
         assert_eq!(accepted.planner_id, "pa");
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| n >= 5)
             .await;
         let rss_before = rss_kib(pa.pid());
-        let forger = open_session(&endpoint).await.unwrap();
+        let forger = open_session(endpoint).await.unwrap();
         let mut tokens = Vec::new();
         for i in 0..10_000 {
             for key in [
@@ -615,7 +590,7 @@ fn forged_planner_and_lease_tokens_move_no_run() {
     });
     ledger.check_one_owner_at_a_time();
     pa.terminate(Duration::from_secs(20)).unwrap();
-    ledger.check_replay(&data, run, "a");
+    ledger.check_replay(data, run, "a");
 }
 
 /// What a stale owner writes: transitions and an episode end under its old token, marked by
@@ -689,31 +664,27 @@ fn write_as_stale_owner(scratch: &Path, segment: &Path, token: u64) {
 /// it later and by a reader, and nothing acknowledged is lost.
 #[test]
 fn a_stale_writers_late_appends_never_reach_the_run() {
-    let dir = TempDir::new("fleet-stale-writer");
-    let data = dir.path().join("shared-data");
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let fleet = Fleet::start("fleet-stale-writer");
+    let (data, endpoint, rt) = (&fleet.data, &fleet.endpoint, &fleet.rt);
     let run = "stale";
     let mut ledger = Ledger::default();
-    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let mut pa = start(&fleet, "pa");
     let mut pb = None;
     let mut pc = None;
     rt.block_on(async {
-        let (mut agent, first) = Agent::new(&endpoint, run, 0, 3).await;
+        let (mut agent, first) = Agent::new(endpoint, run, 0, 3).await;
         assert_eq!(first.planner_id, "pa");
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
                 n >= 2 * STEPS as usize + 3
             })
             .await;
-        let pa_segment = ebmpc_e2e::newest_replay_segment(&data, run);
+        let pa_segment = ebmpc_e2e::newest_replay_segment(data, run);
         // pa loses the run: its process stops (as if paused) and pb takes over at a newer
         // token once pa's lease expired.
         pa.signal("KILL").unwrap();
         pa.wait(Duration::from_secs(10)).unwrap();
-        pb = Some(start(dir.path(), &data, "pb", &endpoint, &etcd.endpoint));
+        pb = Some(start(&fleet, "pb"));
         let second = agent.reattach().await;
         assert_eq!(second.planner_id, "pb");
         assert!(second.epoch > first.epoch);
@@ -723,24 +694,24 @@ fn a_stale_writers_late_appends_never_reach_the_run() {
             })
             .await;
         // pa, stale, writes on to its segment after pb read it.
-        write_as_stale_owner(dir.path(), &pa_segment, first.epoch);
+        write_as_stale_owner(fleet.dir.path(), &pa_segment, first.epoch);
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
                 n >= STEPS as usize
             })
             .await;
-        let pb_segment = ebmpc_e2e::newest_replay_segment(&data, run);
+        let pb_segment = ebmpc_e2e::newest_replay_segment(data, run);
         assert_ne!(pb_segment, pa_segment, "each term writes its own segment");
         // pb loses the run too; pc takes it over, reading both older segments.
         pb.as_mut().unwrap().signal("KILL").unwrap();
         pb.as_mut().unwrap().wait(Duration::from_secs(10)).unwrap();
-        pc = Some(start(dir.path(), &data, "pc", &endpoint, &etcd.endpoint));
+        pc = Some(start(&fleet, "pc"));
         let third = agent.reattach().await;
         assert_eq!(third.planner_id, "pc");
         assert!(third.epoch > second.epoch);
         // Both stale owners write on after pc read their segments.
-        write_as_stale_owner(dir.path(), &pa_segment, first.epoch);
-        write_as_stale_owner(dir.path(), &pb_segment, second.epoch);
+        write_as_stale_owner(fleet.dir.path(), &pa_segment, first.epoch);
+        write_as_stale_owner(fleet.dir.path(), &pb_segment, second.epoch);
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
                 n >= 2 * STEPS as usize
@@ -752,9 +723,9 @@ fn a_stale_writers_late_appends_never_reach_the_run() {
         .unwrap()
         .terminate(Duration::from_secs(20))
         .unwrap();
-    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let mut pa = start(&fleet, "pa");
     rt.block_on(async {
-        let (mut agent, fourth) = Agent::new(&endpoint, run, 1000, 4).await;
+        let (mut agent, fourth) = Agent::new(endpoint, run, 1000, 4).await;
         assert_eq!(fourth.planner_id, "pa");
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
@@ -763,12 +734,12 @@ fn a_stale_writers_late_appends_never_reach_the_run() {
             .await;
     });
     pa.terminate(Duration::from_secs(20)).unwrap();
-    let stored = check_nothing_stale_reached(&ledger, &data, run, 4);
+    let stored = check_nothing_stale_reached(&ledger, data, run, 4);
     assert!(
         stored.episodes().iter().all(|e| e.episode != STALE_EPISODE),
         "a stale owner's episode reached the run"
     );
-    let segments = planner_service::replay::segments::list(&run_path(&data, run)).unwrap();
+    let segments = planner_service::replay::segments::list(&run_path(data, run)).unwrap();
     assert!(segments.len() >= 4, "one segment per term: {segments:?}");
 }
 
@@ -826,17 +797,13 @@ fn terminate_mid_takeover(planner: &mut Guarded, name: &str) -> Duration {
 /// at a newer token with nothing acknowledged lost.
 #[test]
 fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
-    let dir = TempDir::new("fleet-sigterm-takeover");
-    let data = dir.path().join("shared-data");
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let fleet = Fleet::start("fleet-sigterm-takeover");
+    let (data, etcd, endpoint, rt) = (&fleet.data, &fleet.etcd, &fleet.endpoint, &fleet.rt);
     let run = "stuck";
     let mut ledger = Ledger::default();
-    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let mut pa = start(&fleet, "pa");
     let (first, episode) = rt.block_on(async {
-        let (mut agent, first) = Agent::new(&endpoint, run, 0, 9).await;
+        let (mut agent, first) = Agent::new(endpoint, run, 0, 9).await;
         assert_eq!(first.planner_id, "pa");
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
@@ -845,12 +812,12 @@ fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
             .await;
         (first, agent.episode)
     });
-    let mut pb = start(dir.path(), &data, "pb", &endpoint, &etcd.endpoint);
+    let mut pb = start(&fleet, "pb");
     // The owner dies, and the run's replay stalls before pb takes it over (after the TTL):
     // reading its newest segment blocks until a writer comes, which none does.
     pa.signal("KILL").unwrap();
     pa.wait(Duration::from_secs(10)).unwrap();
-    let segment = ebmpc_e2e::newest_replay_segment(&data, run);
+    let segment = ebmpc_e2e::newest_replay_segment(data, run);
     let aside = segment.with_extension("aside");
     std::fs::rename(&segment, &aside).unwrap();
     let made = std::process::Command::new("mkfifo")
@@ -862,9 +829,9 @@ fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
     // A planner starting while the replay still stalls resumes the run at its start: stuck
     // the same way, and stopped the same way.
     let mut pc = ebmpc_e2e::spawn_planner(
-        &dir.path().join("pc"),
-        &data,
-        &config("pc", &endpoint, &etcd.endpoint),
+        &fleet.dir.path().join("pc"),
+        data,
+        &config("pc", endpoint, &etcd.endpoint),
         None,
     )
     .unwrap();
@@ -875,9 +842,9 @@ fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
     // The mount recovers; another planner takes the run at once (the leases were revoked).
     std::fs::remove_file(&segment).unwrap();
     std::fs::rename(&aside, &segment).unwrap();
-    let mut pd = start(dir.path(), &data, "pd", &endpoint, &etcd.endpoint);
+    let mut pd = start(&fleet, "pd");
     rt.block_on(async {
-        let (mut agent, moved) = Agent::new(&endpoint, run, episode + 1, 10).await;
+        let (mut agent, moved) = Agent::new(endpoint, run, episode + 1, 10).await;
         assert_eq!(moved.planner_id, "pd");
         assert!(moved.epoch > first.epoch);
         agent
@@ -888,7 +855,7 @@ fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
     });
     pd.terminate(Duration::from_secs(20)).unwrap();
     ledger.check_one_owner_at_a_time();
-    ledger.check_replay(&data, run, "a");
+    ledger.check_replay(data, run, "a");
 }
 
 /// Owners SIGKILLed round after round while `[storage] replay_capacity` makes each of them
@@ -898,25 +865,18 @@ fn sigterm_in_the_middle_of_a_takeover_exits_in_time_and_the_run_moves() {
 #[test]
 fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay() {
     const CAPACITY: usize = 40;
-    let dir = TempDir::new("fleet-compaction");
-    let data = dir.path().join("shared-data");
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let fleet = Fleet::start("fleet-compaction");
+    let (data, etcd, endpoint, rt) = (&fleet.data, &fleet.etcd, &fleet.endpoint, &fleet.rt);
     let bounded = |id: &str| {
         format!(
             "{}\n[storage]\nreplay_capacity = {CAPACITY}\n",
-            config(id, &endpoint, &etcd.endpoint)
+            config(id, endpoint, &etcd.endpoint)
         )
     };
     let ids = ["pa", "pb", "pc"];
     let mut planners: BTreeMap<&str, Guarded> = ids
         .iter()
-        .map(|id| {
-            let planner = serve_data(&dir.path().join(id), &data, &bounded(id), None);
-            (*id, planner.expect("planner serves"))
-        })
+        .map(|id| (*id, fleet.planner(id, &bounded(id))))
         .collect();
     let run = "bounded";
     let mut ledger = Ledger::default();
@@ -924,7 +884,7 @@ fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay()
     let rounds = 5;
     for round in 0..rounds {
         let owner = rt.block_on(async {
-            let (mut agent, accepted) = Agent::new(&endpoint, run, episode, round).await;
+            let (mut agent, accepted) = Agent::new(endpoint, run, episode, round).await;
             // Past the capacity every round, so each owner evicts and compacts.
             agent
                 .play(&mut ledger, Duration::from_secs(20), |n| {
@@ -946,12 +906,12 @@ fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay()
             .unwrap()
             .wait(Duration::from_secs(10))
             .unwrap();
-        let restarted = serve_data(&dir.path().join(id), &data, &bounded(id), None);
+        let restarted = serve_data(&fleet.dir.path().join(id), data, &bounded(id), None);
         planners.insert(id, restarted.expect("planner serves"));
     }
     // The last owner plays on: at least two whole episodes, the newest of the run.
     rt.block_on(async {
-        let (mut agent, _) = Agent::new(&endpoint, run, episode, 99).await;
+        let (mut agent, _) = Agent::new(endpoint, run, episode, 99).await;
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
                 n >= 3 * STEPS as usize + 3
@@ -962,7 +922,7 @@ fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay()
         planner.terminate(Duration::from_secs(20)).unwrap();
     }
     ledger.check_one_owner_at_a_time();
-    let root = run_path(&data, run);
+    let root = run_path(data, run);
     let stored = ReplayBuffer::read(&root, Builtin::Cartpole.task()).unwrap();
     let held: HashSet<Vec<u32>> = (0..stored.len())
         .map(|i| {
@@ -1021,7 +981,7 @@ fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay()
     // Every planner's log, the killed ones' too: compactions ran and removed segments.
     let mut logs = String::new();
     for id in ids {
-        for entry in std::fs::read_dir(dir.path().join(id)).unwrap() {
+        for entry in std::fs::read_dir(fleet.dir.path().join(id)).unwrap() {
             let path = entry.unwrap().path();
             if path.extension().is_some_and(|e| e == "log") {
                 logs.push_str(&std::fs::read_to_string(&path).unwrap());
@@ -1178,20 +1138,16 @@ fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners(
     ) {
         return;
     }
-    let dir = TempDir::new("fleet-full-disk");
-    let data = dir.path().join("shared-data");
-    let disk = SmallDisk::mount(&data, 24);
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
+    let fleet = Fleet::start("fleet-full-disk");
+    let (data, endpoint, rt) = (&fleet.data, &fleet.endpoint, &fleet.rt);
+    let disk = SmallDisk::mount(data, 24);
     let run = "full";
-    let root = run_path(&data, run);
+    let root = run_path(data, run);
     let mut ledger = Ledger::default();
-    let mut pa = start(dir.path(), &data, "pa", &endpoint, &etcd.endpoint);
+    let mut pa = start(&fleet, "pa");
     let mut pb = None;
     let (stale_token, new_token, saved_version) = rt.block_on(async {
-        let (mut agent, first) = Agent::new(&endpoint, run, 0, 7).await;
+        let (mut agent, first) = Agent::new(endpoint, run, 0, 7).await;
         assert_eq!(first.planner_id, "pa");
         agent
             .play(&mut ledger, Duration::from_secs(20), |n| {
@@ -1201,7 +1157,7 @@ fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners(
         // pa loses the run (as if paused); pb takes it over at a newer token.
         pa.signal("KILL").unwrap();
         pa.wait(Duration::from_secs(10)).unwrap();
-        pb = Some(start(dir.path(), &data, "pb", &endpoint, &etcd.endpoint));
+        pb = Some(start(&fleet, "pb"));
         let second = agent.reattach().await;
         assert_eq!(second.planner_id, "pb");
         assert!(second.epoch > first.epoch);
@@ -1218,7 +1174,7 @@ fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners(
             .find(|id| matches!(id, SegmentId::Term { token, .. } if *token == first.epoch))
             .map(|id| root.join(id.name()))
             .expect("pa's segment");
-        let pb_segment = ebmpc_e2e::newest_replay_segment(&data, run);
+        let pb_segment = ebmpc_e2e::newest_replay_segment(data, run);
 
         // The disk fills up. Everything of pb's as it is now:
         disk.fill(&data.join("filler"));
@@ -1228,7 +1184,7 @@ fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners(
 
         // pa, stale, writes on: more than its segment's last page holds, so the append
         // fails part-way (a full disk's partial write, left where it lands).
-        let frames: Vec<u8> = framed(dir.path(), &stale_records(first.epoch)).repeat(40);
+        let frames: Vec<u8> = framed(fleet.dir.path(), &stale_records(first.epoch)).repeat(40);
         let appended = append_as_stale_owner(&pa_segment, &frames);
         assert!(appended.is_err(), "the disk is full: {appended:?}");
         // Its trainer's checkpoint, many versions ahead: refused.
@@ -1314,9 +1270,9 @@ fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners(
         version: saved_version + 100,
     };
     assert!(!root.join(stale_save.file_name()).exists());
-    let mut pc = start(dir.path(), &data, "pc", &endpoint, &etcd.endpoint);
+    let mut pc = start(&fleet, "pc");
     rt.block_on(async {
-        let (mut agent, third) = Agent::new(&endpoint, run, 1000, 8).await;
+        let (mut agent, third) = Agent::new(endpoint, run, 1000, 8).await;
         assert_eq!(third.planner_id, "pc");
         assert!(third.epoch > new_token);
         let report = status(&agent.client.session, "pc").await.unwrap();
@@ -1335,5 +1291,5 @@ fn a_stale_owners_failed_writes_on_a_full_disk_delete_nothing_of_the_new_owners(
             .await;
     });
     pc.terminate(Duration::from_secs(20)).unwrap();
-    check_nothing_stale_reached(&ledger, &data, run, 6);
+    check_nothing_stale_reached(&ledger, data, run, 6);
 }

@@ -11,14 +11,13 @@
 //! agent of each run says it applied a clipped action (a safety layer): the replay holds the
 //! applied actions for it and the planned ones for the other agent, and says which.
 
-use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, runtime, status};
+use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
-use ebmpc_e2e::etcd::Etcd;
-use ebmpc_e2e::{Guarded, TempDir, free_endpoint, router, serve_data, status_cli};
+use ebmpc_e2e::fleet::Fleet;
+use ebmpc_e2e::{Guarded, status_cli};
 use planner_service::replay::{ActionOrigin, Record, ReplayBuffer};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::collections::{BTreeMap, HashSet};
-use std::path::Path;
 use std::time::{Duration, Instant};
 
 const PLANNERS: [&str; 3] = ["pa", "pb", "pc"];
@@ -40,8 +39,9 @@ fn config(id: &str, router: &str, etcd: &str) -> String {
         .toml()
 }
 
-fn start(dir: &Path, data: &Path, id: &str, router: &str, etcd: &str) -> Guarded {
-    serve_data(&dir.join(id), data, &config(id, router, etcd), None).expect("planner serves")
+/// Starts fleet planner `id`, connected to the fleet's router and etcd.
+fn start(fleet: &Fleet, id: &str) -> Guarded {
+    fleet.planner(id, &config(id, &fleet.endpoint, &fleet.etcd.endpoint))
 }
 
 fn spec() -> RunSpec {
@@ -137,22 +137,16 @@ async fn owners(session: &zenoh::Session, planners: &[&str]) -> BTreeMap<String,
 
 #[test]
 fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
-    let dir = TempDir::new("fleet-own");
-    let data = dir.path().join("shared-data");
-    let etcd = Etcd::start(dir.path()).expect("etcd starts");
-    let endpoint = free_endpoint();
-    let rt = runtime();
-    let _router = rt.block_on(router(&endpoint)).expect("router starts");
-    let mut planners: BTreeMap<&str, Guarded> = PLANNERS
-        .iter()
-        .map(|id| (*id, start(dir.path(), &data, id, &endpoint, &etcd.endpoint)))
-        .collect();
+    let fleet = Fleet::start("fleet-own");
+    let (data, endpoint, rt) = (&fleet.data, &fleet.endpoint, &fleet.rt);
+    let mut planners: BTreeMap<&str, Guarded> =
+        PLANNERS.iter().map(|id| (*id, start(&fleet, id))).collect();
 
     rt.block_on(async {
         // Every planner is visible to every other before agents come (else the first attach
         // could be placed on a planner that has not yet seen the others: legal, but the test
         // wants placement by the full view).
-        let session = open_session(&endpoint).await.unwrap();
+        let session = open_session(endpoint).await.unwrap();
         let started = Instant::now();
         loop {
             let mut complete = true;
@@ -172,7 +166,7 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
 
         // `status` through the router answers with all three, every time.
         for attempt in 0..4 {
-            let (ok, table, err) = status_cli(&endpoint, &[]).unwrap();
+            let (ok, table, err) = status_cli(endpoint, &[]).unwrap();
             assert!(ok.success(), "attempt {attempt}: {err}");
             for id in PLANNERS {
                 assert!(
@@ -189,7 +183,7 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         for r in 0..RUNS {
             let run = format!("run-{r}");
             for (i, name) in ["a", "b"].into_iter().enumerate() {
-                let client = Client::connect(&endpoint, &run, name).await.unwrap();
+                let client = Client::connect(endpoint, &run, name).await.unwrap();
                 let accepted = client.attach(&spec()).await.unwrap();
                 let token = *token_of.entry(run.clone()).or_insert(accepted.epoch);
                 assert_eq!(accepted.epoch, token, "{run}: one token per owner");
@@ -310,10 +304,7 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
         assert_eq!(new_owner.len(), moved.len());
 
         // The killed planner restarts and takes nothing back.
-        planners.insert(
-            victim,
-            start(dir.path(), &data, victim, &endpoint, &etcd.endpoint),
-        );
+        planners.insert(victim, start(&fleet, victim));
         tokio::time::sleep(Duration::from_secs(2)).await;
         let listed = owners(&session, &PLANNERS).await;
         for (run, planner) in &owner_of {
