@@ -88,9 +88,25 @@ pub struct Measurement {
     pub timings: Vec<(TrainPath, f64)>,
 }
 
+/// How much faster than the f32 kernels the tiles must be to be chosen for training: within
+/// this margin the two are a tie that timing noise decides, and a learning run's numerics
+/// (bf16-rounded factors or exact f32 products) would then depend on the machine's load at
+/// start; a tie goes to the exact products.
+pub const TILE_MARGIN: f64 = 0.15;
+
 impl Measurement {
+    /// The path to train with: the fastest, except that the tiles must beat the f32 kernels
+    /// by [`TILE_MARGIN`].
     pub fn fastest(&self) -> TrainPath {
-        self.timings[0].0
+        let time = |path| self.timings.iter().find(|(p, _)| *p == path).map(|t| t.1);
+        match (self.timings[0].0, time(TrainPath::F32)) {
+            (TrainPath::AmxBf16, Some(f32_time))
+                if self.timings[0].1 > f32_time * (1.0 - TILE_MARGIN) =>
+            {
+                TrainPath::F32
+            }
+            (fastest, _) => fastest,
+        }
     }
 }
 
@@ -276,6 +292,25 @@ pub(crate) mod tests {
             .into_iter()
             .flat_map(|a| paths.iter().map(move |&p| (a, p)))
             .collect()
+    }
+
+    #[test]
+    fn the_tiles_train_only_when_clearly_faster_than_f32() {
+        let m = |amx: f64, f32_time: f64| {
+            let mut timings = vec![(TrainPath::AmxBf16, amx), (TrainPath::F32, f32_time)];
+            timings.sort_by(|a, b| a.1.total_cmp(&b.1));
+            Measurement {
+                sizes: vec![5, 200, 200, 8],
+                batch: 32,
+                timings,
+            }
+        };
+        // 56 against 57 µs (a measured tie): the exact products.
+        assert_eq!(m(56e-6, 57e-6).fastest(), TrainPath::F32);
+        assert_eq!(m(60e-6, 57e-6).fastest(), TrainPath::F32);
+        // Three times faster: the tiles.
+        assert_eq!(m(20e-6, 60e-6).fastest(), TrainPath::AmxBf16);
+        assert_eq!(m(80e-6, 100e-6).fastest(), TrainPath::AmxBf16);
     }
 
     #[test]
