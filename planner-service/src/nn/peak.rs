@@ -324,22 +324,23 @@ mod x86 {
         (iterations * CHAINS as u64 * 8 * 2) as f64
     }
 
-    /// `iterations` rounds of four `TDPBF16PS` on accumulator tiles 0–3 from operand tiles
-    /// 4, 5 (`A`) and 6, 7 (`B`), every tile full (16 × 64 bytes); returns the flops.
+    /// 64-byte aligned 1 KiB, a tile's worth.
+    #[repr(align(64))]
+    struct Operand([u32; 256]);
+
+    /// Configures all eight tiles full (16 × 64 bytes), zeroes the accumulators 0–3 and loads
+    /// the operand tiles 4–7 with bf16 1.0 pairs.
     ///
     /// # Safety
     /// AMX-BF16 tiles must be available (`amx::available`).
-    pub(super) unsafe fn amx_tiles(iterations: u64) -> f64 {
+    unsafe fn start_tiles() {
         use crate::nn::amx::{TileConfig, tile};
         let mut config = TileConfig::new();
         for t in 0..8 {
             config = config.with_tile(t, 16, 64);
         }
-        #[repr(align(64))]
-        struct Operand([u32; 256]);
-        let ones = Operand([0x3f80_3f80; 256]); // bf16 1.0 pairs
-        let mut out = Operand([0; 256]);
-        // SAFETY: tiles available (the caller's contract); loads and stores cover 1 KiB arrays.
+        let ones = Operand([0x3f80_3f80; 256]);
+        // SAFETY: tiles available (the caller's contract); each load covers the 1 KiB array.
         unsafe {
             tile::load_config(&config);
             tile::zero::<0>();
@@ -350,6 +351,20 @@ mod x86 {
             tile::load::<5>(ones.0.as_ptr().cast(), 64);
             tile::load::<6>(ones.0.as_ptr().cast(), 64);
             tile::load::<7>(ones.0.as_ptr().cast(), 64);
+        }
+    }
+
+    /// `iterations` rounds of four `TDPBF16PS` on accumulator tiles 0–3 from operand tiles
+    /// 4, 5 (`A`) and 6, 7 (`B`), every tile full (16 × 64 bytes); returns the flops.
+    ///
+    /// # Safety
+    /// AMX-BF16 tiles must be available (`amx::available`).
+    pub(super) unsafe fn amx_tiles(iterations: u64) -> f64 {
+        use crate::nn::amx::tile;
+        let mut out = Operand([0; 256]);
+        // SAFETY: tiles available (the caller's contract); the store covers a 1 KiB array.
+        unsafe {
+            start_tiles();
             for _ in 0..black_box(iterations) {
                 tile::dpbf16ps::<0, 4, 6>();
                 tile::dpbf16ps::<1, 4, 7>();
@@ -370,14 +385,7 @@ mod x86 {
     /// AMX-BF16 tiles and AVX-512 F must be available.
     #[target_feature(enable = "avx512f")]
     pub(super) unsafe fn tiles_beside_fmas<const TILES: bool, const DEPTH: usize>(rounds: u64) {
-        use crate::nn::amx::{TileConfig, tile};
-        let mut config = TileConfig::new();
-        for t in 0..8 {
-            config = config.with_tile(t, 16, 64);
-        }
-        #[repr(align(64))]
-        struct Operand([u32; 256]);
-        let ones = Operand([0x3f80_3f80; 256]);
+        use crate::nn::amx::tile;
         let a = _mm512_set1_ps(black_box(1.000_000_1));
         let b = _mm512_set1_ps(black_box(0.999_999_9));
         let mut acc: [__m512; 8] = std::array::from_fn(|i| _mm512_set1_ps(0.001 * i as f32));
@@ -388,17 +396,9 @@ mod x86 {
                 }
             }
         };
-        // SAFETY: the caller's contract; loads cover a 1 KiB array.
+        // SAFETY: the caller's contract.
         unsafe {
-            tile::load_config(&config);
-            tile::zero::<0>();
-            tile::zero::<1>();
-            tile::zero::<2>();
-            tile::zero::<3>();
-            tile::load::<4>(ones.0.as_ptr().cast(), 64);
-            tile::load::<5>(ones.0.as_ptr().cast(), 64);
-            tile::load::<6>(ones.0.as_ptr().cast(), 64);
-            tile::load::<7>(ones.0.as_ptr().cast(), 64);
+            start_tiles();
             for _ in 0..black_box(rounds) {
                 if TILES {
                     tile::dpbf16ps::<0, 4, 6>();
