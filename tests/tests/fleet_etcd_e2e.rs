@@ -19,11 +19,11 @@
 //! - on a shared disk that fills up (a small tmpfs), a stale owner's failed writes delete
 //!   nothing of the new owner's: its segment, checkpoints and acknowledged transitions.
 
+use ebmpc_e2e::Guarded;
 use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::fleet::Fleet;
 use ebmpc_e2e::proxy::Proxy;
-use ebmpc_e2e::{Guarded, serve_data};
 use planner_service::config::Preset;
 use planner_service::models::Models;
 use planner_service::persist::{CheckpointId, PersistError, RunDir};
@@ -906,8 +906,7 @@ fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay()
             .unwrap()
             .wait(Duration::from_secs(10))
             .unwrap();
-        let restarted = serve_data(&fleet.dir.path().join(id), data, &bounded(id), None);
-        planners.insert(id, restarted.expect("planner serves"));
+        planners.insert(id, fleet.planner(id, &bounded(id)));
     }
     // The last owner plays on: at least two whole episodes, the newest of the run.
     rt.block_on(async {
