@@ -6,7 +6,8 @@
 //! AMX this project also runs on it does *half* (85 against 162 GFLOP/s per core), while the
 //! AMX tile unit does ~2.7–3.0 TFLOP/s. Nothing here assumes any of that: [`choose`] times a
 //! forward pass of the network through each available path for a fraction of a second and
-//! keeps the fastest ([`Precision::Auto`], the default). An explicit `f32` runs the widest f32
+//! keeps the fastest ([`Precision::Auto`], the default), unless a path of more exact numbers
+//! comes within [`CLEAR_WIN`] of it (see [`Measurement::fastest`]). An explicit `f32` runs the widest f32
 //! vector level unmeasured (exact f32 planning is a choice of numbers, not of speed); an
 //! explicit `bf16` runs the faster, measured, of the bf16 paths.
 //!
@@ -136,10 +137,34 @@ pub struct Measurement {
     pub timings: Vec<Timing>,
 }
 
+/// How much faster than a path of more exact numbers a path must be to be chosen over it.
+/// Within this margin two paths are a tie that timing noise decides, and a run's numbers
+/// (bf16-rounded operands or exact f32 products; or only another order of summation) would then
+/// depend on the machine's load at start; a tie goes to the path [`PREFERENCE`] lists first.
+/// Training's choice ([`train_path`](super::train_path)) follows the same rule.
+pub const CLEAR_WIN: f64 = 0.15;
+
+/// The order in which tied paths are preferred: exact f32 products before bf16 operands, and
+/// within each number format the wider vectors first.
+pub const PREFERENCE: [KernelPath; 5] = [
+    KernelPath::Avx512F32,
+    KernelPath::Avx2F32,
+    KernelPath::ScalarF32,
+    KernelPath::AmxBf16,
+    KernelPath::Avx512Bf16,
+];
+
 impl Measurement {
-    /// The fastest path measured.
+    /// The path to run: the first in [`PREFERENCE`] that is no more than [`CLEAR_WIN`] slower
+    /// than the fastest measured. Where one path is clearly fastest (AMX tiles 3–4× the f32
+    /// kernels, `VDPBF16PS` twice them on Zen 5) that is the fastest.
     pub fn fastest(&self) -> KernelPath {
-        self.timings[0].path
+        let best = self.timings[0].seconds;
+        PREFERENCE
+            .iter()
+            .filter_map(|&p| self.timings.iter().find(|t| t.path == p))
+            .find(|t| t.seconds * (1.0 - CLEAR_WIN) <= best)
+            .map_or(self.timings[0].path, |t| t.path)
     }
 }
 
@@ -278,6 +303,42 @@ mod tests {
         assert_eq!(auto, cached.fastest());
         // The cache answers the same shape with the same measurement.
         assert_eq!(measured(&sizes, Activation::Swish, &all), cached);
+    }
+
+    #[test]
+    fn a_path_is_chosen_over_more_exact_ones_only_when_clearly_faster() {
+        let m = |times: &[(KernelPath, f64)]| {
+            let mut timings: Vec<Timing> = times
+                .iter()
+                .map(|&(path, seconds)| Timing { path, seconds })
+                .collect();
+            timings.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
+            Measurement {
+                sizes: vec![6, 200, 200, 8],
+                timings,
+            }
+        };
+        use KernelPath::*;
+        // The tiles 3.6 times faster (as measured on a Xeon with AMX): the tiles.
+        let xeon = [(AmxBf16, 77e-6), (Avx512F32, 280e-6), (Avx512Bf16, 409e-6)];
+        assert_eq!(m(&xeon).fastest(), AmxBf16);
+        // A tie of the tiles and the f32 kernels: the exact products, whichever timed faster.
+        assert_eq!(
+            m(&[(AmxBf16, 56e-6), (Avx512F32, 57e-6)]).fastest(),
+            Avx512F32
+        );
+        assert_eq!(
+            m(&[(AmxBf16, 58e-6), (Avx512F32, 57e-6)]).fastest(),
+            Avx512F32
+        );
+        // Two bf16 paths within the margin, both clearly ahead of f32: the first preferred.
+        let close = [(Avx512Bf16, 50e-6), (AmxBf16, 55e-6), (Avx512F32, 100e-6)];
+        assert_eq!(m(&close).fastest(), AmxBf16);
+        // Only the first wins clearly: it runs.
+        let clear = [(Avx512Bf16, 50e-6), (AmxBf16, 80e-6), (Avx512F32, 100e-6)];
+        assert_eq!(m(&clear).fastest(), Avx512Bf16);
+        // A single measured path is the one chosen.
+        assert_eq!(m(&[(Avx2F32, 1e-6)]).fastest(), Avx2F32);
     }
 
     #[test]

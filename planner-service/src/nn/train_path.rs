@@ -12,6 +12,7 @@
 //! and batch through each path and keeps the faster; the answer is cached per shape for the
 //! life of the process, so an ensemble's members and every retraining reuse it.
 
+use super::kernel_path::CLEAR_WIN;
 #[cfg(target_arch = "x86_64")]
 use super::matmul::tiles::{
     self, PackedLeft, TileScratch, tile_matmul_packed_par, tile_matmul_par,
@@ -88,20 +89,16 @@ pub struct Measurement {
     pub timings: Vec<(TrainPath, f64)>,
 }
 
-/// How much faster than the f32 kernels the tiles must be to be chosen for training: within
-/// this margin the two are a tie that timing noise decides, and a learning run's numerics
-/// (bf16-rounded factors or exact f32 products) would then depend on the machine's load at
-/// start; a tie goes to the exact products.
-pub const TILE_MARGIN: f64 = 0.15;
-
 impl Measurement {
     /// The path to train with: the fastest, except that the tiles must beat the f32 kernels
-    /// by [`TILE_MARGIN`].
+    /// by [`CLEAR_WIN`]: within it the two are a tie that timing noise decides, and a learning
+    /// run's numerics (bf16-rounded factors or exact f32 products) would then depend on the
+    /// machine's load at start; a tie goes to the exact products.
     pub fn fastest(&self) -> TrainPath {
         let time = |path| self.timings.iter().find(|(p, _)| *p == path).map(|t| t.1);
         match (self.timings[0].0, time(TrainPath::F32)) {
             (TrainPath::AmxBf16, Some(f32_time))
-                if self.timings[0].1 > f32_time * (1.0 - TILE_MARGIN) =>
+                if self.timings[0].1 > f32_time * (1.0 - CLEAR_WIN) =>
             {
                 TrainPath::F32
             }
