@@ -278,7 +278,8 @@ impl ProbabilisticModel {
         self.task
     }
 
-    /// Pins the training path of its fits (`None`: measured, the default).
+    /// Pins the path of the products of its fits and of planning by gradient through it
+    /// (`None`: measured, the default; see [`Tape::for_planning`]).
     pub fn pin_train_path(&mut self, path: Option<TrainPath>) {
         self.train_path = path;
     }
@@ -457,7 +458,10 @@ impl ProbabilisticModel {
     pub fn mean_tape(&self, max_rows: usize) -> MeanTape {
         let (f, o) = (self.task.state_feature_dim, self.task.obs_dim);
         MeanTape {
-            tape: Tape::new(&self.mlp, max_rows),
+            tape: match self.train_path {
+                Some(path) => Tape::with_path(&self.mlp, max_rows, path),
+                None => Tape::for_planning(&self.mlp, max_rows),
+            },
             features: vec![0.0; f],
             target: vec![0.0; o],
             d_features: vec![0.0; f],

@@ -351,7 +351,7 @@ impl Regularizer {
         let (forward, tape) = match self {
             Regularizer::None => (None, None),
             Regularizer::Dae(m) => (Some(m.scratch(max_rows)), None),
-            Regularizer::Deen(m) => (None, Some(Tape::new(m.mlp(), max_rows))),
+            Regularizer::Deen(m) => (None, Some(Tape::for_planning(m.mlp(), max_rows))),
         };
         EnergyGradScratch {
             capacity: max_rows,

@@ -11,6 +11,7 @@
 //! bias sums then cost one more row of the kernel instead of a reduction call per output
 //! feature (on cartpole's 200-wide layers those calls took about 2.5 % of a dynamics step).
 
+use super::Precision;
 use super::aligned::{AlignedBuf, round_up};
 use super::matmul::{Init, MatMut, MatRef};
 use super::mlp::{Mlp, spans};
@@ -39,9 +40,22 @@ pub struct Tape {
 
 impl Tape {
     /// Buffers for `mlp` on batches of up to `capacity` samples, multiplying in f32 (exact
-    /// f32 gradients: what planning by gradient uses).
+    /// f32 gradients).
     pub fn new(mlp: &Mlp, capacity: usize) -> Self {
         Self::with_path(mlp, capacity, TrainPath::F32)
+    }
+
+    /// What planning by gradient differentiates a network through: its products in the number
+    /// format its inference runs in. Exact f32 where inference is f32 (an explicit `f32`
+    /// precision, or a CPU on which no bf16 path won); else the training path measured
+    /// fastest for this network and batch (the AMX tiles where they win clearly: bf16 factors,
+    /// f32 sums, as CEM's scoring rounds them), so that a gradient-planned run spends no more
+    /// time per product than a trainer does.
+    pub fn for_planning(mlp: &Mlp, capacity: usize) -> Self {
+        match mlp.inference_precision() {
+            Precision::F32 | Precision::Auto => Self::new(mlp, capacity),
+            Precision::Bf16 => Self::for_training(mlp, capacity),
+        }
     }
 
     /// [`Tape::new`] on the training path measured fastest for this network and batch (see

@@ -39,8 +39,10 @@
 //!
 //! **Deviations and choices.** Neither the paper nor this project's sources give Boney et
 //! al.'s Adam settings; the `adam+dae` preset's (see `config/preset.rs`) are documented
-//! choices. Gradients are computed in f32 through the training pass of the networks (bf16
-//! inference is for CEM's scoring only). All buffers are allocated when the planner is built
+//! choices. Gradients are computed through the training pass of the networks, whose products
+//! run in the number format of the run's inference ([`crate::nn::Tape::for_planning`]): exact f32
+//! where inference is f32, the training path measured fastest (the AMX tiles where they win
+//! clearly, which at the preset's 16 sequences they do not) where it is bf16. All buffers are allocated when the planner is built
 //! and on the first call with a model (again only for a model of another shape);
 //! [`AdamPlanner::optimize`] allocates nothing.
 
@@ -591,6 +593,7 @@ mod tests {
     use crate::data::Transitions;
     use crate::dynamics::DynamicsConfig;
     use crate::energy::{EnergyConfig, RegularizerKind};
+    use crate::nn::TrainPath;
     use crate::plan::settings::{AdamConfig, MAX_LEARNING_RATE};
     use crate::plan::{IcemConfig, Optimizer};
     use proto::Builtin;
@@ -740,9 +743,17 @@ mod tests {
 
     /// Half-cheetah's reward is the predicted forward velocity minus `0.1‖a‖²`. A model that
     /// has learned `v' = w·a` makes the best action of every step `a* = w / 0.2`, inside the
-    /// bounds: Adam must find it, at every step of the horizon, from the neutral start.
+    /// bounds: Adam must find it, at every step of the horizon, from the neutral start, with
+    /// the gradients' products on every path this CPU has (exact f32, and the AMX tiles'
+    /// bf16 factors where a run's bf16 inference makes them the planning path).
     #[test]
     fn finds_the_known_optimum_through_a_learned_model() {
+        for path in TrainPath::available() {
+            finds_the_known_optimum_on(path);
+        }
+    }
+
+    fn finds_the_known_optimum_on(path: TrainPath) {
         let task = Builtin::HalfCheetah;
         let spec = task.task();
         let w = [0.1f32, -0.05, 0.02, 0.0, 0.08, -0.1];
@@ -772,6 +783,7 @@ mod tests {
         // (The other coordinates are unpredictable noise: the report's mean error is not the
         // velocity's; the optimum below is what shows the model learned `w`.)
         dynamics.fit(&data, 30, &mut rng);
+        dynamics.member_mut(0).pin_train_path(Some(path));
         let mut planner = AdamPlanner::new(spec, config(5, 4, 60, 1), 0.0, 1).unwrap();
         let mut clock = IterationClock::default();
         let outcome = planner.optimize(
@@ -787,7 +799,7 @@ mod tests {
             for (d, (a, want)) in step.iter().zip(&optimum).enumerate() {
                 assert!(
                     (a - want).abs() < 0.1,
-                    "step {t} action {d}: {a} vs {want}: {step:?}"
+                    "{path}: step {t} action {d}: {a} vs {want}: {step:?}"
                 );
             }
         }
@@ -795,7 +807,7 @@ mod tests {
         let best = 5.0 * w.iter().map(|w| w * w / 0.4).sum::<f32>();
         assert!(
             (outcome.elite_return - best).abs() < 0.05,
-            "{outcome:?} vs {best}"
+            "{path}: {outcome:?} vs {best}"
         );
         // The warm start is the plan shifted by one step with the neutral action appended.
         planner.shift();

@@ -309,7 +309,7 @@ impl RewardModel {
     pub fn tape(&self, max_rows: usize) -> RewardTape {
         let f = self.task.state_feature_dim;
         RewardTape {
-            tape: Tape::new(&self.mlp, max_rows),
+            tape: Tape::for_planning(&self.mlp, max_rows),
             features: vec![0.0; f],
             d_features: vec![0.0; f],
         }
