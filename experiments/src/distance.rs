@@ -8,7 +8,7 @@
 //! works while the experiment runs).
 
 use planner_service::persist::admin;
-use planner_service::replay::Record;
+use planner_service::replay::{Record, TransitionRecord};
 use proto::Builtin;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -48,13 +48,13 @@ pub fn episode_distances(
 ) -> Vec<EpisodeDistance> {
     let mut episodes: BTreeMap<(String, u32), EpisodeDistance> = BTreeMap::new();
     for record in records {
-        let Record::Transition {
+        let Record::Transition(TransitionRecord {
             agent,
             episode,
             next_obs,
             reward,
             ..
-        } = record
+        }) = record
         else {
             continue;
         };
@@ -130,12 +130,12 @@ pub fn markdown(rows: &[EpisodeDistance], last: usize, min_steps: u32) -> String
 #[cfg(test)]
 mod tests {
     use super::*;
-    use planner_service::replay::ActionOrigin;
+    use planner_service::replay::{ActionOrigin, HeaderRecord};
 
     fn step(agent: &str, episode: u32, velocity: f32, reward: f32) -> Record {
         let mut next_obs = vec![0.0; 27];
         next_obs[13] = velocity;
-        Record::Transition {
+        Record::Transition(TransitionRecord {
             epoch: 1,
             agent: agent.into(),
             episode,
@@ -145,17 +145,17 @@ mod tests {
             origin: ActionOrigin::Planned,
             next_obs,
             reward,
-        }
+        })
     }
 
     #[test]
     fn distance_is_the_forward_velocity_integrated_over_each_episode() {
         let records = vec![
-            Record::Header {
+            Record::Header(HeaderRecord {
                 task: "ant".into(),
                 obs_dim: 27,
                 act_dim: 8,
-            },
+            }),
             step("a", 0, 1.0, 1.0),
             step("a", 0, 3.0, 1.0),
             step("b", 0, -2.0, 0.5),

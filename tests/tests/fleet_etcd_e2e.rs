@@ -28,7 +28,9 @@ use planner_service::config::Preset;
 use planner_service::models::Models;
 use planner_service::persist::{CheckpointId, PersistError, RunDir};
 use planner_service::replay::segments::SegmentId;
-use planner_service::replay::{ActionOrigin, LogFile, Record, ReplayBuffer, ReplayLog};
+use planner_service::replay::{
+    ActionOrigin, EpisodeEndRecord, LogFile, Record, ReplayBuffer, ReplayLog, TransitionRecord,
+};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::collections::{BTreeMap, HashSet};
 use std::io::Write;
@@ -597,26 +599,28 @@ fn forged_planner_and_lease_tokens_move_no_run() {
 /// an observation no agent sends, appended to its own (old) replay segment.
 fn stale_records(token: u64) -> Vec<Record> {
     let mut records: Vec<Record> = (0..3)
-        .map(|step| Record::Transition {
-            epoch: token,
-            agent: "a".into(),
-            episode: STALE_EPISODE,
-            step,
-            obs: vec![STALE_MARK; 4],
-            act: vec![0.0],
-            origin: ActionOrigin::Planned,
-            next_obs: vec![STALE_MARK; 4],
-            reward: 1.0,
+        .map(|step| {
+            Record::Transition(TransitionRecord {
+                epoch: token,
+                agent: "a".into(),
+                episode: STALE_EPISODE,
+                step,
+                obs: vec![STALE_MARK; 4],
+                act: vec![0.0],
+                origin: ActionOrigin::Planned,
+                next_obs: vec![STALE_MARK; 4],
+                reward: 1.0,
+            })
         })
         .collect();
-    records.push(Record::EpisodeEnd {
+    records.push(Record::EpisodeEnd(EpisodeEndRecord {
         epoch: token,
         agent: "a".into(),
         episode: STALE_EPISODE,
         steps: 3,
         episode_return: 3.0,
         end: EpisodeEnd::TimeLimit,
-    });
+    }));
     records
 }
 
@@ -654,7 +658,7 @@ fn write_as_stale_owner(scratch: &Path, segment: &Path, token: u64) {
     assert!(
         read.records
             .iter()
-            .any(|r| matches!(r, Record::Transition { obs, .. } if obs[0] == STALE_MARK)),
+            .any(|r| matches!(r, Record::Transition(TransitionRecord { obs, .. }) if obs[0] == STALE_MARK)),
         "the stale records are in the old segment"
     );
 }

@@ -15,7 +15,7 @@ use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::fleet::Fleet;
 use ebmpc_e2e::{Guarded, status_cli};
-use planner_service::replay::{ActionOrigin, Record, ReplayBuffer};
+use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, TransitionRecord};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
 use std::collections::{BTreeMap, HashSet};
 use std::time::{Duration, Instant};
@@ -366,9 +366,9 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
                 .recovered;
             let mut origins = BTreeMap::new();
             for record in &recovered.records {
-                if let Record::Transition {
+                if let Record::Transition(TransitionRecord {
                     agent, act, origin, ..
-                } = record
+                }) = record
                 {
                     *origins.entry((agent.clone(), *origin)).or_insert(0) += 1;
                     if agent == "b" {

@@ -415,14 +415,14 @@ mod tests {
 
     #[test]
     fn a_replay_is_read_beside_a_serving_daemon_without_changing_its_file() {
-        use crate::replay::{ActionOrigin, Record, ReplayLog};
+        use crate::replay::{ActionOrigin, HeaderRecord, Record, ReplayLog, TransitionRecord};
         let data = tempfile::tempdir().unwrap();
         store_run(data.path(), "r");
         let path = RunDir::new(data.path(), "r")
             .root()
             .join(crate::replay::segments::LEGACY);
         fs::remove_file(&path).unwrap();
-        let transition = Record::Transition {
+        let transition = Record::Transition(TransitionRecord {
             epoch: 1,
             agent: "a".into(),
             episode: 0,
@@ -432,14 +432,14 @@ mod tests {
             origin: ActionOrigin::Planned,
             next_obs: vec![0.25; 4],
             reward: 2.0,
-        };
+        });
         let (mut log, _) = ReplayLog::open(&path).unwrap();
         log.append(&[
-            Record::Header {
+            Record::Header(HeaderRecord {
                 task: "cartpole".into(),
                 obs_dim: 4,
                 act_dim: 1,
-            },
+            }),
             transition.clone(),
         ])
         .unwrap();

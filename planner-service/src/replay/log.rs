@@ -71,47 +71,68 @@ const RECORD_HEADER_LEN: usize = SYNC.len() + 8;
 /// planner takes a run over it writes a [`Record::Claim`] with a higher epoch, and from then on
 /// entries of older epochs (written by a planner that lost the run and did not know yet) are
 /// stale and skipped when the log is read.
+///
+/// Each variant holds a struct that is also what the file stores for it (see [`OnDisk`]), so
+/// the fields of an entry are declared once.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Record {
-    /// First record of every file: what the buffer holds (the task by name).
-    Header {
-        task: String,
-        obs_dim: u32,
-        act_dim: u32,
-    },
-    /// Planner `planner` took the run over at `epoch`.
-    Claim { epoch: u64, planner: String },
-    /// The second record of every segment file (see `super::segments`): the ownership term it
-    /// belongs to (`epoch`, the fencing token, and the `planner`), and the earlier segments
-    /// the run's data continues from, each up to the length this term found it at. Never
-    /// part of the records a buffer holds.
-    Term {
-        epoch: u64,
-        planner: String,
-        reads: Vec<SegmentRead>,
-    },
-    /// One transition `(s, a, s')` with its reward, from `agent`'s `episode` at `step`; `act`
-    /// is the action the agent applied if it said so, else the one planned (`origin` says which).
-    Transition {
-        epoch: u64,
-        agent: String,
-        episode: u32,
-        step: u32,
-        obs: Vec<f32>,
-        act: Vec<f32>,
-        origin: ActionOrigin,
-        next_obs: Vec<f32>,
-        reward: f32,
-    },
-    /// `agent` finished `episode`.
-    EpisodeEnd {
-        epoch: u64,
-        agent: String,
-        episode: u32,
-        steps: u32,
-        episode_return: f32,
-        end: proto::EpisodeEnd,
-    },
+    Header(HeaderRecord),
+    Claim(ClaimRecord),
+    Term(TermRecord),
+    Transition(TransitionRecord),
+    EpisodeEnd(EpisodeEndRecord),
+}
+
+/// First record of every file: what the buffer holds (the task by name).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HeaderRecord {
+    pub task: String,
+    pub obs_dim: u32,
+    pub act_dim: u32,
+}
+
+/// Planner `planner` took the run over at `epoch`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClaimRecord {
+    pub epoch: u64,
+    pub planner: String,
+}
+
+/// The second record of every segment file (see `super::segments`): the ownership term it
+/// belongs to (`epoch`, the fencing token, and the `planner`), and the earlier segments the
+/// run's data continues from, each up to the length this term found it at. Never part of the
+/// records a buffer holds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TermRecord {
+    pub epoch: u64,
+    pub planner: String,
+    pub reads: Vec<SegmentRead>,
+}
+
+/// One transition `(s, a, s')` with its reward, from `agent`'s `episode` at `step`; `act` is
+/// the action the agent applied if it said so, else the one planned (`origin` says which).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TransitionRecord {
+    pub epoch: u64,
+    pub agent: String,
+    pub episode: u32,
+    pub step: u32,
+    pub obs: Vec<f32>,
+    pub act: Vec<f32>,
+    pub origin: ActionOrigin,
+    pub next_obs: Vec<f32>,
+    pub reward: f32,
+}
+
+/// `agent` finished `episode`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeEndRecord {
+    pub epoch: u64,
+    pub agent: String,
+    pub episode: u32,
+    pub steps: u32,
+    pub episode_return: f32,
+    pub end: proto::EpisodeEnd,
 }
 
 impl Record {
@@ -119,16 +140,18 @@ impl Record {
     /// are never stale).
     pub fn epoch(&self) -> Option<u64> {
         match self {
-            Record::Header { .. } | Record::Claim { .. } | Record::Term { .. } => None,
-            Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => Some(*epoch),
+            Record::Header(_) | Record::Claim(_) | Record::Term(_) => None,
+            Record::Transition(TransitionRecord { epoch, .. })
+            | Record::EpisodeEnd(EpisodeEndRecord { epoch, .. }) => Some(*epoch),
         }
     }
 
     /// Puts the entry under ownership epoch `to` (the header and claims carry none).
     pub fn set_epoch(&mut self, to: u64) {
         match self {
-            Record::Header { .. } | Record::Claim { .. } | Record::Term { .. } => {}
-            Record::Transition { epoch, .. } | Record::EpisodeEnd { epoch, .. } => *epoch = to,
+            Record::Header(_) | Record::Claim(_) | Record::Term(_) => {}
+            Record::Transition(TransitionRecord { epoch, .. })
+            | Record::EpisodeEnd(EpisodeEndRecord { epoch, .. }) => *epoch = to,
         }
     }
 }
@@ -153,7 +176,9 @@ pub enum ActionOrigin {
 }
 
 /// The records as postcard writes them: the variant index is the on-disk tag, so variants are
-/// only ever added at the end. Logs written before ownership epochs hold `TransitionV1` and
+/// only ever added at the end. A newtype variant of a struct is encoded exactly as a struct
+/// variant with the same fields (tag, then the fields in order), so the current variants share
+/// [`Record`]'s structs. Logs written before ownership epochs hold `TransitionV1` and
 /// `EpisodeEndV1`; they are read as epoch 0 with the planned action and never written again.
 /// Logs of formats 1–3 name their task in `HeaderV3` by the index of the closed task enum of
 /// those builds; it is read as that task's name and never written again (`Header` names it).
@@ -180,39 +205,11 @@ enum OnDisk {
         episode_return: f32,
         end: proto::EpisodeEnd,
     },
-    Claim {
-        epoch: u64,
-        planner: String,
-    },
-    Transition {
-        epoch: u64,
-        agent: String,
-        episode: u32,
-        step: u32,
-        obs: Vec<f32>,
-        act: Vec<f32>,
-        origin: ActionOrigin,
-        next_obs: Vec<f32>,
-        reward: f32,
-    },
-    EpisodeEnd {
-        epoch: u64,
-        agent: String,
-        episode: u32,
-        steps: u32,
-        episode_return: f32,
-        end: proto::EpisodeEnd,
-    },
-    Header {
-        task: String,
-        obs_dim: u32,
-        act_dim: u32,
-    },
-    Term {
-        epoch: u64,
-        planner: String,
-        reads: Vec<SegmentRead>,
-    },
+    Claim(ClaimRecord),
+    Transition(TransitionRecord),
+    EpisodeEnd(EpisodeEndRecord),
+    Header(HeaderRecord),
+    Term(TermRecord),
 }
 
 /// How logs of formats 1–3 named their task: postcard's index of the task enum of those
@@ -245,20 +242,11 @@ impl From<OnDisk> for Record {
                 task,
                 obs_dim,
                 act_dim,
-            } => Record::Header {
+            } => Record::Header(HeaderRecord {
                 task: task.name().to_string(),
                 obs_dim,
                 act_dim,
-            },
-            OnDisk::Header {
-                task,
-                obs_dim,
-                act_dim,
-            } => Record::Header {
-                task,
-                obs_dim,
-                act_dim,
-            },
+            }),
             OnDisk::TransitionV1 {
                 agent,
                 episode,
@@ -267,7 +255,7 @@ impl From<OnDisk> for Record {
                 act,
                 next_obs,
                 reward,
-            } => Record::Transition {
+            } => Record::Transition(TransitionRecord {
                 epoch: 0,
                 agent,
                 episode,
@@ -277,67 +265,26 @@ impl From<OnDisk> for Record {
                 origin: ActionOrigin::Planned,
                 next_obs,
                 reward,
-            },
+            }),
             OnDisk::EpisodeEndV1 {
                 agent,
                 episode,
                 steps,
                 episode_return,
                 end,
-            } => Record::EpisodeEnd {
+            } => Record::EpisodeEnd(EpisodeEndRecord {
                 epoch: 0,
                 agent,
                 episode,
                 steps,
                 episode_return,
                 end,
-            },
-            OnDisk::Claim { epoch, planner } => Record::Claim { epoch, planner },
-            OnDisk::Term {
-                epoch,
-                planner,
-                reads,
-            } => Record::Term {
-                epoch,
-                planner,
-                reads,
-            },
-            OnDisk::Transition {
-                epoch,
-                agent,
-                episode,
-                step,
-                obs,
-                act,
-                origin,
-                next_obs,
-                reward,
-            } => Record::Transition {
-                epoch,
-                agent,
-                episode,
-                step,
-                obs,
-                act,
-                origin,
-                next_obs,
-                reward,
-            },
-            OnDisk::EpisodeEnd {
-                epoch,
-                agent,
-                episode,
-                steps,
-                episode_return,
-                end,
-            } => Record::EpisodeEnd {
-                epoch,
-                agent,
-                episode,
-                steps,
-                episode_return,
-                end,
-            },
+            }),
+            OnDisk::Header(header) => Record::Header(header),
+            OnDisk::Claim(claim) => Record::Claim(claim),
+            OnDisk::Term(term) => Record::Term(term),
+            OnDisk::Transition(transition) => Record::Transition(transition),
+            OnDisk::EpisodeEnd(end) => Record::EpisodeEnd(end),
         }
     }
 }
@@ -345,61 +292,11 @@ impl From<OnDisk> for Record {
 impl From<Record> for OnDisk {
     fn from(record: Record) -> Self {
         match record {
-            Record::Header {
-                task,
-                obs_dim,
-                act_dim,
-            } => OnDisk::Header {
-                task,
-                obs_dim,
-                act_dim,
-            },
-            Record::Claim { epoch, planner } => OnDisk::Claim { epoch, planner },
-            Record::Term {
-                epoch,
-                planner,
-                reads,
-            } => OnDisk::Term {
-                epoch,
-                planner,
-                reads,
-            },
-            Record::Transition {
-                epoch,
-                agent,
-                episode,
-                step,
-                obs,
-                act,
-                origin,
-                next_obs,
-                reward,
-            } => OnDisk::Transition {
-                epoch,
-                agent,
-                episode,
-                step,
-                obs,
-                act,
-                origin,
-                next_obs,
-                reward,
-            },
-            Record::EpisodeEnd {
-                epoch,
-                agent,
-                episode,
-                steps,
-                episode_return,
-                end,
-            } => OnDisk::EpisodeEnd {
-                epoch,
-                agent,
-                episode,
-                steps,
-                episode_return,
-                end,
-            },
+            Record::Header(header) => OnDisk::Header(header),
+            Record::Claim(claim) => OnDisk::Claim(claim),
+            Record::Term(term) => OnDisk::Term(term),
+            Record::Transition(transition) => OnDisk::Transition(transition),
+            Record::EpisodeEnd(end) => OnDisk::EpisodeEnd(end),
         }
     }
 }
@@ -1025,7 +922,7 @@ impl Rewrite {
         let mut framed = Vec::new();
         for record in records
             .iter()
-            .filter(|r| !matches!(r, Record::Header { .. } | Record::Term { .. }))
+            .filter(|r| !matches!(r, Record::Header(_) | Record::Term(_)))
             .filter(|r| (self.keep)(r))
         {
             encode_record(&self.path, record, &mut framed)?;
@@ -1243,7 +1140,7 @@ pub(crate) mod tests {
     use std::sync::atomic::{AtomicBool, Ordering};
 
     fn transition(step: u32) -> Record {
-        Record::Transition {
+        Record::Transition(TransitionRecord {
             epoch: 1,
             agent: "a".into(),
             episode: 0,
@@ -1253,7 +1150,7 @@ pub(crate) mod tests {
             origin: ActionOrigin::Planned,
             next_obs: vec![step as f32 + 1.0; 4],
             reward: 0.1,
-        }
+        })
     }
 
     fn temp_path(dir: &tempfile::TempDir) -> PathBuf {
@@ -1343,7 +1240,7 @@ pub(crate) mod tests {
         let mut job = log
             .start_rewrite(
                 plan,
-                |r| !matches!(r, Record::Transition { step, .. } if *step < 3),
+                |r| !matches!(r, Record::Transition(TransitionRecord { step, .. }) if *step < 3),
             )
             .unwrap();
         job.copy().unwrap();
@@ -1507,10 +1404,10 @@ pub(crate) mod tests {
         let (mut owner, rec) = ReplayLog::open(&path).unwrap();
         owner.share();
         assert_eq!(rec.records, vec![transition(0)]);
-        let claim = Record::Claim {
+        let claim = Record::Claim(ClaimRecord {
             epoch: 9,
             planner: "new".into(),
-        };
+        });
         owner
             .append(&[claim.clone(), transition(1), transition(2)])
             .unwrap();
@@ -1590,16 +1487,154 @@ pub(crate) mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = temp_path(&dir);
         std::fs::write(&path, &bytes).unwrap();
-        let header = Record::Header {
+        let header = Record::Header(HeaderRecord {
             task: "halfcheetah".into(),
             obs_dim: 18,
             act_dim: 6,
-        };
+        });
         let rec = ReplayLog::read(&path).unwrap();
         assert_eq!(rec.records, [header.clone(), transition(0)]);
         assert_eq!(std::fs::read(&path).unwrap(), bytes);
         let written = postcard::to_stdvec(&OnDisk::from(header)).unwrap();
         assert_eq!(written[0], 6, "a new header is the appended variant");
+    }
+
+    /// Builds up to format 5's first release declared the current variants as struct variants;
+    /// the newtype variants over [`Record`]'s structs must encode to the same bytes, so both
+    /// read each other's logs.
+    #[test]
+    fn the_record_structs_encode_as_the_struct_variants_earlier_builds_wrote() {
+        /// The current variants as earlier builds declared them (tags 3–7).
+        #[derive(Serialize)]
+        enum Earlier {
+            _HeaderV3,
+            _TransitionV1,
+            _EpisodeEndV1,
+            Claim {
+                epoch: u64,
+                planner: String,
+            },
+            Transition {
+                epoch: u64,
+                agent: String,
+                episode: u32,
+                step: u32,
+                obs: Vec<f32>,
+                act: Vec<f32>,
+                origin: ActionOrigin,
+                next_obs: Vec<f32>,
+                reward: f32,
+            },
+            EpisodeEnd {
+                epoch: u64,
+                agent: String,
+                episode: u32,
+                steps: u32,
+                episode_return: f32,
+                end: proto::EpisodeEnd,
+            },
+            Header {
+                task: String,
+                obs_dim: u32,
+                act_dim: u32,
+            },
+            Term {
+                epoch: u64,
+                planner: String,
+                reads: Vec<SegmentRead>,
+            },
+        }
+        let pairs = [
+            (
+                Record::Claim(ClaimRecord {
+                    epoch: 7,
+                    planner: "p".into(),
+                }),
+                Earlier::Claim {
+                    epoch: 7,
+                    planner: "p".into(),
+                },
+            ),
+            (
+                Record::Transition(TransitionRecord {
+                    epoch: 3,
+                    agent: "a".into(),
+                    episode: 2,
+                    step: 9,
+                    obs: vec![0.5, -1.0],
+                    act: vec![0.25],
+                    origin: ActionOrigin::Applied,
+                    next_obs: vec![0.75, -2.0],
+                    reward: 1.5,
+                }),
+                Earlier::Transition {
+                    epoch: 3,
+                    agent: "a".into(),
+                    episode: 2,
+                    step: 9,
+                    obs: vec![0.5, -1.0],
+                    act: vec![0.25],
+                    origin: ActionOrigin::Applied,
+                    next_obs: vec![0.75, -2.0],
+                    reward: 1.5,
+                },
+            ),
+            (
+                Record::EpisodeEnd(EpisodeEndRecord {
+                    epoch: 3,
+                    agent: "a".into(),
+                    episode: 2,
+                    steps: 10,
+                    episode_return: -4.0,
+                    end: proto::EpisodeEnd::Terminated,
+                }),
+                Earlier::EpisodeEnd {
+                    epoch: 3,
+                    agent: "a".into(),
+                    episode: 2,
+                    steps: 10,
+                    episode_return: -4.0,
+                    end: proto::EpisodeEnd::Terminated,
+                },
+            ),
+            (
+                Record::Header(HeaderRecord {
+                    task: "ant".into(),
+                    obs_dim: 27,
+                    act_dim: 8,
+                }),
+                Earlier::Header {
+                    task: "ant".into(),
+                    obs_dim: 27,
+                    act_dim: 8,
+                },
+            ),
+            (
+                Record::Term(TermRecord {
+                    epoch: 4,
+                    planner: "q".into(),
+                    reads: vec![SegmentRead {
+                        name: "replay.log".into(),
+                        len: 1234,
+                    }],
+                }),
+                Earlier::Term {
+                    epoch: 4,
+                    planner: "q".into(),
+                    reads: vec![SegmentRead {
+                        name: "replay.log".into(),
+                        len: 1234,
+                    }],
+                },
+            ),
+        ];
+        for (record, earlier) in pairs {
+            let earlier = postcard::to_stdvec(&earlier).unwrap();
+            let now = postcard::to_stdvec(&OnDisk::from(record.clone())).unwrap();
+            assert_eq!(now, earlier, "{record:?}");
+            let read = Record::from(postcard::from_bytes::<OnDisk>(&earlier).unwrap());
+            assert_eq!(read, record);
+        }
     }
 
     /// A format-2 log (written before ownership epochs, its records encoded as that release
@@ -1676,16 +1711,16 @@ pub(crate) mod tests {
         assert_eq!(std::fs::read(&path).unwrap(), bytes, "read, not rewritten");
         assert_eq!(
             rec.records[0],
-            Record::Header {
+            Record::Header(HeaderRecord {
                 task: "cartpole".into(),
                 obs_dim: 4,
                 act_dim: 1,
-            },
+            }),
             "the old header's task index reads as the task's name"
         );
         assert_eq!(
             rec.records[1],
-            Record::Transition {
+            Record::Transition(TransitionRecord {
                 epoch: 0,
                 agent: "a".into(),
                 episode: 0,
@@ -1695,7 +1730,7 @@ pub(crate) mod tests {
                 origin: ActionOrigin::Planned,
                 next_obs: vec![1.0; 4],
                 reward: 0.1,
-            }
+            })
         );
         assert_eq!(rec.records[2].epoch(), Some(0));
         assert_eq!(

@@ -7,8 +7,8 @@ pub mod segments;
 #[cfg(test)]
 pub(crate) use log::tests as log_tests;
 pub use log::{
-    ActionOrigin, LogError, LogFile, LogSyncer, Record, Recovered, ReplayLog, Rewrite, RewritePlan,
-    SegmentRead,
+    ActionOrigin, ClaimRecord, EpisodeEndRecord, HeaderRecord, LogError, LogFile, LogSyncer,
+    Record, Recovered, ReplayLog, Rewrite, RewritePlan, SegmentRead, TermRecord, TransitionRecord,
 };
 
 use crate::data::Transitions;
@@ -142,14 +142,14 @@ impl From<EpisodeSummary> for Record {
             episode_return,
             end,
         } = summary;
-        Record::EpisodeEnd {
+        Record::EpisodeEnd(EpisodeEndRecord {
             epoch: 0,
             agent,
             episode,
             steps,
             episode_return,
             end,
-        }
+        })
     }
 }
 
@@ -221,11 +221,11 @@ impl ReplayBuffer {
         let mut view = segments::read(root)?;
         let recovered = std::mem::take(&mut view.recovered);
         let mut buffer = Self::from_records(root, recovered, &view.missing, task)?;
-        let header = Record::Header {
+        let header = Record::Header(HeaderRecord {
             task: task.name().to_string(),
             obs_dim: task.obs_dim as u32,
             act_dim: task.act_dim as u32,
-        };
+        });
         let opened = segments::create(root, &view, header, (token, planner), wrap)?;
         let garbage: Vec<PathBuf> = view.garbage.iter().map(|id| root.join(id.name())).collect();
         buffer.log = Some(opened.log);
@@ -297,10 +297,10 @@ impl ReplayBuffer {
         let mut records = recovered.records.into_iter().peekable();
         match records.peek() {
             None => {}
-            Some(Record::Header { task: found, .. }) if found == task.name() => {
+            Some(Record::Header(HeaderRecord { task: found, .. })) if found == task.name() => {
                 records.next();
             }
-            Some(Record::Header { task: found, .. }) => {
+            Some(Record::Header(HeaderRecord { task: found, .. })) => {
                 return Err(ReplayError::TaskMismatch {
                     path: path.display().to_string(),
                     found: found.clone(),
@@ -333,13 +333,13 @@ impl ReplayBuffer {
                 continue;
             }
             match &record {
-                Record::Transition {
+                Record::Transition(TransitionRecord {
                     agent,
                     episode,
                     step,
                     reward,
                     ..
-                } => {
+                }) => {
                     let open = open_episodes
                         .entry((agent.clone(), *episode))
                         .or_insert_with(|| EpisodeSummary {
@@ -352,10 +352,10 @@ impl ReplayBuffer {
                     open.steps = open.steps.max(step.saturating_add(1));
                     open.episode_return += reward;
                 }
-                Record::EpisodeEnd { agent, episode, .. } => {
+                Record::EpisodeEnd(EpisodeEndRecord { agent, episode, .. }) => {
                     open_episodes.remove(&(agent.clone(), *episode));
                 }
-                Record::Header { .. } | Record::Claim { .. } | Record::Term { .. } => {}
+                Record::Header(_) | Record::Claim(_) | Record::Term(_) => {}
             }
             buffer.apply(&record);
         }
@@ -374,25 +374,22 @@ impl ReplayBuffer {
     /// damage; this catches a record that is intact but cannot belong to this run.
     fn fits(&self, record: &Record) -> bool {
         match record {
-            Record::Transition {
+            Record::Transition(TransitionRecord {
                 obs, act, next_obs, ..
-            } => {
+            }) => {
                 obs.len() == self.task.obs_dim
                     && next_obs.len() == self.task.obs_dim
                     && act.len() == self.task.act_dim
             }
-            Record::Header { .. }
-            | Record::Claim { .. }
-            | Record::Term { .. }
-            | Record::EpisodeEnd { .. } => true,
+            Record::Header(_) | Record::Claim(_) | Record::Term(_) | Record::EpisodeEnd(_) => true,
         }
     }
 
     fn apply(&mut self, record: &Record) {
         match record {
-            Record::Header { .. } | Record::Term { .. } => {}
-            Record::Claim { epoch, .. } => self.epoch = self.epoch.max(*epoch),
-            Record::Transition {
+            Record::Header(_) | Record::Term(_) => {}
+            Record::Claim(ClaimRecord { epoch, .. }) => self.epoch = self.epoch.max(*epoch),
+            Record::Transition(TransitionRecord {
                 agent,
                 episode,
                 obs,
@@ -401,7 +398,7 @@ impl ReplayBuffer {
                 next_obs,
                 reward,
                 ..
-            } => {
+            }) => {
                 self.transitions.push(obs, act, *reward, next_obs);
                 self.origins.push(*origin);
                 let index = match self.agents.iter().position(|a| a == agent) {
@@ -413,14 +410,14 @@ impl ReplayBuffer {
                 };
                 self.owners.push((index as u32, *episode));
             }
-            Record::EpisodeEnd {
+            Record::EpisodeEnd(EpisodeEndRecord {
                 agent,
                 episode,
                 steps,
                 episode_return,
                 end,
                 ..
-            } => {
+            }) => {
                 if *end == EpisodeEnd::Terminated {
                     self.mark_last_terminated(agent, *episode);
                 }
@@ -493,10 +490,7 @@ impl ReplayBuffer {
         for record in &records {
             self.apply(record);
         }
-        if records
-            .iter()
-            .any(|r| matches!(r, Record::EpisodeEnd { .. }))
-        {
+        if records.iter().any(|r| matches!(r, Record::EpisodeEnd(_))) {
             self.evict()?;
         }
         Ok(sync_took)
@@ -607,30 +601,27 @@ impl ReplayBuffer {
         let plan = RewritePlan {
             target: root.join(target.name()),
             head: vec![
-                Record::Header {
+                Record::Header(HeaderRecord {
                     task: self.task.name().to_string(),
                     obs_dim: self.task.obs_dim as u32,
                     act_dim: self.task.act_dim as u32,
-                },
+                }),
                 // A base: the new segment holds everything kept, so no earlier one counts.
-                Record::Term {
+                Record::Term(TermRecord {
                     epoch: self.token,
                     planner: self.planner.clone(),
                     reads: Vec::new(),
-                },
+                }),
             ],
             earlier: self.earlier.clone(),
             held_epoch: self.token,
             newer_term: Box::new(move || segments::newest_token(&root)),
         };
         let rewrite = log.start_rewrite(plan, move |record| match record {
-            Record::Transition { agent, episode, .. } => {
+            Record::Transition(TransitionRecord { agent, episode, .. }) => {
                 !dropped.contains(&(agent.clone(), *episode))
             }
-            Record::Header { .. }
-            | Record::Claim { .. }
-            | Record::Term { .. }
-            | Record::EpisodeEnd { .. } => true,
+            Record::Header(_) | Record::Claim(_) | Record::Term(_) | Record::EpisodeEnd(_) => true,
         })?;
         self.compacting = true;
         Ok(Some(Compaction {
@@ -826,7 +817,7 @@ mod tests {
 
     /// A transition of `agent`'s `episode` at `step` with the cartpole's dimensions.
     fn transition(agent: &str, episode: u32, step: u32, reward: f32) -> Record {
-        Record::Transition {
+        Record::Transition(TransitionRecord {
             epoch: 0,
             agent: agent.into(),
             episode,
@@ -836,7 +827,7 @@ mod tests {
             origin: PLANNED,
             next_obs: vec![step as f32 + 1.0; 4],
             reward,
-        }
+        })
     }
 
     /// The run's segment files, oldest first.
@@ -987,7 +978,7 @@ mod tests {
         let newest = segment_files(&path).pop().unwrap();
         let (mut log, _) = ReplayLog::open(&newest).unwrap();
         let mut wrong = transition("a", 0, 1, 1.0);
-        if let Record::Transition { obs, .. } = &mut wrong {
+        if let Record::Transition(TransitionRecord { obs, .. }) = &mut wrong {
             obs.push(9.0);
         }
         let mut records = [
@@ -1094,7 +1085,7 @@ mod tests {
         let mut new_owner = ReplayBuffer::open(&path, task, 2, "pb").unwrap();
         assert_eq!((new_owner.epoch(), new_owner.len()), (2, 1));
         let mut applied = transition("a", 0, 1, 1.0);
-        if let Record::Transition { act, origin, .. } = &mut applied {
+        if let Record::Transition(TransitionRecord { act, origin, .. }) = &mut applied {
             *act = vec![-3.0];
             *origin = ActionOrigin::Applied;
         }
@@ -1134,16 +1125,16 @@ mod tests {
         let task = Builtin::Cartpole.task();
         let legacy = path.join(segments::LEGACY);
         let (mut log, _) = ReplayLog::open(&legacy).unwrap();
-        log.append(&[Record::Header {
+        log.append(&[Record::Header(HeaderRecord {
             task: "cartpole".into(),
             obs_dim: 4,
             act_dim: 1,
-        }])
+        })])
         .unwrap();
-        log.append(&[Record::Claim {
+        log.append(&[Record::Claim(ClaimRecord {
             epoch: 4,
             planner: "old".into(),
-        }])
+        })])
         .unwrap();
         for e in 0..3 {
             let mut records = episode("a", e, 4);
@@ -1182,7 +1173,7 @@ mod tests {
         for e in 0..3 {
             let mut records = episode("a", e, 4);
             // Episode e's first step was applied by the agent, the others planned.
-            if let Record::Transition { origin, .. } = &mut records[0] {
+            if let Record::Transition(TransitionRecord { origin, .. }) = &mut records[0] {
                 *origin = ActionOrigin::Applied;
             }
             old_owner.append(records).unwrap();

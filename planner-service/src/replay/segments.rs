@@ -31,7 +31,9 @@
 //! A run stored before segments has only `replay.log`: its first term lists it like any
 //! earlier segment, and it is never written again (the first compaction removes it).
 
-use super::log::{LogError, LogFile, Record, Recovered, ReplayLog, SegmentRead};
+use super::log::{
+    ClaimRecord, LogError, LogFile, Record, Recovered, ReplayLog, SegmentRead, TermRecord,
+};
 use std::path::{Path, PathBuf};
 
 /// The log of a run stored before segments, relative to the run's directory.
@@ -162,7 +164,7 @@ pub fn read(root: &Path) -> Result<View, LogError> {
     };
     let (newest_rec, newest_len) = ReplayLog::read_prefix(&root.join(newest.name()), None)?;
     let term_reads = newest_rec.records.iter().take(2).find_map(|r| match r {
-        Record::Term { reads, .. } => Some(reads.clone()),
+        Record::Term(TermRecord { reads, .. }) => Some(reads.clone()),
         _ => None,
     });
     let mut view = View {
@@ -229,10 +231,10 @@ pub fn read(root: &Path) -> Result<View, LogError> {
         view.recovered.truncated_bytes += part.truncated_bytes;
         for record in part.records {
             match record {
-                Record::Header { .. } => {
+                Record::Header(_) => {
                     header.get_or_insert(record);
                 }
-                Record::Term { .. } => {}
+                Record::Term(_) => {}
                 record => stream.push(record),
             }
         }
@@ -261,15 +263,15 @@ pub fn create(
     let id = next_segment(root, view.newest, token)?;
     let head = [
         header,
-        Record::Term {
+        Record::Term(TermRecord {
             epoch: token,
             planner: planner.to_string(),
             reads: view.reads.clone(),
-        },
-        Record::Claim {
+        }),
+        Record::Claim(ClaimRecord {
             epoch: token,
             planner: planner.to_string(),
-        },
+        }),
     ];
     let log = ReplayLog::create_with(&root.join(id.name()), &head, wrap)?;
     let earlier = view

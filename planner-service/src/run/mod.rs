@@ -7,7 +7,9 @@ use crate::agent::{Accepted, AgentSession};
 use crate::config::Preset;
 use crate::models::Models;
 use crate::persist::{PersistError, RunDir};
-use crate::replay::{self, EpisodeSummary, LogFile, OwnerCheck, Record, ReplayBuffer, ReplayError};
+use crate::replay::{
+    self, EpisodeSummary, LogFile, OwnerCheck, Record, ReplayBuffer, ReplayError, TransitionRecord,
+};
 use crate::sched::background::run_in_background;
 use crate::trainer::{TrainError, TrainLimits, TrainReport, retrain};
 use proto::{
@@ -685,7 +687,7 @@ impl Run {
             records.push(Record::from(abandoned.clone()));
         }
         if let Some((obs, act, origin, reward)) = &accepted.transition {
-            records.push(Record::Transition {
+            records.push(Record::Transition(TransitionRecord {
                 epoch: self.epoch,
                 agent: agent.to_string(),
                 episode,
@@ -695,7 +697,7 @@ impl Run {
                 origin: *origin,
                 next_obs: next_obs.to_vec(),
                 reward: *reward,
-            });
+            }));
         }
         if let Some(finished) = &accepted.finished {
             records.push(Record::from(finished.clone()));

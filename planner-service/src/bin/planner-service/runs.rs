@@ -7,7 +7,9 @@
 use anyhow::{Context, Result};
 use planner_service::config::ServiceConfig;
 use planner_service::persist::admin;
-use planner_service::replay::{ActionOrigin, Record};
+use planner_service::replay::{
+    ActionOrigin, EpisodeEndRecord, HeaderRecord, Record, TransitionRecord,
+};
 use std::io::Write;
 use std::path::PathBuf;
 
@@ -124,9 +126,9 @@ fn write_transitions(out: &mut dyn Write, records: &[Record]) -> Result<usize> {
     let (obs_dim, act_dim) = records
         .iter()
         .find_map(|r| match r {
-            Record::Header {
+            Record::Header(HeaderRecord {
                 obs_dim, act_dim, ..
-            } => Some((*obs_dim as usize, *act_dim as usize)),
+            }) => Some((*obs_dim as usize, *act_dim as usize)),
             _ => None,
         })
         .unwrap_or((0, 0));
@@ -140,7 +142,7 @@ fn write_transitions(out: &mut dyn Write, records: &[Record]) -> Result<usize> {
     writeln!(out, "{}", header.join(","))?;
     let mut rows = 0;
     for record in records {
-        let Record::Transition {
+        let Record::Transition(TransitionRecord {
             agent,
             episode,
             step,
@@ -150,7 +152,7 @@ fn write_transitions(out: &mut dyn Write, records: &[Record]) -> Result<usize> {
             next_obs,
             reward,
             ..
-        } = record
+        }) = record
         else {
             continue;
         };
@@ -173,14 +175,14 @@ fn write_episodes(out: &mut dyn Write, records: &[Record]) -> Result<usize> {
     writeln!(out, "agent,episode,steps,return,end")?;
     let mut rows = 0;
     for record in records {
-        if let Record::EpisodeEnd {
+        if let Record::EpisodeEnd(EpisodeEndRecord {
             agent,
             episode,
             steps,
             episode_return,
             end,
             ..
-        } = record
+        }) = record
         {
             let end = match end {
                 proto::EpisodeEnd::Terminated => "terminated",
@@ -201,12 +203,12 @@ mod tests {
     #[test]
     fn transitions_and_episodes_are_written_as_csv() {
         let records = vec![
-            Record::Header {
+            Record::Header(HeaderRecord {
                 task: "t".into(),
                 obs_dim: 2,
                 act_dim: 1,
-            },
-            Record::Transition {
+            }),
+            Record::Transition(TransitionRecord {
                 epoch: 1,
                 agent: "bridge-0".into(),
                 episode: 3,
@@ -216,15 +218,15 @@ mod tests {
                 origin: ActionOrigin::Applied,
                 next_obs: vec![0.75, 2.0],
                 reward: -1.5,
-            },
-            Record::EpisodeEnd {
+            }),
+            Record::EpisodeEnd(EpisodeEndRecord {
                 epoch: 1,
                 agent: "bridge-0".into(),
                 episode: 3,
                 steps: 8,
                 episode_return: 12.5,
                 end: proto::EpisodeEnd::Terminated,
-            },
+            }),
         ];
         let mut out = Vec::new();
         assert_eq!(write_transitions(&mut out, &records).unwrap(), 1);
