@@ -81,9 +81,10 @@ struct ExperimentArgs {
     /// have one.
     #[arg(long)]
     energy_noise_sigma: Option<f32>,
-    /// Units of the energy model's σ: standardised (the default: each dimension of the
-    /// transitions scaled to unit variance) or raw (the transitions' own units, as the paper
-    /// corrupts its replay buffer).
+    /// Units of the energy model's σ: standardised (each dimension of the transitions scaled
+    /// to unit variance) or raw (the transitions' own units, as the paper corrupts its replay
+    /// buffer); by default the task's preset decides (raw for pusher, standardised for the
+    /// others).
     #[arg(long)]
     energy_noise_units: Option<proto::NoiseUnits>,
     /// Wall-clock budget of this sitting (e.g. 90m, 6h, 1h30m): runs start longest first and
@@ -170,8 +171,10 @@ struct ImaginationArgs {
     /// MPC steps into the next episode before the plans are optimised.
     #[arg(long, default_value_t = 50)]
     mpc_steps: u32,
-    /// Number format of the models' inference: bf16 (the service's default) or f32.
-    #[arg(long, default_value = "bf16")]
+    /// Number format of the models' inference: auto (the service's default: the path measured
+    /// fastest on this CPU, see the performance page), bf16 or f32. The Figure 5 results of
+    /// 2026-11-23/24 were made with bf16, this flag's default then.
+    #[arg(long, default_value = "auto")]
     inference_precision: proto::InferencePrecision,
     /// Seed of the first run (the others follow: seed + 1, …).
     #[arg(long, default_value_t = 0)]

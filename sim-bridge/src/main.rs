@@ -170,12 +170,13 @@ struct SpecArgs {
     /// default), in --energy-noise-units.
     #[arg(long)]
     energy_noise_sigma: Option<f32>,
-    /// Units of σ: standardised (each dimension of the transitions scaled to unit variance,
-    /// the default) or raw (the transitions' own units, as the paper corrupts its buffer).
+    /// Units of σ: standardised (each dimension of the transitions scaled to unit variance) or
+    /// raw (the transitions' own units, as the paper corrupts its buffer); by default the
+    /// task's preset decides (raw for pusher, standardised for the others).
     #[arg(long)]
     energy_noise_units: Option<proto::NoiseUnits>,
-    /// Number format of the planner's network inference: bf16 (the default; twice the
-    /// multiply-add rate on CPUs with AVX-512 BF16) or f32.
+    /// Number format of the planner's network inference: auto (the default: the kernel path
+    /// measured fastest on the planner's CPU), bf16 or f32.
     #[arg(long)]
     inference_precision: Option<InferencePrecision>,
     /// Planning optimiser: cem (the paper's, the default), icem (Pinneri et al. 2020:
