@@ -72,7 +72,7 @@ const RECORD_HEADER_LEN: usize = SYNC.len() + 8;
 /// entries of older epochs (written by a planner that lost the run and did not know yet) are
 /// stale and skipped when the log is read.
 ///
-/// Each variant holds a struct that is also what the file stores for it (see [`OnDisk`]), so
+/// Each variant holds a struct that is also what the file stores for it (the private `OnDisk`), so
 /// the fields of an entry are declared once.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Record {
