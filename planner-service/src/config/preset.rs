@@ -76,8 +76,9 @@ pub struct Preset {
     /// Most gradient steps per model in one retraining; `None` (the paper's presets) trains
     /// the schedule's full epochs however large the buffer has grown.
     pub max_gradient_steps: Option<u64>,
-    /// Number format of planning-time inference: bf16 by default, which doubles the
-    /// multiply-add rate on CPUs with AVX-512 BF16 (f32 is used where the CPU lacks it).
+    /// Number format of planning-time inference: `auto` by default (each network runs the
+    /// kernel path measured fastest for its shapes on this CPU, see `crate::nn::kernel_path`);
+    /// `f32` or `bf16` when a run asks for one.
     pub inference_precision: InferencePrecision,
     /// Milliseconds from an observation's arrival to its action (`None`: no deadline). The
     /// task's control period unless overridden: a robot needs its action within it.

@@ -52,9 +52,11 @@ impl Tape {
     /// f32 sums, as CEM's scoring rounds them), so that a gradient-planned run spends no more
     /// time per product than a trainer does.
     pub fn for_planning(mlp: &Mlp, capacity: usize) -> Self {
-        match mlp.inference_precision() {
-            Precision::F32 | Precision::Auto => Self::new(mlp, capacity),
-            Precision::Bf16 => Self::for_training(mlp, capacity),
+        // A packed network's path is resolved: its precision is f32 or bf16, never `Auto`.
+        if mlp.inference_precision() == Precision::Bf16 {
+            Self::for_training(mlp, capacity)
+        } else {
+            Self::new(mlp, capacity)
         }
     }
 
