@@ -9,8 +9,8 @@ the true current state (`mujoco.rollout`) instead of through a learned network. 
 planner walks, the gap is in what the models learn from 4,000 transitions; if it does not, no
 model could make this planner walk under this reward.
 
-The task is sim-bridge's (sim-bridge/assets/ant.xml; reset, reward and termination mirrored as
-in `ant_vs_gymnasium.py`): reward `forward velocity − 0.5 ‖a‖² + 1` per step, the episode ends
+The task is sim-bridge's (sim-bridge/assets/ant.xml; reset and termination taken from
+`ant_vs_gymnasium.py`, which mirrors them, the reward vectorised over candidates): reward `forward velocity − 0.5 ‖a‖² + 1` per step, the episode ends
 when the torso height leaves [0.2, 1.0] m, and an imagined trajectory earns nothing after it
 would have ended.
 
@@ -20,17 +20,14 @@ Needs the project's Python environment (`make python-env`):
 """
 
 import argparse
-import pathlib
 import time
 
 import mujoco
 import numpy as np
+from ant_vs_gymnasium import HEALTHY, MODEL, SUBSTEPS, reset  # the task as mirrored there
 from mujoco import rollout
 
-MODEL = pathlib.Path(__file__).resolve().parents[2] / "sim-bridge" / "assets" / "ant.xml"
-HEALTHY = (0.2, 1.0)
-SUBSTEPS, NOISE, ACT = 5, 0.1, 8
-DT = 0.05
+ACT, DT = 8, 0.05
 
 
 def reward(forward_velocity, a):
@@ -91,13 +88,8 @@ class OracleCem:
 
 def episode(seed, steps, threads, population, iterations):
     m = mujoco.MjModel.from_xml_path(str(MODEL))
-    d = mujoco.MjData(m)
     rng = np.random.default_rng(seed)
-    qpos = m.qpos0 + rng.uniform(-NOISE, NOISE, m.nq)
-    qpos[3:7] /= np.linalg.norm(qpos[3:7])
-    d.qpos[:] = qpos
-    d.qvel[:] = rng.normal(0.0, NOISE, m.nv)
-    mujoco.mj_forward(m, d)
+    d = reset(m, rng)
     cem = OracleCem(m, 30, population, population // 10, iterations, 0.1, threads, rng)
     state = np.empty(mujoco.mj_stateSize(m, cem.spec))
     x0, ret, started = d.qpos[0], 0.0, time.perf_counter()

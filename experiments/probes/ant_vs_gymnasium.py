@@ -37,16 +37,23 @@ def ended_by(z, steps):
     return "above 1 m" if z > HEALTHY[1] else "below 0.2 m"
 
 
-def ours(seed, model=MODEL):
-    """One random-action episode of sim-bridge's ant task (its Rust code, mirrored)."""
-    m = mujoco.MjModel.from_xml_path(str(model))
+def reset(m, rng):
+    """sim-bridge's ant reset (its Rust code, mirrored): uniform noise on qpos (the torso's
+    quaternion renormalised), Gaussian on qvel. Returns the data."""
     d = mujoco.MjData(m)
-    rng = np.random.default_rng(seed)
     qpos = m.qpos0 + rng.uniform(-NOISE, NOISE, m.nq)
     qpos[3:7] /= np.linalg.norm(qpos[3:7])
     d.qpos[:] = qpos
     d.qvel[:] = rng.normal(0.0, NOISE, m.nv)
     mujoco.mj_forward(m, d)
+    return d
+
+
+def ours(seed, model=MODEL):
+    """One random-action episode of sim-bridge's ant task (its Rust code, mirrored)."""
+    m = mujoco.MjModel.from_xml_path(str(model))
+    rng = np.random.default_rng(seed)
+    d = reset(m, rng)
     ret, steps = 0.0, 0
     while steps < EPISODE:
         a = rng.uniform(-1.0, 1.0, 8)
