@@ -211,8 +211,9 @@ impl Rollout for Rollouts<'_> {
 
 impl Imagination {
     /// Imagination for `config.population` candidates of `config.horizon` steps with
-    /// `config.particles` particles each, split into `chunks` parallel chunks (at least 1; the
-    /// number of rayon threads is the natural choice). `seed` seeds the sampling noise.
+    /// `config.particles` particles each, split into `chunks` parallel chunks (at least 1;
+    /// [`crate::plan::default_chunks`] of the rayon threads is the natural choice). `seed` seeds
+    /// the sampling noise.
     pub fn new(
         task: &'static Task,
         config: &CemConfig,

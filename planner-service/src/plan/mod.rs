@@ -33,7 +33,7 @@ pub use anytime::IterationClock;
 pub use cem::Cem;
 pub use icem::Icem;
 pub use imagine::{Imagination, Rollout, Rollouts, Workspace, evaluate_batch};
-pub use mpc::{ImaginedPlan, MpcPlanner, PlanOutcome, PlanRequest};
+pub use mpc::{ImaginedPlan, MpcPlanner, PlanOutcome, PlanRequest, default_chunks};
 pub use sequence::{CemOutcome, PopulationObjective};
 pub use settings::{AdamConfig, CemConfig, ConfigError, IcemConfig, Optimizer};
 

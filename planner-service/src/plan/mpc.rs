@@ -129,10 +129,40 @@ pub struct ImaginedPlan {
     pub iterations: u32,
 }
 
+/// Candidates a chunk keeps at least before [`default_chunks`] gives a thread a second chunk.
+const MIN_SPLIT_CHUNK: usize = 12;
+
+/// Threads from which [`default_chunks`] gives each thread two chunks.
+const MIN_SPLIT_THREADS: usize = 4;
+
+/// Population chunks planned in parallel by `threads` threads for `population` candidates:
+/// two per thread from 4 threads up (`MIN_SPLIT_THREADS`) where each chunk still holds 12
+/// candidates (`MIN_SPLIT_CHUNK`), else one.
+///
+/// A plan's CEM iteration ends when its slowest chunk does. The cores of a shared or virtual
+/// machine do not run at one speed: on a 16-core Xeon (model 207, a virtual machine with nothing
+/// else running) sixteen one-thread processes planning the same half-cheetah + DEEN call took
+/// 325–898 ms each, against 324 ms for one alone. With one chunk per thread the join waits for
+/// the slowest core; with two, rayon's work stealing hands the second chunks to the cores that
+/// finished first: 16-thread plans were faster in 23 of 24 paired comparisons there (by up to
+/// 37 %; half-cheetah, ant and cartpole + DEEN at Table 2's sizes, 12–16 candidates per
+/// chunk). Chunks of 3 candidates (a population of 100 on 16 threads) made the products so
+/// small that plans took 1.6–1.8× as long, hence the floor; and on 2 threads a second chunk's
+/// effect on that Xeon was mixed and it cost cartpole + DEEN 3–7 % of its CPU time on a Zen 4,
+/// hence the thread floor. See the performance page's "Sixteen cores".
+pub fn default_chunks(threads: usize, population: usize) -> usize {
+    if threads >= MIN_SPLIT_THREADS && population >= 2 * threads * MIN_SPLIT_CHUNK {
+        2 * threads
+    } else {
+        threads.max(1)
+    }
+}
+
 impl MpcPlanner {
     /// A planner for `task` that scores plans as `Σ reward − energy_weight · energy`, sampling
     /// the dynamics' predicted Gaussian when `sample` is set (PETS TS∞), else using its mean.
-    /// The population is split across all rayon threads; `seed` fixes every random choice.
+    /// The population is split into [`default_chunks`] of the rayon threads; `seed` fixes every
+    /// random choice.
     pub fn new(
         task: &'static Task,
         config: CemConfig,
@@ -140,14 +170,8 @@ impl MpcPlanner {
         sample: bool,
         seed: u64,
     ) -> Result<Self, ConfigError> {
-        Self::with_chunks(
-            task,
-            config,
-            energy_weight,
-            sample,
-            seed,
-            rayon::current_num_threads(),
-        )
+        let chunks = default_chunks(rayon::current_num_threads(), config.population);
+        Self::with_chunks(task, config, energy_weight, sample, seed, chunks)
     }
 
     /// As [`MpcPlanner::new`], with the population split into `chunks` parallel chunks.
@@ -413,6 +437,21 @@ mod tests {
     use rand::rngs::StdRng;
     use rand::{RngExt, SeedableRng};
     use std::f32::consts::PI;
+
+    #[test]
+    fn a_thread_gets_a_second_chunk_only_where_chunks_keep_their_floor() {
+        // Table 2's populations on 4 and 16 threads: two chunks per thread.
+        assert_eq!(default_chunks(4, 400), 8);
+        assert_eq!(default_chunks(16, 500), 32);
+        assert_eq!(default_chunks(16, 2 * 16 * MIN_SPLIT_CHUNK), 32);
+        // One candidate short of the floor, and a small search: one per thread.
+        assert_eq!(default_chunks(16, 2 * 16 * MIN_SPLIT_CHUNK - 1), 16);
+        assert_eq!(default_chunks(16, 100), 16);
+        // Below the thread floor: one chunk per thread; zero threads is read as one.
+        assert_eq!(default_chunks(2, 500), 2);
+        assert_eq!(default_chunks(1, 500), 1);
+        assert_eq!(default_chunks(0, 500), 1);
+    }
 
     /// A cart that the action pushes directly, `x' = x + 0.1·a`, everything else constant.
     /// With the pole upright (θ = π) cartpole's reward `exp(−x²/0.36) − 0.01a²` is best at

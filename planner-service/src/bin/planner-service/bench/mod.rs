@@ -59,7 +59,8 @@ pub enum BenchCommand {
         /// Threads; default: every core.
         #[arg(long)]
         threads: Option<usize>,
-        /// Population chunks planned in parallel; default: one per thread.
+        /// Population chunks planned in parallel; default: the daemon's, two per thread from 4
+        /// threads up where each keeps at least 12 candidates, else one per thread.
         #[arg(long)]
         chunks: Option<usize>,
         /// Plan as the daemon does, on cores shared through its scheduler (each call takes a

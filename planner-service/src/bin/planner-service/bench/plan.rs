@@ -13,7 +13,7 @@ use planner_service::nn::KernelPath;
 use planner_service::nn::cputime::process_cpu_time;
 use planner_service::nn::kernel_path::Measurement;
 use planner_service::nn::peak::{Peak, percent};
-use planner_service::plan::{MpcPlanner, PlanRequest};
+use planner_service::plan::{MpcPlanner, PlanRequest, default_chunks};
 use planner_service::reward::RewardModel;
 use proto::task::{RewardKind, SpecBounds};
 use proto::{Builtin, InferencePrecision, Task};
@@ -279,12 +279,14 @@ pub(super) fn run(s: &Settings) -> Result<PlanReport, BenchError> {
     let peak = Peak::measure();
     let observations: Vec<Vec<f32>> = (0..s.agents).map(|k| data.row(k).0.to_vec()).collect();
 
-    // Planning runs inside its own pool: one population chunk per thread, and no trips
+    // Planning runs inside its own pool, with the daemon's chunks per thread, and no trips
     // through rayon's global injector.
     let threads = s
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let chunks = s.chunks.unwrap_or(threads);
+    let chunks = s
+        .chunks
+        .unwrap_or_else(|| default_chunks(threads, preset.cem.population));
     if threads == 0 || chunks == 0 {
         return Err(BenchError::Zero(if threads == 0 {
             "threads"
