@@ -27,18 +27,31 @@ from pathlib import Path
 from typing import Dict, List, Tuple
 
 from ebmpc import Planner
+from ebmpc.events import ModelsUpdated, TrainingFailed
 from ebmpc.gym import learn, parse_override
 
 
-def one(args: argparse.Namespace, num_envs: int, repeat: int) -> Tuple[int, float, float]:
-    """(transitions, seconds, mean return of the timed episodes)."""
+def one(args: argparse.Namespace, num_envs: int, repeat: int) -> Tuple[int, int, float, float]:
+    """(transitions, of them planned, seconds, mean return of the timed episodes)."""
+    run = f"bench-{num_envs}-{repeat}"
     with tempfile.TemporaryDirectory(prefix="ebmpc-vector-bench-") as data:
-        with Planner.local(Path(data)) as planner:
+        with Planner.local(Path(data)) as planner, planner.events(run, timeout=600) as events:
             common = dict(
                 preset=args.preset, overrides=dict(args.override), planner=planner,
-                run=f"bench-{num_envs}-{repeat}", mode=args.mode, progress=False,
+                run=run, mode=args.mode, progress=False,
             )
-            learn(args.env, args.warmup, seed=args.seed, **common)
+            # The warm-up plays under its own agent name: reusing it for the timed copies
+            # would make their attach wait (seconds, timed) until the planner sees it leave.
+            learn(args.env, args.warmup, seed=args.seed, agent="warmup", **common)
+            # New agents wait for no retraining, so wait here for the models of every warm-up
+            # episode (sync mode retrains after each): else the timed copies would start with
+            # the run still exploring, their actions random and almost free.
+            trained = 0
+            while trained < args.warmup:
+                event = events.next()
+                if isinstance(event, TrainingFailed):
+                    raise RuntimeError(f"the warm-up's retraining failed: {event.message}")
+                trained += isinstance(event, ModelsUpdated)
             started = time.monotonic()
             results = learn(
                 args.env, args.episodes, seed=args.seed, num_envs=num_envs,
@@ -46,7 +59,8 @@ def one(args: argparse.Namespace, num_envs: int, repeat: int) -> Tuple[int, floa
             )
             seconds = time.monotonic() - started
     transitions = sum(r.steps for r in results)
-    return transitions, seconds, statistics.fmean(r.episode_return for r in results)
+    planned = sum(r.planned for r in results)
+    return transitions, planned, seconds, statistics.fmean(r.episode_return for r in results)
 
 
 def main() -> int:
@@ -72,11 +86,11 @@ def main() -> int:
     for repeat in range(args.repeats):
         # Interleaved, so that a change of the machine's load falls on every configuration.
         for n in args.num_envs:
-            transitions, seconds, ret = one(args, n, repeat)
+            transitions, planned, seconds, ret = one(args, n, repeat)
             rates[n].append(transitions / seconds)
             print(
-                f"num_envs {n} repeat {repeat}: {transitions} transitions in {seconds:.1f} s, "
-                f"{transitions / seconds:.1f} per s, mean return {ret:.1f}",
+                f"num_envs {n} repeat {repeat}: {transitions} transitions ({planned} planned) "
+                f"in {seconds:.1f} s, {transitions / seconds:.1f} per s, mean return {ret:.1f}",
                 flush=True,
             )
     base = rates[args.num_envs[0]]
