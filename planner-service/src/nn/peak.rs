@@ -99,12 +99,13 @@ impl Peak {
 
 impl std::fmt::Display for Peak {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let show = |g: Option<f64>| g.map_or("unavailable".to_string(), |g| format!("{g:.1}"));
+        let show =
+            |g: Option<f64>| g.map_or("unavailable".to_string(), |g| format!("{g:.1} GFLOP/s"));
         write!(
             f,
-            "measured peak per core: AMX bf16 tiles {} GFLOP/s, bf16 dot {} GFLOP/s, \
-             f32 FMA {} GFLOP/s, AVX2 f32 FMA {} GFLOP/s ({CHAINS} independent 512-bit or \
-             256-bit accumulators, 4 accumulator tiles; thread CPU time)",
+            "measured peak per core: AMX bf16 tiles {}, bf16 dot {}, f32 FMA {}, AVX2 f32 FMA \
+             {} ({CHAINS} independent 512-bit or 256-bit accumulators, 4 accumulator tiles; \
+             thread CPU time)",
             show(self.amx_gflops),
             show(self.bf16_gflops),
             show(self.f32_gflops),
