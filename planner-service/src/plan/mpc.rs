@@ -142,7 +142,7 @@ const MIN_SPLIT_THREADS: usize = 4;
 /// A plan's CEM iteration ends when its slowest chunk does. The cores of a shared or virtual
 /// machine do not run at one speed: on a 16-core Xeon (model 207, a virtual machine with nothing
 /// else running) sixteen one-thread processes planning the same half-cheetah + DEEN call took
-/// 325–898 ms each, against 324 ms for one alone. With one chunk per thread the join waits for
+/// 326–898 ms each, against 324 ms for one alone. With one chunk per thread the join waits for
 /// the slowest core; with two, rayon's work stealing hands the second chunks to the cores that
 /// finished first: 16-thread plans were faster in 23 of 24 paired comparisons there (by up to
 /// 37 %; half-cheetah, ant and cartpole + DEEN at Table 2's sizes, 12–16 candidates per
