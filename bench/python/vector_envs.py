@@ -64,15 +64,11 @@ def one(
             # The warm-up plays under its own agent name: reusing it for the timed copies
             # would make their attach wait (seconds, timed) until the planner sees it leave.
             warmup = learn(args.env, args.warmup, seed=seed, agent="warmup", **common)
-            # New agents wait for no retraining, so wait here for the models of every warm-up
-            # episode (sync mode retrains after each): else the timed copies would start with
-            # the run still exploring, their actions random and almost free.
-            trained = 0
-            while trained < args.warmup:
-                event = events.next()
-                if isinstance(event, TrainingFailed):
-                    raise RuntimeError(f"the warm-up's retraining failed: {event.message}")
-                trained += isinstance(event, ModelsUpdated)
+            # New agents wait for no retraining, so wait here for models trained on the whole
+            # warm-up: else the timed copies would start with the run still exploring, their
+            # actions random and almost free.
+            warmup_steps = sum(r.steps for r in warmup)
+            wait_for_models(events, warmup_steps)
             started = time.monotonic()
             results = learn(
                 args.env, args.episodes, seed=seed, num_envs=num_envs,
@@ -81,7 +77,6 @@ def one(
             seconds = time.monotonic() - started
             evaluated = math.nan
             if args.evaluate:
-                warmup_steps = sum(r.steps for r in warmup)
                 wait_for_models(events, warmup_steps + sum(r.steps for r in results))
                 # The same start states in every configuration (the run's seed seeds the
                 # first reset); a new agent plans at once.
