@@ -20,11 +20,13 @@
 //! the run queue, and it survives restarts. Everything a finished run leaves under `runs/` is
 //! ready to commit the moment it finishes; `logs/` and `planner/` are not meant to be.
 //!
-//! **Budgets.** A sitting may have a wall-clock budget: then it starts runs longest first and
-//! only those whose estimated remaining cost fits the time left ([`crate::queue`]), stops what
-//! is still running at the deadline, and packs every unfinished run's replay log and newest
-//! checkpoint into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from which a later
-//! sitting — on a fresh clone too — continues it.
+//! **Budgets.** A sitting may have a wall-clock budget: then it starts runs longest first and only
+//! those whose estimated remaining cost fits the time left ([`crate::queue`]), stops a running run
+//! between two episodes when its next one would end after the deadline (so that its buffer holds
+//! exactly its recorded episodes), stops what still runs at the deadline itself (an episode the
+//! estimate did not foresee), and packs every unfinished run's replay log and newest checkpoint
+//! into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from which a later sitting — on a
+//! fresh clone too — continues it.
 //!
 //! **Resuming a half-finished run.** A run keeps one daemon run name for its whole life
 //! (`<task>-<method>-s<seed>`), and the daemon's data lives in `<out>/planner/`, so a restarted
@@ -36,13 +38,14 @@
 //! `.csv.partial` when the bridge ends (and, after a crash of the launcher itself, when the
 //! run is next started), so no recorded episode is lost or counted twice.
 //!
-//! What is identical to an uninterrupted run: the recorded episodes, the training data and
-//! every episode's start state. What is not: the episode that was cut short stays in the
-//! daemon's buffer as an interrupted episode (it is trained on), a retraining that was under
-//! way is redone from the newest checkpoint, the planner's random stream restarts from the
-//! run's seed when the daemon reopens the run, and an episode the daemon finished whose row the
-//! killed bridge had not yet written is played once more (the daemon then holds one episode
-//! more than the CSV, and the CSV's episode numbers skip one).
+//! What is identical to an uninterrupted run: the recorded episodes, the training data and every
+//! episode's start state. What is not: an episode cut short (a killed launcher, or a deadline the
+//! estimate did not foresee; a budget otherwise stops runs between episodes) stays in the daemon's
+//! buffer as an interrupted episode (it is trained on), a retraining that was under way is redone
+//! from the newest checkpoint, the planner's random stream restarts from the run's seed when the
+//! daemon reopens the run, and an episode the daemon finished whose row the killed bridge had not
+//! yet written is played once more (the daemon then holds one episode more than the CSV, and the
+//! CSV's episode numbers skip one).
 
 use crate::manifest::Manifest;
 use crate::method::Method;
@@ -591,6 +594,11 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
         cmd.spawn()
             .with_context(|| format!("starting {}", exp.bin_dir.join("sim-bridge").display()))?,
     );
+    // What the run's method has measured so far, for the next episode's estimate.
+    let cost = queue::method_costs(&recorded_rows(&exp.out, manifest))
+        .get(&run.method)
+        .copied();
+    let episode_len = manifest.task.task().spec().episode_len;
     let bar = progress.start_run(&run.stem());
     let mut seen = 0;
     let mut stopped_at_deadline = false;
@@ -605,6 +613,24 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
                 progress.episode(&bar, &run.stem(), count, row, manifest.episodes);
             }
             seen = done;
+            // At an episode boundary the bridge waits for the retraining before its next
+            // episode's first action: stopping it there loses no planned step.
+            let left = ctx
+                .deadline
+                .map(|d| d.saturating_duration_since(Instant::now()));
+            let next = rows
+                .last()
+                .and_then(|last| queue::next_episode(last, cost, episode_len));
+            if status.is_none() && !stopped_at_deadline && queue::stop_at_boundary(left, next) {
+                progress.log(&format!(
+                    "run {} stops after this episode: the next (about {}) would end after \
+                     the budget's deadline",
+                    run.stem(),
+                    next.map_or_else(String::new, minutes)
+                ));
+                stopped_at_deadline = true;
+                terminate(&child.0);
+            }
         }
         if let Some(status) = status {
             break status;

@@ -88,14 +88,15 @@ struct ExperimentArgs {
     #[arg(long)]
     energy_noise_units: Option<proto::NoiseUnits>,
     /// Wall-clock budget of this sitting (e.g. 90m, 6h, 1h30m): runs start longest first and
-    /// only when their estimated remaining time fits what is left; at the deadline what still
-    /// runs is stopped and every unfinished run keeps a resumable state under runs/. Re-run the
+    /// only when their estimated remaining time fits what is left; a run stops between two
+    /// episodes when its next would end after the deadline (what still runs at the deadline is
+    /// stopped there), and every unfinished run keeps a resumable state under runs/. Re-run the
     /// same command (on any machine, from a clone with the folder) to continue.
     #[arg(long, value_parser = ebmpc_experiments::queue::parse_duration)]
     budget: Option<std::time::Duration>,
     /// With --budget, start runs that are not expected to finish in the time left too (runs
     /// longer than any one sitting, e.g. PETS on half-cheetah on a small machine); they are
-    /// stopped at the deadline and resume in the next sitting.
+    /// stopped by the deadline (between episodes where possible) and resume in the next sitting.
     #[arg(long, requires = "budget")]
     overrun: bool,
     /// Candidates per iteration of every sampling method, instead of the scale's search: a

@@ -52,7 +52,9 @@ fn script(path: &Path, body: &str) {
 /// per run name stands for the daemon's replay). With FAIL_SEED=<seed> in its environment it
 /// fails after one episode for that seed; with HANG_SEED=<seed> it writes one episode for that
 /// seed, records its pid in `hung.pid` and hangs (a run in progress, for killing the
-/// launcher).
+/// launcher); with SLOW_SEED=<seed> it waits 5 s after each of that seed's episodes (a
+/// retraining) and, stopped there, writes how many episodes it had finished to `stopped-after`.
+/// WALL sets the wall seconds its rows report.
 ///
 /// The planner's `status --json` lists every run the bridges have written to, each with the
 /// kernel paths a daemon on an AMX machine would report.
@@ -93,9 +95,13 @@ e=$(cat "$state" 2>/dev/null || echo 0)
 last=$((e + episodes))
 echo "episode,return,steps,wall_seconds,planned_steps,plan_ms_mean,train_seconds" > "$out"
 while [ $e -lt $last ]; do
-  echo "$e,$((seed * 100 + e)).5,200,0.010,200,12.500,1.250" >> "$out"
+  echo "$e,$((seed * 100 + e)).5,200,${{WALL:-0.010}},200,12.500,1.250" >> "$out"
   e=$((e + 1))
   echo $e > "$state"
+  if [ "$SLOW_SEED" = "$seed" ]; then
+    trap "echo $e > {dir}/stopped-after; exit 143" TERM
+    sleep 5 & wait $!
+  fi
   if [ "$FAIL_SEED" = "$seed" ]; then exit 3; fi
   if [ "$HANG_SEED" = "$seed" ]; then echo $$ > "{dir}/hung.pid"; exec sleep 300; fi
 done
@@ -325,5 +331,56 @@ fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
     let third = experiment(&bins, &out, None);
     assert!(third.status.success());
     assert_eq!(calls(&bins).len(), 6);
+    std::fs::remove_dir_all(&bins).unwrap();
+}
+
+/// With a budget, a run whose next episode (as long as its last, 60 s) would end after the
+/// deadline stops at the episode boundary, in the wait before the next episode, rather than at
+/// the deadline with an episode cut short; the sitting ends with one recorded episode and the
+/// run resumable.
+#[test]
+fn a_budget_stops_a_run_between_episodes() {
+    let bins = temp_dir("bins-boundary");
+    fake_binaries(&bins);
+    let out = bins.join("results");
+    let started = std::time::Instant::now();
+    let output = exe()
+        .args(["experiment", "--task", "cartpole", "--methods", "cem"])
+        .args(["--seeds", "1", "--episodes", "3", "--scale", "small"])
+        .args(["--budget", "8s"])
+        .arg("--out")
+        .arg(&out)
+        .arg("--bin-dir")
+        .arg(&bins)
+        .env("SLOW_SEED", "0")
+        .env("WALL", "60.000")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    let stopped = std::fs::read_to_string(bins.join("stopped-after")).unwrap();
+    assert_eq!(
+        stopped.trim(),
+        "1",
+        "stopped after the first episode: {stderr}"
+    );
+    assert!(
+        stderr.contains("stops after this episode"),
+        "the launcher says why: {stderr}"
+    );
+    assert!(
+        !out.join("runs/cem-s0.csv").exists(),
+        "the run is unfinished"
+    );
+    let partial = std::fs::read_to_string(out.join("runs/cem-s0.csv.partial")).unwrap();
+    assert_eq!(
+        partial.lines().count(),
+        2,
+        "header and one episode: {partial}"
+    );
+    assert!(
+        started.elapsed() < std::time::Duration::from_secs(8),
+        "stopped before the deadline, not at it"
+    );
     std::fs::remove_dir_all(&bins).unwrap();
 }
