@@ -5,11 +5,12 @@
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
+use ebmpc_experiments::figures::imagination_folder::{self, Folder};
 use ebmpc_experiments::figures::{imagination, toy};
 use ebmpc_experiments::launcher::{self, Experiment};
 use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
 use ebmpc_experiments::scale::Scale;
-use ebmpc_experiments::{distance, replan, results};
+use ebmpc_experiments::{distance, provenance, replan, results};
 use proto::Builtin;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -181,13 +182,19 @@ struct ImaginationArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Runs, each learning from scratch with its own seed (≥ 3 for a confidence interval
-    /// worth the name).
+    /// worth the name). Seeds the output folder already holds are skipped: re-run the same
+    /// command to add the ones a sitting left.
     #[arg(long, default_value_t = 1)]
     seeds: u32,
     /// Start states compared per run (the paper shows 1).
     #[arg(long, default_value_t = 1)]
     states: u32,
-    /// Output folder (default: results/<task>/imagination-<scale>).
+    /// Wall-clock budget of this sitting (e.g. 90m, 1h30m): a seed starts only while the mean
+    /// time of the seeds recorded in the folder fits what is left (the first one always).
+    #[arg(long, value_parser = ebmpc_experiments::queue::parse_duration)]
+    budget: Option<std::time::Duration>,
+    /// Output folder (default: results/<task>/imagination-<scale>). It keeps every finished
+    /// seed; one with other settings is refused.
     #[arg(long)]
     out: Option<PathBuf>,
 }
@@ -417,39 +424,74 @@ fn imagination_command(args: ImaginationArgs) -> Result<()> {
             .join(args.task.name())
             .join(format!("imagination-{}", args.scale.name()))
     });
-    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let config = |seed: u64| imagination::ImaginationConfig {
+        task: args.task,
+        scale: args.scale,
+        plan_scale: args.plan_scale.unwrap_or(args.scale),
+        method: args.method.clone(),
+        train_episodes: args.episodes,
+        mpc_steps: args.mpc_steps,
+        inference_precision: args.inference_precision,
+        seed,
+        states: args.states,
+    };
+    let mut folder = Folder::open(&out, &imagination_folder::Settings::of(&config(args.seed)))?;
+    let exe_dir = std::env::current_exe()?
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_default();
+    let commit = provenance::binaries_commit(&exe_dir);
     let started = Instant::now();
-    let mut first = None;
-    let mut rows = Vec::new();
-    for s in 0..args.seeds.max(1) {
-        let config = imagination::ImaginationConfig {
-            task: args.task,
-            scale: args.scale,
-            plan_scale: args.plan_scale.unwrap_or(args.scale),
-            method: args.method.clone(),
-            train_episodes: args.episodes,
-            mpc_steps: args.mpc_steps,
-            inference_precision: args.inference_precision,
-            seed: args.seed.wrapping_add(u64::from(s)),
-            states: args.states,
-        };
+    let seeds: Vec<u64> = (0..args.seeds.max(1))
+        .map(|s| args.seed.wrapping_add(u64::from(s)))
+        .collect();
+    let mut left_for_later = Vec::new();
+    for &seed in &seeds {
+        if folder.finished().contains(&seed) {
+            tracing::info!("seed {seed}: already in {}, skipped", out.display());
+            continue;
+        }
+        let time_left = args.budget.map(|b| b.saturating_sub(started.elapsed()));
+        if let (Some(left), Some(per_seed)) = (time_left, folder.seconds_per_seed())
+            && per_seed > left
+        {
+            left_for_later.push(seed);
+            continue;
+        }
+        let seed_started = Instant::now();
+        let config = config(seed);
         let result = imagination::run(&config, |e, ret| {
             tracing::info!(
-                "seed {}: training episode {}/{}: return {ret:.2} ({:.0} s so far)",
-                config.seed,
+                "seed {seed}: training episode {}/{}: return {ret:.2} ({:.0} s so far)",
                 e + 1,
                 config.train_episodes,
                 started.elapsed().as_secs_f64()
             );
         })?;
-        rows.extend(result.states.iter().cloned());
-        imagination::write_csv(&out.join("imagination_states.csv"), &rows)?;
-        first.get_or_insert(result);
+        folder.record(seed, &result, seed_started.elapsed(), &commit)?;
+        // The per-step figure shows the first seed's first state.
+        if seed == args.seed {
+            std::fs::write(out.join("imagination.csv"), result.to_csv())?;
+            plot::save(&result, &out.join("imagination"), fonts::ensure())?;
+        }
     }
-    let result = first.context("no run")?;
-    std::fs::write(out.join("imagination.csv"), result.to_csv())?;
-    let [png, svg] = plot::save(&result, &out.join("imagination"), fonts::ensure())?;
-    let summary = imagination::summary(&rows);
+    if !left_for_later.is_empty() {
+        println!(
+            "seeds {left_for_later:?} do not fit the budget's remaining time (about {} each): \
+             re-run the same command to add them",
+            folder
+                .seconds_per_seed()
+                .map_or_else(String::new, |d| format!(
+                    "{:.0} min",
+                    d.as_secs_f64() / 60.0
+                ))
+        );
+    }
+    let rows = folder.rows();
+    if rows.is_empty() {
+        return Ok(());
+    }
+    let summary = imagination::summary(rows);
     imagination::write_csv(&out.join("imagination_summary.csv"), &summary)?;
     plot::save(
         &imagination::SummaryFigure(&summary),
@@ -458,7 +500,7 @@ fn imagination_command(args: ImaginationArgs) -> Result<()> {
     )?;
     println!(
         "over {} seed(s) and their start states (95 % bootstrap intervals):",
-        args.seeds
+        folder.finished().len()
     );
     for r in &summary {
         println!(
@@ -474,10 +516,9 @@ fn imagination_command(args: ImaginationArgs) -> Result<()> {
         );
     }
     println!(
-        "wrote {}, imagination_states.csv, imagination_summary.{{csv,png,svg}}, {} and {} in {:.1} min",
-        out.join("imagination.csv").display(),
-        png.display(),
-        svg.display(),
+        "wrote {} (imagination_states.csv, imagination_seeds.csv, imagination_summary.{{csv,png,svg}}, \
+         and the first seed's imagination.{{csv,png,svg}}) in {:.1} min",
+        out.display(),
         started.elapsed().as_secs_f64() / 60.0
     );
     Ok(())

@@ -384,3 +384,87 @@ fn a_budget_stops_a_run_between_episodes() {
     );
     std::fs::remove_dir_all(&bins).unwrap();
 }
+
+/// `imagination` into one folder over two sittings: the second skips the seed the first
+/// recorded and adds the next; a budget the recorded seeds' mean time does not fit leaves a seed
+/// for later; other settings in the same folder are refused.
+#[test]
+fn imagination_seeds_accumulate_in_their_folder() {
+    let out = temp_dir("imagination-folder");
+    let imagination = |seeds: &str, mpc_steps: &str, budget: Option<&str>| {
+        let mut cmd = exe();
+        cmd.args(["imagination", "--task", "cartpole", "--scale", "small"])
+            .args(["--plan-scale", "small", "--episodes", "2", "--states", "2"])
+            .args(["--mpc-steps", mpc_steps, "--seeds", seeds])
+            .arg("--out")
+            .arg(&out);
+        if let Some(budget) = budget {
+            cmd.args(["--budget", budget]);
+        }
+        cmd.output().unwrap()
+    };
+    let seeds_in = |out: &Path| -> Vec<String> {
+        std::fs::read_to_string(out.join("imagination_seeds.csv"))
+            .unwrap()
+            .lines()
+            .skip(1)
+            .map(|l| l.split(',').next().unwrap().to_string())
+            .collect()
+    };
+    let first = imagination("1", "5", None);
+    assert!(
+        first.status.success(),
+        "{}",
+        String::from_utf8_lossy(&first.stderr)
+    );
+    assert_eq!(seeds_in(&out), ["0"]);
+    let states = std::fs::read_to_string(out.join("imagination_states.csv")).unwrap();
+    let figure = std::fs::read(out.join("imagination.csv")).unwrap();
+
+    // Seed 0's wall time is far more than a second: a 1 s budget starts nothing new.
+    let short = imagination("2", "5", Some("1s"));
+    assert!(
+        short.status.success(),
+        "{}",
+        String::from_utf8_lossy(&short.stderr)
+    );
+    assert!(
+        String::from_utf8_lossy(&short.stdout).contains("seeds [1] do not fit"),
+        "{}",
+        String::from_utf8_lossy(&short.stdout)
+    );
+    assert_eq!(seeds_in(&out), ["0"]);
+
+    let second = imagination("2", "5", None);
+    assert!(
+        second.status.success(),
+        "{}",
+        String::from_utf8_lossy(&second.stderr)
+    );
+    assert!(
+        String::from_utf8_lossy(&second.stderr).contains("seed 0: already in"),
+        "{}",
+        String::from_utf8_lossy(&second.stderr)
+    );
+    assert_eq!(seeds_in(&out), ["0", "1"]);
+    let both = std::fs::read_to_string(out.join("imagination_states.csv")).unwrap();
+    assert!(
+        both.starts_with(&states),
+        "seed 0's rows are kept as they were"
+    );
+    assert_eq!(
+        both.lines().count(),
+        1 + 2 * 2 * 3,
+        "2 seeds x 2 states x 3 regularisers"
+    );
+    assert_eq!(std::fs::read(out.join("imagination.csv")).unwrap(), figure);
+
+    let other = imagination("2", "7", None);
+    assert!(!other.status.success());
+    assert!(
+        String::from_utf8_lossy(&other.stderr).contains("another comparison"),
+        "{}",
+        String::from_utf8_lossy(&other.stderr)
+    );
+    std::fs::remove_dir_all(&out).unwrap();
+}

@@ -2,7 +2,9 @@
 //!
 //! - [`toy`]: Figure 3, DEEN and DAE score estimates on a 1-D Gaussian mixture.
 //! - [`imagination`]: Figure 5, imagined against real rewards of plans optimised with each
-//!   regulariser from a state reached by MPC.
+//!   regulariser from a state reached by MPC; [`imagination_folder`] keeps its seeds, so that
+//!   they accumulate over sittings.
 
 pub mod imagination;
+pub mod imagination_folder;
 pub mod toy;
