@@ -87,6 +87,13 @@ impl Folder {
                 }
             }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                if dir.join("imagination_states.csv").exists() {
+                    bail!(
+                        "{} holds rows of a comparison whose settings were not recorded: use \
+                         another --out",
+                        dir.display()
+                    );
+                }
                 std::fs::write(&path, serde_json::to_string_pretty(settings)? + "\n")
                     .with_context(|| format!("writing {}", path.display()))?;
             }
@@ -254,6 +261,10 @@ mod tests {
         let err = Folder::open(&dir, &Settings::of(&other)).err().unwrap();
         assert!(format!("{err:#}").contains("another comparison"), "{err:#}");
         assert_eq!(Folder::open(&dir, &settings).unwrap().rows().len(), 12);
+        // So is a folder of rows whose settings nobody recorded (made by an older command).
+        std::fs::remove_file(dir.join("imagination.json")).unwrap();
+        let err = Folder::open(&dir, &settings).err().unwrap();
+        assert!(format!("{err:#}").contains("not recorded"), "{err:#}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
