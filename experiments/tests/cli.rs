@@ -356,8 +356,8 @@ fn a_budget_stops_a_run_between_episodes() {
         .env("WALL", "60.000")
         .output()
         .unwrap();
+    succeeded(&output);
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "{stderr}");
     let stopped = std::fs::read_to_string(bins.join("stopped-after")).unwrap();
     assert_eq!(
         stopped.trim(),
@@ -412,40 +412,20 @@ fn imagination_seeds_accumulate_in_their_folder() {
             .collect()
     };
     let first = imagination("1", "5", None);
-    assert!(
-        first.status.success(),
-        "{}",
-        String::from_utf8_lossy(&first.stderr)
-    );
+    succeeded(&first);
     assert_eq!(seeds_in(&out), ["0"]);
     let states = std::fs::read_to_string(out.join("imagination_states.csv")).unwrap();
     let figure = std::fs::read(out.join("imagination.csv")).unwrap();
 
     // Seed 0's wall time is far more than a second: a 1 s budget starts nothing new.
     let short = imagination("2", "5", Some("1s"));
-    assert!(
-        short.status.success(),
-        "{}",
-        String::from_utf8_lossy(&short.stderr)
-    );
-    assert!(
-        String::from_utf8_lossy(&short.stdout).contains("seeds [1] do not fit"),
-        "{}",
-        String::from_utf8_lossy(&short.stdout)
-    );
+    succeeded(&short);
+    says(&short.stdout, "seeds [1] do not fit");
     assert_eq!(seeds_in(&out), ["0"]);
 
     let second = imagination("2", "5", None);
-    assert!(
-        second.status.success(),
-        "{}",
-        String::from_utf8_lossy(&second.stderr)
-    );
-    assert!(
-        String::from_utf8_lossy(&second.stderr).contains("seed 0: already in"),
-        "{}",
-        String::from_utf8_lossy(&second.stderr)
-    );
+    succeeded(&second);
+    says(&second.stderr, "seed 0: already in");
     assert_eq!(seeds_in(&out), ["0", "1"]);
     let both = std::fs::read_to_string(out.join("imagination_states.csv")).unwrap();
     assert!(
@@ -461,10 +441,21 @@ fn imagination_seeds_accumulate_in_their_folder() {
 
     let other = imagination("2", "7", None);
     assert!(!other.status.success());
-    assert!(
-        String::from_utf8_lossy(&other.stderr).contains("another comparison"),
-        "{}",
-        String::from_utf8_lossy(&other.stderr)
-    );
+    says(&other.stderr, "another comparison");
     std::fs::remove_dir_all(&out).unwrap();
+}
+
+/// Fails the test with the command's stderr unless it succeeded.
+fn succeeded(output: &std::process::Output) {
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+/// Fails the test unless `stream` (a command's stdout or stderr) contains `text`.
+fn says(stream: &[u8], text: &str) {
+    let stream = String::from_utf8_lossy(stream);
+    assert!(stream.contains(text), "no `{text}` in: {stream}");
 }
