@@ -471,11 +471,16 @@ pub fn write_csv<T: serde::Serialize>(path: &std::path::Path, rows: &[T]) -> Res
     Ok(())
 }
 
-/// Reads the rows [`write_csv`] wrote of [`StateRow`]s.
-pub fn read_state_rows(path: &std::path::Path) -> Result<Vec<StateRow>> {
+/// Reads rows that [`write_csv`] wrote.
+pub fn read_csv<T: serde::de::DeserializeOwned>(path: &std::path::Path) -> Result<Vec<T>> {
     let mut r =
         csv::Reader::from_path(path).with_context(|| format!("reading {}", path.display()))?;
     Ok(r.deserialize().collect::<Result<_, _>>()?)
+}
+
+/// Reads the rows [`write_csv`] wrote of [`StateRow`]s.
+pub fn read_state_rows(path: &std::path::Path) -> Result<Vec<StateRow>> {
+    read_csv(path)
 }
 
 /// One statistic of a summary row: `(mean, interval low, interval high)`.

@@ -10,7 +10,9 @@
 //! already holds; a seed cut off before it finished left nothing behind (its rows are written
 //! when it ends) and runs again from scratch.
 
-use super::imagination::{ImaginationConfig, ImaginationResult, StateRow, read_state_rows};
+use super::imagination::{
+    ImaginationConfig, ImaginationResult, StateRow, read_csv, read_state_rows,
+};
 use crate::provenance::Machine;
 use anyhow::{Context, Result, bail};
 use std::collections::BTreeSet;
@@ -107,9 +109,7 @@ impl Folder {
         };
         let seeds_path = dir.join("imagination_seeds.csv");
         let seeds = if seeds_path.exists() {
-            let mut r = csv::Reader::from_path(&seeds_path)
-                .with_context(|| format!("reading {}", seeds_path.display()))?;
-            r.deserialize().collect::<Result<_, _>>()?
+            read_csv(&seeds_path)?
         } else {
             Vec::new()
         };
