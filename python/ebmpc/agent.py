@@ -124,6 +124,7 @@ class Agent:
         )
         payload = wire.encode(request)
         deadline = time.monotonic() + patience
+        failure = None
         while True:
             wait = max(0.5, min(5.0, deadline - time.monotonic()))
             # Every planner gets the query; only the run's owner answers.
@@ -136,8 +137,10 @@ class Agent:
                 consolidation=zenoh.ConsolidationMode.NONE,
             ):
                 if reply.ok is None:
-                    reason = reply.err.payload.to_string() if reply.err else "no reason given"
-                    raise ProtocolError(f"attach query on `{key}` failed: {reason}")
+                    # zenoh's own error (the query timed out while a planner was still
+                    # loading the run, say): planners refuse inside an attach reply. Ask again.
+                    failure = reply.err.payload.to_string() if reply.err else "no reason given"
+                    continue
                 answer = wire.decode(reply.ok.payload.to_bytes(), "attach reply")
                 outcome = answer.get("outcome")
                 if not isinstance(outcome, dict):
@@ -148,7 +151,10 @@ class Agent:
                 self._wait_until_planner_listens(deadline)
                 return
             if time.monotonic() + 0.5 >= deadline:
-                raise NoPlannerError(f"no planner answered on `{key}` within {patience:g} s")
+                last = f"; the last query ended in: {failure}" if failure else ""
+                raise NoPlannerError(
+                    f"no planner answered on `{key}` within {patience:g} s{last}"
+                )
             time.sleep(0.5)
 
     def _accept(self, accepted: Any) -> None:

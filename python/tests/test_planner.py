@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import threading
+import time
 from typing import Any, Dict, List, Tuple
 
 import pytest
@@ -183,3 +184,42 @@ def test_no_planner_is_an_error_not_a_hang() -> None:
             planner.attach("py-run", "cartpole", timeout=1)
         with pytest.raises(ebmpc.NoPlannerError):
             planner.status(timeout=0.5)
+
+
+def test_an_attach_query_that_times_out_is_asked_again() -> None:
+    """A planner taking a run over may need longer than one attach query waits (it loads the
+    run's replay and models): zenoh then ends the query with its own error reply, which is no
+    refusal. The agent asks again until its patience runs out."""
+    endpoint = free_endpoint()
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    slow_planner = zenoh.open(config)
+    queries: List[float] = []
+    held: List[zenoh.Query] = []
+
+    def answer(query: zenoh.Query) -> None:
+        queries.append(time.monotonic())
+        if len(queries) == 1:
+            held.append(query)  # still loading: never answered, so the query times out
+            return
+        accepted = {
+            "planner_id": "slow", "task": "cartpole", "mode": "sync", "episodes_done": 0,
+            "models_version": 0, "next_episode": 0, "epoch": 1, "session": 7,
+        }
+        reply = {"version": ebmpc.PROTOCOL_VERSION, "outcome": {"Accepted": accepted}}
+        query.reply(query.key_expr, json.dumps(reply), encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    queryable = slow_planner.declare_queryable("ebmpc/runs/py-slow/attach", answer)
+    listener = slow_planner.declare_subscriber("ebmpc/runs/py-slow/agents/*/obs", lambda _: None)
+    try:
+        with ebmpc.Planner(connect=endpoint) as planner:
+            agent = planner.attach("py-slow", "cartpole", timeout=12)
+            assert (agent.planner_id, agent.session, agent.epoch) == ("slow", 7, 1)
+            assert len(queries) == 2 and queries[1] - queries[0] >= 4.5, queries
+            agent.close()
+    finally:
+        listener.undeclare()
+        queryable.undeclare()
+        held.clear()
+        slow_planner.close()

@@ -119,8 +119,10 @@ impl Client {
     }
 
     /// Sends `payload` (any bytes, in `mime`) as an attach query for `run` and decodes the
-    /// reply, retrying while no planner answers (it may be starting).
+    /// reply, retrying while no planner answers (it may be starting, or taking the run over
+    /// from a planner that died), as the sim-bridge does.
     pub async fn attach_raw(&self, run: &str, payload: Vec<u8>, mime: &str) -> Result<AttachReply> {
+        let mut last_error = None;
         for _ in 0..300 {
             // Every planner gets the query, only the run's owner answers.
             let replies = self
@@ -133,15 +135,26 @@ impl Client {
                 .timeout(Duration::from_secs(5))
                 .await
                 .map_err(|e| anyhow!("attach query: {e}"))?;
-            if let Ok(reply) = replies.recv_async().await {
-                let sample = reply
-                    .result()
-                    .map_err(|e| anyhow!("attach error reply: {e:?}"))?;
-                return decode(sample);
+            // An error reply is zenoh's, not a planner's (planners refuse inside an
+            // `AttachReply`): the query timed out while a taking-over planner was still
+            // loading the run, say. The next query gets the answer.
+            while let Ok(reply) = replies.recv_async().await {
+                match reply.result() {
+                    Ok(sample) => return decode(sample),
+                    Err(e) => {
+                        last_error =
+                            Some(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned())
+                    }
+                }
             }
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
-        bail!("attach to `{run}` got no reply")
+        match last_error {
+            Some(error) => {
+                bail!("attach to `{run}` got no answer; the last query ended in: {error}")
+            }
+            None => bail!("attach to `{run}` got no reply"),
+        }
     }
 
     /// Publishes raw bytes on this agent's observation key (or another run's) with a MIME type.

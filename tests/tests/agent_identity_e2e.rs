@@ -207,3 +207,50 @@ fn a_vanished_agents_name_can_be_attached_again() {
     });
     planner.stop().unwrap();
 }
+
+#[test]
+fn an_agent_whose_attach_answer_was_lost_asks_again_with_its_old_token() {
+    let dir = TempDir::new("identity-lost-answer");
+    let mut planner = start(&dir);
+    runtime().block_on(async {
+        let agent = Client::connect(&planner.endpoint, RUN, AGENT)
+            .await
+            .unwrap();
+        let old = agent.attach(&spec()).await.unwrap().session;
+        let accepted = |reply: proto::AttachReply| match reply.outcome {
+            AttachOutcome::Accepted(accepted) => accepted.session,
+            AttachOutcome::Rejected(report) => panic!("refused: {report}"),
+        };
+        // The agent reconnects with its token, but the answer (a new session) never reaches
+        // it: its query timed out while the planner was still taking the run over, say.
+        let lost = accepted(
+            agent
+                .attach_raw(RUN, attach_request(Some(old)), Encoding::Postcard.mime())
+                .await
+                .unwrap(),
+        );
+        assert_ne!(lost, old);
+        // It asks again with the token it has: that is the agent, let in again.
+        let again = agent.attach(&spec()).await.unwrap();
+        assert!(again.session != old && again.session != lost);
+        // The lost session's token is dead, and it is no key to the name either.
+        let reply = agent
+            .attach_raw(RUN, attach_request(Some(lost)), Encoding::Postcard.mime())
+            .await
+            .unwrap();
+        assert!(
+            matches!(&reply.outcome, AttachOutcome::Rejected(r) if r.message.contains("and live")),
+            "{reply:?}"
+        );
+        let obs = Observation::new(
+            again.next_episode,
+            0,
+            ToySystem::new(3).state.to_vec(),
+            None,
+            None,
+        );
+        agent.step(&obs).await.unwrap();
+        agent.close().await.unwrap();
+    });
+    planner.stop().unwrap();
+}

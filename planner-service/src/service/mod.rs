@@ -98,6 +98,10 @@ struct AgentHandle {
     task: JoinHandle<()>,
     /// The session token handed to the agent at attach; its observations must carry it.
     session: u64,
+    /// The token the agent presented when it attached (its previous session's, or none). An
+    /// agent whose attach answer never reached it (the query timed out while this planner
+    /// was still taking the run over) asks again with that same token, and is the agent.
+    attached_with: Option<u64>,
     /// The agent's liveliness token went away (it is lingering for [`AGENT_LINGER`]): it
     /// counts as vanished, and its name may be attached again by anyone.
     token_gone: bool,
@@ -109,6 +113,13 @@ impl AgentHandle {
     /// `[limits] agent_idle_seconds` without a liveliness token.)
     fn is_live(&self) -> bool {
         !self.task.is_finished() && !self.token_gone
+    }
+
+    /// Whether an attach presenting `token` comes from this agent: it holds the session's
+    /// token, or it asks again with the token it attached with, never having received the
+    /// answer that carried the new one.
+    fn is_held_by(&self, token: Option<u64>) -> bool {
+        token == Some(self.session) || (token.is_some() && token == self.attached_with)
     }
 
     /// The agent's observations waiting for an answer: in its inbox, or planned but waiting
@@ -781,10 +792,10 @@ impl Service {
         // Sessions that ended (idle without a liveliness token) free their slots.
         handle.agents.retain(|_, a| !a.task.is_finished());
         if let Some(current) = handle.agents.get(&request.agent) {
-            // A live session is replaced only by the agent that holds its token (reconnecting);
-            // anyone else using the name is refused, and the live agent never notices.
-            let reconnecting = request.session == Some(current.session);
-            if current.is_live() && !reconnecting {
+            // A live session is replaced only by the agent that holds its token (reconnecting,
+            // or asking again for an answer it never got); anyone else using the name is
+            // refused, and the live agent never notices.
+            if current.is_live() && !current.is_held_by(request.session) {
                 let idle = self.config.limits.agent_idle_seconds;
                 return Err(refuse(format!(
                     "agent `{}` is attached to run `{run_name}` and live: attach under another name, attach again with its session token, or wait until it vanished (its liveliness token gone, or {idle} s idle without one)",
@@ -831,6 +842,7 @@ impl Service {
                 plans_waiting,
                 task,
                 session,
+                attached_with: request.session,
                 token_gone: false,
             },
         );
