@@ -578,6 +578,11 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
         .args(["--seed", &run.seed.to_string()])
         .args(["--preset", &preset])
         .args(["--connect", ctx.endpoint])
+        // Sittings run at SCHED_IDLE beside other work, where a plan (or a retraining) can
+        // wait minutes for a core: a slow answer is no failure here. A planner that dies is
+        // still seen at once (the bridge watches its liveliness), and the budget bounds a
+        // sitting.
+        .args(["--action-timeout", "3600"])
         .args(["--train-timeout", "86400"])
         .arg("--out")
         .arg(&attempt)
