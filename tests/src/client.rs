@@ -320,14 +320,21 @@ pub async fn status(session: &zenoh::Session, planner_id: &str) -> Result<Planne
             .timeout(Duration::from_secs(10))
             .await
             .map_err(|e| anyhow!("status query: {e}"))?;
-        if let Ok(reply) = replies.recv_async().await {
-            let sample = reply
-                .result()
-                .map_err(|e| anyhow!("status error reply: {e:?}"))?;
-            return Ok(serde_json::from_slice(&sample.payload().to_bytes())?);
+        // An error reply is zenoh's (the query timed out on a busy machine): ask again.
+        let mut last_error = None;
+        while let Ok(reply) = replies.recv_async().await {
+            match reply.result() {
+                Ok(sample) => return Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
+                Err(e) => {
+                    last_error = Some(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned())
+                }
+            }
         }
         if tokio::time::Instant::now() >= deadline {
-            bail!("planner `{planner_id}` did not answer the status query");
+            bail!(
+                "planner `{planner_id}` did not answer the status query{}",
+                last_error.map_or_else(String::new, |e| format!(" (the last query ended in: {e})"))
+            );
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
