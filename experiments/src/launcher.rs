@@ -268,11 +268,19 @@ fn plan_queue(dir: &Path, manifest: &Manifest, pending: &[RunId]) -> Vec<Pending
     let mut out: Vec<Pending<RunId>> = pending
         .iter()
         .map(|run| {
-            let estimate = remaining_of(&run.partial_csv(dir), manifest)
-                .and_then(|left| queue::estimate(left, *costs.get(&run.method)?, episode_len));
+            let cost = costs.get(&run.method).copied();
+            let partial = run.partial_csv(dir);
+            let estimate = remaining_of(&partial, manifest)
+                .and_then(|left| queue::estimate(left, cost?, episode_len));
+            // A resumed run's next episode costs what its last one did; a new run's first is
+            // random exploration (cheap), left unestimated.
+            let next_episode = results::read_run_csv(&partial, "", "", 0)
+                .ok()
+                .and_then(|rows| queue::next_episode(rows.last()?, cost, episode_len));
             Pending {
                 run: run.clone(),
                 estimate,
+                next_episode,
             }
         })
         .collect();

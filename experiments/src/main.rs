@@ -96,8 +96,9 @@ struct ExperimentArgs {
     #[arg(long, value_parser = ebmpc_experiments::queue::parse_duration)]
     budget: Option<std::time::Duration>,
     /// With --budget, start runs that are not expected to finish in the time left too (runs
-    /// longer than any one sitting, e.g. PETS on half-cheetah on a small machine); they are
-    /// stopped by the deadline (between episodes where possible) and resume in the next sitting.
+    /// longer than any one sitting, e.g. PETS on half-cheetah on a small machine) while their
+    /// next episode fits; they are stopped by the deadline (between episodes where possible)
+    /// and resume in the next sitting.
     #[arg(long, requires = "budget")]
     overrun: bool,
     /// Candidates per iteration of every sampling method, instead of the scale's search: a

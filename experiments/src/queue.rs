@@ -17,9 +17,9 @@
 //!   start while the whole budget is ahead, the short ones fill what is left.
 //! - **Whole runs only.** With a budget, a run whose estimate exceeds the time left is not
 //!   started in this sitting (it waits for the next one), unless the sitting allows overruns:
-//!   then it starts anyway, is stopped before the deadline and keeps a resumable state
-//!   ([`crate::resume_state`]). A run without an estimate starts; if it is still running at
-//!   the deadline it is stopped the same way.
+//!   then it starts anyway if at least its next episode fits, is stopped before the deadline
+//!   and keeps a resumable state ([`crate::resume_state`]). A run without an estimate starts;
+//!   if it is still running at the deadline it is stopped the same way.
 //! - **Stops between episodes.** A running run stops at the episode boundary after which its
 //!   next episode ([`next_episode`]) would end past the deadline ([`stop_at_boundary`]), so a
 //!   stopped run's data are its recorded episodes; the deadline itself stops only an episode
@@ -132,6 +132,9 @@ pub fn stop_at_boundary(left: Option<Duration>, next: Option<Duration>) -> bool 
 pub struct Pending<R> {
     pub run: R,
     pub estimate: Option<Duration>,
+    /// Its next episode's estimate ([`next_episode`]); `None` for a run not started yet, whose
+    /// first episode is random exploration.
+    pub next_episode: Option<Duration>,
 }
 
 /// Sorts `pending` longest first: runs without an estimate first (in their given order), then
@@ -157,8 +160,9 @@ pub enum Start {
 }
 
 /// Takes the next run to start from `queue` (sorted by [`longest_first`]): the first that
-/// fits in `left` (no budget: the first), or with `overrun` the first of all. `None` when no
-/// run may start in this sitting.
+/// fits in `left` (no budget: the first), or with `overrun` the first whose next episode fits
+/// (a run started with less would only be stopped again at its first boundary). `None` when
+/// no run may start in this sitting.
 pub fn next<R>(
     queue: &mut Vec<Pending<R>>,
     left: Option<Duration>,
@@ -171,7 +175,9 @@ pub fn next<R>(
         (_, None) => Some(Start::Whole),
         (None, Some(_)) => Some(Start::Unmeasured),
         (Some(e), Some(l)) if e <= l => Some(Start::Whole),
-        (Some(_), Some(_)) => overrun.then_some(Start::Overrun),
+        (Some(_), Some(l)) => {
+            (overrun && p.next_episode.is_none_or(|e| e <= l)).then_some(Start::Overrun)
+        }
     };
     let (index, start) = queue
         .iter()
@@ -366,6 +372,7 @@ mod tests {
             .map(|&(run, mins)| Pending {
                 run,
                 estimate: mins.map(|m| Duration::from_secs(60 * m)),
+                next_episode: None,
             })
             .collect()
     }
@@ -407,6 +414,21 @@ mod tests {
         let (p, start) = next(&mut queue, None, false).unwrap();
         assert_eq!((p.run, start), ("c", Start::Whole));
         assert!(next(&mut queue, None, false).is_none());
+    }
+
+    #[test]
+    fn an_overrun_starts_only_a_run_whose_next_episode_fits() {
+        let minutes = |m: u64| Some(Duration::from_secs(60 * m));
+        let mut queue = pending(&[("resumed", Some(30)), ("new", Some(20))]);
+        queue[0].next_episode = minutes(3);
+        // 2 minutes left: the resumed run's next episode (3 min) would be stopped at once;
+        // the new run starts with its random episode.
+        let (p, start) = next(&mut queue, minutes(2), true).unwrap();
+        assert_eq!((p.run, start), ("new", Start::Overrun));
+        assert!(next(&mut queue, minutes(2), true).is_none());
+        // With 5 minutes it starts.
+        let (p, start) = next(&mut queue, minutes(5), true).unwrap();
+        assert_eq!((p.run, start), ("resumed", Start::Overrun));
     }
 
     #[test]
