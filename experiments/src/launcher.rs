@@ -154,10 +154,15 @@ impl RunId {
     }
 }
 
-/// What remains of `run` given the episodes its files record (`None`: it is complete).
+/// What remains of a run given the episodes its file records (`None`: it is complete).
 fn remaining_of(file: &Path, manifest: &Manifest) -> Option<queue::Remaining> {
-    let (episodes, steps) = results::recorded(file);
-    queue::remaining(manifest.episodes, manifest.timesteps, episodes, steps)
+    remaining_after(&results::recorded(file), manifest)
+}
+
+/// What remains of a run after its recorded episodes `rows` (`None`: it is complete).
+fn remaining_after(rows: &[EpisodeRow], manifest: &Manifest) -> Option<queue::Remaining> {
+    let steps = rows.iter().map(|r| u64::from(r.steps)).sum();
+    queue::remaining(manifest.episodes, manifest.timesteps, rows.len(), steps)
 }
 
 /// Every run of the manifest, methods first then seeds, with whether it is already complete.
@@ -269,14 +274,14 @@ fn plan_queue(dir: &Path, manifest: &Manifest, pending: &[RunId]) -> Vec<Pending
         .iter()
         .map(|run| {
             let cost = costs.get(&run.method).copied();
-            let partial = run.partial_csv(dir);
-            let estimate = remaining_of(&partial, manifest)
+            let rows = results::recorded(&run.partial_csv(dir));
+            let estimate = remaining_after(&rows, manifest)
                 .and_then(|left| queue::estimate(left, cost?, episode_len));
             // A resumed run's next episode costs what its last one did; a new run's first is
             // random exploration (cheap), left unestimated.
-            let next_episode = results::read_run_csv(&partial, "", "", 0)
-                .ok()
-                .and_then(|rows| queue::next_episode(rows.last()?, cost, episode_len));
+            let next_episode = rows
+                .last()
+                .and_then(|last| queue::next_episode(last, cost, episode_len));
             Pending {
                 run: run.clone(),
                 estimate,

@@ -168,11 +168,10 @@ pub fn count_rows(path: &Path) -> usize {
         .unwrap_or(0)
 }
 
-/// The episodes and steps a run file records ((0, 0) if it does not exist or cannot be read).
-pub fn recorded(path: &Path) -> (usize, u64) {
-    read_run_csv(path, "", "", 0)
-        .map(|rows| (rows.len(), rows.iter().map(|r| u64::from(r.steps)).sum()))
-        .unwrap_or((0, 0))
+/// The episodes a run file records (none if it does not exist or cannot be read), with its
+/// own columns only (task, method and seed left empty).
+pub fn recorded(path: &Path) -> Vec<EpisodeRow> {
+    read_run_csv(path, "", "", 0).unwrap_or_default()
 }
 
 /// Formats rows as `episodes.csv` (header included).

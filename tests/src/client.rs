@@ -138,14 +138,9 @@ impl Client {
             // An error reply is zenoh's, not a planner's (planners refuse inside an
             // `AttachReply`): the query timed out while a taking-over planner was still
             // loading the run, say. The next query gets the answer.
-            while let Ok(reply) = replies.recv_async().await {
-                match reply.result() {
-                    Ok(sample) => return decode(sample),
-                    Err(e) => {
-                        last_error =
-                            Some(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned())
-                    }
-                }
+            match first_sample(&replies).await {
+                Ok(sample) => return decode(&sample),
+                Err(error) => last_error = error.or(last_error),
             }
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
@@ -309,6 +304,23 @@ fn decode<T: serde::de::DeserializeOwned>(sample: &Sample) -> Result<T> {
     Ok(proto::decode(&sample.payload().to_bytes(), encoding)?)
 }
 
+/// The first sample a query's replies bring, or what the last of its error replies (zenoh's:
+/// a timeout, say) said, if any came.
+async fn first_sample(
+    replies: &zenoh::handlers::FifoChannelHandler<zenoh::query::Reply>,
+) -> std::result::Result<zenoh::sample::Sample, Option<String>> {
+    let mut last_error = None;
+    while let Ok(reply) = replies.recv_async().await {
+        match reply.into_result() {
+            Ok(sample) => return Ok(sample),
+            Err(e) => {
+                last_error = Some(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned())
+            }
+        }
+    }
+    Err(last_error)
+}
+
 /// Queries a planner's status over `session`, asking again for up to 10 s while no answer
 /// comes (a peer session that just connected to a router does not know the planners'
 /// queryables yet, and its query then ends at once with no answer).
@@ -321,15 +333,10 @@ pub async fn status(session: &zenoh::Session, planner_id: &str) -> Result<Planne
             .await
             .map_err(|e| anyhow!("status query: {e}"))?;
         // An error reply is zenoh's (the query timed out on a busy machine): ask again.
-        let mut last_error = None;
-        while let Ok(reply) = replies.recv_async().await {
-            match reply.result() {
-                Ok(sample) => return Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
-                Err(e) => {
-                    last_error = Some(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned())
-                }
-            }
-        }
+        let last_error = match first_sample(&replies).await {
+            Ok(sample) => return Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
+            Err(error) => error,
+        };
         if tokio::time::Instant::now() >= deadline {
             bail!(
                 "planner `{planner_id}` did not answer the status query{}",
