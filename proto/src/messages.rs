@@ -320,9 +320,12 @@ pub struct AttachRequest {
     pub version: u16,
     pub agent: String,
     pub spec: RunSpec,
-    /// The session token of this agent's current session, when it has one and attaches again
-    /// (it reconnects): the planner then replaces that session even while it is live. Without
-    /// it, a name whose session is live is refused, so no one can take an agent's place.
+    /// The agent's claim to its name: the token of its current session when it attaches again
+    /// (it reconnects), or on its first attach a token it drew itself ([`crate::draw_token`]).
+    /// The planner replaces a live session only for the agent holding that session's token or
+    /// the token that session was attached with, so an agent whose attach answer was lost (the
+    /// query timed out) asks again with the same token and is accepted as itself. Without it,
+    /// a name whose session is live is refused, so no one can take an agent's place.
     #[serde(default)]
     pub session: Option<u64>,
 }

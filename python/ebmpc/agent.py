@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import secrets
 import time
 from typing import Any, List, Mapping, Optional, Sequence, Tuple
 
@@ -61,6 +62,9 @@ class Agent:
         self._session = session
         self._keys = keys
         self.session = 0
+        # The token the first attach presents: asking again after an answer that never
+        # arrived (the query timed out), this agent proves it is the one the planner attached.
+        self._first_claim = secrets.randbits(64) or 1
         self.epoch = 0
         self.planner_id = ""
         self.task: Any = None
@@ -120,7 +124,7 @@ class Agent:
         """Queries the run's attach key until a planner answers (raising its refusal)."""
         key = self._keys.attach(self.run)
         request = wire.attach_request(
-            self.name, task, preset, overrides, mode, seed, self.session or None
+            self.name, task, preset, overrides, mode, seed, self.session or self._first_claim
         )
         payload = wire.encode(request)
         deadline = time.monotonic() + patience

@@ -104,8 +104,10 @@ def attach_request(
     seed: int,
     session: Optional[int],
 ) -> Message:
-    """An ``AttachRequest``. ``session``: the token of the agent's current session when it
-    attaches again (the planner then replaces that session even while it is live)."""
+    """An ``AttachRequest``. ``session``: the agent's claim to its name, the token of its
+    current session when it attaches again (the planner then replaces that session even while
+    it is live), or on a first attach a token it drew, so that asking again for a lost answer
+    is accepted as the same agent."""
     request: Message = {
         "version": PROTOCOL_VERSION,
         "agent": agent,

@@ -189,17 +189,20 @@ def test_no_planner_is_an_error_not_a_hang() -> None:
 def test_an_attach_query_that_times_out_is_asked_again() -> None:
     """A planner taking a run over may need longer than one attach query waits (it loads the
     run's replay and models): zenoh then ends the query with its own error reply, which is no
-    refusal. The agent asks again until its patience runs out."""
+    refusal. The agent asks again until its patience runs out, presenting the same token as
+    the first time: had the lost answer accepted it, the planner knows it by that token."""
     endpoint = free_endpoint()
     config = zenoh.Config()
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
     slow_planner = zenoh.open(config)
     queries: List[float] = []
+    claims: List[Any] = []
     held: List[zenoh.Query] = []
 
     def answer(query: zenoh.Query) -> None:
         queries.append(time.monotonic())
+        claims.append(json.loads(query.payload.to_bytes()).get("session"))
         if len(queries) == 1:
             held.append(query)  # still loading: never answered, so the query times out
             return
@@ -217,6 +220,8 @@ def test_an_attach_query_that_times_out_is_asked_again() -> None:
             agent = planner.attach("py-slow", "cartpole", timeout=12)
             assert (agent.planner_id, agent.session, agent.epoch) == ("slow", 7, 1)
             assert len(queries) == 2 and queries[1] - queries[0] >= 4.5, queries
+            assert isinstance(claims[0], int) and 0 < claims[0] < 2**64, claims
+            assert claims[1] == claims[0], claims
             agent.close()
     finally:
         listener.undeclare()

@@ -147,6 +147,8 @@ pub enum BridgeError {
     Sim(#[from] SimError),
     #[error(transparent)]
     SessionConfig(#[from] proto::session::SessionConfigError),
+    #[error("cannot draw the agent's attach token: {0}")]
+    Token(#[from] proto::TokenError),
     #[error("zenoh: {what}: {reason}")]
     Zenoh { what: String, reason: String },
     #[error(

@@ -63,6 +63,9 @@ pub(crate) struct PlannerLink {
     /// The session token of the last accepted attach (0: none yet): stamped on every
     /// observation, and sent when attaching again so the planner knows it is us reconnecting.
     session_token: u64,
+    /// The token the first attach presents (drawn at open): asking again after an answer that
+    /// never arrived, this agent proves it is the one the planner attached.
+    first_claim: u64,
     _token: LivelinessToken,
 }
 
@@ -134,6 +137,7 @@ impl PlannerLink {
             planner_alive: None,
             planner_gone: false,
             session_token: 0,
+            first_claim: proto::draw_token()?,
             _token: token,
         })
     }
@@ -154,7 +158,10 @@ impl PlannerLink {
             version: PROTOCOL_VERSION,
             agent: self.agent.clone(),
             spec: spec.clone(),
-            session: Some(self.session_token).filter(|&t| t != 0),
+            session: Some(match self.session_token {
+                0 => self.first_claim,
+                token => token,
+            }),
         };
         let payload = proto::encode(&request, ENCODING).map_err(BridgeError::Encode)?;
         let started = Instant::now();

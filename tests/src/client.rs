@@ -50,6 +50,9 @@ pub struct Client {
     /// The session token of the last accepted attach (0: none yet); [`Client::send`] stamps it
     /// on every observation.
     session_token: AtomicU64,
+    /// The token the first attach presents (drawn at connect), so that asking again for a lost
+    /// answer is accepted as this agent.
+    first_claim: u64,
     _token: zenoh::liveliness::LivelinessToken,
 }
 
@@ -89,19 +92,14 @@ impl Client {
             events,
             epoch: AtomicU64::new(0),
             session_token: AtomicU64::new(0),
+            first_claim: proto::draw_token()?,
             _token: token,
         })
     }
 
     /// Attaches with `spec`, retrying while no planner answers (it may be starting).
     pub async fn attach(&self, spec: &RunSpec) -> Result<AttachAccepted> {
-        let request = AttachRequest {
-            version: PROTOCOL_VERSION,
-            agent: self.agent.clone(),
-            spec: spec.clone(),
-            session: Some(self.session_token()).filter(|&t| t != 0),
-        };
-        let payload = proto::encode(&request, Encoding::Postcard)?;
+        let payload = proto::encode(&self.attach_request(spec), Encoding::Postcard)?;
         match self
             .attach_raw(&self.run.clone(), payload, Encoding::Postcard.mime())
             .await?
@@ -115,6 +113,20 @@ impl Client {
                 Ok(accepted)
             }
             AttachOutcome::Rejected(report) => bail!("attach refused: {report}"),
+        }
+    }
+
+    /// The request [`Client::attach`] sends: this agent's claim to its name is its session's
+    /// token, or before its first accepted attach the token it drew at connect.
+    pub fn attach_request(&self, spec: &RunSpec) -> AttachRequest {
+        AttachRequest {
+            version: PROTOCOL_VERSION,
+            agent: self.agent.clone(),
+            spec: spec.clone(),
+            session: Some(match self.session_token() {
+                0 => self.first_claim,
+                token => token,
+            }),
         }
     }
 

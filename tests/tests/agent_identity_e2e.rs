@@ -2,7 +2,8 @@
 //! observation must carry. Someone else attaching under a live agent's name is refused (the
 //! refusal names the agent), observations with a wrong, missing or hostile token are refused
 //! with `ErrorCode::Session` and never touch the live agent's episode, the live agent reconnects
-//! with its own token, and a vanished agent's name can be attached again.
+//! with its own token, an agent whose attach answer was lost asks again and is let in (on its
+//! first attach too), and a vanished agent's name can be attached again.
 
 use ebmpc_e2e::client::{Client, ToySystem, runtime, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
@@ -251,6 +252,92 @@ fn an_agent_whose_attach_answer_was_lost_asks_again_with_its_old_token() {
         );
         agent.step(&obs).await.unwrap();
         agent.close().await.unwrap();
+    });
+    planner.stop().unwrap();
+}
+
+#[test]
+fn a_new_agent_whose_first_attach_answer_was_lost_asks_again_and_is_let_in() {
+    let dir = TempDir::new("identity-lost-first-answer");
+    let mut planner = start(&dir);
+    runtime().block_on(async {
+        let agent = Client::connect(&planner.endpoint, RUN, AGENT)
+            .await
+            .unwrap();
+        // Its first attach is accepted, but the answer never reaches it (the query timed out
+        // while the planner was still opening the run, say): the planner holds a live session
+        // under its name whose token the agent does not know.
+        let first = agent.attach_request(&spec());
+        assert!(
+            first.session.is_some_and(|t| t != 0),
+            "a first attach presents a drawn token: {first:?}"
+        );
+        let payload = proto::encode(&first, Encoding::Postcard).unwrap();
+        let reply = agent
+            .attach_raw(RUN, payload, Encoding::Postcard.mime())
+            .await
+            .unwrap();
+        let lost = match reply.outcome {
+            AttachOutcome::Accepted(accepted) => accepted.session,
+            AttachOutcome::Rejected(report) => panic!("refused: {report}"),
+        };
+        // Without a token nothing tells the agent from an impostor: refused.
+        let reply = agent
+            .attach_raw(RUN, attach_request(None), Encoding::Postcard.mime())
+            .await
+            .unwrap();
+        assert!(
+            matches!(&reply.outcome, AttachOutcome::Rejected(r) if r.message.contains("and live")),
+            "{reply:?}"
+        );
+        // Another process under the name draws a token of its own: refused.
+        let impostor = Client::connect(&planner.endpoint, RUN, AGENT).await.unwrap();
+        let refused = impostor.attach(&spec()).await.unwrap_err().to_string();
+        assert!(refused.contains("and live"), "{refused}");
+        // The agent asks again as it asked the first time: that is the agent, let in.
+        let again = agent.attach(&spec()).await.unwrap();
+        assert_ne!(again.session, lost);
+        let obs = Observation::new(
+            again.next_episode,
+            0,
+            ToySystem::new(4).state.to_vec(),
+            None,
+            None,
+        );
+        agent.step(&obs).await.unwrap();
+
+        // The no-session token 0 is no claim (anyone can present it): a careless client that
+        // attached with it is not taken over by the next one that does.
+        let zero = AttachRequest {
+            agent: "careless".into(),
+            session: Some(proto::NO_SESSION),
+            ..first
+        };
+        let zero = proto::encode(&zero, Encoding::Postcard).unwrap();
+        let careless = Client::connect(&planner.endpoint, RUN, "careless")
+            .await
+            .unwrap();
+        let replies = [
+            careless
+                .attach_raw(RUN, zero.clone(), Encoding::Postcard.mime())
+                .await
+                .unwrap(),
+            impostor
+                .attach_raw(RUN, zero, Encoding::Postcard.mime())
+                .await
+                .unwrap(),
+        ];
+        assert!(
+            matches!(&replies[0].outcome, AttachOutcome::Accepted(_)),
+            "{replies:?}"
+        );
+        assert!(
+            matches!(&replies[1].outcome, AttachOutcome::Rejected(r) if r.message.contains("and live")),
+            "{replies:?}"
+        );
+        careless.close().await.unwrap();
+        agent.close().await.unwrap();
+        impostor.close().await.unwrap();
     });
     planner.stop().unwrap();
 }

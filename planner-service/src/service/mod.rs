@@ -20,7 +20,6 @@
 mod log_limit;
 pub mod metrics;
 pub mod schema;
-mod session_token;
 pub mod status;
 mod worker;
 
@@ -98,9 +97,10 @@ struct AgentHandle {
     task: JoinHandle<()>,
     /// The session token handed to the agent at attach; its observations must carry it.
     session: u64,
-    /// The token the agent presented when it attached (its previous session's, or none). An
-    /// agent whose attach answer never reached it (the query timed out while this planner
-    /// was still taking the run over) asks again with that same token, and is the agent.
+    /// The token the agent presented when it attached (its previous session's, or for a first
+    /// attach one it drew). An agent whose attach answer never reached it (the query timed out
+    /// while this planner was still taking the run over) asks again with that same token, and
+    /// is the agent.
     attached_with: Option<u64>,
     /// The agent's liveliness token went away (it is lingering for [`AGENT_LINGER`]): it
     /// counts as vanished, and its name may be attached again by anyone.
@@ -119,7 +119,11 @@ impl AgentHandle {
     /// token, or it asks again with the token it attached with, never having received the
     /// answer that carried the new one.
     fn is_held_by(&self, token: Option<u64>) -> bool {
-        token == Some(self.session) || (token.is_some() && token == self.attached_with)
+        // No token and the no-session token 0 prove nothing (anyone can present them).
+        let Some(token) = token.filter(|&t| t != proto::NO_SESSION) else {
+            return false;
+        };
+        token == self.session || Some(token) == self.attached_with
     }
 
     /// The agent's observations waiting for an answer: in its inbox, or planned but waiting
@@ -803,7 +807,7 @@ impl Service {
                 )));
             }
         }
-        let session = session_token::new_token().map_err(|e| {
+        let session = proto::draw_token().map_err(|e| {
             ErrorReport::new(
                 ErrorCode::Internal,
                 format!("cannot draw a session token: {e}"),
