@@ -9,6 +9,8 @@
 //! - [`figures`]: the paper's Figure 3 (DEEN vs DAE on a 1-D mixture) and Figure 5
 //!   (imagination against reality), computed in-process with the planner's library and the
 //!   simulator's [`sim_bridge::Env`].
+//! - [`compare`]: whether one method beats another at an episode, per method and seed-paired,
+//!   with Student-t intervals over seeds.
 //! - [`distance`]: how far a locomotion task's body travelled per episode, from the stored
 //!   replay logs (does the ant walk, or only stay up?).
 //! - [`replan`]: optimisers side by side on one stored run's frozen models, in the simulator:
@@ -18,6 +20,7 @@
 //! the planner (to optimise a plan) and the simulator (to execute it), and the launcher and the
 //! plotting (plotters, indicatif) have no business in the daemon's dependency tree.
 
+pub mod compare;
 pub mod distance;
 pub mod figures;
 pub mod launcher;

@@ -10,7 +10,7 @@ use ebmpc_experiments::figures::{imagination, toy};
 use ebmpc_experiments::launcher::{self, Experiment};
 use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
 use ebmpc_experiments::scale::Scale;
-use ebmpc_experiments::{distance, provenance, replan, results};
+use ebmpc_experiments::{compare, distance, provenance, replan, results};
 use proto::Builtin;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -38,6 +38,10 @@ enum Command {
     /// Print a Markdown table of the returns (mean ± sample std over seeds) at chosen episodes,
     /// per method, with the planning time per step and the wall time per run.
     Table(TableArgs),
+    /// Whether one method beats another at an episode: each method's mean return over seeds
+    /// with a Student-t interval, and every pair's seed-paired difference with its interval
+    /// (the methods of an experiment share each seed's random exploration).
+    Compare(CompareArgs),
     /// How far the body travelled forward in each episode of a locomotion experiment's runs
     /// (half-cheetah, ant), read from the planner's stored replay logs: a return mixes
     /// progress with survival bonuses and control costs, the distance does not.
@@ -138,6 +142,29 @@ struct TableArgs {
     /// Episodes to show (comma-separated; default: every episode).
     #[arg(long, value_delimiter = ',')]
     episodes: Vec<u32>,
+}
+
+#[derive(Args, Debug)]
+struct CompareArgs {
+    /// Experiment folders (their episodes.csv) or episodes.csv files, all of one task.
+    #[arg(required = true)]
+    paths: Vec<PathBuf>,
+    /// The episode to compare at, from 0 (the 20th episode is 19).
+    #[arg(long)]
+    episode: u32,
+    /// Confidence level of the intervals, between 0 and 1.
+    #[arg(long, default_value_t = 0.95, value_parser = confidence_level)]
+    level: f64,
+}
+
+/// A confidence level strictly between 0 and 1.
+fn confidence_level(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(level) if level > 0.0 && level < 1.0 => Ok(level),
+        _ => Err(format!(
+            "`{text}` is not a level between 0 and 1 (e.g. 0.95)"
+        )),
+    }
 }
 
 #[derive(Args, Debug)]
@@ -418,6 +445,19 @@ fn table_command(args: TableArgs) -> Result<()> {
     Ok(())
 }
 
+fn compare_command(args: CompareArgs) -> Result<()> {
+    let rows = read_experiments(&args.paths)?;
+    let comparison = compare::compare(&rows, args.episode, args.level);
+    if comparison.methods.is_empty() {
+        anyhow::bail!(
+            "no run has an episode {} (episodes count from 0)",
+            args.episode
+        );
+    }
+    print!("{}", compare::markdown(&comparison));
+    Ok(())
+}
+
 fn imagination_command(args: ImaginationArgs) -> Result<()> {
     imagination::check_task(args.task)?;
     let out = args.out.unwrap_or_else(|| {
@@ -579,6 +619,7 @@ fn main() -> Result<()> {
         Command::Experiment(args) => experiment(args),
         Command::Plot(args) => plot_command(args),
         Command::Table(args) => table_command(args),
+        Command::Compare(args) => compare_command(args),
         Command::Distance(args) => distance_command(args),
         Command::Imagination(args) => imagination_command(args),
         Command::Toy(args) => toy_command(args),

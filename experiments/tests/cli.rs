@@ -445,6 +445,33 @@ fn imagination_seeds_accumulate_in_their_folder() {
     std::fs::remove_dir_all(&out).unwrap();
 }
 
+#[test]
+fn compare_prints_intervals_per_method_and_seed_paired_and_refuses_bad_arguments() {
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/episodes.csv");
+    let compare = |args: &[&str]| {
+        exe()
+            .arg("compare")
+            .arg(&fixture)
+            .args(args)
+            .output()
+            .unwrap()
+    };
+
+    let out = compare(&["--episode", "2"]);
+    succeeded(&out);
+    // cem 110 and 150 (mean 130), cem+deen 170 and 175; t(0.975, 1 dof) = 12.706.
+    says(&out.stdout, "| `cem` | 2 | 130 | [-124, 384] |");
+    says(&out.stdout, "| `cem` − `cem+deen` | 2 |");
+    says(&out.stdout, "| [-265, 180] | 0 of 2 | overlap |");
+
+    let out = compare(&["--episode", "3"]);
+    assert!(!out.status.success());
+    says(&out.stderr, "no run has an episode 3");
+    let out = compare(&["--episode", "2", "--level", "95"]);
+    assert!(!out.status.success());
+    says(&out.stderr, "not a level between 0 and 1");
+}
+
 /// Fails the test with the command's stderr unless it succeeded.
 fn succeeded(output: &std::process::Output) {
     assert!(

@@ -1,0 +1,307 @@
+//! Whether one method beats another at an episode, with the uncertainty that a few seeds leave.
+//!
+//! Two views of the same returns. Each method's mean over its seeds with a Student-t interval
+//! says where that method's expected return lies; the paper's curves are such per-method
+//! means. But the methods of one experiment share each seed's random exploration (the same
+//! first episodes, hence the same first models), and how fast a seed learns varies more between
+//! seeds than between methods, so the per-method intervals can overlap while one method wins in
+//! every seed. The seed-paired difference (method A's return minus method B's, seed by seed,
+//! over the seeds both have) removes what a seed's luck adds to both; its Student-t interval
+//! says whether the difference is distinguishable from 0.
+//!
+//! Episodes are counted as the learning curves count them: the `k`-th recorded episode of a
+//! run (see [`crate::results::curves`]).
+
+use crate::results::EpisodeRow;
+use statrs::distribution::{ContinuousCDF, StudentsT};
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+
+/// A mean over seeds and its two-sided Student-t confidence interval.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Estimate {
+    pub seeds: usize,
+    pub mean: f64,
+    /// `None` with fewer than two seeds: one value says nothing about the spread.
+    pub interval: Option<(f64, f64)>,
+}
+
+impl Estimate {
+    /// The mean of `values` with a `level` (e.g. 0.95) Student-t interval.
+    pub fn of(values: &[f64], level: f64) -> Self {
+        let n = values.len();
+        let mean = if n == 0 {
+            f64::NAN
+        } else {
+            values.iter().sum::<f64>() / n as f64
+        };
+        let interval = (n >= 2).then(|| {
+            let variance = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+            let half = t_quantile(n - 1, 0.5 + level / 2.0) * (variance / n as f64).sqrt();
+            (mean - half, mean + half)
+        });
+        Estimate {
+            seeds: n,
+            mean,
+            interval,
+        }
+    }
+
+    /// Whether the two intervals share no point (false when either has none).
+    pub fn separate_from(&self, other: &Estimate) -> bool {
+        match (self.interval, other.interval) {
+            (Some((lo, hi)), Some((other_lo, other_hi))) => hi < other_lo || other_hi < lo,
+            _ => false,
+        }
+    }
+}
+
+/// The `p` quantile of Student's t distribution with `freedom` degrees of freedom.
+fn t_quantile(freedom: usize, p: f64) -> f64 {
+    StudentsT::new(0.0, 1.0, freedom as f64)
+        .expect("location 0, scale 1 and at least one degree of freedom are valid")
+        .inverse_cdf(p)
+}
+
+/// One method's return at the compared episode.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MethodReturn {
+    pub method: String,
+    pub estimate: Estimate,
+}
+
+/// Method `a`'s return minus method `b`'s, seed by seed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PairedDifference {
+    pub a: String,
+    pub b: String,
+    pub estimate: Estimate,
+    /// Seeds in which `a` earned more than `b`.
+    pub a_ahead: usize,
+    /// Whether the two methods' own intervals share no point.
+    pub methods_separate: bool,
+}
+
+/// The comparison of an experiment's methods at one episode.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Comparison {
+    /// The compared episode, from 0.
+    pub episode: u32,
+    pub level: f64,
+    /// Methods in first-seen order; a method without the episode in any seed is left out.
+    pub methods: Vec<MethodReturn>,
+    /// Every pair of methods (in the order of `methods`) that shares at least one seed.
+    pub differences: Vec<PairedDifference>,
+}
+
+/// Compares the methods of `rows` at recorded `episode` with `level` intervals.
+pub fn compare(rows: &[EpisodeRow], episode: u32, level: f64) -> Comparison {
+    let mut order: Vec<&str> = Vec::new();
+    let mut runs: BTreeMap<(&str, u64), Vec<&EpisodeRow>> = BTreeMap::new();
+    for r in rows {
+        if !order.contains(&r.method.as_str()) {
+            order.push(&r.method);
+        }
+        runs.entry((&r.method, r.seed)).or_default().push(r);
+    }
+    // method -> seed -> return at the episode
+    let mut at: BTreeMap<&str, BTreeMap<u64, f64>> = BTreeMap::new();
+    for ((method, seed), mut run) in runs {
+        run.sort_by_key(|r| r.episode);
+        if let Some(r) = run.get(episode as usize) {
+            at.entry(method).or_default().insert(seed, r.episode_return);
+        }
+    }
+    let order: Vec<&str> = order.into_iter().filter(|m| at.contains_key(m)).collect();
+    let methods: Vec<MethodReturn> = order
+        .iter()
+        .map(|m| MethodReturn {
+            method: m.to_string(),
+            estimate: Estimate::of(&at[m].values().copied().collect::<Vec<_>>(), level),
+        })
+        .collect();
+    let mut differences = Vec::new();
+    for (i, a) in order.iter().enumerate() {
+        for (j, b) in order.iter().enumerate().skip(i + 1) {
+            let diffs: Vec<f64> = at[a]
+                .iter()
+                .filter_map(|(seed, ra)| at[b].get(seed).map(|rb| ra - rb))
+                .collect();
+            if diffs.is_empty() {
+                continue;
+            }
+            differences.push(PairedDifference {
+                a: a.to_string(),
+                b: b.to_string(),
+                a_ahead: diffs.iter().filter(|d| **d > 0.0).count(),
+                estimate: Estimate::of(&diffs, level),
+                methods_separate: methods[i].estimate.separate_from(&methods[j].estimate),
+            });
+        }
+    }
+    Comparison {
+        episode,
+        level,
+        methods,
+        differences,
+    }
+}
+
+/// The comparison as two Markdown tables: each method's return, then the paired differences.
+pub fn markdown(c: &Comparison) -> String {
+    let percent = c.level * 100.0;
+    let interval = |e: &Estimate| match e.interval {
+        Some((lo, hi)) => format!("[{lo:.0}, {hi:.0}]"),
+        None => "— (one seed)".into(),
+    };
+    let mut out = format!(
+        "Return at episode {} (from 0), mean over seeds with a {percent:.0} % Student-t interval:\n\n\
+         | method | seeds | mean | {percent:.0} % interval |\n|---|---|---|---|\n",
+        c.episode
+    );
+    for m in &c.methods {
+        let _ = writeln!(
+            out,
+            "| `{}` | {} | {:.0} | {} |",
+            m.method,
+            m.estimate.seeds,
+            m.estimate.mean,
+            interval(&m.estimate)
+        );
+    }
+    let _ = write!(
+        out,
+        "\nSeed-paired differences (over the seeds both methods have):\n\n\
+         | difference | seeds | mean | {percent:.0} % interval | first ahead in | methods' intervals |\n\
+         |---|---|---|---|---|---|\n"
+    );
+    for d in &c.differences {
+        let _ = writeln!(
+            out,
+            "| `{}` − `{}` | {} | {:.0} | {} | {} of {} | {} |",
+            d.a,
+            d.b,
+            d.estimate.seeds,
+            d.estimate.mean,
+            interval(&d.estimate),
+            d.a_ahead,
+            d.estimate.seeds,
+            if d.methods_separate {
+                "separate"
+            } else {
+                "overlap"
+            }
+        );
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(method: &str, seed: u64, episode: u32, ret: f64) -> EpisodeRow {
+        EpisodeRow {
+            task: "halfcheetah".into(),
+            method: method.into(),
+            seed,
+            episode,
+            episode_return: ret,
+            steps: 1000,
+            planned_steps: 1000,
+            plan_ms_per_step: 1.0,
+            train_seconds: 0.0,
+            wall_seconds: 1.0,
+        }
+    }
+
+    #[test]
+    fn student_t_intervals_match_published_quantiles() {
+        // t(0.975) for 2, 4 and 9 degrees of freedom: 4.303, 2.776, 2.262 (any t table).
+        for (freedom, quantile) in [(2, 4.3027), (4, 2.7764), (9, 2.2622)] {
+            assert!(
+                (t_quantile(freedom, 0.975) - quantile).abs() < 1e-3,
+                "{freedom}"
+            );
+        }
+        // Mean 2, sample std 1 over 3 values: 2 ± 4.303 / sqrt(3).
+        let e = Estimate::of(&[1.0, 2.0, 3.0], 0.95);
+        let (lo, hi) = e.interval.unwrap();
+        assert_eq!(e.seeds, 3);
+        assert!((e.mean - 2.0).abs() < 1e-12);
+        assert!((hi - 2.0 - 4.3027 / 3f64.sqrt()).abs() < 1e-3);
+        assert!((2.0 - lo - (hi - 2.0)).abs() < 1e-9);
+        assert_eq!(Estimate::of(&[5.0], 0.95).interval, None);
+    }
+
+    #[test]
+    fn a_method_ahead_in_every_seed_is_told_apart_by_pairing_though_its_interval_overlaps() {
+        // Seeds differ by thousands, the methods by 100 in every seed (+-10).
+        let mut rows = Vec::new();
+        for (seed, base) in [(0, 1000.0), (1, 3000.0), (2, 5000.0), (3, 2000.0)] {
+            let noise = if seed % 2 == 0 { 10.0 } else { -10.0 };
+            rows.push(row("cem", seed, 0, -300.0));
+            rows.push(row("cem", seed, 1, base));
+            rows.push(row("cem+deen", seed, 0, -300.0));
+            rows.push(row("cem+deen", seed, 1, base + 100.0 + noise));
+        }
+        let c = compare(&rows, 1, 0.95);
+        assert_eq!(c.methods.len(), 2);
+        assert_eq!(c.methods[0].method, "cem");
+        assert!((c.methods[1].estimate.mean - 2850.0).abs() < 1e-9);
+        let d = &c.differences[0];
+        assert_eq!((d.a.as_str(), d.b.as_str()), ("cem", "cem+deen"));
+        assert!((d.estimate.mean + 100.0).abs() < 1e-9);
+        assert_eq!(d.a_ahead, 0);
+        let (lo, hi) = d.estimate.interval.unwrap();
+        assert!(hi < 0.0 && lo > -200.0, "[{lo}, {hi}]");
+        assert!(!d.methods_separate);
+        let table = markdown(&c);
+        assert!(
+            table.contains("| `cem` − `cem+deen` | 4 | -100 |"),
+            "{table}"
+        );
+        assert!(table.contains("0 of 4 | overlap |"), "{table}");
+    }
+
+    #[test]
+    fn methods_far_apart_in_every_seed_have_separate_intervals() {
+        let mut rows = Vec::new();
+        for seed in 0..3 {
+            rows.push(row("cem", seed, 0, 100.0 + seed as f64));
+            rows.push(row("cem+deen", seed, 0, 900.0 - seed as f64));
+        }
+        let c = compare(&rows, 0, 0.95);
+        assert!(c.differences[0].methods_separate);
+        assert_eq!(c.differences[0].a_ahead, 0);
+        assert!(markdown(&c).contains("| separate |"));
+    }
+
+    #[test]
+    fn pairs_use_shared_seeds_and_episodes_count_recorded_rows() {
+        // cem has seeds 0-2, cem+dae seeds 1-3; seed 1 of cem+dae was resumed and numbers its
+        // second recorded episode 2 (a cut-short episode skipped): it is still episode 1.
+        let rows = vec![
+            row("cem", 0, 0, 0.0),
+            row("cem", 0, 1, 10.0),
+            row("cem", 1, 0, 0.0),
+            row("cem", 1, 1, 20.0),
+            row("cem", 2, 0, 0.0),
+            row("cem", 2, 1, 30.0),
+            row("cem+dae", 1, 0, 0.0),
+            row("cem+dae", 1, 2, 25.0),
+            row("cem+dae", 2, 0, 0.0),
+            row("cem+dae", 2, 1, 40.0),
+            row("cem+dae", 3, 0, 0.0),
+            row("pets", 0, 0, 0.0),
+        ];
+        let c = compare(&rows, 1, 0.95);
+        let names: Vec<&str> = c.methods.iter().map(|m| m.method.as_str()).collect();
+        assert_eq!(names, ["cem", "cem+dae"], "pets has no episode 1");
+        assert_eq!(c.methods[1].estimate.seeds, 2);
+        let d = &c.differences[0];
+        assert_eq!(d.estimate.seeds, 2);
+        assert!((d.estimate.mean + 7.5).abs() < 1e-9, "(-5 - 10) / 2");
+        assert_eq!(d.a_ahead, 0);
+    }
+}
