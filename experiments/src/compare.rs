@@ -10,9 +10,9 @@
 //! says whether the difference is distinguishable from 0.
 //!
 //! Episodes are counted as the learning curves count them: the `k`-th recorded episode of a
-//! run (see [`crate::results::curves`]).
+//! run (see [`runs_by_method`]).
 
-use crate::results::EpisodeRow;
+use crate::results::{EpisodeRow, runs_by_method};
 use statrs::distribution::{ContinuousCDF, StudentsT};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -96,36 +96,33 @@ pub struct Comparison {
 
 /// Compares the methods of `rows` at recorded `episode` with `level` intervals.
 pub fn compare(rows: &[EpisodeRow], episode: u32, level: f64) -> Comparison {
-    let mut order: Vec<&str> = Vec::new();
-    let mut runs: BTreeMap<(&str, u64), Vec<&EpisodeRow>> = BTreeMap::new();
-    for r in rows {
-        if !order.contains(&r.method.as_str()) {
-            order.push(&r.method);
-        }
-        runs.entry((&r.method, r.seed)).or_default().push(r);
-    }
-    // method -> seed -> return at the episode
-    let mut at: BTreeMap<&str, BTreeMap<u64, f64>> = BTreeMap::new();
-    for ((method, seed), mut run) in runs {
-        run.sort_by_key(|r| r.episode);
-        if let Some(r) = run.get(episode as usize) {
-            at.entry(method).or_default().insert(seed, r.episode_return);
-        }
-    }
-    let order: Vec<&str> = order.into_iter().filter(|m| at.contains_key(m)).collect();
-    let methods: Vec<MethodReturn> = order
+    // Each method's return at the episode, by seed; methods without it in any seed left out.
+    let at: Vec<(&str, BTreeMap<u64, f64>)> = runs_by_method(rows)
+        .into_iter()
+        .map(|(method, runs)| {
+            let returns: BTreeMap<u64, f64> = runs
+                .iter()
+                .filter_map(|(seed, run)| {
+                    run.get(episode as usize).map(|r| (*seed, r.episode_return))
+                })
+                .collect();
+            (method, returns)
+        })
+        .filter(|(_, returns)| !returns.is_empty())
+        .collect();
+    let methods: Vec<MethodReturn> = at
         .iter()
-        .map(|m| MethodReturn {
-            method: m.to_string(),
-            estimate: Estimate::of(&at[m].values().copied().collect::<Vec<_>>(), level),
+        .map(|(method, returns)| MethodReturn {
+            method: method.to_string(),
+            estimate: Estimate::of(&returns.values().copied().collect::<Vec<_>>(), level),
         })
         .collect();
     let mut differences = Vec::new();
-    for (i, a) in order.iter().enumerate() {
-        for (j, b) in order.iter().enumerate().skip(i + 1) {
-            let diffs: Vec<f64> = at[a]
+    for (i, (a, a_returns)) in at.iter().enumerate() {
+        for (j, (b, b_returns)) in at.iter().enumerate().skip(i + 1) {
+            let diffs: Vec<f64> = a_returns
                 .iter()
-                .filter_map(|(seed, ra)| at[b].get(seed).map(|rb| ra - rb))
+                .filter_map(|(seed, ra)| b_returns.get(seed).map(|rb| ra - rb))
                 .collect();
             if diffs.is_empty() {
                 continue;

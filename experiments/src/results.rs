@@ -246,38 +246,48 @@ pub fn write_episodes(path: &Path, rows: &[EpisodeRow]) -> Result<(), ResultsErr
     std::fs::rename(&tmp, path).map_err(io)
 }
 
-/// Mean and sample standard deviation (over seeds, `n − 1` in the denominator; 0 for a single
-/// seed) of the return per method and episode: the numbers behind a learning curve and a
-/// results table. Methods are in first-seen order.
-///
-/// A point's episode is the run's *recorded* episode count: the `k`-th row of a run in episode
-/// order. The two differ only in a resumed run, whose daemon numbers episodes by the data it
-/// holds, including an episode cut short by the interruption (see the launcher), so its CSV's
-/// episode numbers skip one; counting recorded episodes keeps every seed at every point.
-pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
-    let mut order: Vec<&str> = Vec::new();
-    let mut runs: BTreeMap<(&str, u64), Vec<&EpisodeRow>> = BTreeMap::new();
+/// Each method's runs, methods in first-seen order, a method's runs by seed, each run's rows
+/// in episode order: a row's index in its run is the run's *recorded* episode count, the
+/// episode number that curves, tables and comparisons use. The two differ only in a resumed
+/// run, whose daemon numbers episodes by the data it holds, including an episode cut short by
+/// the interruption (see the launcher), so its CSV's episode numbers skip one; counting
+/// recorded episodes keeps every seed at every point.
+pub fn runs_by_method(rows: &[EpisodeRow]) -> Vec<(&str, BTreeMap<u64, Vec<&EpisodeRow>>)> {
+    let mut methods: Vec<(&str, BTreeMap<u64, Vec<&EpisodeRow>>)> = Vec::new();
     for r in rows {
-        if !order.contains(&r.method.as_str()) {
-            order.push(&r.method);
-        }
-        runs.entry((&r.method, r.seed)).or_default().push(r);
+        let index = match methods.iter().position(|(m, _)| *m == r.method) {
+            Some(i) => i,
+            None => {
+                methods.push((&r.method, BTreeMap::new()));
+                methods.len() - 1
+            }
+        };
+        methods[index].1.entry(r.seed).or_default().push(r);
     }
-    let mut by: BTreeMap<(&str, u32), Vec<f64>> = BTreeMap::new();
-    for ((method, _), mut run) in runs {
-        run.sort_by_key(|r| r.episode);
-        for (k, r) in run.into_iter().enumerate() {
-            by.entry((method, k as u32))
-                .or_default()
-                .push(r.episode_return);
+    for (_, runs) in &mut methods {
+        for run in runs.values_mut() {
+            run.sort_by_key(|r| r.episode);
         }
     }
-    order
+    methods
+}
+
+/// Mean and sample standard deviation (over seeds, `n − 1` in the denominator; 0 for a single
+/// seed) of the return per method and recorded episode (see [`runs_by_method`]): the numbers
+/// behind a learning curve and a results table. Methods are in first-seen order.
+pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
+    runs_by_method(rows)
         .into_iter()
-        .map(|method| {
+        .map(|(method, runs)| {
+            let mut by: BTreeMap<u32, Vec<f64>> = BTreeMap::new();
+            for run in runs.values() {
+                for (k, r) in run.iter().enumerate() {
+                    by.entry(k as u32).or_default().push(r.episode_return);
+                }
+            }
             let points = by
-                .range((method, 0)..=(method, u32::MAX))
-                .map(|(&(_, episode), values)| {
+                .into_iter()
+                .map(|(episode, values)| {
                     let n = values.len() as f64;
                     let mean = values.iter().sum::<f64>() / n;
                     let var = if values.len() > 1 {
