@@ -70,7 +70,7 @@ pub struct MethodReturn {
     pub estimate: Estimate,
 }
 
-/// Method `a`'s return minus method `b`'s, seed by seed.
+/// Method `a`'s return minus method `b`'s, seed by seed; `a` is the method ahead on average.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PairedDifference {
     pub a: String,
@@ -90,7 +90,8 @@ pub struct Comparison {
     pub level: f64,
     /// Methods in first-seen order; a method without the episode in any seed is left out.
     pub methods: Vec<MethodReturn>,
-    /// Every pair of methods (in the order of `methods`) that shares at least one seed.
+    /// Every pair of methods that shares at least one seed, in the order of `methods`, each
+    /// with the method ahead on average first.
     pub differences: Vec<PairedDifference>,
 }
 
@@ -120,12 +121,18 @@ pub fn compare(rows: &[EpisodeRow], episode: u32, level: f64) -> Comparison {
     let mut differences = Vec::new();
     for (i, (a, a_returns)) in at.iter().enumerate() {
         for (j, (b, b_returns)) in at.iter().enumerate().skip(i + 1) {
-            let diffs: Vec<f64> = a_returns
+            let mut diffs: Vec<f64> = a_returns
                 .iter()
                 .filter_map(|(seed, ra)| b_returns.get(seed).map(|rb| ra - rb))
                 .collect();
             if diffs.is_empty() {
                 continue;
+            }
+            // The method ahead on average first, so that a difference reads as a lead.
+            let (mut a, mut b) = (a, b);
+            if diffs.iter().sum::<f64>() < 0.0 {
+                (a, b) = (b, a);
+                diffs.iter_mut().for_each(|d| *d = -*d);
             }
             differences.push(PairedDifference {
                 a: a.to_string(),
@@ -247,18 +254,18 @@ mod tests {
         assert_eq!(c.methods[0].method, "cem");
         assert!((c.methods[1].estimate.mean - 2850.0).abs() < 1e-9);
         let d = &c.differences[0];
-        assert_eq!((d.a.as_str(), d.b.as_str()), ("cem", "cem+deen"));
-        assert!((d.estimate.mean + 100.0).abs() < 1e-9);
-        assert_eq!(d.a_ahead, 0);
+        assert_eq!((d.a.as_str(), d.b.as_str()), ("cem+deen", "cem"));
+        assert!((d.estimate.mean - 100.0).abs() < 1e-9);
+        assert_eq!(d.a_ahead, 4);
         let (lo, hi) = d.estimate.interval.unwrap();
-        assert!(hi < 0.0 && lo > -200.0, "[{lo}, {hi}]");
+        assert!(lo > 0.0 && hi < 200.0, "[{lo}, {hi}]");
         assert!(!d.methods_separate);
         let table = markdown(&c);
         assert!(
-            table.contains("| `cem` − `cem+deen` | 4 | -100 |"),
+            table.contains("| `cem+deen` − `cem` | 4 | 100 |"),
             "{table}"
         );
-        assert!(table.contains("0 of 4 | overlap |"), "{table}");
+        assert!(table.contains("4 of 4 | overlap |"), "{table}");
     }
 
     #[test]
@@ -270,7 +277,8 @@ mod tests {
         }
         let c = compare(&rows, 0, 0.95);
         assert!(c.differences[0].methods_separate);
-        assert_eq!(c.differences[0].a_ahead, 0);
+        assert_eq!(c.differences[0].a, "cem+deen");
+        assert_eq!(c.differences[0].a_ahead, 3);
         assert!(markdown(&c).contains("| separate |"));
     }
 
@@ -297,8 +305,8 @@ mod tests {
         assert_eq!(names, ["cem", "cem+dae"], "pets has no episode 1");
         assert_eq!(c.methods[1].estimate.seeds, 2);
         let d = &c.differences[0];
-        assert_eq!(d.estimate.seeds, 2);
-        assert!((d.estimate.mean + 7.5).abs() < 1e-9, "(-5 - 10) / 2");
-        assert_eq!(d.a_ahead, 0);
+        assert_eq!((d.a.as_str(), d.estimate.seeds), ("cem+dae", 2));
+        assert!((d.estimate.mean - 7.5).abs() < 1e-9, "(5 + 10) / 2");
+        assert_eq!(d.a_ahead, 2);
     }
 }

@@ -461,8 +461,8 @@ fn compare_prints_intervals_per_method_and_seed_paired_and_refuses_bad_arguments
     succeeded(&out);
     // cem 110 and 150 (mean 130), cem+deen 170 and 175; t(0.975, 1 dof) = 12.706.
     says(&out.stdout, "| `cem` | 2 | 130 | [-124, 384] |");
-    says(&out.stdout, "| `cem` − `cem+deen` | 2 |");
-    says(&out.stdout, "| [-265, 180] | 0 of 2 | overlap |");
+    says(&out.stdout, "| `cem+deen` − `cem` | 2 |");
+    says(&out.stdout, "| [-180, 265] | 2 of 2 | overlap |");
 
     let out = compare(&["--episode", "3"]);
     assert!(!out.status.success());
