@@ -10,7 +10,8 @@
 //! says whether the difference is distinguishable from 0.
 //!
 //! Episodes are counted as the learning curves count them: the `k`-th recorded episode of a
-//! run (see [`runs_by_method`]).
+//! run (see [`runs_by_method`]). Runs budgeted in timesteps (the ant's 4,000) end after
+//! different numbers of episodes; they are compared at each run's last episode.
 
 use crate::results::{EpisodeRow, runs_by_method};
 use statrs::distribution::{ContinuousCDF, StudentsT};
@@ -63,6 +64,38 @@ fn t_quantile(freedom: usize, p: f64) -> f64 {
         .inverse_cdf(p)
 }
 
+/// Which episode of each run is compared.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum At {
+    /// The `k`-th recorded episode, from 0.
+    Episode(u32),
+    /// Each run's last recorded episode.
+    Last,
+}
+
+impl std::str::FromStr for At {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, String> {
+        match text {
+            "last" => Ok(At::Last),
+            _ => text
+                .parse()
+                .map(At::Episode)
+                .map_err(|_| format!("`{text}` is neither an episode number (from 0) nor `last`")),
+        }
+    }
+}
+
+impl std::fmt::Display for At {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            At::Episode(k) => write!(f, "episode {k} (from 0)"),
+            At::Last => f.write_str("each run's last episode"),
+        }
+    }
+}
+
 /// One method's return at the compared episode.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MethodReturn {
@@ -85,8 +118,7 @@ pub struct PairedDifference {
 /// The comparison of an experiment's methods at one episode.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Comparison {
-    /// The compared episode, from 0.
-    pub episode: u32,
+    pub at: At,
     pub level: f64,
     /// Methods in first-seen order; a method without the episode in any seed is left out.
     pub methods: Vec<MethodReturn>,
@@ -95,23 +127,27 @@ pub struct Comparison {
     pub differences: Vec<PairedDifference>,
 }
 
-/// Compares the methods of `rows` at recorded `episode` with `level` intervals.
-pub fn compare(rows: &[EpisodeRow], episode: u32, level: f64) -> Comparison {
+/// Compares the methods of `rows` at `at` with `level` intervals.
+pub fn compare(rows: &[EpisodeRow], at: At, level: f64) -> Comparison {
     // Each method's return at the episode, by seed; methods without it in any seed left out.
-    let at: Vec<(&str, BTreeMap<u64, f64>)> = runs_by_method(rows)
+    let by_method: Vec<(&str, BTreeMap<u64, f64>)> = runs_by_method(rows)
         .into_iter()
         .map(|(method, runs)| {
             let returns: BTreeMap<u64, f64> = runs
                 .iter()
                 .filter_map(|(seed, run)| {
-                    run.get(episode as usize).map(|r| (*seed, r.episode_return))
+                    let row = match at {
+                        At::Episode(k) => run.get(k as usize),
+                        At::Last => run.last(),
+                    };
+                    row.map(|r| (*seed, r.episode_return))
                 })
                 .collect();
             (method, returns)
         })
         .filter(|(_, returns)| !returns.is_empty())
         .collect();
-    let methods: Vec<MethodReturn> = at
+    let methods: Vec<MethodReturn> = by_method
         .iter()
         .map(|(method, returns)| MethodReturn {
             method: method.to_string(),
@@ -119,8 +155,8 @@ pub fn compare(rows: &[EpisodeRow], episode: u32, level: f64) -> Comparison {
         })
         .collect();
     let mut differences = Vec::new();
-    for (i, (a, a_returns)) in at.iter().enumerate() {
-        for (j, (b, b_returns)) in at.iter().enumerate().skip(i + 1) {
+    for (i, (a, a_returns)) in by_method.iter().enumerate() {
+        for (j, (b, b_returns)) in by_method.iter().enumerate().skip(i + 1) {
             let mut diffs: Vec<f64> = a_returns
                 .iter()
                 .filter_map(|(seed, ra)| b_returns.get(seed).map(|rb| ra - rb))
@@ -144,7 +180,7 @@ pub fn compare(rows: &[EpisodeRow], episode: u32, level: f64) -> Comparison {
         }
     }
     Comparison {
-        episode,
+        at,
         level,
         methods,
         differences,
@@ -159,9 +195,9 @@ pub fn markdown(c: &Comparison) -> String {
         None => "— (one seed)".into(),
     };
     let mut out = format!(
-        "Return at episode {} (from 0), mean over seeds with a {percent:.0} % Student-t interval:\n\n\
+        "Return at {}, mean over seeds with a {percent:.0} % Student-t interval:\n\n\
          | method | seeds | mean | {percent:.0} % interval |\n|---|---|---|---|\n",
-        c.episode
+        c.at
     );
     for m in &c.methods {
         let _ = writeln!(
@@ -249,7 +285,7 @@ mod tests {
             rows.push(row("cem+deen", seed, 0, -300.0));
             rows.push(row("cem+deen", seed, 1, base + 100.0 + noise));
         }
-        let c = compare(&rows, 1, 0.95);
+        let c = compare(&rows, At::Episode(1), 0.95);
         assert_eq!(c.methods.len(), 2);
         assert_eq!(c.methods[0].method, "cem");
         assert!((c.methods[1].estimate.mean - 2850.0).abs() < 1e-9);
@@ -275,7 +311,7 @@ mod tests {
             rows.push(row("cem", seed, 0, 100.0 + seed as f64));
             rows.push(row("cem+deen", seed, 0, 900.0 - seed as f64));
         }
-        let c = compare(&rows, 0, 0.95);
+        let c = compare(&rows, At::Episode(0), 0.95);
         assert!(c.differences[0].methods_separate);
         assert_eq!(c.differences[0].a, "cem+deen");
         assert_eq!(c.differences[0].a_ahead, 3);
@@ -300,7 +336,7 @@ mod tests {
             row("cem+dae", 3, 0, 0.0),
             row("pets", 0, 0, 0.0),
         ];
-        let c = compare(&rows, 1, 0.95);
+        let c = compare(&rows, At::Episode(1), 0.95);
         let names: Vec<&str> = c.methods.iter().map(|m| m.method.as_str()).collect();
         assert_eq!(names, ["cem", "cem+dae"], "pets has no episode 1");
         assert_eq!(c.methods[1].estimate.seeds, 2);
@@ -308,5 +344,27 @@ mod tests {
         assert_eq!((d.a.as_str(), d.estimate.seeds), ("cem+dae", 2));
         assert!((d.estimate.mean - 7.5).abs() < 1e-9, "(5 + 10) / 2");
         assert_eq!(d.a_ahead, 2);
+    }
+
+    #[test]
+    fn runs_of_different_lengths_are_compared_at_their_last_episodes() {
+        // A timestep budget: cem's seed 0 took 3 episodes, seed 1 two; cem+deen's one each.
+        let rows = vec![
+            row("cem", 0, 0, 1.0),
+            row("cem", 0, 1, 2.0),
+            row("cem", 0, 2, 30.0),
+            row("cem", 1, 0, 1.0),
+            row("cem", 1, 1, 50.0),
+            row("cem+deen", 0, 0, 70.0),
+            row("cem+deen", 1, 0, 90.0),
+        ];
+        let c = compare(&rows, At::Last, 0.95);
+        assert!((c.methods[0].estimate.mean - 40.0).abs() < 1e-9);
+        assert!((c.methods[1].estimate.mean - 80.0).abs() < 1e-9);
+        assert_eq!(c.differences[0].a_ahead, 2);
+        assert!(markdown(&c).starts_with("Return at each run's last episode"));
+        assert_eq!("last".parse::<At>(), Ok(At::Last));
+        assert_eq!("19".parse::<At>(), Ok(At::Episode(19)));
+        assert!("-1".parse::<At>().unwrap_err().contains("neither"));
     }
 }

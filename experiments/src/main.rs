@@ -149,9 +149,10 @@ struct CompareArgs {
     /// Experiment folders (their episodes.csv) or episodes.csv files, all of one task.
     #[arg(required = true)]
     paths: Vec<PathBuf>,
-    /// The episode to compare at, from 0 (the 20th episode is 19).
+    /// The episode to compare at: its number from 0 (the 20th episode is 19), or `last`: each
+    /// run's last episode (runs budgeted in timesteps end after different numbers of episodes).
     #[arg(long)]
-    episode: u32,
+    episode: compare::At,
     /// Confidence level of the intervals, between 0 and 1.
     #[arg(long, default_value_t = 0.95, value_parser = confidence_level)]
     level: f64,
@@ -449,10 +450,7 @@ fn compare_command(args: CompareArgs) -> Result<()> {
     let rows = read_experiments(&args.paths)?;
     let comparison = compare::compare(&rows, args.episode, args.level);
     if comparison.methods.is_empty() {
-        anyhow::bail!(
-            "no run has an episode {} (episodes count from 0)",
-            args.episode
-        );
+        anyhow::bail!("no run has {}", args.episode);
     }
     print!("{}", compare::markdown(&comparison));
     Ok(())

@@ -466,7 +466,10 @@ fn compare_prints_intervals_per_method_and_seed_paired_and_refuses_bad_arguments
 
     let out = compare(&["--episode", "3"]);
     assert!(!out.status.success());
-    says(&out.stderr, "no run has an episode 3");
+    says(&out.stderr, "no run has episode 3 (from 0)");
+    let out = compare(&["--episode", "last"]);
+    succeeded(&out);
+    says(&out.stdout, "| `cem` | 2 | 130 | [-124, 384] |");
     let out = compare(&["--episode", "2", "--level", "95"]);
     assert!(!out.status.success());
     says(&out.stderr, "not a level between 0 and 1");
