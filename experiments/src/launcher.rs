@@ -89,6 +89,9 @@ pub struct Experiment {
     /// the preset's, Table 2's σ in standardised units).
     pub energy_noise_sigma: Option<f32>,
     pub energy_noise_units: Option<proto::NoiseUnits>,
+    /// Episodes of random actions before planning starts, for every method (`None`: the
+    /// preset's, paper §4.2: 3 for half-cheetah, 1 for the other tasks).
+    pub exploration_episodes: Option<u32>,
     /// This sitting's wall-clock budget (`None`: run everything pending).
     pub budget: Option<Duration>,
     /// Start runs that are not expected to finish within the budget too (they are stopped at
@@ -237,6 +240,8 @@ pub fn prepare(exp: &Experiment) -> Result<Manifest> {
     )?;
     wanted.timesteps = exp.timesteps;
     for (method, overrides) in &mut wanted.overrides {
+        overrides.exploration_episodes =
+            exp.exploration_episodes.or(overrides.exploration_episodes);
         let preset = Method::parse(exp.task, method)?.preset;
         if preset.contains("dae") || preset.contains("deen") {
             overrides.energy_noise_sigma = exp.energy_noise_sigma.or(overrides.energy_noise_sigma);
@@ -931,11 +936,17 @@ mod tests {
             timesteps: None,
             energy_noise_sigma: None,
             energy_noise_units: None,
+            exploration_episodes: None,
             budget: None,
             overrun: false,
         };
         let first = prepare(&exp).unwrap();
         assert_eq!(first.methods, vec!["cem"]);
+        // Other settings of the same runs are another experiment.
+        exp.exploration_episodes = Some(2);
+        let err = prepare(&exp).unwrap_err();
+        assert!(format!("{err:#}").contains("overrides"), "{err:#}");
+        exp.exploration_episodes = None;
         exp.methods = vec!["cem+deen".into()];
         exp.seeds = vec![1];
         let merged = prepare(&exp).unwrap();

@@ -334,6 +334,51 @@ fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
     std::fs::remove_dir_all(&bins).unwrap();
 }
 
+/// `--exploration-episodes` reaches every method's bridge and the folder's record, and a
+/// command with another value into the same folder is refused (its runs would be another
+/// experiment).
+#[test]
+fn exploration_episodes_reach_the_bridges_and_the_record() {
+    let bins = temp_dir("bins-exploration");
+    fake_binaries(&bins);
+    let out = bins.join("results");
+    let run = |episodes: &str| {
+        exe()
+            .args([
+                "experiment",
+                "--task",
+                "cartpole",
+                "--methods",
+                "cem,cem+deen",
+            ])
+            .args(["--seeds", "1", "--episodes", "3", "--scale", "small"])
+            .args(["--exploration-episodes", episodes])
+            .arg("--out")
+            .arg(&out)
+            .arg("--bin-dir")
+            .arg(&bins)
+            .output()
+            .unwrap()
+    };
+    succeeded(&run("2"));
+    let all = calls(&bins);
+    assert_eq!(all.len(), 2, "{all:?}");
+    assert!(
+        all.iter().all(|c| c.contains("--exploration-episodes 2")),
+        "{all:?}"
+    );
+    let manifest = std::fs::read_to_string(out.join("experiment.json")).unwrap();
+    assert_eq!(
+        manifest.matches("\"exploration_episodes\": 2").count(),
+        2,
+        "{manifest}"
+    );
+    let other = run("3");
+    assert!(!other.status.success());
+    says(&other.stderr, "overrides");
+    std::fs::remove_dir_all(&bins).unwrap();
+}
+
 /// With a budget, a run whose next episode (as long as its last, 60 s) would end after the
 /// deadline stops at the episode boundary, in the wait before the next episode, rather than at
 /// the deadline with an episode cut short; the sitting ends with one recorded episode and the
