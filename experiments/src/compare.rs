@@ -239,21 +239,7 @@ pub fn markdown(c: &Comparison) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn row(method: &str, seed: u64, episode: u32, ret: f64) -> EpisodeRow {
-        EpisodeRow {
-            task: "halfcheetah".into(),
-            method: method.into(),
-            seed,
-            episode,
-            episode_return: ret,
-            steps: 1000,
-            planned_steps: 1000,
-            plan_ms_per_step: 1.0,
-            train_seconds: 0.0,
-            wall_seconds: 1.0,
-        }
-    }
+    use crate::results::tests::row;
 
     #[test]
     fn student_t_intervals_match_published_quantiles() {

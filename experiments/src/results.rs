@@ -410,7 +410,7 @@ pub fn combine_experiments(experiments: Vec<(String, Vec<EpisodeRow>)>) -> Vec<E
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     #[test]
@@ -439,7 +439,8 @@ mod tests {
         assert_eq!((icem250.points[0].seeds, icem250.points[0].mean), (2, 4.0));
     }
 
-    fn row(method: &str, seed: u64, episode: u32, ret: f64) -> EpisodeRow {
+    /// A cartpole episode row with the given return (episode 0 unplanned).
+    pub(crate) fn row(method: &str, seed: u64, episode: u32, ret: f64) -> EpisodeRow {
         EpisodeRow {
             task: "cartpole".into(),
             method: method.into(),
