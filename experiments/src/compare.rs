@@ -13,7 +13,7 @@
 //! run (see [`runs_by_method`]). Runs budgeted in timesteps (the ant's 4,000) end after
 //! different numbers of episodes; they are compared at each run's last episode.
 
-use crate::results::{EpisodeRow, runs_by_method};
+use crate::results::{EpisodeRow, mean_and_std, runs_by_method};
 use statrs::distribution::{ContinuousCDF, StudentsT};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -31,14 +31,9 @@ impl Estimate {
     /// The mean of `values` with a `level` (e.g. 0.95) Student-t interval.
     pub fn of(values: &[f64], level: f64) -> Self {
         let n = values.len();
-        let mean = if n == 0 {
-            f64::NAN
-        } else {
-            values.iter().sum::<f64>() / n as f64
-        };
+        let (mean, std) = mean_and_std(values);
         let interval = (n >= 2).then(|| {
-            let variance = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
-            let half = t_quantile(n - 1, 0.5 + level / 2.0) * (variance / n as f64).sqrt();
+            let half = t_quantile(n - 1, 0.5 + level / 2.0) * std / (n as f64).sqrt();
             (mean - half, mean + half)
         });
         Estimate {

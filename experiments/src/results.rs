@@ -246,6 +246,19 @@ pub fn write_episodes(path: &Path, rows: &[EpisodeRow]) -> Result<(), ResultsErr
     std::fs::rename(&tmp, path).map_err(io)
 }
 
+/// The mean of `values` and their sample standard deviation (`n − 1` in the denominator; 0 for
+/// a single value; the mean is NaN for none).
+pub fn mean_and_std(values: &[f64]) -> (f64, f64) {
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let variance = if values.len() > 1 {
+        values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)
+    } else {
+        0.0
+    };
+    (mean, variance.sqrt())
+}
+
 /// Each method's runs, methods in first-seen order, a method's runs by seed, each run's rows
 /// in episode order: a row's index in its run is the run's *recorded* episode count, the
 /// episode number that curves, tables and comparisons use. The two differ only in a resumed
@@ -288,17 +301,11 @@ pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
             let points = by
                 .into_iter()
                 .map(|(episode, values)| {
-                    let n = values.len() as f64;
-                    let mean = values.iter().sum::<f64>() / n;
-                    let var = if values.len() > 1 {
-                        values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)
-                    } else {
-                        0.0
-                    };
+                    let (mean, std) = mean_and_std(&values);
                     CurvePoint {
                         episode,
                         mean,
-                        std: var.sqrt(),
+                        std,
                         seeds: values.len(),
                     }
                 })

@@ -376,6 +376,10 @@ fn exploration_episodes_reach_the_bridges_and_the_record() {
     let other = run("3");
     assert!(!other.status.success());
     says(&other.stderr, "overrides");
+    // No random episode at all would leave the first plan without models.
+    let none = run("0");
+    assert!(!none.status.success());
+    says(&none.stderr, "--exploration-episodes");
     std::fs::remove_dir_all(&bins).unwrap();
 }
 
