@@ -359,7 +359,7 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
     let planner = Daemon::start(
         &exp.bin_dir.join("planner-service"),
         &exp.out.join("planner"),
-        &exp.out.join("logs").join("planner.log"),
+        &exp.out.join("logs"),
     )?;
     let machine = Machine::this();
     let commit = provenance::binaries_commit(&exp.bin_dir);
@@ -391,6 +391,7 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
                         exp,
                         manifest: &manifest,
                         endpoint: &planner.endpoint,
+                        zenoh_config: &planner.zenoh_config,
                         progress: &progress,
                         deadline,
                     };
@@ -544,6 +545,8 @@ struct RunContext<'a> {
     exp: &'a Experiment,
     manifest: &'a Manifest,
     endpoint: &'a str,
+    /// The sitting's Zenoh file ([`write_sitting_zenoh_config`]), for the bridges too.
+    zenoh_config: &'a Path,
     progress: &'a Progress,
     deadline: Option<Instant>,
 }
@@ -596,10 +599,12 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
         .args(["--seed", &run.seed.to_string()])
         .args(["--preset", &preset])
         .args(["--connect", ctx.endpoint])
+        .arg("--zenoh-config")
+        .arg(ctx.zenoh_config)
         // Sittings run at SCHED_IDLE beside other work, where a plan (or a retraining) can
         // wait minutes for a core: a slow answer is no failure here. A planner that dies is
-        // still seen at once (the bridge watches its liveliness), and the budget bounds a
-        // sitting.
+        // still seen at once (the bridge watches its liveliness, and a dead process's loopback
+        // link closes at once), and the budget bounds a sitting.
         .args(["--action-timeout", "3600"])
         .args(["--train-timeout", "86400"])
         .arg("--out")
@@ -760,11 +765,39 @@ impl Drop for Guard {
 pub struct Daemon {
     child: Child,
     pub endpoint: String,
+    /// The Zenoh file the daemon started from: its link lease is the sitting's.
+    pub zenoh_config: PathBuf,
+}
+
+/// How long a silent peer of a sitting counts as alive: Zenoh's link lease (its default is
+/// 10 s). Sittings run at `SCHED_IDLE` beside other work, and beside a build or a test run an
+/// idle-priority process can go longer than 10 s without a core; with the default lease its
+/// peers then close the link, the daemon's liveliness token vanishes and every bridge starts
+/// the episode under way over (a cut-short episode in the run's training data). Every process
+/// of a sitting is on loopback, where a process that dies closes its sockets at once, so the
+/// long lease delays nothing but the verdict on a process that is alive and starved.
+pub const SITTING_LINK_LEASE: Duration = Duration::from_secs(3600);
+
+/// Writes the Zenoh configuration every process of a sitting starts from (the link lease
+/// [`SITTING_LINK_LEASE`]) into `dir`, and returns its path.
+///
+/// # Errors
+/// If the file cannot be written.
+pub fn write_sitting_zenoh_config(dir: &Path) -> Result<PathBuf> {
+    let path = dir.join("zenoh.json5");
+    let lease_ms = SITTING_LINK_LEASE.as_millis();
+    let config = serde_json::json!({ "transport": { "link": { "tx": { "lease": lease_ms } } } });
+    std::fs::write(&path, serde_json::to_string_pretty(&config)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(path)
 }
 
 impl Daemon {
-    /// Starts `planner-service serve` on a free loopback port and waits until it serves.
-    pub fn start(bin: &Path, data_dir: &Path, log_path: &Path) -> Result<Self> {
+    /// Starts `planner-service serve` on a free loopback port, with the sitting's Zenoh file and
+    /// its log written into `logs`, and waits until it serves.
+    pub fn start(bin: &Path, data_dir: &Path, logs: &Path) -> Result<Self> {
+        let log_path = &logs.join("planner.log");
+        let zenoh_config = write_sitting_zenoh_config(logs)?;
         if !bin.exists() {
             bail!(
                 "{} not found: build the binaries first (`cargo build --release --bins`), or point \
@@ -780,7 +813,9 @@ impl Daemon {
         let log = std::fs::File::create(log_path)
             .with_context(|| format!("creating {}", log_path.display()))?;
         let mut cmd = Command::new(bin);
-        cmd.args(["serve", "--listen", &endpoint, "--planner-id"])
+        cmd.args(["serve", "--listen", &endpoint, "--zenoh-config"])
+            .arg(&zenoh_config)
+            .arg("--planner-id")
             .arg(format!("experiment-{port}"))
             .arg("--data-dir")
             .arg(data_dir)
@@ -792,7 +827,11 @@ impl Daemon {
         let child = cmd
             .spawn()
             .with_context(|| format!("starting {}", bin.display()))?;
-        let mut daemon = Self { child, endpoint };
+        let mut daemon = Self {
+            child,
+            endpoint,
+            zenoh_config,
+        };
         daemon.wait_until_serving(log_path, Duration::from_secs(120))?;
         tracing::info!(endpoint = %daemon.endpoint, log = %log_path.display(), "planner daemon serving");
         Ok(daemon)

@@ -56,7 +56,7 @@ fn script(path: &Path, body: &str) {
 /// retraining) and, stopped there, writes how many episodes it had finished to `stopped-after`.
 /// WALL sets the wall seconds its rows report.
 ///
-/// The planner's `status --json` lists every run the bridges have written to, each with the
+/// The planner appends its `serve` command line to `planner-calls.log`; its `status --json` lists every run the bridges have written to, each with the
 /// kernel paths a daemon on an AMX machine would report.
 fn fake_binaries(dir: &Path) {
     let status = r#"if [ "$1" = status ]; then
@@ -74,7 +74,10 @@ fi
     .replace("DIR", &dir.display().to_string());
     script(
         &dir.join("planner-service"),
-        &format!("{status}echo 'INFO planner serving'\nexec sleep 300\n"),
+        &format!(
+            "{status}echo \"$@\" >> {}\necho 'INFO planner serving'\nexec sleep 300\n",
+            dir.join("planner-calls.log").display()
+        ),
     );
     let calls = dir.join("calls.log");
     script(
@@ -380,6 +383,35 @@ fn exploration_episodes_reach_the_bridges_and_the_record() {
     let none = run("0");
     assert!(!none.status.success());
     says(&none.stderr, "--exploration-episodes");
+    std::fs::remove_dir_all(&bins).unwrap();
+}
+
+/// The daemon and every bridge of a sitting start from one Zenoh file whose link lease is an
+/// hour: an idle-priority process starved of a core for longer than Zenoh's default 10 s is
+/// not taken for dead (which made every bridge start its episode over).
+#[test]
+fn every_process_of_a_sitting_shares_a_zenoh_file_with_a_long_link_lease() {
+    let bins = temp_dir("bins-lease");
+    fake_binaries(&bins);
+    let out = bins.join("results");
+    succeeded(&experiment(&bins, &out, None));
+    let file = out.join("logs").join("zenoh.json5");
+    let config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    assert_eq!(
+        config["transport"]["link"]["tx"]["lease"],
+        serde_json::json!(3_600_000),
+        "{config}"
+    );
+    let flag = format!("--zenoh-config {}", file.display());
+    let serve = std::fs::read_to_string(bins.join("planner-calls.log")).unwrap();
+    assert!(
+        serve.starts_with("serve ") && serve.contains(&flag),
+        "{serve}"
+    );
+    let bridges = calls(&bins);
+    assert_eq!(bridges.len(), 4, "{bridges:?}");
+    assert!(bridges.iter().all(|c| c.contains(&flag)), "{bridges:?}");
     std::fs::remove_dir_all(&bins).unwrap();
 }
 

@@ -169,6 +169,85 @@ fn the_bridge_rides_out_a_planner_killed_and_restarted() {
     assert_eq!(finished, 3, "{:?}", buffer.episodes());
 }
 
+/// A planner that gets no CPU for longer than Zenoh's default link lease (10 s; here it is
+/// stopped for 13 s, as an idle-priority daemon beside a build can be) is not taken for gone
+/// when the planner and the bridge start from a Zenoh file with a longer lease (the experiment
+/// launcher writes one): the bridge waits, the episode under way goes on, and the run's buffer
+/// holds no interrupted episode. With the default lease the bridge would start that episode
+/// over.
+#[test]
+fn a_long_link_lease_rides_out_a_starved_planner() {
+    let dir = TempDir::new("cartpole-starved");
+    let zenoh = dir.path().join("zenoh.json5");
+    std::fs::write(&zenoh, "{ transport: { link: { tx: { lease: 120000 } } } }").unwrap();
+    let config = format!(
+        "zenoh_config = {:?}\n{}",
+        zenoh.display().to_string(),
+        config()
+    );
+    let mut planner = Planner::start(dir.path(), &config).expect("planner starts");
+    let csv = dir.path().join("episodes.csv");
+    let args = [
+        "--task",
+        "cartpole",
+        "--run",
+        "starved",
+        "--agent",
+        "b0",
+        "--episodes",
+        "3",
+        "--max-steps",
+        "40",
+        "--seed",
+        "2",
+        "--action-timeout",
+        "120",
+        "--train-timeout",
+        "120",
+        "--zenoh-config",
+        zenoh.to_str().unwrap(),
+        "--out",
+        csv.to_str().unwrap(),
+    ];
+    let mut bridge = spawn_bridge(dir.path(), &planner.endpoint, &args).unwrap();
+    bridge
+        .wait_for_log("episode 1/3 done", Duration::from_secs(180))
+        .unwrap();
+    planner.process.signal("STOP").unwrap();
+    std::thread::sleep(Duration::from_secs(13));
+    planner.process.signal("CONT").unwrap();
+
+    let status = bridge.wait(Duration::from_secs(300)).unwrap();
+    let log = bridge.log();
+    assert!(
+        status.success(),
+        "sim-bridge failed: {status}\n{log}\nplanner:\n{}",
+        planner.process.log()
+    );
+    assert!(
+        !log.contains("went away") && !log.contains("attaching again"),
+        "the bridge took the stopped planner for gone:\n{log}"
+    );
+    let rows = read_episodes(&csv, 3).unwrap();
+    assert_eq!(
+        rows.iter().map(|r| r.episode).collect::<Vec<_>>(),
+        [0, 1, 2],
+        "no episode started over: {rows:?}"
+    );
+    assert!(rows.iter().all(|r| r.steps == 40), "{rows:?}");
+    planner.stop().unwrap();
+    let buffer = planner.replay("starved", Builtin::Cartpole).unwrap();
+    assert!(
+        buffer
+            .episodes()
+            .iter()
+            .all(|e| e.end != EpisodeEnd::Interrupted),
+        "{:?}",
+        buffer.episodes()
+    );
+    assert_eq!(buffer.episodes().len(), 3, "{:?}", buffer.episodes());
+}
+
 /// The gradient-based baseline through the service: a run created with the `adam+dae` preset
 /// explores one episode, trains its model and DAE, and plans every step of the next episode
 /// with Adam (40 candidates, two Adam steps: plumbing, not learning), within the bounds.

@@ -45,6 +45,10 @@ struct ServeArgs {
     /// Zenoh endpoint (a peer or a zenohd router) to connect to (repeatable).
     #[arg(long, env = "EBMPC_CONNECT", value_delimiter = ',')]
     connect: Vec<String>,
+    /// A zenoh configuration file (JSON5) to start from, e.g. deploy/zenoh-client.json5; the
+    /// endpoints above are applied on top.
+    #[arg(long, env = "EBMPC_ZENOH_CONFIG")]
+    zenoh_config: Option<PathBuf>,
     /// This planner's id (its status key and liveliness token).
     #[arg(long, env = "EBMPC_PLANNER_ID")]
     planner_id: Option<String>,
@@ -78,6 +82,9 @@ impl ServeArgs {
         }
         if !self.connect.is_empty() {
             config.connect = self.connect;
+        }
+        if let Some(path) = self.zenoh_config {
+            config.zenoh_config = Some(path);
         }
         if let Some(id) = self.planner_id {
             config.planner_id = id;
