@@ -96,6 +96,52 @@ fn two_cartpole_episodes_random_then_planned() {
     }
 }
 
+/// Starts a bridge for 3 cartpole episodes of 40 steps of `run` (episodes into `csv`, `extra`
+/// flags appended) and returns once its first episode is done: the moment the tests below do
+/// something to the planner.
+fn bridge_past_its_first_of_three_episodes(
+    dir: &TempDir,
+    endpoint: &str,
+    run: &str,
+    csv: &std::path::Path,
+    extra: &[&str],
+) -> ebmpc_e2e::Guarded {
+    let csv = csv.to_str().unwrap();
+    let args = [
+        "--task",
+        "cartpole",
+        "--run",
+        run,
+        "--agent",
+        "b0",
+        "--episodes",
+        "3",
+        "--max-steps",
+        "40",
+        "--seed",
+        "1",
+        "--out",
+        csv,
+    ];
+    let mut bridge = spawn_bridge(dir.path(), endpoint, &[&args[..], extra].concat()).unwrap();
+    bridge
+        .wait_for_log("episode 1/3 done", Duration::from_secs(180))
+        .unwrap();
+    bridge
+}
+
+/// The log of `bridge` once it has exited successfully (within 5 minutes).
+fn finished_log(bridge: &mut ebmpc_e2e::Guarded, planner: &Planner) -> String {
+    let status = bridge.wait(Duration::from_secs(300)).unwrap();
+    let log = bridge.log();
+    assert!(
+        status.success(),
+        "sim-bridge failed: {status}\n{log}\nplanner:\n{}",
+        planner.process.log()
+    );
+    log
+}
+
 /// An agent whose planner is killed mid-run waits for it, attaches again when it is back, and
 /// finishes all its episodes; the restarted planner resumed the run from disk.
 #[test]
@@ -115,26 +161,7 @@ fn the_bridge_rides_out_a_planner_killed_and_restarted() {
     .toml();
     let mut planner = Planner::start_on(dir.path(), &config, &endpoint).expect("planner starts");
     let csv = dir.path().join("episodes.csv");
-    let args = [
-        "--task",
-        "cartpole",
-        "--run",
-        "restart",
-        "--agent",
-        "b0",
-        "--episodes",
-        "3",
-        "--max-steps",
-        "40",
-        "--seed",
-        "1",
-        "--out",
-        csv.to_str().unwrap(),
-    ];
-    let mut bridge = spawn_bridge(dir.path(), &endpoint, &args).unwrap();
-    bridge
-        .wait_for_log("episode 1/3 done", Duration::from_secs(180))
-        .unwrap();
+    let mut bridge = bridge_past_its_first_of_three_episodes(&dir, &endpoint, "restart", &csv, &[]);
     planner.process.signal("KILL").unwrap();
     let _ = planner.process.wait(Duration::from_secs(30));
     drop(planner);
@@ -146,13 +173,7 @@ fn the_bridge_rides_out_a_planner_killed_and_restarted() {
         planner.process.log()
     );
 
-    let status = bridge.wait(Duration::from_secs(300)).unwrap();
-    let log = bridge.log();
-    assert!(
-        status.success(),
-        "sim-bridge failed: {status}\n{log}\nplanner:\n{}",
-        planner.process.log()
-    );
+    let log = finished_log(&mut bridge, &planner);
     let rows = read_episodes(&csv, 3).unwrap();
     assert!(rows.iter().all(|r| r.steps == 40), "{rows:?}");
     assert!(
@@ -187,43 +208,21 @@ fn a_long_link_lease_rides_out_a_starved_planner() {
     );
     let mut planner = Planner::start(dir.path(), &config).expect("planner starts");
     let csv = dir.path().join("episodes.csv");
-    let args = [
-        "--task",
-        "cartpole",
-        "--run",
-        "starved",
-        "--agent",
-        "b0",
-        "--episodes",
-        "3",
-        "--max-steps",
-        "40",
-        "--seed",
-        "2",
+    let waits = [
         "--action-timeout",
         "120",
         "--train-timeout",
         "120",
         "--zenoh-config",
-        zenoh.to_str().unwrap(),
-        "--out",
-        csv.to_str().unwrap(),
     ];
-    let mut bridge = spawn_bridge(dir.path(), &planner.endpoint, &args).unwrap();
-    bridge
-        .wait_for_log("episode 1/3 done", Duration::from_secs(180))
-        .unwrap();
+    let extra = [&waits[..], &[zenoh.to_str().unwrap()]].concat();
+    let mut bridge =
+        bridge_past_its_first_of_three_episodes(&dir, &planner.endpoint, "starved", &csv, &extra);
     planner.process.signal("STOP").unwrap();
     std::thread::sleep(Duration::from_secs(13));
     planner.process.signal("CONT").unwrap();
 
-    let status = bridge.wait(Duration::from_secs(300)).unwrap();
-    let log = bridge.log();
-    assert!(
-        status.success(),
-        "sim-bridge failed: {status}\n{log}\nplanner:\n{}",
-        planner.process.log()
-    );
+    let log = finished_log(&mut bridge, &planner);
     assert!(
         !log.contains("went away") && !log.contains("attaching again"),
         "the bridge took the stopped planner for gone:\n{log}"
