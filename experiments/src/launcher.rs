@@ -56,6 +56,7 @@ use crate::results::{self, EpisodeRow};
 use crate::resume_state;
 use crate::scale::{self, Scale};
 use anyhow::{Context, Result, bail};
+use planner_service::config::ServiceConfig;
 use planner_service::plan::Optimizer;
 use proto::Builtin;
 use std::io::Read;
@@ -545,7 +546,7 @@ struct RunContext<'a> {
     exp: &'a Experiment,
     manifest: &'a Manifest,
     endpoint: &'a str,
-    /// The sitting's Zenoh file ([`write_sitting_zenoh_config`]), for the bridges too.
+    /// The sitting's Zenoh file ([`write_sitting_config`]), for the bridges too.
     zenoh_config: &'a Path,
     progress: &'a Progress,
     deadline: Option<Instant>,
@@ -606,7 +607,8 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
         // still seen at once (the bridge watches its liveliness, and a dead process's loopback
         // link closes at once), and the budget bounds a sitting.
         .args(["--action-timeout", "3600"])
-        .args(["--train-timeout", "86400"])
+        .arg("--train-timeout")
+        .arg(SITTING_RETRAIN.as_secs().to_string())
         .arg("--out")
         .arg(&attempt)
         .args(scale::bridge_flags(&manifest.overrides_for(&run.method)))
@@ -765,7 +767,7 @@ impl Drop for Guard {
 pub struct Daemon {
     child: Child,
     pub endpoint: String,
-    /// The Zenoh file the daemon started from: its link lease is the sitting's.
+    /// The Zenoh file the daemon started from, with the sitting's link lease.
     pub zenoh_config: PathBuf,
 }
 
@@ -778,26 +780,43 @@ pub struct Daemon {
 /// long lease delays nothing but the verdict on a process that is alive and starved.
 pub const SITTING_LINK_LEASE: Duration = Duration::from_secs(3600);
 
-/// Writes the Zenoh configuration every process of a sitting starts from (the link lease
-/// [`SITTING_LINK_LEASE`]) into `dir`, and returns its path.
+/// How long one retraining of a sitting may take, and how long a bridge waits for it. The
+/// daemon's default budget (an hour) ends training early and plans with what it has, which
+/// serves a live agent; an experiment must train the preset's full epochs however slow its
+/// machine, or its results would depend on the load beside it (a PETS retraining on
+/// half-cheetah can take hours on 2 starved cores).
+pub const SITTING_RETRAIN: Duration = Duration::from_secs(86_400);
+
+/// Writes the configuration every process of a sitting starts from into `dir`: the Zenoh file
+/// (`zenoh.json5`, link lease [`SITTING_LINK_LEASE`]) for the daemon and the bridges, and the
+/// daemon's `planner.toml` (that Zenoh file, retraining budget [`SITTING_RETRAIN`]). Returns
+/// their paths, Zenoh file first.
 ///
 /// # Errors
-/// If the file cannot be written.
-pub fn write_sitting_zenoh_config(dir: &Path) -> Result<PathBuf> {
-    let path = dir.join("zenoh.json5");
+/// If a file cannot be written.
+pub fn write_sitting_config(dir: &Path) -> Result<(PathBuf, PathBuf)> {
+    let zenoh = dir.join("zenoh.json5");
     let lease_ms = SITTING_LINK_LEASE.as_millis();
-    let config = serde_json::json!({ "transport": { "link": { "tx": { "lease": lease_ms } } } });
-    std::fs::write(&path, serde_json::to_string_pretty(&config)?)
-        .with_context(|| format!("writing {}", path.display()))?;
-    Ok(path)
+    let link = serde_json::json!({ "transport": { "link": { "tx": { "lease": lease_ms } } } });
+    std::fs::write(&zenoh, serde_json::to_string_pretty(&link)?)
+        .with_context(|| format!("writing {}", zenoh.display()))?;
+    let mut daemon = ServiceConfig {
+        zenoh_config: Some(zenoh.clone()),
+        ..ServiceConfig::default()
+    };
+    daemon.limits.max_retrain_seconds = SITTING_RETRAIN.as_secs_f64();
+    let planner = dir.join("planner.toml");
+    let text = toml::to_string(&daemon).context("writing the sitting's planner configuration")?;
+    std::fs::write(&planner, text).with_context(|| format!("writing {}", planner.display()))?;
+    Ok((zenoh, planner))
 }
 
 impl Daemon {
-    /// Starts `planner-service serve` on a free loopback port, with the sitting's Zenoh file and
-    /// its log written into `logs`, and waits until it serves.
+    /// Starts `planner-service serve` on a free loopback port, with the sitting's configuration
+    /// ([`write_sitting_config`]) and its log written into `logs`, and waits until it serves.
     pub fn start(bin: &Path, data_dir: &Path, logs: &Path) -> Result<Self> {
         let log_path = &logs.join("planner.log");
-        let zenoh_config = write_sitting_zenoh_config(logs)?;
+        let (zenoh_config, config) = write_sitting_config(logs)?;
         if !bin.exists() {
             bail!(
                 "{} not found: build the binaries first (`cargo build --release --bins`), or point \
@@ -813,9 +832,9 @@ impl Daemon {
         let log = std::fs::File::create(log_path)
             .with_context(|| format!("creating {}", log_path.display()))?;
         let mut cmd = Command::new(bin);
-        cmd.args(["serve", "--listen", &endpoint, "--zenoh-config"])
-            .arg(&zenoh_config)
-            .arg("--planner-id")
+        cmd.args(["serve", "--config"])
+            .arg(&config)
+            .args(["--listen", &endpoint, "--planner-id"])
             .arg(format!("experiment-{port}"))
             .arg("--data-dir")
             .arg(data_dir)

@@ -388,30 +388,42 @@ fn exploration_episodes_reach_the_bridges_and_the_record() {
 
 /// The daemon and every bridge of a sitting start from one Zenoh file whose link lease is an
 /// hour: an idle-priority process starved of a core for longer than Zenoh's default 10 s is
-/// not taken for dead (which made every bridge start its episode over).
+/// not taken for dead (which made every bridge start its episode over). The daemon's
+/// configuration lifts the retraining budget to a day, the bridges' wait for it: an
+/// experiment trains its preset's full epochs however slow the machine.
 #[test]
-fn every_process_of_a_sitting_shares_a_zenoh_file_with_a_long_link_lease() {
+fn every_process_of_a_sitting_shares_a_long_link_lease_and_training_is_not_cut_short() {
     let bins = temp_dir("bins-lease");
     fake_binaries(&bins);
     let out = bins.join("results");
     succeeded(&experiment(&bins, &out, None));
-    let file = out.join("logs").join("zenoh.json5");
-    let config: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    let zenoh = out.join("logs").join("zenoh.json5");
+    let link: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&zenoh).unwrap()).unwrap();
     assert_eq!(
-        config["transport"]["link"]["tx"]["lease"],
+        link["transport"]["link"]["tx"]["lease"],
         serde_json::json!(3_600_000),
-        "{config}"
+        "{link}"
     );
-    let flag = format!("--zenoh-config {}", file.display());
+    let toml = out.join("logs").join("planner.toml");
+    let daemon = planner_service::config::ServiceConfig::load(&toml).unwrap();
+    assert_eq!(daemon.zenoh_config.as_deref(), Some(zenoh.as_path()));
+    assert!((daemon.limits.max_retrain_seconds - 86_400.0).abs() < 1e-9);
     let serve = std::fs::read_to_string(bins.join("planner-calls.log")).unwrap();
     assert!(
-        serve.starts_with("serve ") && serve.contains(&flag),
+        serve.starts_with("serve ") && serve.contains(&format!("--config {}", toml.display())),
         "{serve}"
     );
     let bridges = calls(&bins);
     assert_eq!(bridges.len(), 4, "{bridges:?}");
-    assert!(bridges.iter().all(|c| c.contains(&flag)), "{bridges:?}");
+    let flags = [
+        format!("--zenoh-config {}", zenoh.display()),
+        "--train-timeout 86400".to_string(),
+    ];
+    assert!(
+        bridges.iter().all(|c| flags.iter().all(|f| c.contains(f))),
+        "{bridges:?}"
+    );
     std::fs::remove_dir_all(&bins).unwrap();
 }
 
