@@ -815,8 +815,6 @@ impl Daemon {
     /// Starts `planner-service serve` on a free loopback port, with the sitting's configuration
     /// ([`write_sitting_config`]) and its log written into `logs`, and waits until it serves.
     pub fn start(bin: &Path, data_dir: &Path, logs: &Path) -> Result<Self> {
-        let log_path = &logs.join("planner.log");
-        let (zenoh_config, config) = write_sitting_config(logs)?;
         if !bin.exists() {
             bail!(
                 "{} not found: build the binaries first (`cargo build --release --bins`), or point \
@@ -824,6 +822,8 @@ impl Daemon {
                 bin.display()
             );
         }
+        let log_path = &logs.join("planner.log");
+        let (zenoh_config, config) = write_sitting_config(logs)?;
         let port = TcpListener::bind("127.0.0.1:0")
             .and_then(|l| l.local_addr())
             .context("finding a free loopback port")?
