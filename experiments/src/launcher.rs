@@ -21,9 +21,10 @@
 //! ready to commit the moment it finishes; `logs/` and `planner/` are not meant to be.
 //!
 //! **Budgets.** A sitting may have a wall-clock budget: then it starts runs longest first and only
-//! those whose estimated remaining cost fits the time left ([`crate::queue`]), stops a running run
-//! between two episodes when its next one would end after the deadline (so that its buffer holds
-//! exactly its recorded episodes), stops what still runs at the deadline itself (an episode the
+//! those whose estimated remaining cost fits the time left ([`crate::queue`]), has each bridge stop
+//! between two episodes, before it resets the simulator, when its next one would end after the
+//! deadline (`sim-bridge run --deadline`; so that the run's buffer holds exactly its recorded
+//! episodes), stops what still runs at the deadline itself (an episode the
 //! estimate did not foresee), and packs every unfinished run's replay log and newest checkpoint
 //! into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from which a later sitting — on a
 //! fresh clone too — continues it.
@@ -64,7 +65,7 @@ use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime};
 
 /// What to run.
 #[derive(Clone, Debug)]
@@ -619,16 +620,30 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
     if let Some(steps) = left.steps {
         cmd.args(["--timesteps", &steps.to_string()]);
     }
+    if let Some(deadline) = ctx.deadline {
+        // The bridge stops between episodes by itself, before it resets the simulator, when
+        // its next episode would end after the deadline (sim_bridge::deadline): a signal sent
+        // on seeing an episode's row would usually arrive after the next episode had begun.
+        let at = SystemTime::now() + deadline.saturating_duration_since(Instant::now());
+        let at = at.duration_since(SystemTime::UNIX_EPOCH)?.as_secs();
+        cmd.args(["--deadline", &at.to_string()]);
+        // What the run's method has measured so far, for a planned episode after exploration.
+        let cost = queue::method_costs(&recorded_rows(&exp.out, manifest))
+            .get(&run.method)
+            .copied();
+        let episode_len = manifest.task.task().spec().episode_len;
+        if let Some(planned) = queue::planned_episode(cost, episode_len) {
+            cmd.args([
+                "--planned-episode-seconds",
+                &format!("{:.3}", planned.as_secs_f64()),
+            ]);
+        }
+    }
     stop_with_launcher(&mut cmd);
     let mut child = Guard(
         cmd.spawn()
             .with_context(|| format!("starting {}", exp.bin_dir.join("sim-bridge").display()))?,
     );
-    // What the run's method has measured so far, for the next episode's estimate.
-    let cost = queue::method_costs(&recorded_rows(&exp.out, manifest))
-        .get(&run.method)
-        .copied();
-    let episode_len = manifest.task.task().spec().episode_len;
     let bar = progress.start_run(&run.stem());
     let mut seen = 0;
     let mut stopped_at_deadline = false;
@@ -643,30 +658,13 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
                 progress.episode(&bar, &run.stem(), count, row, manifest.episodes);
             }
             seen = done;
-            // At an episode boundary the bridge waits for the retraining before its next
-            // episode's first action: stopping it there loses no planned step.
-            let left = ctx
-                .deadline
-                .map(|d| d.saturating_duration_since(Instant::now()));
-            let next = rows
-                .last()
-                .and_then(|last| queue::next_episode(last, cost, episode_len));
-            if status.is_none() && !stopped_at_deadline && queue::stop_at_boundary(left, next) {
-                progress.log(&format!(
-                    "run {} stops after this episode: the next (about {}) would end after \
-                     the budget's deadline",
-                    run.stem(),
-                    next.map_or_else(String::new, minutes)
-                ));
-                stopped_at_deadline = true;
-                terminate(&child.0);
-            }
         }
         if let Some(status) = status {
             break status;
         }
         if !stopped_at_deadline && ctx.deadline.is_some_and(|d| Instant::now() >= d) {
-            // SIGTERM: the bridge tells the planner the open episode was interrupted.
+            // An episode the estimate did not foresee. SIGTERM: the bridge tells the planner
+            // the open episode was interrupted.
             stopped_at_deadline = true;
             terminate(&child.0);
         }
@@ -676,6 +674,14 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
     merge_attempt(&attempt, &partial)?;
     let left = remaining_of(&partial, manifest);
     if stopped_at_deadline && left.is_some() {
+        return Ok(RunEnd::StoppedAtDeadline);
+    }
+    if status.success() && left.is_some() && ctx.deadline.is_some() {
+        // The bridge's only early stop: its next episode would have ended after the deadline.
+        progress.log(&format!(
+            "run {} stopped after this episode: its next would end after the budget's deadline",
+            run.stem()
+        ));
         return Ok(RunEnd::StoppedAtDeadline);
     }
     if !status.success() && left.is_some() {

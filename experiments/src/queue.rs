@@ -20,10 +20,10 @@
 //!   then it starts anyway if at least its next episode fits, is stopped before the deadline
 //!   and keeps a resumable state ([`crate::resume_state`]). A run without an estimate starts;
 //!   if it is still running at the deadline it is stopped the same way.
-//! - **Stops between episodes.** A running run stops at the episode boundary after which its
-//!   next episode ([`next_episode`]) would end past the deadline ([`stop_at_boundary`]), so a
-//!   stopped run's data are its recorded episodes; the deadline itself stops only an episode
-//!   the estimate did not foresee.
+//! - **Stops between episodes.** A running run's bridge is given the deadline and stops at the
+//!   episode boundary after which its next episode would end past it, before it resets the
+//!   simulator ([`sim_bridge::deadline`]), so a stopped run's data are its recorded episodes;
+//!   the deadline itself stops only an episode the estimate did not foresee.
 
 use crate::results::EpisodeRow;
 use std::collections::BTreeMap;
@@ -97,20 +97,9 @@ pub fn estimate(left: Remaining, cost: MethodCost, episode_len: u32) -> Option<D
     Some(Duration::from_secs_f64((steps * rate).max(0.0)))
 }
 
-/// The estimated wall time of a run's next episode, given the episode it just finished
-/// (`last`) and its method's measured `cost`: the last episode's own wall time when it was
-/// planned (a run's planning cost drifts slowly, so its latest episode predicts the next best),
-/// otherwise (it was random exploration, much faster than what follows) the method's measured
-/// planned episode on a task with episodes of at most `episode_len` steps. `None` when neither
-/// has been measured.
-pub fn next_episode(
-    last: &EpisodeRow,
-    cost: Option<MethodCost>,
-    episode_len: u32,
-) -> Option<Duration> {
-    if last.planned_steps > 0 {
-        return Some(Duration::from_secs_f64(last.wall_seconds.max(0.0)));
-    }
+/// The estimated wall time of one planned episode of a method with `cost` on a task whose
+/// episodes last at most `episode_len` steps (`None`: the method has no measured rate).
+pub fn planned_episode(cost: Option<MethodCost>, episode_len: u32) -> Option<Duration> {
     let one = Remaining {
         episodes: 1,
         steps: None,
@@ -118,13 +107,20 @@ pub fn next_episode(
     estimate(one, cost?, episode_len)
 }
 
-/// Whether a run should stop at the episode boundary it has just reached: the sitting has a
-/// deadline `left` away and the next episode, estimated at `next`, would not end before it.
-/// Stopping between episodes rather than at the deadline keeps the run's data exactly what its
-/// recorded episodes say (an episode cut short at the deadline would stay in the replay buffer
-/// as an interrupted one, and its planning time would be lost).
-pub fn stop_at_boundary(left: Option<Duration>, next: Option<Duration>) -> bool {
-    matches!((left, next), (Some(l), Some(n)) if n > l)
+/// The estimated wall time of a run's next episode, given the episode it just finished
+/// (`last`) and its method's measured `cost`, by the rule the bridge applies at a deadline
+/// ([`sim_bridge::deadline::next_episode`]): the last episode's own wall time when it planned,
+/// otherwise the method's [`planned_episode`]. `None` when neither has been measured.
+pub fn next_episode(
+    last: &EpisodeRow,
+    cost: Option<MethodCost>,
+    episode_len: u32,
+) -> Option<Duration> {
+    sim_bridge::deadline::next_episode(
+        last.planned_steps,
+        last.wall_seconds,
+        planned_episode(cost, episode_len),
+    )
 }
 
 /// A pending run and its estimated remaining cost.
@@ -272,21 +268,6 @@ mod tests {
             steps_per_episode: Some(1000.0),
         });
         assert_eq!(next_episode(&random, unplanned, 1000), None);
-    }
-
-    #[test]
-    fn a_run_stops_between_episodes_when_the_next_would_pass_the_deadline() {
-        let min = |m: u64| Some(Duration::from_secs(60 * m));
-        assert!(
-            stop_at_boundary(min(5), min(9)),
-            "9 minutes do not fit in 5"
-        );
-        assert!(!stop_at_boundary(min(10), min(9)));
-        assert!(!stop_at_boundary(None, min(9)), "no budget, no deadline");
-        assert!(
-            !stop_at_boundary(min(5), None),
-            "unmeasured: the deadline stops it"
-        );
     }
 
     #[test]

@@ -54,7 +54,9 @@ fn script(path: &Path, body: &str) {
 /// seed, records its pid in `hung.pid` and hangs (a run in progress, for killing the
 /// launcher); with SLOW_SEED=<seed> it waits 5 s after each of that seed's episodes (a
 /// retraining) and, stopped there, writes how many episodes it had finished to `stopped-after`.
-/// WALL sets the wall seconds its rows report.
+/// WALL sets the wall seconds its rows report. Given `--deadline`, it applies the real bridge's
+/// rule (the next episode takes as long as the last) after each episode and, stopping, also
+/// writes `stopped-after`.
 ///
 /// The planner appends its `serve` command line to `planner-calls.log`; its `status --json` lists every run the bridges have written to, each with the
 /// kernel paths a daemon on an AMX machine would report.
@@ -90,6 +92,7 @@ while [ $# -gt 0 ]; do
     --episodes) episodes="$2"; shift;;
     --seed) seed="$2"; shift;;
     --run) run="$2"; shift;;
+    --deadline) deadline="$2"; shift;;
   esac
   shift
 done
@@ -101,6 +104,11 @@ while [ $e -lt $last ]; do
   echo "$e,$((seed * 100 + e)).5,200,${{WALL:-0.010}},200,12.500,1.250" >> "$out"
   e=$((e + 1))
   echo $e > "$state"
+  # The real bridge's rule at a deadline: the next episode takes as long as this one.
+  wall=${{WALL:-0.010}}
+  if [ -n "$deadline" ] && [ $(( $(date +%s) + ${{wall%.*}} )) -gt "$deadline" ] && [ $e -lt $last ]; then
+    echo $e > {dir}/stopped-after; exit 0
+  fi
   if [ "$SLOW_SEED" = "$seed" ]; then
     trap "echo $e > {dir}/stopped-after; exit 143" TERM
     sleep 5 & wait $!
@@ -427,10 +435,11 @@ fn every_process_of_a_sitting_shares_a_long_link_lease_and_training_is_not_cut_s
     std::fs::remove_dir_all(&bins).unwrap();
 }
 
-/// With a budget, a run whose next episode (as long as its last, 60 s) would end after the
-/// deadline stops at the episode boundary, in the wait before the next episode, rather than at
-/// the deadline with an episode cut short; the sitting ends with one recorded episode and the
-/// run resumable.
+/// With a budget, the bridge is given the sitting's deadline, and a run whose next episode (as
+/// long as its last, 60 s) would end after it stops at the episode boundary (the bridge's own
+/// decision, before it resets) rather than at the deadline with an episode cut short; the
+/// launcher takes that clean early exit for a deadline stop: the sitting ends with one recorded
+/// episode and the run resumable.
 #[test]
 fn a_budget_stops_a_run_between_episodes() {
     let bins = temp_dir("bins-boundary");
@@ -458,12 +467,27 @@ fn a_budget_stops_a_run_between_episodes() {
         "stopped after the first episode: {stderr}"
     );
     assert!(
-        stderr.contains("stops after this episode"),
+        stderr.contains("stopped after this episode"),
         "the launcher says why: {stderr}"
     );
     assert!(
         !out.join("runs/cem-s0.csv").exists(),
         "the run is unfinished"
+    );
+    let bridge = calls(&bins).concat();
+    let deadline: u64 = bridge
+        .split("--deadline ")
+        .nth(1)
+        .and_then(|rest| rest.split_whitespace().next())
+        .and_then(|at| at.parse().ok())
+        .unwrap_or_else(|| panic!("the bridge is given the deadline: {bridge}"));
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs();
+    assert!(
+        deadline + 30 > now && deadline < now + 10,
+        "deadline {deadline}, now {now}: the budget's 8 s, in Unix seconds"
     );
     let partial = std::fs::read_to_string(out.join("runs/cem-s0.csv.partial")).unwrap();
     assert_eq!(

@@ -15,6 +15,7 @@
 //! Actions of an ownership epoch older than the one attached to are ignored, and every
 //! observation says which action was applied (the planned one clamped into the bounds).
 
+use crate::deadline::EpisodeDeadline;
 use crate::env::Env;
 use crate::error::SimError;
 use crate::link::{Inbound, PlannerLink};
@@ -24,7 +25,7 @@ use proto::{
     Observation, PlanStats, RunEvent, RunEventKind, RunSpec, Task, TrainMode,
 };
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime};
 
 /// Everything one bridge process needs to know.
 #[derive(Debug, Clone)]
@@ -47,6 +48,9 @@ pub struct BridgeConfig {
     /// only; `None`: no step budget, `episodes` alone decides). An experiment budgeted in
     /// timesteps (the paper's "4,000 timesteps" on ant) asks for the steps it still lacks.
     pub timesteps: Option<u64>,
+    /// Start no episode expected to end after this deadline: stop between episodes instead,
+    /// before the simulator resets (`None`: no deadline).
+    pub deadline: Option<EpisodeDeadline>,
     /// Episode `e` starts from the state drawn with seed `seed + e`.
     pub seed: u64,
     /// How long to keep asking for a planner before giving up.
@@ -205,7 +209,7 @@ pub enum BridgeError {
 }
 
 /// Runs `config.episodes` episodes against the planner (fewer if `config.timesteps` is reached
-/// first) and returns their records; `on_episode` sees each record as soon as its episode ends
+/// first, or the next episode would end after `config.deadline`) and returns their records; `on_episode` sees each record as soon as its episode ends
 /// (to write it out before the next one starts).
 pub async fn run(
     config: &BridgeConfig,
@@ -242,6 +246,19 @@ pub async fn run(
     while records.len() < config.episodes as usize
         && config.timesteps.is_none_or(|budget| steps < budget)
     {
+        if let (Some(deadline), Some(last)) = (&config.deadline, records.last())
+            && !deadline.admits(last, SystemTime::now())
+        {
+            tracing::info!(
+                episode,
+                "stopping before episode {episode}: expected to take {}, it would end after \
+                 the deadline",
+                deadline
+                    .next_episode(last)
+                    .map_or_else(String::new, |d| format!("{:.0} s", d.as_secs_f64()))
+            );
+            break;
+        }
         // Sync mode: the planner holds an episode's first action until it has retrained on the
         // episodes before it.
         let first_wait = if !records.is_empty() && accepted.mode == TrainMode::Sync {

@@ -8,6 +8,7 @@
 pub mod bench;
 pub mod bridge;
 pub mod csv;
+pub mod deadline;
 pub mod env;
 pub mod error;
 mod link;
@@ -17,6 +18,7 @@ pub mod render;
 pub mod tasks;
 
 pub use bridge::{BridgeConfig, BridgeError, EpisodeRecord};
+pub use deadline::EpisodeDeadline;
 pub use env::{Env, StepOutcome};
 pub use error::SimError;
 pub use tasks::SIMULATED;

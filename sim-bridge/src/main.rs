@@ -6,8 +6,9 @@ use proto::session::Endpoints;
 use proto::{Builtin, InferencePrecision, PlannerOverrides, RegularizerChoice, RunSpec, TrainMode};
 use sim_bridge::bridge::{self, BridgeConfig};
 use sim_bridge::csv::EpisodeCsv;
+use sim_bridge::deadline::EpisodeDeadline;
 use std::path::PathBuf;
-use std::time::Duration;
+use std::time::{Duration, SystemTime};
 use tracing_subscriber::EnvFilter;
 
 /// Runs a simulated task (MuJoCo) as an agent of an ebmpc planner: sends observations and
@@ -59,6 +60,17 @@ struct RunArgs {
     /// timesteps".
     #[arg(long, env = "EBMPC_TIMESTEPS", value_parser = clap::value_parser!(u64).range(1..))]
     timesteps: Option<u64>,
+    /// Start no episode expected to end after this time (seconds since the Unix epoch): stop
+    /// between episodes instead, before the simulator resets, so the planner's data hold only
+    /// whole episodes. The next episode is expected to take as long as the last one when it
+    /// planned, else --planned-episode-seconds. Experiment sittings with a budget set it.
+    #[arg(long, env = "EBMPC_DEADLINE", value_name = "UNIX_SECONDS")]
+    deadline: Option<u64>,
+    /// With --deadline: the expected wall time of a planned episode, for the episode after one
+    /// that planned nothing (random exploration predicts nothing); without it such an episode
+    /// always starts.
+    #[arg(long, env = "EBMPC_PLANNED_EPISODE_SECONDS", requires = "deadline")]
+    planned_episode_seconds: Option<f64>,
     /// Seed: episode e starts from the state drawn with seed + e; also the run's model seed
     /// unless --planner-seed is given.
     #[arg(long, env = "EBMPC_SEED", default_value_t = 0)]
@@ -272,6 +284,20 @@ fn seconds(name: &str, value: f64) -> Result<Duration> {
         .with_context(|| format!("--{name} {value}: not a number of seconds"))
 }
 
+/// The episode deadline of `--deadline at` and `--planned-episode-seconds planned`.
+fn deadline(at: u64, planned: Option<f64>) -> Result<EpisodeDeadline> {
+    let at = SystemTime::UNIX_EPOCH
+        .checked_add(Duration::from_secs(at))
+        .with_context(|| format!("--deadline {at}: not a time this system can represent"))?;
+    let planned_episode = planned
+        .map(|s| seconds("planned-episode-seconds", s))
+        .transpose()?;
+    Ok(EpisodeDeadline {
+        at,
+        planned_episode,
+    })
+}
+
 impl RunArgs {
     fn into_config(self) -> Result<(BridgeConfig, Option<PathBuf>)> {
         if self.listen.is_empty() && self.connect.is_empty() && self.zenoh_config.is_none() {
@@ -297,6 +323,10 @@ impl RunArgs {
             agent: self.agent,
             episodes: self.episodes,
             timesteps: self.timesteps,
+            deadline: self
+                .deadline
+                .map(|at| deadline(at, self.planned_episode_seconds))
+                .transpose()?,
             seed: self.seed,
             attach_timeout: seconds("attach-timeout", self.attach_timeout)?,
             action_timeout: seconds("action-timeout", self.action_timeout)?,
@@ -442,5 +472,49 @@ fn main() -> Result<()> {
                 .context("starting the tokio runtime")?;
             runtime.block_on(run(*args))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--deadline` and `--planned-episode-seconds` as a user (or a launcher) gives them: the
+    /// deadline in Unix seconds, the estimate in seconds; values no time can hold are refused
+    /// with the flag's name, not a panic.
+    #[test]
+    fn the_deadline_flags_parse_and_refuse_what_no_time_can_hold() {
+        let ok = deadline(1_800_000_000, Some(90.5)).unwrap();
+        assert_eq!(
+            ok.at,
+            SystemTime::UNIX_EPOCH + Duration::from_secs(1_800_000_000)
+        );
+        assert_eq!(ok.planned_episode, Some(Duration::from_secs_f64(90.5)));
+        assert_eq!(deadline(0, None).unwrap().planned_episode, None);
+        let far = deadline(u64::MAX, None).unwrap_err();
+        assert!(format!("{far:#}").contains("--deadline"), "{far:#}");
+        for bad in [-1.0, f64::NAN, f64::INFINITY] {
+            let err = deadline(1, Some(bad)).unwrap_err();
+            assert!(
+                format!("{err:#}").contains("--planned-episode-seconds"),
+                "{err:#}"
+            );
+        }
+        // The estimate needs a deadline to mean anything.
+        let cli = Cli::try_parse_from([
+            "sim-bridge",
+            "run",
+            "--task",
+            "cartpole",
+            "--run",
+            "r",
+            "--agent",
+            "a",
+            "--episodes",
+            "1",
+            "--planned-episode-seconds",
+            "5",
+        ]);
+        assert!(cli.is_err());
     }
 }

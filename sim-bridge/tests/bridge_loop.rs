@@ -11,9 +11,9 @@ use proto::{
     Encoding, EpisodeEnd, ErrorCode, ErrorReport, Keys, Observation, PROTOCOL_VERSION, PlanStats,
     RunEvent, RunEventKind, RunSpec, TrainMode,
 };
-use sim_bridge::{BridgeConfig, BridgeError, Env};
+use sim_bridge::{BridgeConfig, BridgeError, Env, EpisodeDeadline};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, SystemTime};
 use zenoh::bytes::Encoding as ZEncoding;
 
 /// How the scripted planner behaves.
@@ -197,6 +197,7 @@ fn config(endpoint: &str, episodes: u32) -> BridgeConfig {
         },
         episodes,
         timesteps: None,
+        deadline: None,
         seed: 100,
         attach_timeout: Duration::from_secs(20),
         action_timeout: Duration::from_secs(20),
@@ -279,6 +280,59 @@ async fn episodes_run_step_by_step_and_report_the_simulators_rewards() {
         }
         assert_eq!(record.episode_return, total);
     }
+}
+
+/// A deadline stops the run between episodes, before the simulator resets: the planner never
+/// sees the first observation of an episode that would end after it (it would record that
+/// episode as interrupted and spend its number). After random exploration the planned-episode
+/// estimate decides; after a planned episode, that episode's own wall time; an episode with no
+/// estimate starts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_deadline_stops_between_episodes_before_the_next_reset() {
+    let endpoint = free_endpoint();
+    let (_planner, seen) = start_planner(&endpoint, Script::default()).await;
+    let mut config = config(&endpoint, 4);
+    // Episode 5 is random; a planned one would take two hours, the deadline is one away.
+    config.deadline = Some(EpisodeDeadline {
+        at: SystemTime::now() + Duration::from_secs(3_600),
+        planned_episode: Some(Duration::from_secs(7_200)),
+    });
+    let records = sim_bridge::bridge::run(&config, |_| {}).await.unwrap();
+    assert_eq!(records.iter().map(|r| r.episode).collect::<Vec<_>>(), [5]);
+    assert_eq!(
+        seen.lock().unwrap().observations.len(),
+        201,
+        "no observation of episode 6"
+    );
+    assert!(
+        seen.lock()
+            .unwrap()
+            .observations
+            .iter()
+            .all(|o| o.episode == 5)
+    );
+
+    // A deadline already past, no planned estimate: the episode after the random one starts
+    // (nothing predicts it), and the planned episode's own wall time then stops the run.
+    let (_planner, seen) = start_planner(&free_endpoint_for(&mut config), Script::default()).await;
+    config.deadline = Some(EpisodeDeadline {
+        at: SystemTime::now(),
+        planned_episode: None,
+    });
+    let records = sim_bridge::bridge::run(&config, |_| {}).await.unwrap();
+    assert_eq!(
+        records.iter().map(|r| r.episode).collect::<Vec<_>>(),
+        [5, 6]
+    );
+    assert_eq!(records[1].actions.planned, 200);
+    assert_eq!(seen.lock().unwrap().observations.len(), 2 * 201);
+}
+
+/// Points `config` at a new free endpoint and returns it (a second scripted planner).
+fn free_endpoint_for(config: &mut BridgeConfig) -> String {
+    let endpoint = free_endpoint();
+    config.endpoints.connect = vec![endpoint.clone()];
+    endpoint
 }
 
 /// A step budget ends the run after the episode that reaches it: 250 steps of cartpole's
