@@ -4,12 +4,18 @@
 //! The daemon keeps a run in `<out>/planner/runs/<run>/` (see `planner_service::persist`):
 //! its spec (`run.json`), its replay (one segment file per ownership term under `replay/`, and
 //! `replay.log` for a run stored before segments) and its newest two model checkpoints, plus
-//! ownership epochs that only matter to the daemon that wrote them. The resumable state is the
-//! spec, the replay files and the newest checkpoint, in one gzip-compressed tar file beside the run's
+//! the ownership epochs it was taken at (`epochs/`). The resumable state is the spec, the replay
+//! files and the newest checkpoint, in one gzip-compressed tar file beside the run's
 //! episode file, `runs/<stem>.state.tar.gz` (a few MB for the paper's largest runs), so that
 //! it can be committed with the experiment folder while `planner/` is not. A sitting packs it
 //! for every run it leaves unfinished, unpacks it before the daemon starts when the daemon's
 //! folder lacks the run (a fresh clone), and removes it when the run completes.
+//!
+//! The epochs are not packed but restored from the replay: a daemon takes a run at the epoch
+//! after the newest in `epochs/`, and refuses a replay that holds a newer term than the one it
+//! took (another planner's, as far as it can tell). So unpacking records the newest replay
+//! segment's term as the run's epoch: a run resumed over several sittings (one term each) opens
+//! on a fresh clone at the term after its newest.
 //!
 //! What the episodes already recorded say stays in `runs/<stem>.csv.partial`, which the
 //! launcher merges as for any resumed run.
@@ -72,6 +78,7 @@ pub fn pack(run_dir: &Path, archive: &Path) -> io::Result<Option<u64>> {
 /// Unpacks `archive` into `run_dir` (created) unless `run_dir` already holds replay: the
 /// daemon's own copy is at least as new as any archive it was packed from. Returns whether it
 /// unpacked. Only plain files directly in the run directory and replay segments are accepted.
+/// The newest segment's term is recorded as the run's epoch (see the module doc).
 pub fn unpack(archive: &Path, run_dir: &Path) -> io::Result<bool> {
     if !segments::list(run_dir)?.is_empty() {
         return Ok(false);
@@ -106,8 +113,16 @@ pub fn unpack(archive: &Path, run_dir: &Path) -> io::Result<bool> {
         }
         entry.unpack(run_dir.join(&path))?;
     }
+    if let Some(term) = segments::newest_token(run_dir) {
+        RunDir::at(run_dir)
+            .record_token(term, RESTORED)
+            .map_err(io::Error::other)?;
+    }
     Ok(true)
 }
+
+/// The holder named in the epoch file that unpacking writes.
+const RESTORED: &str = "restored from a resumable state";
 
 #[cfg(test)]
 mod tests {
@@ -141,8 +156,8 @@ mod tests {
         let size = pack(&run, &archive).unwrap().unwrap();
         assert!(size < log.len() as u64 / 4, "compressed: {size} bytes");
 
-        // A fresh clone: no daemon folder. The state comes back without the old checkpoint
-        // and the epochs.
+        // A fresh clone: no daemon folder. The state comes back without the old checkpoint;
+        // the epoch is the newest replay term's, not the old folder's 3.
         let fresh = dir.path().join("clone/planner/runs/ant-cem-s0");
         assert!(unpack(&archive, &fresh).unwrap());
         let mut names: Vec<String> = std::fs::read_dir(&fresh)
@@ -150,7 +165,13 @@ mod tests {
             .map(|e| e.unwrap().file_name().into_string().unwrap())
             .collect();
         names.sort();
-        assert_eq!(names, [newest, "replay", "replay.log", "run.json"]);
+        assert_eq!(
+            names,
+            ["epochs", newest, "replay", "replay.log", "run.json"]
+        );
+        let restored = RunDir::at(&fresh);
+        assert_eq!(restored.current_epoch().unwrap(), 4);
+        assert_eq!(restored.epoch_holder(4).as_deref(), Some(RESTORED));
         assert_eq!(std::fs::read(fresh.join("replay.log")).unwrap(), log);
         assert_eq!(
             std::fs::read(fresh.join("replay/00000000000000000004-000000.log")).unwrap(),
@@ -161,6 +182,34 @@ mod tests {
         write(&fresh.join("replay.log"), b"newer");
         assert!(!unpack(&archive, &fresh).unwrap());
         assert_eq!(std::fs::read(fresh.join("replay.log")).unwrap(), b"newer");
+    }
+
+    /// A run resumed over two sittings holds replay segments of terms 1 and 2; unpacked on a
+    /// fresh clone, the next daemon takes it at term 3, so its replay (term 2 the newest) is its
+    /// own to append to. Without the restored epoch it took term 1 and refused the replay as
+    /// claimed by another planner at epoch 2.
+    #[test]
+    fn a_run_of_two_sittings_unpacks_to_be_taken_after_its_newest_term() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = dir.path().join("planner/runs/halfcheetah-adam-dae-s1");
+        write(&run.join("run.json"), b"{}");
+        write(
+            &run.join("replay/00000000000000000001-000000.log"),
+            b"first sitting",
+        );
+        write(
+            &run.join("replay/00000000000000000002-000000.log"),
+            b"second sitting",
+        );
+        let archive = dir.path().join("adam-dae-s1.state.tar.gz");
+        pack(&run, &archive).unwrap().unwrap();
+        let fresh = dir
+            .path()
+            .join("clone/planner/runs/halfcheetah-adam-dae-s1");
+        assert!(unpack(&archive, &fresh).unwrap());
+        let restored = RunDir::at(&fresh);
+        let seen = restored.current_epoch().unwrap();
+        assert_eq!(restored.claim_epoch_after(seen, "daemon").unwrap(), 3);
     }
 
     #[test]
