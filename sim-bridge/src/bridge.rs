@@ -209,8 +209,9 @@ pub enum BridgeError {
 }
 
 /// Runs `config.episodes` episodes against the planner (fewer if `config.timesteps` is reached
-/// first, or the next episode would end after `config.deadline`) and returns their records; `on_episode` sees each record as soon as its episode ends
-/// (to write it out before the next one starts).
+/// first, or the next episode would end after `config.deadline`) and returns their records;
+/// `on_episode` sees each record as soon as its episode ends (to write it out before the next
+/// one starts).
 pub async fn run(
     config: &BridgeConfig,
     mut on_episode: impl FnMut(&EpisodeRecord),
