@@ -18,8 +18,9 @@
 //! - **Whole runs only.** With a budget, a run whose estimate exceeds the time left is not
 //!   started in this sitting (it waits for the next one), unless the sitting allows overruns:
 //!   then it starts anyway if at least its next episode fits, is stopped before the deadline
-//!   and keeps a resumable state ([`crate::resume_state`]). A run without an estimate starts;
-//!   if it is still running at the deadline it is stopped the same way.
+//!   and keeps a resumable state ([`crate::resume_state`]), but only when no run that fits is
+//!   waiting. A run without an estimate starts; if it is still running at the deadline it is
+//!   stopped the same way.
 //! - **Stops between episodes.** A running run's bridge is given the deadline and stops at the
 //!   episode boundary after which its next episode would end past it, before it resets the
 //!   simulator ([`sim_bridge::deadline`]), so a stopped run's data are its recorded episodes;
@@ -156,9 +157,11 @@ pub enum Start {
 }
 
 /// Takes the next run to start from `queue` (sorted by [`longest_first`]): the first that
-/// fits in `left` (no budget: the first), or with `overrun` the first whose next episode fits
-/// (a run started with less would only be stopped again at its first boundary). `None` when
-/// no run may start in this sitting.
+/// fits in `left` (no budget: the first), else, with `overrun`, the first whose next episode
+/// fits (a run started with less would only be stopped again at its first boundary). A run
+/// that can finish in this sitting goes before any overrun however long it is: a finished run
+/// is a result to commit, while an overrun's episodes are as useful in the next sitting.
+/// `None` when no run may start in this sitting.
 pub fn next<R>(
     queue: &mut Vec<Pending<R>>,
     left: Option<Duration>,
@@ -171,14 +174,19 @@ pub fn next<R>(
         (_, None) => Some(Start::Whole),
         (None, Some(_)) => Some(Start::Unmeasured),
         (Some(e), Some(l)) if e <= l => Some(Start::Whole),
-        (Some(_), Some(l)) => {
-            (overrun && p.next_episode.is_none_or(|e| e <= l)).then_some(Start::Overrun)
-        }
+        (Some(_), Some(_)) => None,
     };
-    let (index, start) = queue
-        .iter()
-        .enumerate()
-        .find_map(|(i, p)| fits(p).map(|s| (i, s)))?;
+    let overruns = |p: &Pending<R>| {
+        let next_fits = p.next_episode.is_none_or(|e| left.is_none_or(|l| e <= l));
+        (overrun && next_fits).then_some(Start::Overrun)
+    };
+    let take = |rule: &dyn Fn(&Pending<R>) -> Option<Start>| {
+        queue
+            .iter()
+            .enumerate()
+            .find_map(|(i, p)| rule(p).map(|s| (i, s)))
+    };
+    let (index, start) = take(&fits).or_else(|| take(&overruns))?;
     Some((queue.remove(index), start))
 }
 
@@ -395,6 +403,19 @@ mod tests {
         let (p, start) = next(&mut queue, None, false).unwrap();
         assert_eq!((p.run, start), ("c", Start::Whole));
         assert!(next(&mut queue, None, false).is_none());
+    }
+
+    /// The sitting that left a one-episode run waiting behind two that could not finish.
+    #[test]
+    fn a_run_that_finishes_in_the_sitting_goes_before_longer_overruns() {
+        let minutes = |m: u64| Some(Duration::from_secs(60 * m));
+        let mut queue = pending(&[("s2", Some(265)), ("s0", Some(141)), ("s1", Some(18))]);
+        let (p, start) = next(&mut queue, minutes(120), true).unwrap();
+        assert_eq!((p.run, start), ("s1", Start::Whole));
+        let (p, start) = next(&mut queue, minutes(120), true).unwrap();
+        assert_eq!((p.run, start), ("s2", Start::Overrun));
+        let (p, start) = next(&mut queue, minutes(100), true).unwrap();
+        assert_eq!((p.run, start), ("s0", Start::Overrun));
     }
 
     #[test]
