@@ -29,6 +29,14 @@
 //! into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from which a later sitting — on a
 //! fresh clone too — continues it.
 //!
+//! **Stopping a sitting by hand.** Asked to stop ([`run`]'s `stop` flag: the binary sets it on
+//! the first SIGINT or SIGTERM), a sitting ends as at a deadline reached now: it starts no
+//! further run, stops the running bridges (each records its open episode as interrupted), stops
+//! the daemon, which syncs its data, and then packs every unfinished run's state, so a Ctrl-C
+//! loses no recorded episode and the same command continues. The bridges and the daemon run in
+//! process groups of their own, so a terminal's Ctrl-C reaches the launcher alone and the
+//! processes stop in that order.
+//!
 //! **Resuming a half-finished run.** A run keeps one daemon run name for its whole life
 //! (`<task>-<method>-s<seed>`), and the daemon's data lives in `<out>/planner/`, so a restarted
 //! experiment's daemon reopens the run from its stored replay buffer and newest model
@@ -65,6 +73,7 @@ use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant, SystemTime};
 
 /// What to run.
@@ -309,15 +318,17 @@ fn minutes(d: Duration) -> String {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum RunEnd {
     Finished,
-    /// Stopped at the sitting's deadline; its state is packed when the daemon has stopped.
-    StoppedAtDeadline,
+    /// Stopped at the sitting's deadline or on request; its state is packed when the daemon
+    /// has stopped.
+    Stopped,
 }
 
 /// Runs the experiment's unfinished runs, `jobs` at a time, longest first and within the
 /// budget if there is one, and rebuilds `episodes.csv`. Returns the rows of all complete
 /// runs. Fails (after the other runs finished) if any run failed; its log is named in the
-/// error. Runs left for a later sitting are not failures.
-pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
+/// error. Runs left for a later sitting are not failures. Once `stop` is set (from a signal
+/// handler, say) the sitting ends as at its deadline, at once (see the module's doc).
+pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     let started = Instant::now();
     let deadline = exp.budget.map(|b| started + b);
     let manifest = prepare(exp)?;
@@ -373,6 +384,9 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
         for _ in 0..exp.jobs.max(1) {
             scope.spawn(|| {
                 loop {
+                    if stop.load(Ordering::Relaxed) {
+                        break;
+                    }
                     let next = {
                         let mut q = queue
                             .lock()
@@ -396,6 +410,7 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
                         zenoh_config: &planner.zenoh_config,
                         progress: &progress,
                         deadline,
+                        stop,
                     };
                     let outcome = run_one(&context, &run);
                     match outcome {
@@ -409,7 +424,8 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
                             let _guard = csv_lock.lock();
                             let identity = (&machine, commit.as_str(), kernels);
                             if let Err(e) = write_record(exp, &manifest, &run, identity) {
-                                progress.log(&format!("cannot write {}'s record: {e:#}", run.stem()));
+                                progress
+                                    .log(&format!("cannot write {}'s record: {e:#}", run.stem()));
                             }
                             if let Err(e) = collect_rows(&exp.out, &manifest)
                                 .and_then(|rows| Ok(results::write_episodes(&episodes_csv, &rows)?))
@@ -423,9 +439,14 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
                             let left: Vec<RunId> = q.iter().map(|p| p.run.clone()).collect();
                             *q = plan_queue(&exp.out, &manifest, &left);
                         }
-                        Ok(RunEnd::StoppedAtDeadline) => {
+                        Ok(RunEnd::Stopped) => {
+                            let why = if stop.load(Ordering::Relaxed) {
+                                "on request"
+                            } else {
+                                "at the budget's deadline"
+                            };
                             progress.log(&format!(
-                                "run {} stopped at the budget's deadline; it resumes in a later sitting",
+                                "run {} stopped {why}; it resumes in a later sitting",
                                 run.stem()
                             ));
                         }
@@ -442,6 +463,7 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
         }
     });
     progress.finish();
+    let stopped = stop.load(Ordering::Relaxed);
     for left in queue
         .into_inner()
         .unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -449,7 +471,12 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
         tracing::info!(
             run = %left.run.stem(),
             estimate = %left.estimate.map_or_else(|| "unknown".into(), minutes),
-            "left for a later sitting: it does not fit the budget's remaining time"
+            "left for a later sitting: {}",
+            if stopped {
+                "the sitting was stopped"
+            } else {
+                "it does not fit the budget's remaining time"
+            }
         );
     }
     // The daemon syncs its data when it stops; only then are the runs' folders complete.
@@ -458,6 +485,12 @@ pub fn run(exp: &Experiment) -> Result<Vec<EpisodeRow>> {
     remove_finished_states(&exp.out, &manifest)?;
     let rows = collect_rows(&exp.out, &manifest)?;
     results::write_episodes(&episodes_csv, &rows)?;
+    if stopped {
+        tracing::info!(
+            "stopped on request: every unfinished run kept its recorded episodes and a \
+             resumable state; re-run the same command to continue"
+        );
+    }
     let failures = failures.into_inner().unwrap_or_default();
     if !failures.is_empty() {
         bail!(
@@ -551,6 +584,8 @@ struct RunContext<'a> {
     zenoh_config: &'a Path,
     progress: &'a Progress,
     deadline: Option<Instant>,
+    /// Set when the sitting is asked to stop now.
+    stop: &'a AtomicBool,
 }
 
 /// Runs one bridge to completion (or to the deadline), showing its episodes as they finish.
@@ -646,7 +681,7 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
     );
     let bar = progress.start_run(&run.stem());
     let mut seen = 0;
-    let mut stopped_at_deadline = false;
+    let mut stopped = false;
     let status = loop {
         let status = child.0.try_wait()?;
         let done = results::count_rows(&attempt);
@@ -662,10 +697,11 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
         if let Some(status) = status {
             break status;
         }
-        if !stopped_at_deadline && ctx.deadline.is_some_and(|d| Instant::now() >= d) {
-            // An episode the estimate did not foresee. SIGTERM: the bridge tells the planner
-            // the open episode was interrupted.
-            stopped_at_deadline = true;
+        let asked = ctx.stop.load(Ordering::Relaxed);
+        if !stopped && (asked || ctx.deadline.is_some_and(|d| Instant::now() >= d)) {
+            // Asked to stop, or an episode the estimate did not foresee. SIGTERM: the bridge
+            // tells the planner the open episode was interrupted.
+            stopped = true;
             terminate(&child.0);
         }
         std::thread::sleep(Duration::from_millis(500));
@@ -673,8 +709,8 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
     progress.end_run(bar);
     merge_attempt(&attempt, &partial)?;
     let left = remaining_of(&partial, manifest);
-    if stopped_at_deadline && left.is_some() {
-        return Ok(RunEnd::StoppedAtDeadline);
+    if stopped && left.is_some() {
+        return Ok(RunEnd::Stopped);
     }
     if status.success() && left.is_some() && ctx.deadline.is_some() {
         // The bridge's only early stop: its next episode would have ended after the deadline.
@@ -682,7 +718,7 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
             "run {} stopped after this episode: its next would end after the budget's deadline",
             run.stem()
         ));
-        return Ok(RunEnd::StoppedAtDeadline);
+        return Ok(RunEnd::Stopped);
     }
     if !status.success() && left.is_some() {
         bail!(
@@ -741,9 +777,11 @@ fn merge_attempt(attempt: &Path, partial: &Path) -> Result<()> {
 /// Asks the kernel to send the child SIGTERM when the launcher dies, however it dies: a
 /// launcher killed with SIGKILL runs no destructor, and an orphaned daemon would keep the lock
 /// on `<out>/planner/` that the resumed experiment's daemon needs (SIGTERM is its clean
-/// shutdown, which syncs the run's data).
+/// shutdown, which syncs the run's data). The child gets a process group of its own, so a
+/// terminal's Ctrl-C reaches the launcher alone, which stops the bridges before the daemon.
 fn stop_with_launcher(cmd: &mut Command) {
     use std::os::unix::process::CommandExt;
+    cmd.process_group(0);
     // SAFETY: the closure runs in the forked child before exec and only makes one
     // async-signal-safe system call.
     unsafe {
@@ -894,18 +932,13 @@ impl Drop for Daemon {
         if let Ok(Some(_)) = self.child.try_wait() {
             return;
         }
-        let term = Command::new("kill")
-            .arg("-TERM")
-            .arg(self.child.id().to_string())
-            .status();
-        if term.is_ok() {
-            let started = Instant::now();
-            while started.elapsed() < Duration::from_secs(20) {
-                if let Ok(Some(_)) = self.child.try_wait() {
-                    return;
-                }
-                std::thread::sleep(Duration::from_millis(100));
+        terminate(&self.child);
+        let started = Instant::now();
+        while started.elapsed() < Duration::from_secs(20) {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
             }
+            std::thread::sleep(Duration::from_millis(100));
         }
         let _ = self.child.kill();
         let _ = self.child.wait();

@@ -14,6 +14,8 @@ use ebmpc_experiments::{compare, distance, provenance, replan, results};
 use proto::Builtin;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use tracing_subscriber::EnvFilter;
 
@@ -32,6 +34,8 @@ enum Command {
     /// Learn a task from scratch with several methods and seeds: one planner daemon, one
     /// sim-bridge per (method, seed) run over Zenoh. Re-running into the same --out folder
     /// skips the runs already complete; a sitting works only on the runs its command names.
+    /// Ctrl-C stops the sitting cleanly (bridges, daemon, then the unfinished runs' resumable
+    /// states); a second Ctrl-C ends it at once.
     Experiment(ExperimentArgs),
     /// Draw the learning curves (mean ± std over seeds per method) of an experiment folder.
     Plot(PlotArgs),
@@ -106,8 +110,8 @@ struct ExperimentArgs {
     budget: Option<std::time::Duration>,
     /// With --budget, start runs that are not expected to finish in the time left too (runs
     /// longer than any one sitting, e.g. PETS on half-cheetah on a small machine) while their
-    /// next episode fits; they are stopped by the deadline (between episodes where possible)
-    /// and resume in the next sitting.
+    /// next episode fits and no run that can finish is waiting; they are stopped by the
+    /// deadline (between episodes where possible) and resume in the next sitting.
     #[arg(long, requires = "budget")]
     overrun: bool,
     /// Candidates per iteration of every sampling method, instead of the scale's search: a
@@ -333,8 +337,18 @@ fn experiment(args: ExperimentArgs) -> Result<()> {
             None => launcher::default_bin_dir()?,
         },
     };
+    // The first SIGINT or SIGTERM asks the sitting to stop cleanly (its bridges, then its
+    // daemon, then packing the unfinished runs' states); a second one ends the launcher at
+    // once (its children are told to stop by the kernel).
+    let stop = Arc::new(AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(signal, 130, Arc::clone(&stop))
+            .context("installing the stop handler")?;
+        signal_hook::flag::register(signal, Arc::clone(&stop))
+            .context("installing the stop handler")?;
+    }
     let started = Instant::now();
-    let outcome = launcher::run(&exp);
+    let outcome = launcher::run(&exp, &stop);
     // Whatever finished is worth a figure, also when some run failed.
     let csv = exp.out.join("episodes.csv");
     if csv.exists() {

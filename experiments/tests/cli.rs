@@ -58,7 +58,8 @@ fn script(path: &Path, body: &str) {
 /// rule (the next episode takes as long as the last) after each episode and, stopping, also
 /// writes `stopped-after`.
 ///
-/// The planner appends its `serve` command line to `planner-calls.log`; its `status --json` lists every run the bridges have written to, each with the
+/// The planner appends its `serve` command line to `planner-calls.log` and its pid to
+/// `planner.pid`; its `status --json` lists every run the bridges have written to, each with the
 /// kernel paths a daemon on an AMX machine would report.
 fn fake_binaries(dir: &Path) {
     let status = r#"if [ "$1" = status ]; then
@@ -77,8 +78,9 @@ fi
     script(
         &dir.join("planner-service"),
         &format!(
-            "{status}echo \"$@\" >> {}\necho 'INFO planner serving'\nexec sleep 300\n",
-            dir.join("planner-calls.log").display()
+            "{status}echo \"$@\" >> {}\necho $$ > {}\necho 'INFO planner serving'\nexec sleep 300\n",
+            dir.join("planner-calls.log").display(),
+            dir.join("planner.pid").display()
         ),
     );
     let calls = dir.join("calls.log");
@@ -204,16 +206,7 @@ fn an_experiment_killed_mid_run_resumes_where_it_stopped() {
     // `sleep` gets SIGTERM from the kernel.
     let hung = std::fs::read_to_string(&pid_file).unwrap();
     let started = std::time::Instant::now();
-    // Alive: its /proc entry exists and is not a zombie waiting to be reaped.
-    let alive = || {
-        std::fs::read_to_string(format!("/proc/{}/stat", hung.trim())).is_ok_and(|stat| {
-            stat.rsplit(')')
-                .next()
-                .map(str::trim_start)
-                .is_some_and(|r| !r.starts_with('Z'))
-        })
-    };
-    while alive() {
+    while alive(&hung) {
         if started.elapsed().as_secs() > 30 {
             Command::new("kill").arg(hung.trim()).status().unwrap();
             panic!("the bridge outlived the launcher");
@@ -247,6 +240,80 @@ fn an_experiment_killed_mid_run_resumes_where_it_stopped() {
         "one daemon run: {all:?}"
     );
     assert!(run_name(&all[0]).is_some(), "{all:?}");
+    assert_eq!(episodes_of(&out, "cem", 0), [0, 1, 2]);
+    std::fs::remove_dir_all(&bins).unwrap();
+}
+
+/// Whether process `pid` runs: its /proc entry exists and is not a zombie waiting to be reaped.
+fn alive(pid: &str) -> bool {
+    std::fs::read_to_string(format!("/proc/{}/stat", pid.trim())).is_ok_and(|stat| {
+        stat.rsplit(')')
+            .next()
+            .map(str::trim_start)
+            .is_some_and(|r| !r.starts_with('Z'))
+    })
+}
+
+/// Ctrl-C in the launcher's terminal (SIGINT to its process group) while a bridge is one
+/// episode into a run: the sitting stops cleanly, the bridge and then the daemon stopped, the
+/// recorded episode kept in the run's partial file, and the same command continues the run.
+#[test]
+fn ctrl_c_stops_the_sitting_cleanly_and_the_same_command_continues() {
+    use std::os::unix::process::CommandExt;
+    let bins = temp_dir("bins-ctrl-c");
+    fake_binaries(&bins);
+    let out = bins.join("results");
+    let mut cmd = exe();
+    cmd.args(["experiment", "--task", "cartpole", "--methods", "cem"])
+        .args(["--seeds", "1", "--episodes", "3", "--scale", "small"])
+        .arg("--out")
+        .arg(&out)
+        .arg("--bin-dir")
+        .arg(&bins)
+        .env("HANG_SEED", "0")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        // A terminal's foreground job: Ctrl-C signals the whole group.
+        .process_group(0);
+    let launcher = cmd.spawn().unwrap();
+    let pid_file = bins.join("hung.pid");
+    let started = std::time::Instant::now();
+    while !pid_file.exists() {
+        assert!(started.elapsed().as_secs() < 60, "the bridge never hung");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let group = i32::try_from(launcher.id()).unwrap();
+    // SAFETY: kill with the group of our own child and a valid signal touches no memory.
+    assert_eq!(unsafe { libc::kill(-group, libc::SIGINT) }, 0);
+    let ended = launcher.wait_with_output().unwrap();
+    let hung = std::fs::read_to_string(&pid_file).unwrap();
+    let planner = std::fs::read_to_string(bins.join("planner.pid")).unwrap();
+    for pid in [&hung, &planner] {
+        if alive(pid) {
+            Command::new("kill").arg(pid.trim()).status().unwrap();
+            panic!("a child outlived the stopped sitting");
+        }
+    }
+    let stderr = String::from_utf8_lossy(&ended.stderr);
+    assert!(ended.status.success(), "{stderr}");
+    says(&ended.stderr, "run cem-s0 stopped on request");
+    says(
+        &ended.stderr,
+        "stopped on request: every unfinished run kept",
+    );
+    let partial = std::fs::read_to_string(out.join("runs/cem-s0.csv.partial")).unwrap();
+    assert_eq!(
+        partial.lines().count(),
+        2,
+        "header and episode 0: {partial}"
+    );
+    assert!(!out.join("runs/cem-s0.csv.attempt").exists());
+    assert!(!out.join("runs/cem-s0.csv").exists());
+
+    let second = experiment_once(&bins, &out);
+    succeeded(&second);
+    let all = calls(&bins);
+    assert!(all.len() == 2 && all[1].contains("--episodes 2"), "{all:?}");
     assert_eq!(episodes_of(&out, "cem", 0), [0, 1, 2]);
     std::fs::remove_dir_all(&bins).unwrap();
 }
