@@ -332,6 +332,7 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     let started = Instant::now();
     let deadline = exp.budget.map(|b| started + b);
     let manifest = prepare(exp)?;
+    let _sitting = lock_sitting(&exp.out)?;
     let all = runs(&exp.out, &manifest);
     let pending = asked_and_unfinished(&all, exp);
     let skipped = all.iter().filter(|(_, done)| *done).count();
@@ -500,6 +501,30 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
         );
     }
     Ok(rows)
+}
+
+/// Takes `<out>/logs/sitting.lock` exclusively for the sitting's life (the OS drops it when the
+/// launcher dies, however it dies): two launchers on one folder would each start a bridge for
+/// the same run and append to the same files. Fails at once, before anything is touched, if
+/// another sitting holds it.
+fn lock_sitting(out: &Path) -> Result<std::fs::File> {
+    let logs = out.join("logs");
+    std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
+    let path = logs.join("sitting.lock");
+    let file =
+        std::fs::File::create(&path).with_context(|| format!("opening {}", path.display()))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => bail!(
+            "another sitting is running in {} (it holds {}): wait for it to end, or stop it \
+             with Ctrl-C or SIGTERM",
+            out.display(),
+            path.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => {
+            Err(e).with_context(|| format!("locking {}", path.display()))
+        }
+    }
 }
 
 /// Packs the resumable state of every unfinished run the daemon holds data for.
@@ -806,6 +831,9 @@ impl Drop for Guard {
     }
 }
 
+/// The planner id of every sitting's daemon.
+const PLANNER_ID: &str = "experiment";
+
 /// The planner daemon of an experiment, stopped with SIGTERM (a clean shutdown that syncs its
 /// data) when dropped.
 pub struct Daemon {
@@ -879,7 +907,9 @@ impl Daemon {
         cmd.args(["serve", "--config"])
             .arg(&config)
             .args(["--listen", &endpoint, "--planner-id"])
-            .arg(format!("experiment-{port}"))
+            // One id for every sitting: the sitting lock keeps a folder to one daemon at a
+            // time, and each id leaves its own `daemon-<id>.lock` in the data directory.
+            .arg(PLANNER_ID)
             .arg("--data-dir")
             .arg(data_dir)
             .env("RUST_LOG", "info,zenoh=warn")

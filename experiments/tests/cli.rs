@@ -255,7 +255,8 @@ fn alive(pid: &str) -> bool {
 }
 
 /// Ctrl-C in the launcher's terminal (SIGINT to its process group) while a bridge is one
-/// episode into a run: the sitting stops cleanly, the bridge and then the daemon stopped, the
+/// episode into a run (and a second sitting on the same folder refused meanwhile): the sitting
+/// stops cleanly, the bridge and then the daemon stopped, the
 /// recorded episode kept in the run's partial file, and the same command continues the run.
 #[test]
 fn ctrl_c_stops_the_sitting_cleanly_and_the_same_command_continues() {
@@ -282,6 +283,11 @@ fn ctrl_c_stops_the_sitting_cleanly_and_the_same_command_continues() {
         assert!(started.elapsed().as_secs() < 60, "the bridge never hung");
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
+    // A second sitting on the same folder is refused before it touches anything.
+    let second = experiment_once(&bins, &out);
+    assert!(!second.status.success());
+    says(&second.stderr, "another sitting is running in");
+    assert_eq!(calls(&bins).len(), 1, "no second bridge started");
     let group = i32::try_from(launcher.id()).unwrap();
     // SAFETY: kill with the group of our own child and a valid signal touches no memory.
     assert_eq!(unsafe { libc::kill(-group, libc::SIGINT) }, 0);
