@@ -258,6 +258,9 @@ pub async fn run(
                     .next_episode(last)
                     .map_or_else(String::new, |d| format!("{:.0} s", d.as_secs_f64()))
             );
+            if accepted.mode == TrainMode::Sync && last.actions.planned > 0 {
+                await_retraining(&mut link, last, deadline.at).await;
+            }
             break;
         }
         // Sync mode: the planner holds an episode's first action until it has retrained on the
@@ -308,6 +311,54 @@ pub async fn run(
     }
     link.close().await?;
     Ok(records)
+}
+
+/// Waits, until `until` at the latest, for the planner to finish retraining on the episode
+/// `last` that just ended (models newer than those it planned with, or a failed training),
+/// before a run stopped at its deadline goes: the planner checkpoints new models before it
+/// announces them, while a planner stopped mid-retraining loses it, and the resumed run then
+/// retrains before its first plan (minutes to hours at the paper's sizes). Only after an
+/// episode that planned, in sync mode, where such a retraining always follows; after random
+/// exploration the planner may wait for more steps and announce nothing.
+async fn await_retraining(link: &mut PlannerLink, last: &EpisodeRecord, until: SystemTime) {
+    let used = last.actions.models_version;
+    let left = until
+        .duration_since(SystemTime::now())
+        .unwrap_or(Duration::ZERO);
+    tracing::info!(
+        episode = last.episode,
+        "waiting up to {:.0} s for the planner's retraining on episode {}, so that the run \
+         stops with its models checkpointed",
+        left.as_secs_f64(),
+        last.episode
+    );
+    let retrained = async {
+        loop {
+            match link.recv().await {
+                Ok(Inbound::Event(event)) => {
+                    log_event(&event);
+                    match event.kind {
+                        RunEventKind::ModelsUpdated { models_version, .. }
+                            if models_version > used =>
+                        {
+                            return true;
+                        }
+                        RunEventKind::TrainingFailed { .. } => return true,
+                        _ => {}
+                    }
+                }
+                Ok(Inbound::PlannerGone) | Err(_) => return false,
+                Ok(_) => {}
+            }
+        }
+    };
+    match tokio::time::timeout(left, retrained).await {
+        Ok(true) => tracing::info!("the planner has retrained; stopping"),
+        Ok(false) => tracing::warn!("the planner went away before it had retrained; stopping"),
+        Err(_) => tracing::info!(
+            "the deadline came before the retraining ended; the resumed run retrains first"
+        ),
+    }
 }
 
 /// Consecutive re-attachments without a finished episode before the bridge gives up.

@@ -63,7 +63,10 @@ struct RunArgs {
     /// Start no episode expected to end after this time (seconds since the Unix epoch): stop
     /// between episodes instead, before the simulator resets, so the planner's data hold only
     /// whole episodes. The next episode is expected to take as long as the last one when it
-    /// planned, else --planned-episode-seconds. Experiment sittings with a budget set it.
+    /// planned, else --planned-episode-seconds. Stopping after a planned episode (sync mode),
+    /// the bridge first waits, until the deadline at most, for the planner's retraining on it,
+    /// which the planner checkpoints, so a resumed run need not redo it. Experiment sittings
+    /// with a budget set it.
     #[arg(long, env = "EBMPC_DEADLINE", value_name = "UNIX_SECONDS")]
     deadline: Option<u64>,
     /// With --deadline: the expected wall time of a planned episode, for the episode after one

@@ -13,7 +13,7 @@ use proto::{
 };
 use sim_bridge::{BridgeConfig, BridgeError, Env, EpisodeDeadline};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, SystemTime};
+use std::time::{Duration, Instant, SystemTime};
 use zenoh::bytes::Encoding as ZEncoding;
 
 /// How the scripted planner behaves.
@@ -27,6 +27,11 @@ struct Script {
     error_at: Option<u32>,
     /// Refuse this step (step, times) with a storage error the first `times` times it comes.
     storage_full_at: Option<(u32, usize)>,
+    /// Hold the first action of every episode after the first this long (a sync planner
+    /// retraining on the episodes before it).
+    first_action_delay: Duration,
+    /// Announce the models retrained on an episode this long after it ends.
+    models_delay: Duration,
 }
 
 /// What the scripted planner saw.
@@ -34,6 +39,8 @@ struct Script {
 struct Seen {
     attach: Vec<AttachRequest>,
     observations: Vec<Observation>,
+    /// When each models update was announced.
+    models_announced: Vec<Instant>,
 }
 
 fn free_endpoint() -> String {
@@ -116,13 +123,24 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                         let events = [
                             RunEventKind::EpisodeFinished { agent: agent.clone(), episode: obs.episode, episode_return: 0.0, steps: obs.step, end },
                             RunEventKind::TrainingStarted { transitions: u64::from(obs.step) },
-                            RunEventKind::ModelsUpdated { models_version: 1, dynamics_loss: 0.1, energy_loss: 0.2, reward_loss: None, seconds: 0.01, termination_accuracy: None },
                         ];
                         for kind in events {
                             let event = RunEvent { version: PROTOCOL_VERSION, run: run.clone(), kind };
                             s.put(k.events(&run, Encoding::Postcard), publish_bytes(&event)).await.unwrap();
                         }
+                        let (s, k, seen) = (s.clone(), k.clone(), seen2.clone());
+                        let delay = script.models_delay;
+                        tokio::spawn(async move {
+                            tokio::time::sleep(delay).await;
+                            let kind = RunEventKind::ModelsUpdated { models_version: 1, dynamics_loss: 0.1, energy_loss: 0.2, reward_loss: None, seconds: 0.01, termination_accuracy: None };
+                            let event = RunEvent { version: PROTOCOL_VERSION, run: run.clone(), kind };
+                            s.put(k.events(&run, Encoding::Postcard), publish_bytes(&event)).await.unwrap();
+                            seen.lock().unwrap().models_announced.push(Instant::now());
+                        });
                         continue;
+                    }
+                    if obs.step == 0 && obs.episode > 5 {
+                        tokio::time::sleep(script.first_action_delay).await;
                     }
                     if script.silent_at == Some(obs.step) {
                         continue;
@@ -326,6 +344,61 @@ async fn a_deadline_stops_between_episodes_before_the_next_reset() {
     );
     assert_eq!(records[1].actions.planned, 200);
     assert_eq!(seen.lock().unwrap().observations.len(), 2 * 201);
+}
+
+/// A run stopped at its deadline after a planned episode waits for the planner's retraining on
+/// that episode (announced only once its models are checkpointed), so that the resumed run need
+/// not redo it; but never past the deadline.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_run_stopped_at_its_deadline_waits_for_the_retraining_until_the_deadline() {
+    // Episode 5 is random and fast; episode 6 plans and takes over 6 s (its first action is
+    // held 6 s), so with the deadline 11 s away episode 7 (as long as 6) does not fit.
+    let script = |models_delay| Script {
+        first_action_delay: Duration::from_secs(6),
+        models_delay,
+        ..Script::default()
+    };
+    for (models_delay, waits_for_models) in [(500, true), (60_000, false)] {
+        let endpoint = free_endpoint();
+        let (_planner, seen) =
+            start_planner(&endpoint, script(Duration::from_millis(models_delay))).await;
+        let mut config = config(&endpoint, 4);
+        config.train_timeout = Duration::from_secs(60);
+        let at = SystemTime::now() + Duration::from_secs(11);
+        config.deadline = Some(EpisodeDeadline {
+            at,
+            planned_episode: None,
+        });
+        let records = sim_bridge::bridge::run(&config, |_| {}).await.unwrap();
+        let returned = Instant::now();
+        assert_eq!(
+            records.iter().map(|r| r.episode).collect::<Vec<_>>(),
+            [5, 6]
+        );
+        assert_eq!(seen.lock().unwrap().observations.len(), 2 * 201);
+        let announced = seen.lock().unwrap().models_announced.clone();
+        if waits_for_models {
+            // The second announcement is the retraining on episode 6.
+            assert_eq!(
+                announced.len(),
+                2,
+                "the bridge stopped before the retraining ended"
+            );
+            assert!(returned >= announced[1]);
+        } else {
+            assert!(announced.is_empty());
+            let early = at.duration_since(SystemTime::now()).unwrap_or_default();
+            assert!(
+                early < Duration::from_millis(500),
+                "stopped {early:?} before the deadline"
+            );
+            let late = SystemTime::now().duration_since(at).unwrap_or_default();
+            assert!(
+                late < Duration::from_secs(10),
+                "stopped {late:?} after the deadline"
+            );
+        }
+    }
 }
 
 /// Points `config` at a new free endpoint and returns it (a second scripted planner).
