@@ -183,23 +183,12 @@ fn an_experiment_killed_mid_run_resumes_where_it_stopped() {
     let bins = temp_dir("bins-killed");
     fake_binaries(&bins);
     let out = bins.join("results");
-    let mut cmd = exe();
-    cmd.args(["experiment", "--task", "cartpole", "--methods", "cem"])
-        .args(["--seeds", "1", "--episodes", "3", "--scale", "small"])
-        .arg("--out")
-        .arg(&out)
-        .arg("--bin-dir")
-        .arg(&bins)
-        .env("HANG_SEED", "0")
+    let mut cmd = one_run_sitting(&bins, &out);
+    cmd.env("HANG_SEED", "0")
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null());
     let mut launcher = cmd.spawn().unwrap();
-    let pid_file = bins.join("hung.pid");
-    let started = std::time::Instant::now();
-    while !pid_file.exists() {
-        assert!(started.elapsed().as_secs() < 60, "the bridge never hung");
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
+    let pid_file = wait_until_hung(&bins);
     launcher.kill().unwrap();
     launcher.wait().unwrap();
     // The bridge (and the daemon) were told to stop with the launcher: the hung stand-in's
@@ -256,33 +245,22 @@ fn alive(pid: &str) -> bool {
 
 /// Ctrl-C in the launcher's terminal (SIGINT to its process group) while a bridge is one
 /// episode into a run (and a second sitting on the same folder refused meanwhile): the sitting
-/// stops cleanly, the bridge and then the daemon stopped, the
-/// recorded episode kept in the run's partial file, and the same command continues the run.
+/// stops cleanly, the bridge and then the daemon stopped, the recorded episode kept in the
+/// run's partial file, and the same command continues the run.
 #[test]
 fn ctrl_c_stops_the_sitting_cleanly_and_the_same_command_continues() {
     use std::os::unix::process::CommandExt;
     let bins = temp_dir("bins-ctrl-c");
     fake_binaries(&bins);
     let out = bins.join("results");
-    let mut cmd = exe();
-    cmd.args(["experiment", "--task", "cartpole", "--methods", "cem"])
-        .args(["--seeds", "1", "--episodes", "3", "--scale", "small"])
-        .arg("--out")
-        .arg(&out)
-        .arg("--bin-dir")
-        .arg(&bins)
-        .env("HANG_SEED", "0")
+    let mut cmd = one_run_sitting(&bins, &out);
+    cmd.env("HANG_SEED", "0")
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
         // A terminal's foreground job: Ctrl-C signals the whole group.
         .process_group(0);
     let launcher = cmd.spawn().unwrap();
-    let pid_file = bins.join("hung.pid");
-    let started = std::time::Instant::now();
-    while !pid_file.exists() {
-        assert!(started.elapsed().as_secs() < 60, "the bridge never hung");
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
+    let pid_file = wait_until_hung(&bins);
     // A second sitting on the same folder is refused before it touches anything.
     let second = experiment_once(&bins, &out);
     assert!(!second.status.success());
@@ -324,17 +302,32 @@ fn ctrl_c_stops_the_sitting_cleanly_and_the_same_command_continues() {
     std::fs::remove_dir_all(&bins).unwrap();
 }
 
-/// One cem run, seed 0, three episodes, as in the killed test.
-fn experiment_once(bins: &Path, out: &Path) -> std::process::Output {
-    exe()
-        .args(["experiment", "--task", "cartpole", "--methods", "cem"])
+/// The command of a sitting of one cem run, seed 0, three episodes.
+fn one_run_sitting(bins: &Path, out: &Path) -> Command {
+    let mut cmd = exe();
+    cmd.args(["experiment", "--task", "cartpole", "--methods", "cem"])
         .args(["--seeds", "1", "--episodes", "3", "--scale", "small"])
         .arg("--out")
         .arg(out)
         .arg("--bin-dir")
-        .arg(bins)
-        .output()
-        .unwrap()
+        .arg(bins);
+    cmd
+}
+
+/// Runs [`one_run_sitting`] to its end.
+fn experiment_once(bins: &Path, out: &Path) -> std::process::Output {
+    one_run_sitting(bins, out).output().unwrap()
+}
+
+/// Waits for a stand-in bridge started with HANG_SEED to hang; returns its pid file.
+fn wait_until_hung(bins: &Path) -> PathBuf {
+    let pid_file = bins.join("hung.pid");
+    let started = std::time::Instant::now();
+    while !pid_file.exists() {
+        assert!(started.elapsed().as_secs() < 60, "the bridge never hung");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    pid_file
 }
 
 #[test]
