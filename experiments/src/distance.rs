@@ -80,7 +80,8 @@ pub fn episode_distances(
 }
 
 /// The episodes of every run of `task` stored in an experiment folder's planner data
-/// directory (`<folder>/planner`), by run name.
+/// directory (`<folder>/planner`), by run name: the runs its daemon serves and the finished
+/// ones a sitting archived.
 pub fn experiment_distances(
     folder: &Path,
     task: Builtin,
@@ -91,10 +92,12 @@ pub fn experiment_distances(
     let dt = task.spec().control_dt;
     let data_dir = folder.join("planner");
     let mut rows = Vec::new();
-    for entry in admin::list_runs(&data_dir)? {
-        if entry.spec.as_ref().is_some_and(|s| s.task == task.name()) {
-            let records = admin::read_replay(&data_dir, &entry.name)?.records;
-            rows.extend(episode_distances(&entry.name, &records, velocity, dt));
+    for shelf in [admin::Shelf::Served, admin::Shelf::Archived] {
+        for entry in admin::list_runs(&data_dir, shelf)? {
+            if entry.spec.as_ref().is_some_and(|s| s.task == task.name()) {
+                let records = admin::read_replay(&data_dir, shelf, &entry.name)?.records;
+                rows.extend(episode_distances(&entry.name, &records, velocity, dt));
+            }
         }
     }
     Ok(rows)
@@ -176,5 +179,43 @@ mod tests {
         );
         assert_eq!(table.lines().count(), 3, "one row of ≥ 2 steps: {table}");
         assert!(Builtin::Cartpole.forward_velocity().is_none());
+    }
+
+    /// Both the runs the daemon serves and the finished ones a sitting archived are read.
+    #[test]
+    fn an_experiments_served_and_archived_runs_are_both_measured() {
+        use planner_service::persist::RunDir;
+        use planner_service::replay::{ReplayLog, segments::LEGACY};
+        use proto::{PlannerOverrides, RunSpec, TrainMode};
+        let folder = tempfile::tempdir().unwrap();
+        let data_dir = folder.path().join("planner");
+        for (name, velocity) in [("ant-cem-s0", 1.0), ("ant-cem-s1", 2.0)] {
+            let dir = RunDir::new(&data_dir, name);
+            dir.write_spec(&RunSpec {
+                task: "ant".into(),
+                preset: None,
+                overrides: PlannerOverrides::default(),
+                mode: TrainMode::Sync,
+                seed: 0,
+                task_spec: None,
+            })
+            .unwrap();
+            let records = [
+                Record::Header(HeaderRecord {
+                    task: "ant".into(),
+                    obs_dim: 27,
+                    act_dim: 8,
+                }),
+                step("a", 0, velocity, 1.0),
+            ];
+            ReplayLog::create_with(&dir.root().join(LEGACY), &records, |f| Box::new(f)).unwrap();
+        }
+        admin::archive_run(&data_dir, "ant-cem-s0").unwrap();
+        let rows = experiment_distances(folder.path(), Builtin::Ant).unwrap();
+        let runs: Vec<(&str, f64)> = rows.iter().map(|r| (r.run.as_str(), r.distance)).collect();
+        let dt = Builtin::Ant.spec().control_dt;
+        assert_eq!(runs.len(), 2, "{runs:?}");
+        assert!(runs.contains(&("ant-cem-s1", 2.0 * dt)), "{runs:?}");
+        assert!(runs.contains(&("ant-cem-s0", 1.0 * dt)), "{runs:?}");
     }
 }

@@ -12,6 +12,7 @@
 //! <out>/episodes.csv           every run's rows with method and seed (results::HEADER)
 //! <out>/learning_curves.{png,svg}
 //! <out>/logs/, <out>/planner/  process logs and the daemon's data (not committed)
+//! <out>/planner/archive/       finished runs' daemon data, moved out of the daemon's way
 //! ```
 //!
 //! A run counts as done when its `.csv` exists with all its episodes (or, for an experiment
@@ -67,6 +68,7 @@ use crate::resume_state;
 use crate::scale::{self, Scale};
 use anyhow::{Context, Result, bail};
 use planner_service::config::ServiceConfig;
+use planner_service::persist::admin;
 use planner_service::plan::Optimizer;
 use proto::Builtin;
 use std::io::Read;
@@ -353,6 +355,7 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
             .map(|t| format!(" or {t} steps"))
             .unwrap_or_default()
     );
+    archive_finished_runs(&exp.out, &manifest);
     let episodes_csv = exp.out.join("episodes.csv");
     if pending.is_empty() {
         let rows = collect_rows(&exp.out, &manifest)?;
@@ -549,6 +552,31 @@ fn pack_unfinished_states(dir: &Path, manifest: &Manifest) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Moves every finished run's daemon data to the data directory's archive before a sitting's
+/// daemon starts: a daemon opens every run it finds under `runs/` (memory, and a retraining
+/// for any whose last one a stop cut short), and a finished run has nothing left to learn.
+/// The archive keeps the files whole for reading (`distance`, `planner-service runs export
+/// --archived`). Called while no daemon serves the folder (the sitting's lock is held).
+fn archive_finished_runs(dir: &Path, manifest: &Manifest) {
+    let data_dir = dir.join("planner");
+    for (run, done) in runs(dir, manifest) {
+        if done && run.daemon_dir(dir, manifest.task).is_dir() {
+            match admin::archive_run(&data_dir, &run.daemon_run(manifest.task)) {
+                Ok(to) => tracing::info!(
+                    run = %run.stem(),
+                    "finished: its daemon data moved to {}",
+                    to.display()
+                ),
+                // Only costs the daemon's memory and time: the sitting goes on.
+                Err(e) => tracing::warn!(
+                    run = %run.stem(),
+                    "finished run's daemon data left served: {e}"
+                ),
+            }
+        }
+    }
 }
 
 /// Removes the packed state of every finished run (its episodes and record are what remain).
@@ -1044,6 +1072,48 @@ mod tests {
         assert!(rows.iter().all(|r| r.method == "cem" && r.seed == 0));
         assert_eq!(rows[2].episode_return, 3.0);
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A sitting's daemon should not open finished runs: their daemon data moves to the
+    /// archive (kept whole), the unfinished runs' stays served, and a refusal to archive
+    /// (a daemon still serving) leaves the data where it was without failing the sitting.
+    #[test]
+    fn finished_runs_daemon_data_is_archived_and_unfinished_runs_stay_served() {
+        let dir = tempfile::tempdir().unwrap();
+        let dir = dir.path();
+        std::fs::create_dir_all(dir.join("runs")).unwrap();
+        let m = manifest(&["cem"], &[0, 1], 3);
+        let id = |seed| RunId {
+            method: "cem".into(),
+            seed,
+        };
+        std::fs::write(id(0).csv(dir), bridge_csv(&[1.0, 2.0, 3.0])).unwrap();
+        std::fs::write(id(1).partial_csv(dir), bridge_csv(&[1.0])).unwrap();
+        for seed in [0, 1] {
+            let daemon_dir = id(seed).daemon_dir(dir, m.task);
+            std::fs::create_dir_all(&daemon_dir).unwrap();
+            std::fs::write(daemon_dir.join("replay.log"), [seed as u8; 10]).unwrap();
+        }
+        let data_dir = dir.join("planner");
+
+        // A daemon serving the folder: nothing moves, and the sitting is not failed.
+        let serving = admin::DaemonLock::acquire(&data_dir, "other").unwrap();
+        archive_finished_runs(dir, &m);
+        assert!(id(0).daemon_dir(dir, m.task).is_dir());
+        drop(serving);
+
+        archive_finished_runs(dir, &m);
+        assert!(!id(0).daemon_dir(dir, m.task).exists());
+        let archived = data_dir.join("archive").join(id(0).daemon_run(m.task));
+        assert_eq!(
+            std::fs::read(archived.join("replay.log")).unwrap(),
+            [0u8; 10],
+            "kept whole"
+        );
+        assert!(id(1).daemon_dir(dir, m.task).is_dir(), "unfinished: served");
+        // A second sitting has nothing more to move.
+        archive_finished_runs(dir, &m);
+        assert!(archived.is_dir() && id(1).daemon_dir(dir, m.task).is_dir());
     }
 
     #[test]

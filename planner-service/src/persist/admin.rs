@@ -16,7 +16,7 @@
 //! one of them holds the run's newest ownership epoch, its owner. Listing only reads and works
 //! at any time.
 
-use super::{CHECKPOINT_PREFIX, CHECKPOINT_SUFFIX, PersistError, RunDir, io_error, stored_runs};
+use super::{CHECKPOINT_PREFIX, CHECKPOINT_SUFFIX, PersistError, RunDir, io_error, run_dirs_under};
 use proto::RunSpec;
 use std::fs::{self, File, TryLockError};
 use std::path::{Path, PathBuf};
@@ -29,6 +29,24 @@ const DAEMON_LOCK_SUFFIX: &str = ".lock";
 
 /// Where archived runs are moved, under the data directory.
 pub const ARCHIVE_DIR: &str = "archive";
+
+/// Which runs of a data directory: those a daemon serves (`runs/`), or those moved out of its
+/// way by `runs archive` (`archive/`), which keep their files for reading (export, analysis).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Shelf {
+    Served,
+    Archived,
+}
+
+impl Shelf {
+    /// The folder of this shelf's runs under `data_dir`.
+    pub fn root(self, data_dir: &Path) -> PathBuf {
+        data_dir.join(match self {
+            Shelf::Served => "runs",
+            Shelf::Archived => ARCHIVE_DIR,
+        })
+    }
+}
 
 /// Why a run could not be managed, or a daemon not start.
 #[derive(Debug, thiserror::Error)]
@@ -190,9 +208,9 @@ pub struct RunEntry {
     pub checkpoints: usize,
 }
 
-/// The runs stored in `data_dir`, by name. Reads only, so it is safe while a daemon serves.
-pub fn list_runs(data_dir: &Path) -> Result<Vec<RunEntry>, AdminError> {
-    stored_runs(data_dir)?
+/// The runs on `shelf` of `data_dir`, by name. Reads only, so it is safe while a daemon serves.
+pub fn list_runs(data_dir: &Path, shelf: Shelf) -> Result<Vec<RunEntry>, AdminError> {
+    run_dirs_under(&shelf.root(data_dir))?
         .into_iter()
         .map(|(name, dir)| {
             let spec = dir.read_spec().ok().flatten();
@@ -212,14 +230,14 @@ pub fn list_runs(data_dir: &Path) -> Result<Vec<RunEntry>, AdminError> {
         .collect()
 }
 
-/// The directory of stored run `name`, checked to exist (the name cannot leave `runs/`).
-fn existing_run(data_dir: &Path, name: &str) -> Result<RunDir, AdminError> {
+/// The directory of run `name` on `shelf`, checked to exist (the name cannot leave the shelf).
+fn existing_run(data_dir: &Path, shelf: Shelf, name: &str) -> Result<RunDir, AdminError> {
     proto::validate_name(name)?;
-    let dir = RunDir::new(data_dir, name);
+    let dir = RunDir::at(shelf.root(data_dir).join(name));
     if !dir.root().is_dir() {
         return Err(AdminError::NoSuchRun {
             name: name.to_string(),
-            data_dir: data_dir.display().to_string(),
+            data_dir: shelf.root(data_dir).display().to_string(),
         });
     }
     Ok(dir)
@@ -228,14 +246,18 @@ fn existing_run(data_dir: &Path, name: &str) -> Result<RunDir, AdminError> {
 /// Every intact record of run `name`'s replay, in order, as its owner would read it (see
 /// `crate::replay::segments`), without writing anything, so it is safe while a daemon serves
 /// (records appended meanwhile may be missing, never half-read).
-pub fn read_replay(data_dir: &Path, name: &str) -> Result<crate::replay::Recovered, AdminError> {
-    let dir = existing_run(data_dir, name)?;
+pub fn read_replay(
+    data_dir: &Path,
+    shelf: Shelf,
+    name: &str,
+) -> Result<crate::replay::Recovered, AdminError> {
+    let dir = existing_run(data_dir, shelf, name)?;
     Ok(crate::replay::segments::read(dir.root())?.recovered)
 }
 
 /// Deletes run `name` and everything it stored, unless a daemon serves `data_dir`.
 pub fn delete_run(data_dir: &Path, name: &str) -> Result<(), AdminError> {
-    let dir = existing_run(data_dir, name)?;
+    let dir = existing_run(data_dir, Shelf::Served, name)?;
     let _lock = ManageLock::acquire(data_dir, &dir)?;
     fs::remove_dir_all(dir.root()).map_err(io_error(dir.root()))?;
     Ok(())
@@ -244,9 +266,9 @@ pub fn delete_run(data_dir: &Path, name: &str) -> Result<(), AdminError> {
 /// Moves run `name` to `{data_dir}/archive/{name}` (kept whole, no longer served), unless a
 /// daemon serves `data_dir`. Returns where it went.
 pub fn archive_run(data_dir: &Path, name: &str) -> Result<PathBuf, AdminError> {
-    let dir = existing_run(data_dir, name)?;
+    let dir = existing_run(data_dir, Shelf::Served, name)?;
     let _lock = ManageLock::acquire(data_dir, &dir)?;
-    let archive = data_dir.join(ARCHIVE_DIR);
+    let archive = Shelf::Archived.root(data_dir);
     fs::create_dir_all(&archive).map_err(io_error(&archive))?;
     let target = archive.join(name);
     if target.exists() {
@@ -286,7 +308,7 @@ mod tests {
         store_run(data.path(), "keep");
         store_run(data.path(), "old");
         store_run(data.path(), "gone");
-        let listed = list_runs(data.path()).unwrap();
+        let listed = list_runs(data.path(), Shelf::Served).unwrap();
         let names: Vec<&str> = listed.iter().map(|r| r.name.as_str()).collect();
         assert_eq!(names, ["gone", "keep", "old"]);
         assert_eq!(listed[0].replay_bytes, 100);
@@ -294,7 +316,7 @@ mod tests {
 
         // While a daemon holds its locks, listing works and changes are refused.
         let daemon = DaemonLock::acquire(data.path(), "pa").unwrap();
-        assert_eq!(list_runs(data.path()).unwrap().len(), 3);
+        assert_eq!(list_runs(data.path(), Shelf::Served).unwrap().len(), 3);
         for err in [
             delete_run(data.path(), "gone").unwrap_err(),
             archive_run(data.path(), "old").unwrap_err(),
@@ -307,7 +329,7 @@ mod tests {
         let archived = archive_run(data.path(), "old").unwrap();
         assert_eq!(archived, data.path().join(ARCHIVE_DIR).join("old"));
         assert!(archived.join("replay.log").exists());
-        let names: Vec<String> = stored_runs(data.path())
+        let names: Vec<String> = crate::persist::stored_runs(data.path())
             .unwrap()
             .into_iter()
             .map(|(n, _)| n)
@@ -317,6 +339,34 @@ mod tests {
             ["keep"],
             "a deleted or archived run is no longer served"
         );
+        // The archived run is still listed and read on its own shelf, and only there.
+        let archived: Vec<String> = list_runs(data.path(), Shelf::Archived)
+            .unwrap()
+            .into_iter()
+            .map(|r| r.name)
+            .collect();
+        assert_eq!(archived, ["old"]);
+        assert_eq!(
+            list_runs(data.path(), Shelf::Archived).unwrap()[0]
+                .spec
+                .as_ref()
+                .unwrap()
+                .task,
+            "cartpole"
+        );
+        assert!(read_replay(data.path(), Shelf::Archived, "old").is_ok());
+        assert!(matches!(
+            read_replay(data.path(), Shelf::Served, "old"),
+            Err(AdminError::NoSuchRun { .. })
+        ));
+        // Archiving a run whose name the archive already holds is refused, the run kept.
+        store_run(data.path(), "old");
+        assert!(matches!(
+            archive_run(data.path(), "old"),
+            Err(AdminError::Exists { .. })
+        ));
+        assert!(data.path().join("runs").join("old").exists());
+        delete_run(data.path(), "old").unwrap();
         assert!(matches!(
             delete_run(data.path(), "gone"),
             Err(AdminError::NoSuchRun { .. })
@@ -451,17 +501,21 @@ mod tests {
             .unwrap();
         let _daemon = DaemonLock::acquire(data.path(), "pa").unwrap();
         let before = fs::read(&path).unwrap();
-        let read = read_replay(data.path(), "r").unwrap();
+        let read = read_replay(data.path(), Shelf::Served, "r").unwrap();
         assert_eq!(read.records.len(), 2);
         assert_eq!(read.records[1], transition);
         assert_eq!(read.truncated_bytes, 5);
         assert_eq!(fs::read(&path).unwrap(), before, "reading wrote nothing");
         assert!(matches!(
-            read_replay(data.path(), "none"),
+            read_replay(data.path(), Shelf::Served, "none"),
             Err(AdminError::NoSuchRun { .. })
         ));
         assert!(matches!(
-            read_replay(data.path(), "../r"),
+            read_replay(data.path(), Shelf::Served, "../r"),
+            Err(AdminError::Name(_))
+        ));
+        assert!(matches!(
+            read_replay(data.path(), Shelf::Archived, "../runs/r"),
             Err(AdminError::Name(_))
         ));
     }

@@ -427,11 +427,16 @@ fn damaged_path(path: &Path) -> PathBuf {
 
 /// The runs stored under `data_dir`, by name (sorted).
 pub fn stored_runs(data_dir: &Path) -> Result<Vec<(String, RunDir)>, PersistError> {
-    let root = data_dir.join("runs");
-    let entries = match fs::read_dir(&root) {
+    run_dirs_under(&data_dir.join("runs"))
+}
+
+/// The run directories directly under `root` (`runs/`, or a data directory's `archive/`), by
+/// name (sorted); none if `root` does not exist.
+pub(crate) fn run_dirs_under(root: &Path) -> Result<Vec<(String, RunDir)>, PersistError> {
+    let entries = match fs::read_dir(root) {
         Ok(entries) => entries,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
-        Err(e) => return Err(io_error(&root)(e)),
+        Err(e) => return Err(io_error(root)(e)),
     };
     let mut runs: Vec<(String, RunDir)> = entries
         .filter_map(|entry| {
@@ -440,7 +445,7 @@ pub fn stored_runs(data_dir: &Path) -> Result<Vec<(String, RunDir)>, PersistErro
                 return None;
             }
             let name = entry.file_name().into_string().ok()?;
-            Some((name.clone(), RunDir::new(data_dir, &name)))
+            Some((name.clone(), RunDir::at(root.join(&name))))
         })
         .collect();
     runs.sort_by(|a, b| a.0.cmp(&b.0));

@@ -28,7 +28,11 @@ pub struct RunsArgs {
 #[derive(clap::Subcommand, Debug)]
 enum RunsCommand {
     /// List the stored runs: task, preset, mode, replay log size, checkpoints.
-    List,
+    List {
+        /// List the archived runs (`{data_dir}/archive/`) instead of the served ones.
+        #[arg(long)]
+        archived: bool,
+    },
     /// Write a run's stored transitions (or, with --episodes, its finished episodes) as CSV:
     /// one row per transition with the agent, episode, step, whether the action was the one
     /// planned or one the agent applied, the reward, then obs_*, act_* and next_obs_* columns.
@@ -42,6 +46,9 @@ enum RunsCommand {
         /// Write to this file instead of standard output.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Read the run from the archive (`{data_dir}/archive/`) instead of the served runs.
+        #[arg(long)]
+        archived: bool,
     },
     /// Delete a run and everything it stored (refused while a daemon serves the directory).
     Delete {
@@ -63,12 +70,12 @@ pub fn run(args: RunsArgs) -> Result<()> {
         (None, None) => ServiceConfig::default().data_dir,
     };
     match args.command {
-        RunsCommand::List => {
+        RunsCommand::List { archived } => {
             println!(
                 "{:<24} {:<12} {:<10} {:<6} {:>14} {:>12}",
                 "run", "task", "preset", "mode", "replay bytes", "checkpoints"
             );
-            for entry in admin::list_runs(&data_dir)? {
+            for entry in admin::list_runs(&data_dir, shelf(archived))? {
                 let (task, preset, mode) = match &entry.spec {
                     Some(spec) => (
                         spec.task.to_string(),
@@ -83,8 +90,13 @@ pub fn run(args: RunsArgs) -> Result<()> {
                 );
             }
         }
-        RunsCommand::Export { run, episodes, out } => {
-            let recovered = admin::read_replay(&data_dir, &run)?;
+        RunsCommand::Export {
+            run,
+            episodes,
+            out,
+            archived,
+        } => {
+            let recovered = admin::read_replay(&data_dir, shelf(archived), &run)?;
             let mut sink: Box<dyn Write> = match &out {
                 Some(path) => Box::new(std::io::BufWriter::new(
                     std::fs::File::create(path)
@@ -118,6 +130,14 @@ pub fn run(args: RunsArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+fn shelf(archived: bool) -> admin::Shelf {
+    if archived {
+        admin::Shelf::Archived
+    } else {
+        admin::Shelf::Served
+    }
 }
 
 /// The transitions of `records` as CSV rows (the header's state and action widths are those
