@@ -341,20 +341,21 @@ async fn await_retraining(link: &mut PlannerLink, last: &EpisodeRecord, until: S
                         RunEventKind::ModelsUpdated { models_version, .. }
                             if models_version > used =>
                         {
-                            return true;
+                            return Ok(());
                         }
-                        RunEventKind::TrainingFailed { .. } => return true,
+                        RunEventKind::TrainingFailed { .. } => return Ok(()),
                         _ => {}
                     }
                 }
-                Ok(Inbound::PlannerGone) | Err(_) => return false,
+                Ok(Inbound::PlannerGone) => return Err("the planner went away".to_string()),
+                Err(e) => return Err(e.to_string()),
                 Ok(_) => {}
             }
         }
     };
     match tokio::time::timeout(left, retrained).await {
-        Ok(true) => tracing::info!("the planner has retrained; stopping"),
-        Ok(false) => tracing::warn!("the planner went away before it had retrained; stopping"),
+        Ok(Ok(())) => tracing::info!("the planner has retrained; stopping"),
+        Ok(Err(why)) => tracing::warn!("{why} before the planner had retrained; stopping"),
         Err(_) => tracing::info!(
             "the deadline came before the retraining ended; the resumed run retrains first"
         ),

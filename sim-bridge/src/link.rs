@@ -289,9 +289,12 @@ impl PlannerLink {
             )))
     }
 
-    /// The next message for this agent. Actions and errors that do not decode are errors
-    /// (they would leave the loop waiting for an answer that never comes); events that do not
-    /// decode are logged and skipped.
+    /// The next message for this agent. Messages that do not decode are logged and skipped:
+    /// the attach reply already checked that the planner speaks our protocol, so after it one
+    /// is a stray or hostile publisher's, and ending the run over it would hand anyone on the
+    /// network a way to stop the bridge (a planner that truly sends nothing usable ends the
+    /// wait with the action timeout, the skipped message's error logged before it). The only
+    /// error is a subscription that closed.
     pub async fn recv(&mut self) -> Result<Inbound, BridgeError> {
         loop {
             let alive = async {
@@ -303,16 +306,21 @@ impl PlannerLink {
             tokio::select! {
                 sample = self.actions.recv_async() => {
                     let sample = sample.map_err(|e| closed("actions", e))?;
-                    return decode(&sample).map(Inbound::Action);
+                    match decode(&sample) {
+                        Ok(action) => return Ok(Inbound::Action(action)),
+                        Err(e) => tracing::warn!(error = %e, "ignoring an undecodable action"),
+                    }
                 }
                 sample = self.errors.recv_async() => {
                     let sample = sample.map_err(|e| closed("errors", e))?;
-                    let report: ErrorReport = decode(&sample)?;
-                    // Another process using our name (its refused observations) is not us.
-                    if report.concerns(self.session_token) {
-                        return Ok(Inbound::Error(report));
+                    match decode::<ErrorReport>(&sample) {
+                        // Another process using our name (its refused observations) is not us.
+                        Ok(report) if report.concerns(self.session_token) => {
+                            return Ok(Inbound::Error(report));
+                        }
+                        Ok(report) => tracing::warn!(%report, "ignoring an error report about another session under this agent's name"),
+                        Err(e) => tracing::warn!(error = %e, "ignoring an undecodable error report"),
                     }
-                    tracing::warn!(%report, "ignoring an error report about another session under this agent's name");
                 }
                 sample = self.events.recv_async() => {
                     let sample = sample.map_err(|e| closed("events", e))?;

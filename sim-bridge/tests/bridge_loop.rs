@@ -32,6 +32,8 @@ struct Script {
     first_action_delay: Duration,
     /// Announce the models retrained on an episode this long after it ends.
     models_delay: Duration,
+    /// Publish an undecodable action as each episode ends (a stray or hostile publisher).
+    garbage_after_episode: bool,
 }
 
 /// What the scripted planner saw.
@@ -127,6 +129,9 @@ async fn start_planner(endpoint: &str, script: Script) -> (zenoh::Session, Arc<M
                         for kind in events {
                             let event = RunEvent { version: PROTOCOL_VERSION, run: run.clone(), kind };
                             s.put(k.events(&run, Encoding::Postcard), publish_bytes(&event)).await.unwrap();
+                        }
+                        if script.garbage_after_episode {
+                            s.put(k.act(&run, &agent), vec![0xff_u8; 7]).await.unwrap();
                         }
                         let (s, k, seen) = (s.clone(), k.clone(), seen2.clone());
                         let delay = script.models_delay;
@@ -353,15 +358,25 @@ async fn a_deadline_stops_between_episodes_before_the_next_reset() {
 async fn a_run_stopped_at_its_deadline_waits_for_the_retraining_until_the_deadline() {
     // Episode 5 is random and fast; episode 6 plans and takes over 6 s (its first action is
     // held 6 s), so with the deadline 11 s away episode 7 (as long as 6) does not fit.
-    let script = |models_delay| Script {
+    // An undecodable action meanwhile (published as each episode ends: episode 5's arrives
+    // while the bridge waits for episode 6's first action) ends neither the run nor the wait.
+    let script = |models_delay, garbage_after_episode| Script {
         first_action_delay: Duration::from_secs(6),
         models_delay,
+        garbage_after_episode,
         ..Script::default()
     };
-    for (models_delay, waits_for_models) in [(500, true), (60_000, false)] {
+    for (models_delay, garbage, waits_for_models) in [
+        (500, false, true),
+        (500, true, true),
+        (60_000, false, false),
+    ] {
         let endpoint = free_endpoint();
-        let (_planner, seen) =
-            start_planner(&endpoint, script(Duration::from_millis(models_delay))).await;
+        let (_planner, seen) = start_planner(
+            &endpoint,
+            script(Duration::from_millis(models_delay), garbage),
+        )
+        .await;
         let mut config = config(&endpoint, 4);
         config.train_timeout = Duration::from_secs(60);
         let at = SystemTime::now() + Duration::from_secs(11);
