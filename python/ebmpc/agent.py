@@ -97,10 +97,14 @@ class Agent:
         what = "action" if channel == "act" else "error report"
 
         def receive(sample: zenoh.Sample) -> None:
+            # The attach reply checked that the planner speaks our protocol, so a message that
+            # does not decode is a stray or hostile publisher's: raising it would let anyone on
+            # the network stop this agent. It is logged and skipped; a planner that truly sends
+            # nothing usable ends the wait with the action timeout.
             try:
                 message = wire.decode(sample.payload.to_bytes(), what)
             except ProtocolError as e:
-                self._inbox.put(("invalid", e))
+                log.warning("ignoring an undecodable %s on %s: %s", what, sample.key_expr, e)
                 return
             if channel == "error" and message.get("session") not in (None, self.session):
                 return  # a refusal of another process's observation under our name
@@ -315,8 +319,6 @@ class Agent:
                     f"no action for episode {episode} step {step} within {timeout:g} s"
                 )
             channel, message = received
-            if channel == "invalid":
-                raise message
             if channel == "error":
                 self._report(message, deadline)
                 continue
@@ -346,8 +348,6 @@ class Agent:
                 pass
             if received is not None:
                 channel, message = received
-                if channel == "invalid":
-                    raise message
                 if channel == "error":
                     self._report(message, deadline)
                 continue  # a late action of an earlier step: nothing to act on

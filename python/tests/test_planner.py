@@ -175,6 +175,17 @@ def test_hostile_requests_raise_typed_errors(daemon: Daemon) -> None:
         # ... and left the agent where it was: the next step is step 1.
         assert len(agent.act([0.0, 0.1, 0.0, 0.0], reward=0.0)) == 1
         assert agent.step == 1
+        # Bytes that decode to nothing on the agent's action and error keys (a stray or hostile
+        # publisher) are skipped: the next step is answered as if they had not come.
+        tap = Wiretap(daemon.endpoint, "py-ok")
+        try:
+            for channel in ("act", "error"):
+                tap.session.put(f"ebmpc/runs/py-ok/agents/py-0/{channel}", b"\xff not json")
+            time.sleep(0.5)
+            assert len(agent.act([0.0, 0.1, 0.0, 0.0], reward=0.0)) == 1
+            assert agent.step == 2
+        finally:
+            tap.close()
         agent.close()
 
 
