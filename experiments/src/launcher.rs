@@ -54,9 +54,9 @@
 //! buffer as an interrupted episode (it is trained on), a retraining still under way when the
 //! daemon stops is redone from the newest checkpoint (a bridge stopping between episodes waits
 //! for the retraining on its last one, up to the deadline), the planner's random stream
-//! restarts from the run's seed when the daemon reopens the run, and an episode the daemon finished whose row the killed bridge had not
-//! yet written is played once more (the daemon then holds one episode more than the CSV, and the
-//! CSV's episode numbers skip one).
+//! restarts from the run's seed when the daemon reopens the run, and an episode the daemon
+//! finished whose row the killed bridge had not yet written is played once more (the daemon
+//! then holds one episode more than the CSV, and the CSV's episode numbers skip one).
 
 use crate::manifest::Manifest;
 use crate::method::Method;

@@ -16,7 +16,9 @@
 //! one of them holds the run's newest ownership epoch, its owner. Listing only reads and works
 //! at any time.
 
-use super::{CHECKPOINT_PREFIX, CHECKPOINT_SUFFIX, PersistError, RunDir, io_error, run_dirs_under};
+use super::{
+    CHECKPOINT_PREFIX, CHECKPOINT_SUFFIX, PersistError, RUNS_DIR, RunDir, io_error, run_dirs_under,
+};
 use proto::RunSpec;
 use std::fs::{self, File, TryLockError};
 use std::path::{Path, PathBuf};
@@ -42,7 +44,7 @@ impl Shelf {
     /// The folder of this shelf's runs under `data_dir`.
     pub fn root(self, data_dir: &Path) -> PathBuf {
         data_dir.join(match self {
-            Shelf::Served => "runs",
+            Shelf::Served => RUNS_DIR,
             Shelf::Archived => ARCHIVE_DIR,
         })
     }
@@ -233,11 +235,12 @@ pub fn list_runs(data_dir: &Path, shelf: Shelf) -> Result<Vec<RunEntry>, AdminEr
 /// The directory of run `name` on `shelf`, checked to exist (the name cannot leave the shelf).
 fn existing_run(data_dir: &Path, shelf: Shelf, name: &str) -> Result<RunDir, AdminError> {
     proto::validate_name(name)?;
-    let dir = RunDir::at(shelf.root(data_dir).join(name));
+    let root = shelf.root(data_dir);
+    let dir = RunDir::at(root.join(name));
     if !dir.root().is_dir() {
         return Err(AdminError::NoSuchRun {
             name: name.to_string(),
-            data_dir: shelf.root(data_dir).display().to_string(),
+            data_dir: root.display().to_string(),
         });
     }
     Ok(dir)

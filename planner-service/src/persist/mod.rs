@@ -93,11 +93,14 @@ pub struct RunDir {
     root: PathBuf,
 }
 
+/// The folder of the served runs under a data directory: `{data_dir}/runs/{run}`.
+pub(crate) const RUNS_DIR: &str = "runs";
+
 impl RunDir {
     /// The directory of run `name` under `data_dir` (not created until something is written).
     pub fn new(data_dir: &Path, name: &str) -> Self {
         Self {
-            root: data_dir.join("runs").join(name),
+            root: data_dir.join(RUNS_DIR).join(name),
         }
     }
 
@@ -427,7 +430,7 @@ fn damaged_path(path: &Path) -> PathBuf {
 
 /// The runs stored under `data_dir`, by name (sorted).
 pub fn stored_runs(data_dir: &Path) -> Result<Vec<(String, RunDir)>, PersistError> {
-    run_dirs_under(&data_dir.join("runs"))
+    run_dirs_under(&data_dir.join(RUNS_DIR))
 }
 
 /// The run directories directly under `root` (`runs/`, or a data directory's `archive/`), by
