@@ -6,8 +6,10 @@
 //! <out>/experiment.json        task, scale, episodes, overrides, methods, seeds (resume check)
 //! <out>/runs/<method>-s<seed>.csv   one run's episodes; `.csv.partial` while it runs
 //! <out>/runs/<method>-s<seed>.csv.attempt   the episodes of the bridge now running
-//! <out>/runs/<method>-s<seed>.json  a finished run's record: spec, binaries' commit, machine,
-//!                              kernel paths and precision, load (provenance::RunRecord)
+//! <out>/runs/<method>-s<seed>.json  a finished run's record: spec, and per sitting the episodes
+//!                              it recorded, binaries' commit, machine, kernel paths and
+//!                              precision, load (provenance::RunRecord)
+//! <out>/runs/<method>-s<seed>.sittings.json  an unfinished run's sittings so far
 //! <out>/runs/<method>-s<seed>.state.tar.gz  an unfinished run's resumable state (resume_state)
 //! <out>/episodes.csv           every run's rows with method and seed (results::HEADER)
 //! <out>/learning_curves.{png,svg}
@@ -61,7 +63,7 @@
 use crate::manifest::Manifest;
 use crate::method::Method;
 use crate::progress::Progress;
-use crate::provenance::{self, Load, Machine, RunKernels, RunRecord};
+use crate::provenance::{self, Load, Machine, RunRecord, Sitting};
 use crate::queue::{self, Pending};
 use crate::results::{self, EpisodeRow};
 use crate::resume_state;
@@ -154,9 +156,25 @@ impl RunId {
         dir.join("runs").join(format!("{}.json", self.stem()))
     }
 
-    /// When and under what load the run's current sitting started (in `logs/`: not a result).
-    fn started_file(&self, dir: &Path) -> PathBuf {
-        dir.join("logs").join(format!("{}.started", self.stem()))
+    /// The unfinished run's sittings so far ([`Sitting`]), moved into its record when it
+    /// finishes.
+    pub fn sittings_json(&self, dir: &Path) -> PathBuf {
+        dir.join("runs")
+            .join(format!("{}.sittings.json", self.stem()))
+    }
+
+    /// Where the run's sittings are kept: its record once it is finished, else its sittings
+    /// file.
+    fn sittings(&self, dir: &Path) -> Vec<Sitting> {
+        let file = if self.record_json(dir).exists() {
+            self.record_json(dir)
+        } else {
+            self.sittings_json(dir)
+        };
+        provenance::read_sittings(&file).unwrap_or_else(|e| {
+            tracing::warn!(run = %self.stem(), "{}: {e}", file.display());
+            Vec::new()
+        })
     }
 
     /// The unfinished run's packed resumable state.
@@ -270,24 +288,56 @@ pub fn prepare(exp: &Experiment) -> Result<Manifest> {
     Ok(manifest)
 }
 
-/// Every episode recorded so far by the runs of the manifest, finished or not (for the
-/// queue's cost estimates).
-fn recorded_rows(dir: &Path, manifest: &Manifest) -> Vec<EpisodeRow> {
+/// Every episode recorded so far by the runs of the manifest, finished or not, and those of
+/// them that a sitting on a machine with `machine`'s CPU recorded (for the queue's cost
+/// estimates).
+fn recorded_rows(
+    dir: &Path,
+    manifest: &Manifest,
+    machine: &Machine,
+) -> (Vec<EpisodeRow>, Vec<EpisodeRow>) {
     let task = manifest.task.name();
-    let mut rows = Vec::new();
+    let (mut all, mut here) = (Vec::new(), Vec::new());
     for (run, _) in runs(dir, manifest) {
+        let recorded_here: std::collections::BTreeSet<u32> = run
+            .sittings(dir)
+            .into_iter()
+            .filter(|s| s.machine.same_cpu(machine))
+            .flat_map(|s| s.episodes)
+            .collect();
         for file in [run.csv(dir), run.partial_csv(dir), run.attempt_csv(dir)] {
-            if let Ok(r) = results::read_run_csv(&file, task, &run.method, run.seed) {
-                rows.extend(r);
+            if let Ok(rows) = results::read_run_csv(&file, task, &run.method, run.seed) {
+                here.extend(
+                    rows.iter()
+                        .filter(|r| recorded_here.contains(&r.episode))
+                        .cloned(),
+                );
+                all.extend(rows);
             }
         }
     }
-    rows
+    (all, here)
 }
 
-/// The pending runs with their estimated remaining cost, longest first.
-fn plan_queue(dir: &Path, manifest: &Manifest, pending: &[RunId]) -> Vec<Pending<RunId>> {
-    let costs = queue::method_costs(&recorded_rows(dir, manifest));
+/// Per method, what its recorded episodes measure, with the planning rate of this machine's
+/// CPU where it has been measured here ([`queue::on_this_machine`]).
+fn method_costs(
+    dir: &Path,
+    manifest: &Manifest,
+    machine: &Machine,
+) -> std::collections::BTreeMap<String, queue::MethodCost> {
+    let (all, here) = recorded_rows(dir, manifest, machine);
+    queue::on_this_machine(queue::method_costs(&all), &queue::method_costs(&here))
+}
+
+/// The pending runs with their estimated remaining cost on `machine`, longest first.
+fn plan_queue(
+    dir: &Path,
+    manifest: &Manifest,
+    machine: &Machine,
+    pending: &[RunId],
+) -> Vec<Pending<RunId>> {
+    let costs = method_costs(dir, manifest, machine);
     let episode_len = manifest.task.task().spec().episode_len;
     let mut out: Vec<Pending<RunId>> = pending
         .iter()
@@ -382,7 +432,7 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     let machine = Machine::this();
     let commit = provenance::binaries_commit(&exp.bin_dir);
     let progress = Progress::new(pending.len(), exp.episodes);
-    let queue = Mutex::new(plan_queue(&exp.out, &manifest, &pending));
+    let queue = Mutex::new(plan_queue(&exp.out, &manifest, &machine, &pending));
     let failures = Mutex::new(Vec::new());
     let csv_lock = Mutex::new(());
     std::thread::scope(|scope| {
@@ -411,6 +461,8 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
                     let context = RunContext {
                         exp,
                         manifest: &manifest,
+                        machine: &machine,
+                        commit: &commit,
                         endpoint: &planner.endpoint,
                         zenoh_config: &planner.zenoh_config,
                         progress: &progress,
@@ -420,15 +472,8 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
                     let outcome = run_one(&context, &run);
                     match outcome {
                         Ok(RunEnd::Finished) => {
-                            // While the daemon still holds the run: what its networks ran on.
-                            let kernels = provenance::run_kernels(
-                                &exp.bin_dir.join("planner-service"),
-                                &planner.endpoint,
-                                &run.daemon_run(exp.task),
-                            );
                             let _guard = csv_lock.lock();
-                            let identity = (&machine, commit.as_str(), kernels);
-                            if let Err(e) = write_record(exp, &manifest, &run, identity) {
+                            if let Err(e) = write_record(exp, &manifest, &run) {
                                 progress
                                     .log(&format!("cannot write {}'s record: {e:#}", run.stem()));
                             }
@@ -442,7 +487,7 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
                                 .lock()
                                 .unwrap_or_else(std::sync::PoisonError::into_inner);
                             let left: Vec<RunId> = q.iter().map(|p| p.run.clone()).collect();
-                            *q = plan_queue(&exp.out, &manifest, &left);
+                            *q = plan_queue(&exp.out, &manifest, &machine, &left);
                         }
                         Ok(RunEnd::Stopped) => {
                             let why = if stop.load(Ordering::Relaxed) {
@@ -591,22 +636,14 @@ fn remove_finished_states(dir: &Path, manifest: &Manifest) -> Result<()> {
     Ok(())
 }
 
-/// Writes a finished run's record beside its episodes: `identity` is the machine, the
-/// binaries' commit and the kernels the daemon ran the run on.
-fn write_record(
-    exp: &Experiment,
-    manifest: &Manifest,
-    run: &RunId,
-    (machine, commit, kernels): (&Machine, &str, Option<RunKernels>),
-) -> Result<()> {
+/// Writes a finished run's record beside its episodes, with the sittings its sittings file
+/// kept (the file is then removed: the record holds them).
+fn write_record(exp: &Experiment, manifest: &Manifest, run: &RunId) -> Result<()> {
     let rows = results::read_run_csv(&run.csv(&exp.out), exp.task.name(), &run.method, run.seed)?;
     let spec = std::fs::read_to_string(run.daemon_dir(&exp.out, exp.task).join("run.json"))
         .ok()
         .and_then(|t| serde_json::from_str(&t).ok());
-    let started = std::fs::read_to_string(run.started_file(&exp.out))
-        .ok()
-        .and_then(|t| serde_json::from_str::<(String, Load)>(&t).ok());
-    let (started, load_at_start) = started.unwrap_or_else(|| ("unknown".into(), Load::now()));
+    let sittings_json = run.sittings_json(&exp.out);
     let record = RunRecord {
         task: exp.task.name().into(),
         method: run.method.clone(),
@@ -615,17 +652,15 @@ fn write_record(
         episodes: rows.len(),
         steps: rows.iter().map(|r| u64::from(r.steps)).sum(),
         spec,
-        binaries_commit: commit.to_string(),
-        machine: machine.clone(),
-        kernels,
-        load_at_start,
-        load_at_end: Load::now(),
-        started,
+        sittings: provenance::read_sittings(&sittings_json)
+            .with_context(|| format!("reading {}", sittings_json.display()))?,
         finished: provenance::utc_now(),
         episode_wall_seconds: rows.iter().map(|r| r.wall_seconds).sum(),
     };
     record.save(&run.record_json(&exp.out))?;
-    let _ = std::fs::remove_file(run.started_file(&exp.out));
+    if sittings_json.exists() {
+        std::fs::remove_file(&sittings_json)?;
+    }
     Ok(())
 }
 
@@ -633,6 +668,9 @@ fn write_record(
 struct RunContext<'a> {
     exp: &'a Experiment,
     manifest: &'a Manifest,
+    /// Where the sitting runs, and the commit of its binaries (for each run's [`Sitting`]).
+    machine: &'a Machine,
+    commit: &'a str,
     endpoint: &'a str,
     /// The sitting's Zenoh file ([`write_sitting_config`]), for the bridges too.
     zenoh_config: &'a Path,
@@ -674,8 +712,7 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
             )
         ));
     }
-    let started = serde_json::to_string(&(provenance::utc_now(), Load::now()))?;
-    std::fs::write(run.started_file(&exp.out), started)?;
+    let (started, load_at_start) = (provenance::utc_now(), Load::now());
     let mut cmd = Command::new(exp.bin_dir.join("sim-bridge"));
     cmd.arg("run")
         .args([
@@ -717,7 +754,7 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
         let at = at.duration_since(SystemTime::UNIX_EPOCH)?.as_secs();
         cmd.args(["--deadline", &at.to_string()]);
         // What the run's method has measured so far, for a planned episode after exploration.
-        let cost = queue::method_costs(&recorded_rows(&exp.out, manifest))
+        let cost = method_costs(&exp.out, manifest, ctx.machine)
             .get(&run.method)
             .copied();
         let episode_len = manifest.task.task().spec().episode_len;
@@ -761,6 +798,31 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
         std::thread::sleep(Duration::from_millis(500));
     };
     progress.end_run(bar);
+    let recorded_now =
+        results::read_run_csv(&attempt, exp.task.name(), &run.method, run.seed).unwrap_or_default();
+    if !recorded_now.is_empty() {
+        // While the daemon still holds the run: what its networks ran on.
+        let kernels = provenance::run_kernels(
+            &exp.bin_dir.join("planner-service"),
+            ctx.endpoint,
+            &run_name,
+        );
+        let sitting = Sitting {
+            machine: ctx.machine.clone(),
+            binaries_commit: ctx.commit.to_string(),
+            kernels,
+            started,
+            ended: provenance::utc_now(),
+            load_at_start,
+            load_at_end: Load::now(),
+            episodes: recorded_now.iter().map(|r| r.episode).collect(),
+        };
+        let file = run.sittings_json(&exp.out);
+        if let Err(e) = provenance::append_sitting(&file, sitting) {
+            // The episodes are safe; only where they were recorded goes unsaid.
+            progress.log(&format!("cannot add to {}: {e}", file.display()));
+        }
+    }
     merge_attempt(&attempt, &partial)?;
     let left = remaining_of(&partial, manifest);
     if stopped && left.is_some() {
@@ -1035,6 +1097,80 @@ mod tests {
             text.push_str(&format!("{e},{r},200,1.0,200,10.0,2.0\n"));
         }
         text
+    }
+
+    fn machine(cpu_family_model: &str) -> Machine {
+        Machine {
+            hostname: "vm".into(),
+            cpu_model: "AMD EPYC".into(),
+            cpu_family_model: cpu_family_model.into(),
+            logical_cpus: 2,
+            cpu_path: "avx2-f32 scalar-f32".into(),
+        }
+    }
+
+    fn sitting(on: &Machine, episodes: &[u32]) -> Sitting {
+        let load = Load {
+            load_average_1m: 1.0,
+            sched_idle: true,
+        };
+        Sitting {
+            machine: on.clone(),
+            binaries_commit: "c0ffee".into(),
+            kernels: None,
+            started: "2026-11-29T08:00:00Z".into(),
+            ended: "2026-11-29T09:00:00Z".into(),
+            load_at_start: load.clone(),
+            load_at_end: load,
+            episodes: episodes.to_vec(),
+        }
+    }
+
+    #[test]
+    fn estimates_use_the_rate_this_cpu_measured_once_it_has() {
+        let dir = tempfile::tempdir().unwrap();
+        let dir = dir.path();
+        std::fs::create_dir_all(dir.join("runs")).unwrap();
+        let m = manifest(&["cem"], &[0, 1, 2], 3);
+        let id = |seed| RunId {
+            method: "cem".into(),
+            seed,
+        };
+        let (fast, slow) = (machine("25/17"), machine("25/1"));
+        // 200 planned steps per episode: 10 s each on the fast CPU, 40 s on the slow one.
+        let csv = |wall: f64, n: u32| {
+            let mut text = format!("{}\n", sim_bridge::csv::HEADER);
+            for e in 0..n {
+                text.push_str(&format!("{e},1.0,200,{wall},200,10.0,2.0\n"));
+            }
+            text
+        };
+        // Seed 0 finished on the fast CPU (its record keeps the sitting); seed 1 recorded two
+        // episodes on the slow one (its sittings file); seed 2 has not started.
+        std::fs::write(id(0).csv(dir), csv(10.0, 3)).unwrap();
+        let record = serde_json::json!({ "sittings": [sitting(&fast, &[0, 1, 2])] });
+        std::fs::write(id(0).record_json(dir), record.to_string()).unwrap();
+        std::fs::write(id(1).partial_csv(dir), csv(40.0, 2)).unwrap();
+        provenance::append_sitting(&id(1).sittings_json(dir), sitting(&slow, &[0, 1])).unwrap();
+
+        let estimate_of_seed_2 = |on: &Machine| {
+            plan_queue(dir, &m, on, &[id(1), id(2)])
+                .into_iter()
+                .find(|p| p.run.seed == 2)
+                .and_then(|p| p.estimate)
+                .map(|d| d.as_secs_f64())
+                .unwrap()
+        };
+        // Three episodes of 200 steps at each CPU's own rate...
+        assert!((estimate_of_seed_2(&slow) - 120.0).abs() < 1e-6);
+        assert!((estimate_of_seed_2(&fast) - 30.0).abs() < 1e-6);
+        // ...and on a CPU that has not run the method, every episode's: 110 s per 1,000 steps.
+        let unseen = machine("6/143");
+        assert!((estimate_of_seed_2(&unseen) - 66.0).abs() < 1e-6);
+        // Seed 1's own next episode is as long as its last (the bridge's rule), whatever the CPU.
+        let seed_1 = plan_queue(dir, &m, &fast, &[id(1)]).remove(0);
+        assert_eq!(seed_1.next_episode, Some(Duration::from_secs(40)));
+        assert!((seed_1.estimate.unwrap().as_secs_f64() - 10.0).abs() < 1e-6);
     }
 
     #[test]

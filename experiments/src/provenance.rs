@@ -1,8 +1,10 @@
 //! Where and how a run was produced: the record written beside each finished run's episodes
 //! (`runs/<stem>.json`), so that a folder committed run by run, across days and machines,
-//! still says for every run which binaries ran it, on which CPU, along which kernel paths (the
-//! ones the daemon measured and chose for the run's networks, and the precision asked for) and
-//! under what load.
+//! still says for every episode of every run which binaries recorded it, on which CPU, along
+//! which kernel paths (the ones the daemon measured and chose for the run's networks, and the
+//! precision asked for) and under what load. A run resumed across sittings has one
+//! [`Sitting`] per sitting that recorded episodes: kept in `runs/<stem>.sittings.json` while the
+//! run is unfinished, and moved into the record when it finishes.
 
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -46,6 +48,14 @@ impl Machine {
             logical_cpus: std::thread::available_parallelism().map_or(1, |n| n.get()),
             cpu_path: cpu_path(),
         }
+    }
+
+    /// Whether `other` has this machine's CPU and as many logical CPUs: what a run's speed
+    /// depends on (hostnames say nothing: virtual machines share them).
+    pub fn same_cpu(&self, other: &Machine) -> bool {
+        self.cpu_model == other.cpu_model
+            && self.cpu_family_model == other.cpu_family_model
+            && self.logical_cpus == other.logical_cpus
     }
 }
 
@@ -193,6 +203,57 @@ pub fn binaries_commit(bin_dir: &Path) -> String {
     }
 }
 
+/// One sitting's share of a run: the episodes it recorded, on which machine, with which
+/// binaries and kernels, under what load.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Sitting {
+    pub machine: Machine,
+    pub binaries_commit: String,
+    /// The precision and kernel paths the daemon ran the run's networks on, read from its
+    /// status when the sitting's bridge ended (`None`: the daemon did not say).
+    pub kernels: Option<RunKernels>,
+    /// UTC, RFC 3339, of the run's start and end in this sitting.
+    pub started: String,
+    pub ended: String,
+    /// The load when the run started and ended in this sitting.
+    pub load_at_start: Load,
+    pub load_at_end: Load,
+    /// The episode numbers it recorded (the episode files' `episode` column).
+    pub episodes: Vec<u32>,
+}
+
+/// The sittings kept in `path`, oldest first: an unfinished run's `runs/<stem>.sittings.json`,
+/// or a finished run's record (its `sittings`). None when the file does not exist, or is a
+/// record written before records kept their sittings.
+pub fn read_sittings(path: &Path) -> std::io::Result<Vec<Sitting>> {
+    #[derive(Deserialize)]
+    struct Sittings {
+        #[serde(default)]
+        sittings: Vec<Sitting>,
+    }
+    let text = match std::fs::read_to_string(path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(e),
+    };
+    let parsed = match serde_json::from_str::<Vec<Sitting>>(&text) {
+        Ok(list) => list,
+        Err(_) => serde_json::from_str::<Sittings>(&text)?.sittings,
+    };
+    Ok(parsed)
+}
+
+/// Adds `sitting` to an unfinished run's sittings file `path` (written whole to a temporary
+/// file, then renamed: a crash leaves the old list or the new one).
+pub fn append_sitting(path: &Path, sitting: Sitting) -> std::io::Result<()> {
+    let mut all = read_sittings(path)?;
+    all.push(sitting);
+    let text = serde_json::to_string_pretty(&all).map_err(std::io::Error::other)?;
+    let tmp = path.with_extension("json.tmp");
+    std::fs::write(&tmp, text + "\n")?;
+    std::fs::rename(&tmp, path)
+}
+
 /// The record of one finished run, `runs/<stem>.json`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RunRecord {
@@ -205,18 +266,10 @@ pub struct RunRecord {
     /// The spec the daemon stored for the run (task, preset, overrides, mode, seed), when its
     /// folder was readable.
     pub spec: Option<serde_json::Value>,
-    pub binaries_commit: String,
-    pub machine: Machine,
-    /// The precision and kernel paths the daemon ran the run's networks on, read from its
-    /// status when the run finished (`None`: it did not say; records written before it was
-    /// recorded have none).
-    #[serde(default)]
-    pub kernels: Option<RunKernels>,
-    /// The load when the last sitting of the run started and when it finished.
-    pub load_at_start: Load,
-    pub load_at_end: Load,
-    /// UTC, RFC 3339, of the last sitting's start and the run's end.
-    pub started: String,
+    /// Every sitting that recorded episodes of the run, oldest first. Episodes recorded by a
+    /// bridge whose launcher was killed belong to none.
+    pub sittings: Vec<Sitting>,
+    /// UTC, RFC 3339, of the run's end.
     pub finished: String,
     /// Wall seconds of the recorded episodes (all sittings).
     pub episode_wall_seconds: f64,
@@ -309,6 +362,43 @@ mod tests {
         use std::os::unix::fs::PermissionsExt;
         std::fs::set_permissions(&planner, std::fs::Permissions::from_mode(0o755)).unwrap();
         assert_eq!(run_kernels(&planner, "tcp/127.0.0.1:1", "r"), None);
+    }
+
+    #[test]
+    fn sittings_accumulate_in_their_file_and_are_read_back_from_a_record() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("cem-s0.sittings.json");
+        assert_eq!(read_sittings(&file).unwrap(), [], "no file yet: none");
+        let load = Load {
+            load_average_1m: 0.5,
+            sched_idle: true,
+        };
+        let sitting = |episodes: Vec<u32>| Sitting {
+            machine: Machine::this(),
+            binaries_commit: "abc".into(),
+            kernels: None,
+            started: "2026-11-29T08:00:00Z".into(),
+            ended: "2026-11-29T09:00:00Z".into(),
+            load_at_start: load.clone(),
+            load_at_end: load.clone(),
+            episodes,
+        };
+        append_sitting(&file, sitting(vec![0, 1])).unwrap();
+        append_sitting(&file, sitting(vec![2])).unwrap();
+        let kept = read_sittings(&file).unwrap();
+        assert_eq!(kept, [sitting(vec![0, 1]), sitting(vec![2])]);
+        // A record holds them under `sittings`; one written before records kept them, none.
+        let record = dir.path().join("cem-s0.json");
+        let with = serde_json::json!({ "task": "ant", "sittings": kept });
+        std::fs::write(&record, with.to_string()).unwrap();
+        assert_eq!(read_sittings(&record).unwrap(), kept);
+        std::fs::write(&record, r#"{"task": "ant", "machine": {}}"#).unwrap();
+        assert_eq!(read_sittings(&record).unwrap(), []);
+        std::fs::write(&record, "[{\"not\": \"a sitting\"}]").unwrap();
+        assert!(
+            read_sittings(&record).is_err(),
+            "a damaged file is an error"
+        );
     }
 
     #[test]

@@ -9,9 +9,12 @@
 //! - **Estimates.** A pending run's remaining cost is its remaining steps times its method's
 //!   measured seconds per step: the wall time of the method's episodes that planned (they
 //!   include the waits for retraining) over their steps, from every run of the method in this
-//!   folder, finished or not. Remaining steps are what the timestep budget still lacks, or the
-//!   remaining episodes times the method's mean episode length (the task's episode length until
-//!   one is recorded). A method with no planned episode yet has no estimate.
+//!   folder, finished or not, counting only the episodes recorded on a machine with this one's
+//!   CPU when there are any ([`on_this_machine`]): a folder accumulates across machines whose
+//!   planning speeds differ several times. Remaining steps are what the timestep budget still
+//!   lacks, or the remaining episodes times the method's mean episode length (the task's
+//!   episode length until one is recorded). A method with no planned episode yet has no
+//!   estimate.
 //! - **Longest first.** Runs without an estimate come first (nothing says they are short, and
 //!   running one measures its method), then the others by decreasing estimate: the long runs
 //!   start while the whole budget is ahead, the short ones fill what is left.
@@ -58,6 +61,25 @@ pub fn method_costs(rows: &[EpisodeRow]) -> BTreeMap<String, MethodCost> {
                 steps_per_episode: (episodes > 0.0).then(|| steps / episodes),
             };
             (m.to_string(), cost)
+        })
+        .collect()
+}
+
+/// Per method, the costs `all` the folder's episodes measure, with the seconds per step of
+/// those recorded on this machine's CPU (`here`) where it has planned any: the rate of another
+/// CPU only stands in until this one has measured the method.
+pub fn on_this_machine(
+    all: BTreeMap<String, MethodCost>,
+    here: &BTreeMap<String, MethodCost>,
+) -> BTreeMap<String, MethodCost> {
+    all.into_iter()
+        .map(|(method, cost)| {
+            let local = here.get(&method).and_then(|h| h.seconds_per_step);
+            let cost = MethodCost {
+                seconds_per_step: local.or(cost.seconds_per_step),
+                ..cost
+            };
+            (method, cost)
         })
         .collect()
 }
@@ -291,6 +313,33 @@ mod tests {
         assert_eq!(costs["cem"].steps_per_episode, Some(600.0));
         assert_eq!(costs["pets"].seconds_per_step, None, "no planned episode");
         assert_eq!(costs["pets"].steps_per_episode, Some(1000.0));
+    }
+
+    #[test]
+    fn this_machines_rate_replaces_the_folders_once_it_has_planned_here() {
+        let all = [
+            row("cem", 1000, 0, 1.0),
+            row("cem", 1000, 1000, 300.0), // another CPU, 3× faster
+            row("cem", 1000, 1000, 900.0),
+            row("cem+deen", 1000, 1000, 600.0),
+            row("pets", 1000, 0, 1.0),
+        ];
+        // This CPU recorded the slow cem episode and pets' random one only.
+        let here = [all[2].clone(), all[4].clone()];
+        let costs = on_this_machine(method_costs(&all), &method_costs(&here));
+        assert_eq!(costs["cem"].seconds_per_step, Some(0.9), "this CPU's rate");
+        assert_eq!(
+            costs["cem"].steps_per_episode,
+            Some(1000.0),
+            "episode lengths are every machine's"
+        );
+        assert_eq!(
+            costs["cem+deen"].seconds_per_step,
+            Some(0.6),
+            "not measured here: the folder's rate stands in"
+        );
+        assert_eq!(costs["pets"].seconds_per_step, None, "planned nowhere");
+        assert_eq!(costs.len(), 3);
     }
 
     #[test]

@@ -362,6 +362,16 @@ fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
         "{csv}"
     );
     assert!(out.join("runs/cem-s1.csv.partial").exists());
+    // The unfinished run keeps the sitting that recorded its first episode.
+    let sittings: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("runs/cem-s1.sittings.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(
+        sittings[0]["episodes"],
+        serde_json::json!([0]),
+        "{sittings}"
+    );
     assert!(out.join("learning_curves.png").exists());
 
     // Second attempt: only the two failed runs start again, each resumed for its two missing
@@ -389,19 +399,40 @@ fn experiment_writes_the_schema_and_resumes_only_unfinished_runs() {
         "{csv}"
     );
 
-    // Each finished run's record names the kernels the daemon reported for it.
+    // Each finished run's record has one entry per sitting that recorded its episodes: which
+    // episodes, on which machine, and the kernels the daemon reported for it.
     let record: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("runs/cem-deen-s1.json")).unwrap())
             .unwrap();
-    assert_eq!(record["kernels"]["precision"], "auto", "{record}");
-    assert_eq!(record["kernels"]["dynamics"], "amx-bf16", "{record}");
-    assert_eq!(record["kernels"]["energy"], "avx512-f32", "{record}");
-    assert!(
-        record["machine"]["cpu_path"]
-            .as_str()
-            .unwrap()
-            .ends_with("scalar-f32"),
+    let sittings = record["sittings"].as_array().unwrap();
+    assert_eq!(sittings.len(), 2, "{record}");
+    assert_eq!(sittings[0]["episodes"], serde_json::json!([0]), "{record}");
+    assert_eq!(
+        sittings[1]["episodes"],
+        serde_json::json!([1, 2]),
         "{record}"
+    );
+    for sitting in sittings {
+        assert_eq!(sitting["kernels"]["precision"], "auto", "{record}");
+        assert_eq!(sitting["kernels"]["dynamics"], "amx-bf16", "{record}");
+        assert_eq!(sitting["kernels"]["energy"], "avx512-f32", "{record}");
+        assert!(
+            sitting["machine"]["cpu_path"]
+                .as_str()
+                .unwrap()
+                .ends_with("scalar-f32"),
+            "{record}"
+        );
+    }
+    // The finished run's sittings moved into its record; a run finished in one sitting has one.
+    assert!(!out.join("runs/cem-deen-s1.sittings.json").exists());
+    let one: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("runs/cem-s0.json")).unwrap())
+            .unwrap();
+    assert_eq!(
+        one["sittings"][0]["episodes"],
+        serde_json::json!([0, 1, 2]),
+        "{one}"
     );
 
     // Third attempt: nothing left to do, nothing started.
