@@ -253,7 +253,7 @@ fn strip_ansi(text: &str) -> String {
 }
 
 #[test]
-fn pendulum_learns_its_reward_and_swings_up_within_ten_episodes() {
+fn pendulum_learns_its_reward_and_swings_up_within_six_episodes() {
     let (episodes, log) = drive(
         "gym-pendulum",
         &[
@@ -262,7 +262,7 @@ fn pendulum_learns_its_reward_and_swings_up_within_ten_episodes() {
             "--run",
             "pendulum",
             "--episodes",
-            "10",
+            "6",
             "--seed",
             "0",
             // No --reward-expression: the reward is learned from the rewards the driver sends.
@@ -284,7 +284,7 @@ fn pendulum_learns_its_reward_and_swings_up_within_ten_episodes() {
         ],
         Duration::from_secs(900),
     );
-    assert_eq!(episodes.len(), 10, "{log}");
+    assert_eq!(episodes.len(), 6, "{log}");
     for (i, e) in episodes.iter().enumerate() {
         assert_eq!(
             (e.episode, e.steps, e.end.as_str()),
@@ -294,8 +294,10 @@ fn pendulum_learns_its_reward_and_swings_up_within_ten_episodes() {
         assert_eq!(e.planned, planned, "one random episode, then plans: {log}");
     }
     // Random play scores about -1200 (Gymnasium's Pendulum-v1); the learned reward's plans,
-    // over the last three episodes, better than -400.
+    // over the last three episodes, better than -400. (Ten episodes were played once: from the
+    // first planned one on, every episode scored -120 to -230; the last four cost a third of
+    // the whole test's time and showed nothing the first six do not.)
     assert!(episodes[0].ret < -400.0, "the random episode: {log}");
-    let last: f64 = episodes[7..].iter().map(|e| e.ret).sum::<f64>() / 3.0;
-    assert!(last > -400.0, "mean return {last} of episodes 7-9: {log}");
+    let last: f64 = episodes[3..].iter().map(|e| e.ret).sum::<f64>() / 3.0;
+    assert!(last > -400.0, "mean return {last} of episodes 3-5: {log}");
 }
