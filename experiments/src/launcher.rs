@@ -73,6 +73,7 @@ use planner_service::config::ServiceConfig;
 use planner_service::persist::admin;
 use planner_service::plan::Optimizer;
 use proto::Builtin;
+use std::collections::{BTreeMap, BTreeSet};
 use std::io::Read;
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
@@ -299,7 +300,7 @@ fn recorded_rows(
     let task = manifest.task.name();
     let (mut all, mut here) = (Vec::new(), Vec::new());
     for (run, _) in runs(dir, manifest) {
-        let recorded_here: std::collections::BTreeSet<u32> = run
+        let recorded_here: BTreeSet<u32> = run
             .sittings(dir)
             .into_iter()
             .filter(|s| s.machine.same_cpu(machine))
@@ -325,7 +326,7 @@ fn method_costs(
     dir: &Path,
     manifest: &Manifest,
     machine: &Machine,
-) -> std::collections::BTreeMap<String, queue::MethodCost> {
+) -> BTreeMap<String, queue::MethodCost> {
     let (all, here) = recorded_rows(dir, manifest, machine);
     queue::on_this_machine(queue::method_costs(&all), &queue::method_costs(&here))
 }
