@@ -320,6 +320,13 @@ fn recorded_rows(
     (all, here)
 }
 
+/// Whether a sitting on a machine with `machine`'s CPU recorded `episode` of `run`.
+fn recorded_on(dir: &Path, run: &RunId, machine: &Machine, episode: u32) -> bool {
+    run.sittings(dir)
+        .iter()
+        .any(|s| s.machine.same_cpu(machine) && s.episodes.contains(&episode))
+}
+
 /// Per method, what its recorded episodes measure, with the planning rate of this machine's
 /// CPU where it has been measured here ([`queue::on_this_machine`]).
 fn method_costs(
@@ -347,11 +354,17 @@ fn plan_queue(
             let rows = results::recorded(&run.partial_csv(dir));
             let estimate = remaining_after(&rows, manifest)
                 .and_then(|left| queue::estimate(left, cost?, episode_len));
-            // A resumed run's next episode costs what its last one did; a new run's first is
-            // random exploration (cheap), left unestimated.
-            let next_episode = rows
-                .last()
-                .and_then(|last| queue::next_episode(last, cost, episode_len));
+            // A resumed run's next episode costs what its last one did when this CPU ran that
+            // one; an episode of another CPU (or of no recorded sitting) says nothing about this
+            // one, so the method's rate here stands in. A new run's first episode is random
+            // exploration (cheap), left unestimated.
+            let next_episode = rows.last().and_then(|last| {
+                if recorded_on(dir, run, machine, last.episode) {
+                    queue::next_episode(last, cost, episode_len)
+                } else {
+                    queue::planned_episode(cost, episode_len)
+                }
+            });
             Pending {
                 run: run.clone(),
                 estimate,
@@ -1168,10 +1181,13 @@ mod tests {
         // ...and on a CPU that has not run the method, every episode's: 110 s per 1,000 steps.
         let unseen = machine("6/143");
         assert!((estimate_of_seed_2(&unseen) - 66.0).abs() < 1e-6);
-        // Seed 1's own next episode is as long as its last (the bridge's rule), whatever the CPU.
-        let seed_1 = plan_queue(dir, &m, &fast, &[id(1)]).remove(0);
-        assert_eq!(seed_1.next_episode, Some(Duration::from_secs(40)));
-        assert!((seed_1.estimate.unwrap().as_secs_f64() - 10.0).abs() < 1e-6);
+        // Seed 1's next episode is as long as its last (the bridge's rule) on the CPU that ran
+        // that one; on another CPU, one episode at the method's rate there.
+        let seed_1 = |on: &Machine| plan_queue(dir, &m, on, &[id(1)]).remove(0);
+        assert_eq!(seed_1(&slow).next_episode, Some(Duration::from_secs(40)));
+        assert_eq!(seed_1(&fast).next_episode, Some(Duration::from_secs(10)));
+        assert_eq!(seed_1(&unseen).next_episode, Some(Duration::from_secs(22)));
+        assert!((seed_1(&fast).estimate.unwrap().as_secs_f64() - 10.0).abs() < 1e-6);
     }
 
     #[test]
