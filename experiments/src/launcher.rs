@@ -320,13 +320,6 @@ fn recorded_rows(
     (all, here)
 }
 
-/// Whether a sitting on a machine with `machine`'s CPU recorded `episode` of `run`.
-fn recorded_on(dir: &Path, run: &RunId, machine: &Machine, episode: u32) -> bool {
-    run.sittings(dir)
-        .iter()
-        .any(|s| s.machine.same_cpu(machine) && s.episodes.contains(&episode))
-}
-
 /// Per method, what its recorded episodes measure, with the planning rate of this machine's
 /// CPU where it has been measured here ([`queue::on_this_machine`]).
 fn method_costs(
@@ -335,7 +328,12 @@ fn method_costs(
     machine: &Machine,
 ) -> BTreeMap<String, queue::MethodCost> {
     let (all, here) = recorded_rows(dir, manifest, machine);
-    queue::on_this_machine(queue::method_costs(&all), &queue::method_costs(&here))
+    costs_here(&all, &here)
+}
+
+/// [`method_costs`] from the rows [`recorded_rows`] returned.
+fn costs_here(all: &[EpisodeRow], here: &[EpisodeRow]) -> BTreeMap<String, queue::MethodCost> {
+    queue::on_this_machine(queue::method_costs(all), &queue::method_costs(here))
 }
 
 /// The pending runs with their estimated remaining cost on `machine`, longest first.
@@ -345,7 +343,8 @@ fn plan_queue(
     machine: &Machine,
     pending: &[RunId],
 ) -> Vec<Pending<RunId>> {
-    let costs = method_costs(dir, manifest, machine);
+    let (all, here) = recorded_rows(dir, manifest, machine);
+    let costs = costs_here(&all, &here);
     let episode_len = manifest.task.task().spec().episode_len;
     let mut out: Vec<Pending<RunId>> = pending
         .iter()
@@ -359,7 +358,10 @@ fn plan_queue(
             // one, so the method's rate here stands in. A new run's first episode is random
             // exploration (cheap), left unestimated.
             let next_episode = rows.last().and_then(|last| {
-                if recorded_on(dir, run, machine, last.episode) {
+                let ran_here = here.iter().any(|r| {
+                    r.method == run.method && r.seed == run.seed && r.episode == last.episode
+                });
+                if ran_here {
                     queue::next_episode(last, cost, episode_len)
                 } else {
                     queue::planned_episode(cost, episode_len)
