@@ -28,14 +28,15 @@
 //! between two episodes, before it resets the simulator, when its next one would end after the
 //! deadline (`sim-bridge run --deadline`; so that the run's buffer holds exactly its recorded
 //! episodes), stops what still runs at the deadline itself (an episode the
-//! estimate did not foresee), and packs every unfinished run's replay log and newest checkpoint
-//! into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from which a later sitting — on a
+//! estimate did not foresee), and packs the replay log and newest checkpoint of every
+//! unfinished run it started into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from which a later sitting — on a
 //! fresh clone too — continues it.
 //!
 //! **Stopping a sitting by hand.** Asked to stop ([`run`]'s `stop` flag: the binary sets it on
 //! the first SIGINT or SIGTERM), a sitting ends as at a deadline reached now: it starts no
 //! further run, stops the running bridges (each records its open episode as interrupted), stops
-//! the daemon, which syncs its data, and then packs every unfinished run's state, so a Ctrl-C
+//! the daemon, which syncs its data, and then packs the states of the unfinished runs it
+//! started, so a Ctrl-C
 //! loses no recorded episode and the same command continues. The bridges and the daemon run in
 //! process groups of their own, so a terminal's Ctrl-C reaches the launcher alone and the
 //! processes stop in that order.
@@ -450,6 +451,7 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     let progress = Progress::new(pending.len(), exp.episodes);
     let queue = Mutex::new(plan_queue(&exp.out, &manifest, &machine, &pending));
     let failures = Mutex::new(Vec::new());
+    let started = Mutex::new(Vec::new());
     let csv_lock = Mutex::new(());
     std::thread::scope(|scope| {
         for _ in 0..exp.jobs.max(1) {
@@ -467,6 +469,10 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
                     };
                     let Some((pending, start)) = next else { break };
                     let run = pending.run;
+                    started
+                        .lock()
+                        .unwrap_or_else(std::sync::PoisonError::into_inner)
+                        .push(run.clone());
                     let estimate = pending
                         .estimate
                         .map_or_else(|| "not yet measured".to_string(), minutes);
@@ -547,7 +553,10 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     }
     // The daemon syncs its data when it stops; only then are the runs' folders complete.
     drop(planner);
-    pack_unfinished_states(&exp.out, &manifest)?;
+    let started = started
+        .into_inner()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    pack_unfinished_states(&exp.out, &manifest, &started)?;
     remove_finished_states(&exp.out, &manifest)?;
     let rows = collect_rows(&exp.out, &manifest)?;
     results::write_episodes(&episodes_csv, &rows)?;
@@ -592,15 +601,20 @@ fn lock_sitting(out: &Path) -> Result<std::fs::File> {
     }
 }
 
-/// Packs the resumable state of every unfinished run the daemon holds data for.
-fn pack_unfinished_states(dir: &Path, manifest: &Manifest) -> Result<()> {
+/// Packs the resumable state of the unfinished runs this sitting `started`, and of any
+/// unfinished run the daemon holds data for that has no packed state yet (a sitting that was
+/// killed before it could pack). The daemon opens every run in its folder, and each opening
+/// adds an ownership segment to the run's replay; repacking a run the sitting did not work on
+/// would only rewrite its committed archive with nothing learnt.
+fn pack_unfinished_states(dir: &Path, manifest: &Manifest, started: &[RunId]) -> Result<()> {
     for (run, done) in runs(dir, manifest) {
         if done {
             continue;
         }
         let archive = run.state_archive(dir);
         let daemon_dir = run.daemon_dir(dir, manifest.task);
-        if daemon_dir.is_dir()
+        if (started.contains(&run) || !archive.exists())
+            && daemon_dir.is_dir()
             && let Some(bytes) = resume_state::pack(&daemon_dir, &archive)
                 .with_context(|| format!("packing {}", archive.display()))?
         {
@@ -1269,6 +1283,54 @@ mod tests {
         // A second sitting has nothing more to move.
         archive_finished_runs(dir, &m);
         assert!(archived.is_dir() && id(1).daemon_dir(dir, m.task).is_dir());
+    }
+
+    /// A sitting repacks the runs it worked on and packs a run that has daemon data but no
+    /// packed state; a run it did not start keeps its packed state byte for byte, although
+    /// the sitting's daemon opened it (and added to its replay).
+    #[test]
+    fn a_sitting_repacks_only_the_runs_it_started() {
+        let dir = tempfile::tempdir().unwrap();
+        let dir = dir.path();
+        std::fs::create_dir_all(dir.join("runs")).unwrap();
+        let m = manifest(&["cem"], &[0, 1, 2], 3);
+        let id = |seed| RunId {
+            method: "cem".into(),
+            seed,
+        };
+        let replay = |seed| id(seed).daemon_dir(dir, m.task).join("replay.log");
+        for seed in [0, 1, 2] {
+            std::fs::write(id(seed).partial_csv(dir), bridge_csv(&[1.0])).unwrap();
+            std::fs::create_dir_all(id(seed).daemon_dir(dir, m.task)).unwrap();
+            std::fs::write(replay(seed), [seed as u8; 10]).unwrap();
+        }
+        // An earlier sitting packed seeds 0 and 1 (seed 2's state was never packed).
+        for seed in [0, 1] {
+            resume_state::pack(
+                &id(seed).daemon_dir(dir, m.task),
+                &id(seed).state_archive(dir),
+            )
+            .unwrap();
+        }
+        let packed = |seed: u64| std::fs::read(id(seed).state_archive(dir)).unwrap();
+        let before = [packed(0), packed(1)];
+        // This sitting's daemon opened all three; only seed 0 ran.
+        for seed in [0, 1, 2] {
+            let mut bytes = std::fs::read(replay(seed)).unwrap();
+            bytes.extend([9u8; 4]);
+            std::fs::write(replay(seed), bytes).unwrap();
+        }
+        pack_unfinished_states(dir, &m, &[id(0)]).unwrap();
+        assert_ne!(packed(0), before[0], "the run it worked on is repacked");
+        assert_eq!(
+            packed(1),
+            before[1],
+            "a run it did not start is left as it was"
+        );
+        assert!(
+            id(2).state_archive(dir).is_file(),
+            "a run with data and no packed state is packed"
+        );
     }
 
     #[test]
