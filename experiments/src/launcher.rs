@@ -1109,6 +1109,20 @@ pub fn default_bin_dir() -> Result<PathBuf> {
 mod tests {
     use super::*;
 
+    /// A temporary experiment folder (with its `runs/`) of `cem` runs of `seeds`, 3 episodes.
+    fn cem_folder(seeds: &[u64]) -> (tempfile::TempDir, Manifest) {
+        let folder = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(folder.path().join("runs")).unwrap();
+        (folder, manifest(&["cem"], seeds, 3))
+    }
+
+    fn cem_run(seed: u64) -> RunId {
+        RunId {
+            method: "cem".into(),
+            seed,
+        }
+    }
+
     fn manifest(methods: &[&str], seeds: &[u64], episodes: u32) -> Manifest {
         Manifest::new(
             Builtin::Cartpole,
@@ -1158,14 +1172,9 @@ mod tests {
 
     #[test]
     fn estimates_use_the_rate_this_cpu_measured_once_it_has() {
-        let dir = tempfile::tempdir().unwrap();
-        let dir = dir.path();
-        std::fs::create_dir_all(dir.join("runs")).unwrap();
-        let m = manifest(&["cem"], &[0, 1, 2], 3);
-        let id = |seed| RunId {
-            method: "cem".into(),
-            seed,
-        };
+        let id = cem_run;
+        let (folder, m) = cem_folder(&[0, 1, 2]);
+        let dir = folder.path();
         let (fast, slow) = (machine("25/17"), machine("25/1"));
         // 200 planned steps per episode: 10 s each on the fast CPU, 40 s on the slow one.
         let csv = |wall: f64, n: u32| {
@@ -1248,14 +1257,9 @@ mod tests {
     /// (a daemon still serving) leaves the data where it was without failing the sitting.
     #[test]
     fn finished_runs_daemon_data_is_archived_and_unfinished_runs_stay_served() {
-        let dir = tempfile::tempdir().unwrap();
-        let dir = dir.path();
-        std::fs::create_dir_all(dir.join("runs")).unwrap();
-        let m = manifest(&["cem"], &[0, 1], 3);
-        let id = |seed| RunId {
-            method: "cem".into(),
-            seed,
-        };
+        let id = cem_run;
+        let (folder, m) = cem_folder(&[0, 1]);
+        let dir = folder.path();
         std::fs::write(id(0).csv(dir), bridge_csv(&[1.0, 2.0, 3.0])).unwrap();
         std::fs::write(id(1).partial_csv(dir), bridge_csv(&[1.0])).unwrap();
         for seed in [0, 1] {
@@ -1290,14 +1294,9 @@ mod tests {
     /// the sitting's daemon opened it (and added to its replay).
     #[test]
     fn a_sitting_repacks_only_the_runs_it_started() {
-        let dir = tempfile::tempdir().unwrap();
-        let dir = dir.path();
-        std::fs::create_dir_all(dir.join("runs")).unwrap();
-        let m = manifest(&["cem"], &[0, 1, 2], 3);
-        let id = |seed| RunId {
-            method: "cem".into(),
-            seed,
-        };
+        let id = cem_run;
+        let (folder, m) = cem_folder(&[0, 1, 2]);
+        let dir = folder.path();
         let replay = |seed| id(seed).daemon_dir(dir, m.task).join("replay.log");
         for seed in [0, 1, 2] {
             std::fs::write(id(seed).partial_csv(dir), bridge_csv(&[1.0])).unwrap();
