@@ -54,7 +54,7 @@ impl Figure for LearningCurves {
             if text {
                 let seeds = curve.points.iter().map(|p| p.seeds).max().unwrap_or(0);
                 series
-                    .label(format!("{} ({seeds} seeds)", curve.method))
+                    .label(legend_label(&curve.method, seeds))
                     .legend(move |(x, y)| {
                         PathElement::new([(x, y), (x + 20, y)], c.stroke_width(2))
                     });
@@ -74,5 +74,22 @@ impl Figure for LearningCurves {
                 .map_err(plot_err)?;
         }
         Ok(())
+    }
+}
+
+/// A curve's legend entry: the method and how many seeds its widest point averages.
+fn legend_label(method: &str, seeds: usize) -> String {
+    let noun = if seeds == 1 { "seed" } else { "seeds" };
+    format!("{method} ({seeds} {noun})")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::legend_label;
+
+    #[test]
+    fn legend_counts_seeds_in_words() {
+        assert_eq!(legend_label("adam+dae", 1), "adam+dae (1 seed)");
+        assert_eq!(legend_label("cem+deen", 6), "cem+deen (6 seeds)");
     }
 }
