@@ -29,7 +29,8 @@
 //! deadline (`sim-bridge run --deadline`; so that the run's buffer holds exactly its recorded
 //! episodes), stops what still runs at the deadline itself (an episode the
 //! estimate did not foresee), and packs the replay log and newest checkpoint of every
-//! unfinished run it started into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from which a later sitting — on a
+//! unfinished run it started into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from
+//! which a later sitting — on a
 //! fresh clone too — continues it.
 //!
 //! **Stopping a sitting by hand.** Asked to stop ([`run`]'s `stop` flag: the binary sets it on
@@ -451,7 +452,6 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     let progress = Progress::new(pending.len(), exp.episodes);
     let queue = Mutex::new(plan_queue(&exp.out, &manifest, &machine, &pending));
     let failures = Mutex::new(Vec::new());
-    let started = Mutex::new(Vec::new());
     let csv_lock = Mutex::new(());
     std::thread::scope(|scope| {
         for _ in 0..exp.jobs.max(1) {
@@ -469,10 +469,6 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
                     };
                     let Some((pending, start)) = next else { break };
                     let run = pending.run;
-                    started
-                        .lock()
-                        .unwrap_or_else(std::sync::PoisonError::into_inner)
-                        .push(run.clone());
                     let estimate = pending
                         .estimate
                         .map_or_else(|| "not yet measured".to_string(), minutes);
@@ -536,10 +532,16 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     });
     progress.finish();
     let stopped = stop.load(Ordering::Relaxed);
-    for left in queue
+    let left = queue
         .into_inner()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
-    {
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    // The queue hands out every run it starts: what it still holds never started.
+    let started: Vec<RunId> = pending
+        .iter()
+        .filter(|run| !left.iter().any(|l| &l.run == *run))
+        .cloned()
+        .collect();
+    for left in left {
         tracing::info!(
             run = %left.run.stem(),
             estimate = %left.estimate.map_or_else(|| "unknown".into(), minutes),
@@ -553,9 +555,6 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     }
     // The daemon syncs its data when it stops; only then are the runs' folders complete.
     drop(planner);
-    let started = started
-        .into_inner()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
     pack_unfinished_states(&exp.out, &manifest, &started)?;
     remove_finished_states(&exp.out, &manifest)?;
     let rows = collect_rows(&exp.out, &manifest)?;
