@@ -7,10 +7,10 @@
 //! order and the budget:
 //!
 //! - **Estimates.** A pending run's remaining cost is its remaining steps times its method's
-//!   measured seconds per step: the wall time of the method's episodes that planned (they
-//!   include the waits for retraining) over their steps, from every run of the method in this
-//!   folder, finished or not, counting only the episodes recorded on a machine with this one's
-//!   CPU when there are any ([`on_this_machine`]): a folder accumulates across machines whose
+//!   measured seconds per step: the median over the method's episodes that planned of their
+//!   wall time (it includes the waits for retraining) over their steps, from every run of the
+//!   method in this folder, finished or not, counting only the episodes recorded on a machine
+//!   with this one's CPU when there are any ([`on_this_machine`]): a folder accumulates across machines whose
 //!   planning speeds differ several times. Remaining steps are what the timestep budget still
 //!   lacks, or the remaining episodes times the method's mean episode length (the task's
 //!   episode length until one is recorded). A method with no planned episode yet has no
@@ -43,26 +43,47 @@ pub struct MethodCost {
 }
 
 /// Per method, the cost its recorded episodes (`rows`: every run's, finished or not) measure.
+///
+/// The rate is the median of the planned episodes' own rates, not their pooled mean: an
+/// episode recorded while the machine was shared (two runs of a sitting on two cores, a build
+/// beside a `SCHED_IDLE` sitting) runs several times slower, and a few of them would otherwise
+/// set the estimate of every run of the method and keep a run that fits out of the sitting.
 pub fn method_costs(rows: &[EpisodeRow]) -> BTreeMap<String, MethodCost> {
-    let mut sums: BTreeMap<&str, [f64; 4]> = BTreeMap::new();
-    for r in rows {
-        let s = sums.entry(r.method.as_str()).or_default();
-        if r.planned_steps > 0 {
-            s[0] += r.wall_seconds;
-            s[1] += f64::from(r.steps);
-        }
-        s[2] += f64::from(r.steps);
-        s[3] += 1.0;
+    #[derive(Default)]
+    struct Seen {
+        planned_rates: Vec<f64>,
+        steps: f64,
+        episodes: f64,
     }
-    sums.into_iter()
-        .map(|(m, [wall, planned_steps, steps, episodes])| {
+    let mut seen: BTreeMap<&str, Seen> = BTreeMap::new();
+    for r in rows {
+        let s = seen.entry(r.method.as_str()).or_default();
+        if r.planned_steps > 0 && r.steps > 0 {
+            s.planned_rates.push(r.wall_seconds / f64::from(r.steps));
+        }
+        s.steps += f64::from(r.steps);
+        s.episodes += 1.0;
+    }
+    seen.into_iter()
+        .map(|(m, s)| {
             let cost = MethodCost {
-                seconds_per_step: (planned_steps > 0.0).then(|| wall / planned_steps),
-                steps_per_episode: (episodes > 0.0).then(|| steps / episodes),
+                seconds_per_step: median(s.planned_rates),
+                steps_per_episode: (s.episodes > 0.0).then(|| s.steps / s.episodes),
             };
             (m.to_string(), cost)
         })
         .collect()
+}
+
+/// The median of `values` (the mean of the middle two for an even count; `None` when empty).
+fn median(mut values: Vec<f64>) -> Option<f64> {
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    match n {
+        0 => None,
+        _ if n % 2 == 1 => Some(values[n / 2]),
+        _ => Some((values[n / 2 - 1] + values[n / 2]) / 2.0),
+    }
 }
 
 /// Per method, the costs `all` the folder's episodes measure, with the seconds per step of
@@ -313,6 +334,33 @@ mod tests {
         assert_eq!(costs["cem"].steps_per_episode, Some(600.0));
         assert_eq!(costs["pets"].seconds_per_step, None, "no planned episode");
         assert_eq!(costs["pets"].steps_per_episode, Some(1000.0));
+    }
+
+    #[test]
+    fn a_few_episodes_slowed_by_a_shared_machine_do_not_set_the_rate() {
+        // Six episodes alone on the machine, two beside another run (eight times slower).
+        let mut rows: Vec<EpisodeRow> = [0.7, 0.8, 0.75, 0.65, 0.7, 0.8]
+            .iter()
+            .map(|rate| row("adam+dae", 1000, 1000, rate * 1000.0))
+            .collect();
+        rows.push(row("adam+dae", 1000, 1000, 6000.0));
+        rows.push(row("adam+dae", 1000, 1000, 6200.0));
+        let rate = method_costs(&rows)["adam+dae"].seconds_per_step.unwrap();
+        assert!(
+            (rate - 0.775).abs() < 1e-9,
+            "median of the episodes' rates: {rate}"
+        );
+        // The pooled mean would have been 2.1 s per step, nearly three times a run's cost alone.
+        let pooled: f64 = rows.iter().map(|r| r.wall_seconds).sum::<f64>() / 8000.0;
+        assert!(pooled > 2.0 * rate);
+    }
+
+    #[test]
+    fn the_median_of_an_even_count_is_the_mean_of_the_middle_two() {
+        assert_eq!(median(vec![]), None);
+        assert_eq!(median(vec![3.0]), Some(3.0));
+        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), Some(2.5));
+        assert_eq!(median(vec![5.0, 1.0, 3.0]), Some(3.0));
     }
 
     #[test]
