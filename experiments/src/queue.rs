@@ -29,7 +29,7 @@
 //!   simulator ([`sim_bridge::deadline`]), so a stopped run's data are its recorded episodes;
 //!   the deadline itself stops only an episode the estimate did not foresee.
 
-use crate::results::EpisodeRow;
+use crate::results::{EpisodeRow, median};
 use std::collections::BTreeMap;
 use std::time::Duration;
 
@@ -73,17 +73,6 @@ pub fn method_costs(rows: &[EpisodeRow]) -> BTreeMap<String, MethodCost> {
             (m.to_string(), cost)
         })
         .collect()
-}
-
-/// The median of `values` (the mean of the middle two for an even count; `None` when empty).
-fn median(mut values: Vec<f64>) -> Option<f64> {
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    match n {
-        0 => None,
-        _ if n % 2 == 1 => Some(values[n / 2]),
-        _ => Some((values[n / 2 - 1] + values[n / 2]) / 2.0),
-    }
 }
 
 /// Per method, the costs `all` the folder's episodes measure, with the seconds per step of
@@ -353,14 +342,6 @@ mod tests {
         // The pooled mean would have been 2.1 s per step, nearly three times a run's cost alone.
         let pooled: f64 = rows.iter().map(|r| r.wall_seconds).sum::<f64>() / 8000.0;
         assert!(pooled > 2.0 * rate);
-    }
-
-    #[test]
-    fn the_median_of_an_even_count_is_the_mean_of_the_middle_two() {
-        assert_eq!(median(vec![]), None);
-        assert_eq!(median(vec![3.0]), Some(3.0));
-        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), Some(2.5));
-        assert_eq!(median(vec![5.0, 1.0, 3.0]), Some(3.0));
     }
 
     #[test]

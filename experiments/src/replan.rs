@@ -67,15 +67,9 @@ impl ReplanReport {
         self.plan_ms.iter().copied().fold(f64::INFINITY, f64::min)
     }
 
-    /// Median planning call.
+    /// Median planning call (NaN when none was made).
     pub fn median_ms(&self) -> f64 {
-        let mut sorted = self.plan_ms.clone();
-        sorted.sort_by(f64::total_cmp);
-        match sorted.len() {
-            0 => f64::NAN,
-            n if n % 2 == 1 => sorted[n / 2],
-            n => 0.5 * (sorted[n / 2 - 1] + sorted[n / 2]),
-        }
+        crate::results::median(self.plan_ms.clone()).unwrap_or(f64::NAN)
     }
 }
 

@@ -259,6 +259,17 @@ pub fn mean_and_std(values: &[f64]) -> (f64, f64) {
     (mean, variance.sqrt())
 }
 
+/// The median of `values` (the mean of the middle two for an even count; `None` for none).
+pub fn median(mut values: Vec<f64>) -> Option<f64> {
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    match n {
+        0 => None,
+        _ if n % 2 == 1 => Some(values[n / 2]),
+        _ => Some((values[n / 2 - 1] + values[n / 2]) / 2.0),
+    }
+}
+
 /// Each method's runs, methods in first-seen order, a method's runs by seed, each run's rows
 /// in episode order: a row's index in its run is the run's *recorded* episode count, the
 /// episode number that curves, tables and comparisons use. The two differ only in a resumed
@@ -535,6 +546,14 @@ pub(crate) mod tests {
         assert!(err.to_string().contains("line 2"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
         assert_eq!(count_rows(&path), 0);
+    }
+
+    #[test]
+    fn the_median_of_an_even_count_is_the_mean_of_the_middle_two() {
+        assert_eq!(median(vec![]), None);
+        assert_eq!(median(vec![3.0]), Some(3.0));
+        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), Some(2.5));
+        assert_eq!(median(vec![5.0, 1.0, 3.0]), Some(3.0));
     }
 
     #[test]
