@@ -15,6 +15,9 @@
 //!   replay logs (does the ant walk, or only stay up?).
 //! - [`replan`]: optimisers side by side on one stored run's frozen models, in the simulator:
 //!   real return and milliseconds per plan.
+//! - [`model_error`]: how wrong a stored run's models are on its own stored transitions, per
+//!   episode and region of the state space, and how familiar the regulariser found them
+//!   (both load the run through [`stored_run`]).
 //!
 //! This crate exists so that planner-service never depends on sim-bridge: Figure 5 needs both
 //! the planner (to optimise a plan) and the simulator (to execute it), and the launcher and the
@@ -26,6 +29,7 @@ pub mod figures;
 pub mod launcher;
 pub mod manifest;
 pub mod method;
+pub mod model_error;
 pub mod plot;
 pub mod progress;
 pub mod provenance;
@@ -34,3 +38,4 @@ pub mod replan;
 pub mod results;
 pub mod resume_state;
 pub mod scale;
+pub mod stored_run;

@@ -10,7 +10,7 @@ use ebmpc_experiments::figures::{imagination, toy};
 use ebmpc_experiments::launcher::{self, Experiment};
 use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
 use ebmpc_experiments::scale::Scale;
-use ebmpc_experiments::{compare, distance, provenance, replan, results};
+use ebmpc_experiments::{compare, distance, model_error, provenance, replan, results};
 use proto::Builtin;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -58,6 +58,10 @@ enum Command {
     /// Plan with a stored run's frozen models in the simulator for one episode: real return
     /// and milliseconds per plan, to compare optimisers (CEM, iCEM) on the same model.
     Replan(ReplanArgs),
+    /// How wrong a stored run's newest models are on its own stored transitions, per episode
+    /// and per interval of one observation: next-observation error, the reward the planner
+    /// would imagine against the real one, and the regulariser's energy of both transitions.
+    ModelError(ModelErrorArgs),
 }
 
 #[derive(Args, Debug)]
@@ -247,6 +251,27 @@ struct ToyArgs {
     /// Output folder.
     #[arg(long, default_value = "results/figures")]
     out: PathBuf,
+}
+
+#[derive(Args, Debug)]
+struct ModelErrorArgs {
+    /// A run's directory (`run.json`, `models-*.safetensors`, `replay/`), e.g. a copy of
+    /// `<experiment>/planner/archive/<run>`; a damaged checkpoint in it is moved aside. Its
+    /// newest checkpoint is measured: remove newer ones from the copy to measure an older one.
+    #[arg(long)]
+    run: PathBuf,
+    /// Group each episode's transitions by this observation of the state (an index; e.g. 2,
+    /// the half-cheetah's pitch). Without it, one group per episode.
+    #[arg(long)]
+    by_obs: Option<usize>,
+    /// Ascending edges of the groups on that observation (comma-separated): n edges make
+    /// n + 1 intervals, a value on an edge belonging to the interval above.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    edges: Vec<f32>,
+    /// Only these episodes (comma-separated episode numbers as the replay stores them; default:
+    /// all).
+    #[arg(long, value_delimiter = ',')]
+    episodes: Option<Vec<u32>>,
 }
 
 #[derive(Args, Debug)]
@@ -622,6 +647,17 @@ fn replan_command(args: ReplanArgs) -> Result<()> {
     Ok(())
 }
 
+fn model_error_command(args: ModelErrorArgs) -> Result<()> {
+    let report = model_error::run(&model_error::ModelErrorConfig {
+        run_dir: args.run,
+        by_obs: args.by_obs,
+        edges: args.edges,
+        episodes: args.episodes,
+    })?;
+    print!("{}", report.markdown());
+    Ok(())
+}
+
 fn main() -> Result<()> {
     // MuJoCo's compile-time report and zenoh's chatter are noise here; colours only on a
     // terminal, so that a run under nohup leaves a readable log.
@@ -642,5 +678,6 @@ fn main() -> Result<()> {
         Command::Imagination(args) => imagination_command(args),
         Command::Toy(args) => toy_command(args),
         Command::Replan(args) => replan_command(args),
+        Command::ModelError(args) => model_error_command(args),
     }
 }

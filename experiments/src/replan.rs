@@ -8,13 +8,13 @@
 //! call. Same run, same seed and same models for every optimiser, so the optimiser is the only
 //! difference.
 //!
-//! The run's spec fixes the models (their shapes must match the checkpoint); the overrides
-//! given here change how it plans (optimiser, population, iterations, iCEM parameters, …)
-//! and are applied after the run's own, with the same checks as an attaching agent's.
+//! The run's spec fixes the models (their shapes must match the checkpoint; see
+//! [`crate::stored_run`]); the overrides given here change how it plans (optimiser,
+//! population, iterations, iCEM parameters, …) and are applied after the run's own, with the
+//! same checks as an attaching agent's.
 
-use anyhow::{Context, Result, bail};
-use planner_service::config::Preset;
-use planner_service::persist::RunDir;
+use crate::stored_run::{self, StoredRun};
+use anyhow::{Result, bail};
 use planner_service::plan::MpcPlanner;
 use proto::{Builtin, Optimizer, PlannerOverrides};
 use sim_bridge::Env;
@@ -103,19 +103,12 @@ impl fmt::Display for ReplanReport {
 
 /// Loads the run's models and runs one MPC episode of `config.steps` steps with them.
 pub fn run(config: &ReplanConfig) -> Result<ReplanReport> {
-    let dir = RunDir::at(&config.run_dir);
-    let spec = dir
-        .read_spec()?
-        .with_context(|| format!("{} has no run.json", config.run_dir.display()))?;
-    let task: Builtin = spec
-        .task
-        .parse()
-        .map_err(|e| anyhow::anyhow!("task `{}`: {e}", spec.task))?;
-    let mut preset = Preset::new(task.task(), spec.preset.as_deref())?;
-    preset.apply(&spec.overrides)?;
-    let mut models = dir
-        .load_models(task.task(), &preset)?
-        .with_context(|| format!("{} holds no usable checkpoint", config.run_dir.display()))?;
+    let StoredRun {
+        task,
+        mut preset,
+        mut models,
+        ..
+    } = stored_run::load(&config.run_dir)?;
     preset.apply(&config.overrides)?;
     preset.cem.validate()?;
     models.set_inference_precision(preset.inference_precision);
@@ -176,41 +169,9 @@ pub fn run(config: &ReplanConfig) -> Result<ReplanReport> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use planner_service::models::Models;
-    use proto::RunSpec;
+    use crate::stored_run::store_tiny_cartpole_run;
+    use planner_service::config::Preset;
     use std::path::Path;
-
-    /// A cartpole `cem+deen` run with tiny models and a small search, stored as the daemon
-    /// stores one (its spec and a checkpoint).
-    fn store_run(dir: &Path) {
-        let task = Builtin::Cartpole.task();
-        let spec = RunSpec {
-            task: "cartpole".into(),
-            preset: Some("cem+deen".into()),
-            overrides: PlannerOverrides {
-                dynamics_hidden_layers: Some(1),
-                dynamics_hidden_size: Some(8),
-                energy_hidden_layers: Some(1),
-                energy_hidden_size: Some(8),
-                horizon: Some(5),
-                population: Some(20),
-                elites: Some(4),
-                cem_iterations: Some(2),
-                ..Default::default()
-            },
-            mode: Default::default(),
-            seed: 0,
-            task_spec: None,
-        };
-        let mut preset = Preset::new(task, spec.preset.as_deref()).unwrap();
-        preset.apply(&spec.overrides).unwrap();
-        let mut models = Models::untrained(task, &preset, 0);
-        models.version = 1;
-        std::fs::create_dir_all(dir).unwrap();
-        let run = RunDir::at(dir);
-        run.write_spec(&spec).unwrap();
-        run.save_models(1, &models, task).unwrap();
-    }
 
     fn replan(dir: &Path, overrides: PlannerOverrides) -> Result<ReplanReport> {
         run(&ReplanConfig {
@@ -225,7 +186,7 @@ mod tests {
     fn replans_a_stored_run_with_each_optimiser_and_the_same_seed_repeats() {
         let tmp = tempfile::tempdir().unwrap();
         let dir = tmp.path().join("cartpole-run");
-        store_run(&dir);
+        store_tiny_cartpole_run(&dir);
         let cem = replan(&dir, PlannerOverrides::default()).unwrap();
         assert_eq!((cem.task, cem.models_version), (Builtin::Cartpole, 1));
         assert_eq!(
@@ -282,7 +243,7 @@ mod tests {
         let err = replan(tmp.path(), PlannerOverrides::default()).unwrap_err();
         assert!(err.to_string().contains("run.json"), "{err}");
         let dir = tmp.path().join("run");
-        store_run(&dir);
+        store_tiny_cartpole_run(&dir);
         for bad in [
             PlannerOverrides {
                 icem_noise_beta: Some(0.5),
