@@ -16,8 +16,11 @@ it: 0.01 s Euler steps, five per 0.05 s control step, reward `Δx/dt − 0.1 ‖
    this system of contacts on its own).
 3. **Random actions**: `--episodes` episodes of 1,000 steps of uniform random actions in
    [−1, 1]⁶ from each model's own reset (ours: N(0, 0.001) on qpos and qvel, tasks.md;
-   HalfCheetah-v5's: its defaults), with the return and the distance run, and the difference of
-   the mean returns with a 95 % bootstrap interval.
+   HalfCheetah-v5's: its defaults), with the return, the distance run and the share of steps
+   the cheetah spends upside down (torso pitched beyond 90°, cos(pitch) < 0: on its back), and
+   the difference of the means of the return and of that share, each with a 95 % bootstrap
+   interval. A planner learns from these episodes first, so how often random actions flip
+   the cheetah decides how familiar lying on its back is to the models and the energy.
 
 Needs the project's Python environment (`make python-env`: gymnasium[mujoco]):
 
@@ -117,7 +120,7 @@ def ours_episode(m, seed):
     d.qpos[:] = m.qpos0 + rng.normal(0, RESET_STD, m.nq)
     d.qvel[:] = rng.normal(0, RESET_STD, m.nv)
     mujoco.mj_forward(m, d)
-    x0, ret = d.qpos[0], 0.0
+    x0, ret, upside_down = d.qpos[0], 0.0, 0
     for _ in range(EPISODE):
         a = rng.uniform(-1, 1, 6)
         before = d.qpos[0]
@@ -125,22 +128,25 @@ def ours_episode(m, seed):
         for _ in range(SUBSTEPS):
             mujoco.mj_step(m, d)
         ret += (d.qpos[0] - before) / DT - 0.1 * float(a @ a)
-    return ret, d.qpos[0] - x0
+        upside_down += np.cos(d.qpos[2]) < 0
+    return ret, d.qpos[0] - x0, upside_down / EPISODE
 
 
 def gymnasium_episode(seed):
     env = gym.make("HalfCheetah-v5", max_episode_steps=EPISODE)
     env.reset(seed=seed)
     rng = np.random.default_rng(10_000 + seed)
-    x0, ret = env.unwrapped.data.qpos[0], 0.0
+    x0, ret, upside_down, steps = env.unwrapped.data.qpos[0], 0.0, 0, 0
     for _ in range(EPISODE):
         _, r, _, truncated, _ = env.step(rng.uniform(-1, 1, 6))
         ret += r
+        steps += 1
+        upside_down += np.cos(env.unwrapped.data.qpos[2]) < 0
         if truncated:
             break
     dist = env.unwrapped.data.qpos[0] - x0
     env.close()
-    return ret, dist
+    return ret, dist, upside_down / steps
 
 
 def main():
@@ -161,18 +167,22 @@ def main():
         print(
             f"  {name:<15} random actions, {len(runs)} episodes: return "
             f"{runs[:, 0].mean():.1f} ± {runs[:, 0].std(ddof=1):.1f}, distance "
-            f"{runs[:, 1].mean():.2f} ± {runs[:, 1].std(ddof=1):.2f} m"
+            f"{runs[:, 1].mean():.2f} ± {runs[:, 1].std(ddof=1):.2f} m, upside down "
+            f"{100 * runs[:, 2].mean():.1f} ± {100 * runs[:, 2].std(ddof=1):.1f} % of steps "
+            f"(in {np.count_nonzero(runs[:, 2] > 0)} episodes)"
         )
     rng = np.random.default_rng(0)
-    diffs = [
-        rng.choice(mine[:, 0], len(mine)).mean() - rng.choice(gyms[:, 0], len(gyms)).mean()
-        for _ in range(10_000)
-    ]
-    lo, hi = np.percentile(diffs, [2.5, 97.5])
-    print(
-        f"  return: ours − HalfCheetah-v5 = {mine[:, 0].mean() - gyms[:, 0].mean():.1f}, "
-        f"95 % interval [{lo:.1f}, {hi:.1f}]"
-    )
+    for column, what, scale in ((0, "return", 1), (2, "upside-down share (%)", 100)):
+        ours_col, theirs_col = scale * mine[:, column], scale * gyms[:, column]
+        diffs = [
+            rng.choice(ours_col, len(ours_col)).mean() - rng.choice(theirs_col, len(theirs_col)).mean()
+            for _ in range(10_000)
+        ]
+        lo, hi = np.percentile(diffs, [2.5, 97.5])
+        print(
+            f"  {what}: ours − HalfCheetah-v5 = {ours_col.mean() - theirs_col.mean():.1f}, "
+            f"95 % interval [{lo:.1f}, {hi:.1f}]"
+        )
 
 
 if __name__ == "__main__":
