@@ -175,7 +175,8 @@ def main():
     for column, what, scale in ((0, "return", 1), (2, "upside-down share (%)", 100)):
         ours_col, theirs_col = scale * mine[:, column], scale * gyms[:, column]
         diffs = [
-            rng.choice(ours_col, len(ours_col)).mean() - rng.choice(theirs_col, len(theirs_col)).mean()
+            rng.choice(ours_col, len(ours_col)).mean()
+            - rng.choice(theirs_col, len(theirs_col)).mean()
             for _ in range(10_000)
         ]
         lo, hi = np.percentile(diffs, [2.5, 97.5])
