@@ -262,7 +262,8 @@ impl ModelErrorReport {
     /// A Markdown table of the rows, under a line that says which models measured them.
     pub fn markdown(&self) -> String {
         let mut out = format!(
-            "{} models v{} (trained on {} finished episodes); reward error = r(s, a, ŝ') − r(s, a, s')\n\n",
+            "{} models v{} (trained on {} finished episodes); \
+             reward error = r(s, a, ŝ') − r(s, a, s')\n\n",
             self.task, self.models_version, self.episodes_covered
         );
         out.push_str(

@@ -10,11 +10,11 @@
 //!   measured seconds per step: the median over the method's episodes that planned of their
 //!   wall time (it includes the waits for retraining) over their steps, from every run of the
 //!   method in this folder, finished or not, counting only the episodes recorded on a machine
-//!   with this one's CPU when there are any ([`on_this_machine`]): a folder accumulates across machines whose
-//!   planning speeds differ several times. Remaining steps are what the timestep budget still
-//!   lacks, or the remaining episodes times the method's mean episode length (the task's
-//!   episode length until one is recorded). A method with no planned episode yet has no
-//!   estimate.
+//!   with this one's CPU when there are any ([`on_this_machine`]): a folder accumulates across
+//!   machines whose planning speeds differ several times. Remaining steps are what the
+//!   timestep budget still lacks, or the remaining episodes times the method's mean episode
+//!   length (the task's episode length until one is recorded). A method with no planned
+//!   episode yet has no estimate.
 //! - **Longest first.** Runs without an estimate come first (nothing says they are short, and
 //!   running one measures its method), then the others by decreasing estimate: the long runs
 //!   start while the whole budget is ahead, the short ones fill what is left.
