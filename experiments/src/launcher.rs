@@ -30,8 +30,7 @@
 //! episodes), stops what still runs at the deadline itself (an episode the
 //! estimate did not foresee), and packs the replay log and newest checkpoint of every
 //! unfinished run it started into `runs/<stem>.state.tar.gz` ([`crate::resume_state`]), from
-//! which a later sitting — on a
-//! fresh clone too — continues it.
+//! which a later sitting — on a fresh clone too — continues it.
 //!
 //! **Stopping a sitting by hand.** Asked to stop ([`run`]'s `stop` flag: the binary sets it on
 //! the first SIGINT or SIGTERM), a sitting ends as at a deadline reached now: it starts no

@@ -25,7 +25,7 @@ use anyhow::{Result, bail};
 use planner_service::energy::RegularizerKind;
 use planner_service::replay::{Record, TransitionRecord, segments};
 use proto::{Builtin, EpisodeEnd};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
@@ -83,7 +83,6 @@ pub struct ModelErrorReport {
 /// Sums of one (episode, interval) group.
 #[derive(Default)]
 struct Sums {
-    held_out: bool,
     transitions: usize,
     squared_obs_error: f64,
     reward_error: f64,
@@ -128,15 +127,20 @@ pub fn run(config: &ModelErrorConfig) -> Result<ModelErrorReport> {
         bail!("{task} has {o} observations: --by-obs {k} is out of range");
     }
     let records = segments::read(dir.root())?.recovered.records;
-    let transitions = held_out_transitions(&records, models.episodes_covered);
+    let held_out = held_out_episodes(&records, models.episodes_covered);
     let wanted = |t: &TransitionRecord| {
         config
             .episodes
             .as_ref()
             .is_none_or(|list| list.contains(&t.episode))
     };
-    let selected: Vec<(&TransitionRecord, bool)> =
-        transitions.into_iter().filter(|(t, _)| wanted(t)).collect();
+    let selected: Vec<&TransitionRecord> = records
+        .iter()
+        .filter_map(|record| match record {
+            Record::Transition(t) if wanted(t) => Some(t),
+            _ => None,
+        })
+        .collect();
     if selected.is_empty() {
         bail!("the run holds no transition of the episodes asked for");
     }
@@ -155,7 +159,7 @@ pub fn run(config: &ModelErrorConfig) -> Result<ModelErrorReport> {
         obs.clear();
         act.clear();
         next.clear();
-        for (t, _) in chunk {
+        for t in chunk {
             obs.extend_from_slice(&t.obs);
             act.extend_from_slice(&t.act);
             next.extend_from_slice(&t.next_obs);
@@ -182,13 +186,12 @@ pub fn run(config: &ModelErrorConfig) -> Result<ModelErrorReport> {
             let imagined = &predicted[..rows * o];
             regularizer.energy(&obs, &act, imagined, rows, scratch, &mut energy_imagined);
         }
-        for (i, (t, held_out)) in chunk.iter().enumerate() {
+        for (i, t) in chunk.iter().enumerate() {
             let s = &obs[i * o..(i + 1) * o];
             let u = &act[i * a..(i + 1) * a];
             let (real, imagined) = (&next[i * o..(i + 1) * o], &predicted[i * o..(i + 1) * o]);
             let group = config.by_obs.map_or(0, |k| interval(s[k], &config.edges));
             let sums = groups.entry((t.episode, group)).or_default();
-            sums.held_out = *held_out;
             sums.transitions += 1;
             sums.squared_obs_error += real
                 .iter()
@@ -208,7 +211,7 @@ pub fn run(config: &ModelErrorConfig) -> Result<ModelErrorReport> {
             let n = s.transitions as f64;
             ErrorRow {
                 episode,
-                held_out: s.held_out,
+                held_out: held_out.contains(&episode),
                 interval,
                 transitions: s.transitions,
                 next_obs_rmse: (s.squared_obs_error / (n * o as f64)).sqrt(),
@@ -229,32 +232,20 @@ pub fn run(config: &ModelErrorConfig) -> Result<ModelErrorReport> {
     })
 }
 
-/// Every transition of `records` (a run's replay, in order) with whether the models, trained
-/// on `covered` finished episodes, certainly never saw it: its episode finished after those
-/// (it is a later one in the order of the episodes' ends). An interrupted episode is never
-/// counted as held out: the retraining that follows a resume sees it without counting it. In
-/// a run that retrains during episodes (asynchronous training) even a later episode may have
-/// been seen in part; the experiments retrain between episodes.
-fn held_out_transitions(records: &[Record], covered: u32) -> Vec<(&TransitionRecord, bool)> {
-    let mut finished = 0u32;
-    let mut held_out: BTreeMap<(&str, u32), bool> = BTreeMap::new();
-    for record in records {
-        if let Record::EpisodeEnd(end) = record
-            && end.end != EpisodeEnd::Interrupted
-        {
-            finished += 1;
-            held_out.insert((end.agent.as_str(), end.episode), finished > covered);
-        }
-    }
+/// The episodes of `records` (a run's replay, in order) that the models, trained on `covered`
+/// finished episodes, certainly never saw: those that finished after them (later in the order
+/// of the episodes' ends). An interrupted episode is never counted as held out: the retraining
+/// that follows a resume sees it without counting it. In a run that retrains during episodes
+/// (asynchronous training) even a later episode may have been seen in part; the experiments
+/// retrain between episodes.
+fn held_out_episodes(records: &[Record], covered: u32) -> BTreeSet<u32> {
     records
         .iter()
         .filter_map(|record| match record {
-            Record::Transition(t) => {
-                let key = (t.agent.as_str(), t.episode);
-                Some((t, held_out.get(&key).copied().unwrap_or(false)))
-            }
+            Record::EpisodeEnd(end) if end.end != EpisodeEnd::Interrupted => Some(end.episode),
             _ => None,
         })
+        .skip(covered as usize)
         .collect()
 }
 
