@@ -24,6 +24,14 @@
 //! the rest; `status` counts the slices and says while a retraining is starving (it needed a
 //! slice within [`STARVING_WINDOW`]). The wait is between minibatches, never inside one.
 //!
+//! A minibatch holding a slice may wait inside it, in a rayon join of its products, and rayon
+//! runs other jobs of the pool on a waiting thread: another run's retraining, or another
+//! member of an ensemble. That fit's next minibatch then runs *on top of* the slice's own
+//! stack, so it must not queue behind the slice (the slice could never end: a deadlock seen
+//! with two ant runs retraining at once). A thread therefore knows the slice it holds
+//! ([`Slice`]), and a minibatch started on top of it hands the slice back to any waiting plan
+//! and takes it again, instead of waiting for itself.
+//!
 //! Limits: preemption happens only between imagined steps (Adam + DAE: between its gradient
 //! steps), so a waiting plan can lose up to one of those, and a minibatch already running
 //! finishes first (retraining runs on a pool of its own whose threads the OS runs only when no
@@ -39,6 +47,7 @@ pub mod queue;
 
 pub use preempt::Preempt;
 use queue::PlanQueue;
+use std::cell::RefCell;
 use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
@@ -123,7 +132,8 @@ impl Waiting {
 #[derive(Debug)]
 pub struct Turn {
     scheduler: Arc<Scheduler>,
-    ticket: u64,
+    /// Its place in the queue; a retraining's slice renews it ([`Scheduler::renew_slice`]).
+    ticket: Arc<AtomicU64>,
     /// Its owner's count of plans waiting, raised while this plan steps back.
     waiting: Waiting,
     /// Nanoseconds this plan has spent stepped back (see [`Preempt::paused`]).
@@ -160,26 +170,67 @@ impl Scheduler {
     /// or wait for the cores, at most `(1 − share) / share` times `last` (within 1 ms and
     /// [`MAX_YIELD`]); if plans still want the cores then, blocks until the minibatch holds
     /// them as the most urgent plan and returns that turn, to be held for the minibatch
-    /// (`None`: the plans left idle time, and the minibatch runs in it).
-    pub fn before_minibatch(self: &Arc<Self>, last: Duration) -> Option<Turn> {
+    /// (`None`: the plans left idle time, and the minibatch runs in it, or the minibatch runs
+    /// on top of a slice its thread already holds, which it renews: see the module doc).
+    pub fn before_minibatch(self: &Arc<Self>, last: Duration) -> Option<Slice> {
         let patience = last
             .mul_f64((1.0 - self.training_share) / self.training_share)
             .clamp(Duration::from_millis(1), MAX_YIELD);
+        if let Some(held) = HeldSlice::on_this_thread(self) {
+            self.renew_slice(&held.ticket, patience);
+            return None;
+        }
+        self.wait_for_plans_counted(patience);
+        if self.lock().is_idle() {
+            return None;
+        }
+        self.count_slice();
+        // A deadline of now is overdue: the most urgent class, so the holder steps back.
+        let turn = self.turn(Some(Instant::now()), None, &Waiting::default());
+        Some(Slice::hold(self, turn))
+    }
+
+    /// A minibatch starts on top of the slice `ticket` its own thread holds: if plans wait,
+    /// hands the cores to them, waits for them as a minibatch of its own would (at most
+    /// `patience`) and queues again as the most urgent, storing the new place in `ticket`. It
+    /// never waits behind `ticket` itself, which cannot end before this minibatch does.
+    fn renew_slice(&self, ticket: &AtomicU64, patience: Duration) {
+        {
+            let mut queue = self.lock();
+            if queue.waiting() == 0 {
+                return;
+            }
+            queue.leave(ticket.load(Ordering::SeqCst));
+        }
+        self.changed.notify_all();
+        self.wait_for_plans_counted(patience);
+        self.count_slice();
+        let mut queue = self.lock();
+        let now = Instant::now();
+        let renewed = queue.arrive(now, Some(now), None).ticket();
+        // Stored before the wait: a panic unwinding from here still leaves the right ticket.
+        ticket.store(renewed, Ordering::SeqCst);
+        queue.dispatch();
+        self.changed.notify_all();
+        self.wait_to_hold(queue, renewed);
+    }
+
+    /// [`Scheduler::wait_for_plans`] for a retraining, counted in its waiting time.
+    fn wait_for_plans_counted(&self, patience: Duration) {
         let waited = self.wait_for_plans(patience);
         self.training_waited_ns.fetch_add(
             u64::try_from(waited.as_nanos()).unwrap_or(u64::MAX),
             Ordering::Relaxed,
         );
-        if self.lock().is_idle() {
-            return None;
-        }
+    }
+
+    /// Counts a slice a retraining takes from the plans.
+    fn count_slice(&self) {
         self.slices.fetch_add(1, Ordering::Relaxed);
         *self
             .last_slice
             .lock()
             .unwrap_or_else(PoisonError::into_inner) = Some(Instant::now());
-        // A deadline of now is overdue: the most urgent class, so the holder steps back.
-        Some(self.turn(Some(Instant::now()), None, &Waiting::default()))
     }
 
     /// How retrainings fared against the plans.
@@ -228,7 +279,7 @@ impl Scheduler {
         waiting.sub();
         Turn {
             scheduler: self.clone(),
-            ticket,
+            ticket: Arc::new(AtomicU64::new(ticket)),
             waiting: waiting.clone(),
             paused_ns: AtomicU64::new(0),
             step_backs: AtomicU32::new(0),
@@ -266,7 +317,7 @@ impl Turn {
         queue.preempt();
         scheduler.changed.notify_all();
         self.waiting.add();
-        scheduler.wait_to_hold(queue, self.ticket);
+        scheduler.wait_to_hold(queue, self.ticket.load(Ordering::SeqCst));
         self.waiting.sub();
         let paused = u64::try_from(since.elapsed().as_nanos()).unwrap_or(u64::MAX);
         self.paused_ns.fetch_add(paused, Ordering::SeqCst);
@@ -296,15 +347,74 @@ impl Preempt for Turn {
 
 impl Drop for Turn {
     fn drop(&mut self) {
-        self.scheduler.lock().leave(self.ticket);
+        self.scheduler
+            .lock()
+            .leave(self.ticket.load(Ordering::SeqCst));
         self.scheduler.changed.notify_all();
+    }
+}
+
+thread_local! {
+    /// The retraining slice this thread holds, if any.
+    static HELD: RefCell<Option<HeldSlice>> = const { RefCell::new(None) };
+}
+
+/// Which slice a thread holds: its scheduler and its (renewable) place in the queue.
+#[derive(Clone, Debug)]
+struct HeldSlice {
+    scheduler: Arc<Scheduler>,
+    ticket: Arc<AtomicU64>,
+}
+
+impl HeldSlice {
+    /// The slice of `scheduler` this thread holds, if any.
+    fn on_this_thread(scheduler: &Arc<Scheduler>) -> Option<Self> {
+        HELD.with(|held| {
+            held.borrow()
+                .as_ref()
+                .filter(|h| Arc::ptr_eq(&h.scheduler, scheduler))
+                .cloned()
+        })
+    }
+}
+
+/// A retraining minibatch's hold on the cores, taken from plans that left it no idle time.
+/// While it lives its thread is marked as holding it, so that a fit rayon runs on this thread
+/// meanwhile renews it rather than queueing behind it (see the module doc); dropping it hands
+/// the cores on and restores the mark of any slice beneath it.
+#[must_use = "the minibatch holds the cores until the slice drops"]
+#[derive(Debug)]
+pub struct Slice {
+    /// Held until the slice drops (after [`Slice`]'s own `drop`, which restores the mark).
+    _turn: Turn,
+    beneath: Option<HeldSlice>,
+}
+
+impl Slice {
+    fn hold(scheduler: &Arc<Scheduler>, turn: Turn) -> Self {
+        let mine = HeldSlice {
+            scheduler: scheduler.clone(),
+            ticket: turn.ticket.clone(),
+        };
+        let beneath = HELD.with(|held| held.borrow_mut().replace(mine));
+        Self {
+            _turn: turn,
+            beneath,
+        }
+    }
+}
+
+impl Drop for Slice {
+    fn drop(&mut self) {
+        let beneath = self.beneath.take();
+        HELD.with(|held| *held.borrow_mut() = beneath);
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
     /// Spins (without timing anything) until `n` plans wait.
     fn until_waiting(scheduler: &Scheduler, n: usize) {
@@ -453,5 +563,70 @@ mod tests {
         let _plan = scheduler.turn(None, None, &Waiting::default());
         // The plan never ends: the wait gives up after its bound.
         assert!(scheduler.wait_for_plans(Duration::from_millis(20)) >= Duration::from_millis(20));
+    }
+
+    /// What rayon does to a retraining holding a slice: while its minibatch waits in a join,
+    /// its thread runs another fit's job, whose next minibatch starts on top of the slice.
+    /// That minibatch must neither wait behind the slice beneath it (which cannot end first:
+    /// the daemon hung so, two ant runs retraining at once) nor keep the cores from a plan
+    /// that waits: it hands them to the plan and takes them back.
+    #[test]
+    fn a_minibatch_on_top_of_its_threads_slice_renews_it_instead_of_waiting_behind_it() {
+        let scheduler = Arc::new(Scheduler::new(0.5));
+        let stop = Arc::new(AtomicBool::new(false));
+        // Imagined steps the plans took, counted while they hold the cores.
+        let plan_steps = Arc::new(AtomicUsize::new(0));
+        // Plans that never stop, each stepping back whenever something more urgent waits.
+        let planner = std::thread::spawn({
+            let (scheduler, stop, steps) = (scheduler.clone(), stop.clone(), plan_steps.clone());
+            move || {
+                while !stop.load(Ordering::SeqCst) {
+                    let turn = scheduler.turn(
+                        Some(Instant::now() + Duration::from_millis(50)),
+                        None,
+                        &Waiting::default(),
+                    );
+                    for _ in 0..5 {
+                        steps.fetch_add(1, Ordering::SeqCst);
+                        std::thread::sleep(Duration::from_millis(1));
+                        turn.yield_to_earlier();
+                    }
+                }
+            }
+        });
+        while plan_steps.load(Ordering::SeqCst) == 0 {
+            std::thread::yield_now();
+        }
+        let (done, finished) = std::sync::mpsc::channel();
+        std::thread::spawn({
+            let (scheduler, steps) = (scheduler.clone(), plan_steps.clone());
+            move || {
+                let slice = scheduler.before_minibatch(Duration::from_millis(1));
+                assert!(
+                    slice.is_some(),
+                    "plans never stop: the minibatch takes a slice"
+                );
+                // The plan stepped back for the slice and waits.
+                assert_eq!(scheduler.waiting(), 1);
+                let before = steps.load(Ordering::SeqCst);
+                // The nested fit's minibatch.
+                let nested = scheduler.before_minibatch(Duration::from_millis(1));
+                assert!(nested.is_none(), "it runs under the renewed slice");
+                let after = steps.load(Ordering::SeqCst);
+                drop(slice);
+                assert!(HeldSlice::on_this_thread(&scheduler).is_none());
+                done.send(after > before).unwrap();
+            }
+        });
+        let plan_ran_between = finished
+            .recv_timeout(Duration::from_secs(60))
+            .expect("the nested minibatch waited behind its own thread's slice");
+        assert!(
+            plan_ran_between,
+            "the waiting plan got the cores in between"
+        );
+        stop.store(true, Ordering::SeqCst);
+        planner.join().unwrap();
+        assert!(scheduler.training().slices >= 2);
     }
 }
