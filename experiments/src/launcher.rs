@@ -63,7 +63,7 @@
 
 use crate::manifest::Manifest;
 use crate::method::Method;
-use crate::progress::Progress;
+use crate::progress::{Progress, RunLength};
 use crate::provenance::{self, Load, Machine, RunRecord, Sitting};
 use crate::queue::{self, Pending};
 use crate::results::{self, EpisodeRow};
@@ -192,6 +192,14 @@ impl RunId {
 }
 
 /// What remains of a run given the episodes its file records (`None`: it is complete).
+/// How long each of the manifest's runs is.
+fn run_length(manifest: &Manifest) -> RunLength {
+    RunLength {
+        episodes: manifest.episodes,
+        timesteps: manifest.timesteps,
+    }
+}
+
 fn remaining_of(file: &Path, manifest: &Manifest) -> Option<queue::Remaining> {
     remaining_after(&results::recorded(file), manifest)
 }
@@ -414,13 +422,10 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
         pending = pending.len(),
         not_asked,
         budget = ?exp.budget,
-        "experiment {} ({} scale): {} episodes per run{}",
+        "experiment {} ({} scale): {}",
         exp.task,
         exp.scale.name(),
-        exp.episodes,
-        exp.timesteps
-            .map(|t| format!(" or {t} steps"))
-            .unwrap_or_default()
+        run_length(&manifest),
     );
     archive_finished_runs(&exp.out, &manifest);
     let episodes_csv = exp.out.join("episodes.csv");
@@ -448,7 +453,7 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     )?;
     let machine = Machine::this();
     let commit = provenance::binaries_commit(&exp.bin_dir);
-    let progress = Progress::new(pending.len(), exp.episodes);
+    let progress = Progress::new(pending.len(), run_length(&manifest));
     let queue = Mutex::new(plan_queue(&exp.out, &manifest, &machine, &pending));
     let failures = Mutex::new(Vec::new());
     let csv_lock = Mutex::new(());
@@ -715,7 +720,9 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
     let attempt = run.attempt_csv(&exp.out);
     // A launcher killed while a bridge ran left that bridge's rows unmerged.
     merge_attempt(&attempt, &partial)?;
-    let recorded = results::count_rows(&partial);
+    let before = results::recorded(&partial);
+    let recorded = before.len();
+    let recorded_steps: u64 = before.iter().map(|r| u64::from(r.steps)).sum();
     let log_path = exp.out.join("logs").join(format!("{}.log", run.stem()));
     let log = std::fs::OpenOptions::new()
         .create(true)
@@ -725,7 +732,7 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
     let run_name = run.daemon_run(exp.task);
     // An `icem…` label attaches with its CEM preset; the optimiser is among the overrides.
     let preset = Method::parse(exp.task, &run.method)?.preset;
-    let Some(left) = remaining_of(&partial, manifest) else {
+    let Some(left) = remaining_after(&before, manifest) else {
         // Every episode was recorded before the last launcher stopped.
         std::fs::rename(&partial, run.csv(&exp.out))?;
         return Ok(RunEnd::Finished);
@@ -799,7 +806,9 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
             .with_context(|| format!("starting {}", exp.bin_dir.join("sim-bridge").display()))?,
     );
     let bar = progress.start_run(&run.stem());
+    progress.resumed(recorded, recorded_steps);
     let mut seen = 0;
+    let mut steps = recorded_steps;
     let mut stopped = false;
     let status = loop {
         let status = child.0.try_wait()?;
@@ -809,7 +818,8 @@ fn run_one(ctx: &RunContext<'_>, run: &RunId) -> Result<RunEnd> {
                 .unwrap_or_default();
             for (index, row) in rows.iter().enumerate().skip(seen) {
                 let count = recorded + index + 1;
-                progress.episode(&bar, &run.stem(), count, row, manifest.episodes);
+                steps += u64::from(row.steps);
+                progress.episode(&bar, &run.stem(), count, steps, row);
             }
             seen = done;
         }
