@@ -124,9 +124,11 @@ pub fn estimate(left: Remaining, cost: MethodCost, episode_len: u32) -> Option<D
     let rate = cost.seconds_per_step?;
     let per_episode = cost.steps_per_episode.unwrap_or(f64::from(episode_len));
     let by_episodes = f64::from(left.episodes) * per_episode;
-    let steps = left
-        .steps
-        .map_or(by_episodes, |s| (s as f64).min(by_episodes));
+    // A run budgeted in steps ends after the episode in which it reaches them: the last
+    // episode runs to its end, so the steps left count as the whole episodes they start.
+    let steps = left.steps.map_or(by_episodes, |s| {
+        ((s as f64 / per_episode).ceil() * per_episode).min(by_episodes)
+    });
     Some(Duration::from_secs_f64((steps * rate).max(0.0)))
 }
 
@@ -409,14 +411,25 @@ mod tests {
             estimate(by_episodes, cost, 1000),
             Some(Duration::from_secs(120))
         );
-        // A step budget shorter than the episodes' steps is what remains.
-        let by_steps = Remaining {
+        // A step budget shorter than the episodes' steps is what remains, in the whole
+        // episodes it starts: the last one runs to its end (100 steps left: one episode of
+        // 150; 400 left: three).
+        let by_steps = |steps| Remaining {
             episodes: 4,
-            steps: Some(100),
+            steps: Some(steps),
         };
         assert_eq!(
-            estimate(by_steps, cost, 1000),
-            Some(Duration::from_secs(20))
+            estimate(by_steps(100), cost, 1000),
+            Some(Duration::from_secs(30))
+        );
+        assert_eq!(
+            estimate(by_steps(400), cost, 1000),
+            Some(Duration::from_secs(90))
+        );
+        assert_eq!(
+            estimate(by_steps(4000), cost, 1000),
+            Some(Duration::from_secs(120)),
+            "never more than the episodes left"
         );
         // Without a recorded episode the task's episode length stands in.
         let fresh = MethodCost {
