@@ -191,7 +191,6 @@ impl RunId {
     }
 }
 
-/// What remains of a run given the episodes its file records (`None`: it is complete).
 /// How long each of the manifest's runs is.
 fn run_length(manifest: &Manifest) -> RunLength {
     RunLength {
@@ -200,6 +199,7 @@ fn run_length(manifest: &Manifest) -> RunLength {
     }
 }
 
+/// What remains of a run given the episodes its file records (`None`: it is complete).
 fn remaining_of(file: &Path, manifest: &Manifest) -> Option<queue::Remaining> {
     remaining_after(&results::recorded(file), manifest)
 }

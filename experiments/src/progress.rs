@@ -116,11 +116,7 @@ impl Progress {
     ) {
         let line = episode_line(recorded, steps, row, self.length);
         bar.set_message(line.clone());
-        self.overall.inc(if self.length.timesteps.is_some() {
-            u64::from(row.steps)
-        } else {
-            1
-        });
+        self.overall.inc(self.length.done(1, u64::from(row.steps)));
         self.log(&format!("{name}: {line}"));
     }
 
