@@ -495,13 +495,18 @@ mod tests {
         );
         if let Some(o) = overlap {
             assert!(o.tiles_ns.is_finite() && o.tiles_ns > 0.0, "{o:?}");
+            // How the two loops overlap is the hardware's (and the build's) business, not a
+            // property to assert: in this test build (opt-level 2) on a Xeon with AMX the tile
+            // loop alone has run at 68 ns per round, slower than interleaved with 64 FMAs (37)
+            // and than the release build's 29. What the probe promises is finite times and a
+            // share hidden between 0 and 1.
             for (i, (alone, both)) in o.fmas.into_iter().enumerate() {
                 assert!(alone.is_finite() && alone > 0.0, "{o:?}");
-                // Interleaving never makes either loop's own work disappear.
-                assert!(both >= 0.9 * o.tiles_ns.max(alone), "{o:?}");
+                assert!(both.is_finite() && both > 0.0, "{o:?}");
                 assert!((0.0..=1.0).contains(&o.hidden(i)));
             }
-            // Twice the FMAs take longer alone.
+            // Twice the FMAs take longer alone (best of 30 trials each, so one preempted
+            // trial does not decide it).
             assert!(o.fmas[1].0 > o.fmas[0].0, "{o:?}");
         }
         let measured = TileOverlap {
