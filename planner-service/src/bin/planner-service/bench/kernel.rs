@@ -175,7 +175,7 @@ pub struct ProductTiming {
     pub ours: Throughput,
     /// [`matmul_par`]: the rows split across two rayon tasks (as the training passes run).
     pub ours_parallel: Throughput,
-    /// `gemm::gemm` with `Parallelism::None`.
+    /// the gemm family's f32 kernel (`gemm-f32`) with `Parallelism::None`.
     pub gemm: Throughput,
 }
 
@@ -452,7 +452,7 @@ fn time_product(shape: Shape, batch: Duration, rng: &mut StdRng) -> ProductTimin
         // SAFETY: `c` is m × n, `x` m × k and `y` k × n, all dense row-major (column stride 1,
         // row stride the width), and nothing else accesses them during the call.
         unsafe {
-            gemm::gemm(
+            gemm_f32::gemm::f32::get_gemm_fn()(
                 m,
                 n,
                 k,
@@ -471,7 +471,7 @@ fn time_product(shape: Shape, batch: Duration, rng: &mut StdRng) -> ProductTimin
                 false,
                 false,
                 false,
-                gemm::Parallelism::None,
+                gemm_common::Parallelism::None,
             );
         }
         black_box(&mut c);
