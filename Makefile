@@ -39,7 +39,7 @@ demo: toolchain mujoco protoc
 # jsonschema, mypy) and of its Gymnasium driver (gymnasium[mujoco]: Gymnasium and the PyPI mujoco
 # wheel): its tests, the Python example's and the Gymnasium driver's run through `cargo test`
 # with it, importing the package from python/. (The wheel itself, which bundles the planner, is
-# built and installed into a clean venv by tests/tests/gym_driver_e2e.rs.)
+# built and installed into a clean venv by tests/tests/e2e/gym_driver.rs.)
 VENV := .venv
 
 python-env:

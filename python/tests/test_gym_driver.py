@@ -1,7 +1,7 @@
 """The Gymnasium driver (``python -m ebmpc.gym``): its episode loop against a scripted agent, its
 command line, and its exit status on a planner's refusal (against the real daemon).
 
-Learning real environments is the end-to-end tests' (``tests/tests/gym_driver_e2e.rs``).
+Learning real environments is the end-to-end tests' (``tests/tests/e2e/gym_driver.rs``).
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@
 //! agent was told: every transition whose next action the agent received must be in the
 //! replay log, and every episode must be recorded as finished or interrupted.
 //!
-//! `tests/tests/kill_loop_e2e.rs` runs it in CI (10 kills); `EBMPC_KILLS=100 cargo test -p
-//! ebmpc-e2e --test kill_loop_e2e -- --nocapture` runs it by hand and prints the figures.
+//! `tests/tests/e2e/kill_loop.rs` runs it in CI (10 kills); `EBMPC_KILLS=100 cargo test -p
+//! ebmpc-e2e --test e2e kill_loop:: -- --nocapture` runs it by hand and prints the figures.
 
 use crate::client::{Answer, Client, ToySystem};
 use crate::config::{PlannerConfig, Sizes};

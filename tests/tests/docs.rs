@@ -52,12 +52,12 @@ const OTHER_VARIABLES: &[(&str, &str, &str)] = &[
     ),
     (
         "EBMPC_KILLS",
-        "`tests/tests/kill_loop_e2e.rs`",
+        "`tests/tests/e2e/kill_loop.rs`",
         "how many times the kill loop SIGKILLs the daemon (default 10).",
     ),
     (
         "EBMPC_FLEET_KILLS",
-        "`tests/tests/fleet_etcd_e2e.rs`",
+        "`tests/tests/e2e/fleet_etcd.rs`",
         "how many times the fleet test SIGKILLs a run's owner among three planners (default 20).",
     ),
     (
@@ -67,7 +67,7 @@ const OTHER_VARIABLES: &[(&str, &str, &str)] = &[
     ),
     (
         "EBMPC_KILL_SEED",
-        "`tests/tests/kill_loop_e2e.rs`",
+        "`tests/tests/e2e/kill_loop.rs`",
         "seed of the kill loop's random kill times (default: a fixed seed).",
     ),
     (

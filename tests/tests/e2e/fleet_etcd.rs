@@ -1027,12 +1027,13 @@ impl SmallDisk {
         }
     }
 
-    /// Where this process is not root, runs `test` again as root of a user and mount
-    /// namespace of its own (`unshare --user --map-root-user --mount`, open to unprivileged
-    /// users on current Linux) and returns `true` once that run passed: there it may mount
-    /// the tmpfs, the processes it starts see the mount, and the network is the machine's.
-    /// Returns `false` where this process is root already and the test goes on here.
-    fn rerun_unless_root(test: &str) -> bool {
+    /// Where this process is not root, runs the test `name` (a function of this module) again
+    /// as root of a user and mount namespace of its own (`unshare --user --map-root-user
+    /// --mount`, open to unprivileged users on current Linux) and returns `true` once that run
+    /// passed: there it may mount the tmpfs, the processes it starts see the mount, and the
+    /// network is the machine's. Returns `false` where this process is root already and the
+    /// test goes on here.
+    fn rerun_unless_root(name: &str) -> bool {
         let status = std::fs::read_to_string("/proc/self/status").expect("/proc/self/status");
         let effective_uid = status
             .lines()
@@ -1042,15 +1043,31 @@ impl SmallDisk {
         if effective_uid == "0" {
             return false;
         }
+        // libtest names a test by its path below the crate: `fleet_etcd::name`.
+        let module = module_path!()
+            .split_once("::")
+            .map_or(module_path!(), |(_, below_crate)| below_crate);
+        let test = format!("{module}::{name}");
         let rerun = std::process::Command::new("unshare")
             .args(["--user", "--map-root-user", "--mount", "--"])
             .arg(std::env::current_exe().expect("the test binary"))
-            .args([test, "--exact", "--nocapture", "--test-threads=1"])
-            .status()
+            .args([test.as_str(), "--exact", "--nocapture", "--test-threads=1"])
+            .output()
             .expect("`unshare` (util-linux) runs");
+        let printed = format!(
+            "{}{}",
+            String::from_utf8_lossy(&rerun.stdout),
+            String::from_utf8_lossy(&rerun.stderr)
+        );
         assert!(
-            rerun.success(),
-            "{test} in a user and mount namespace of its own: {rerun}"
+            rerun.status.success(),
+            "{test} in a user and mount namespace of its own ({}):\n{printed}",
+            rerun.status
+        );
+        // A filter that matched nothing passes too: the rerun must have run this very test.
+        assert!(
+            printed.contains("test result: ok. 1 passed"),
+            "the rerun ran {test} once:\n{printed}"
         );
         true
     }

@@ -1,6 +1,6 @@
 //! The daemon SIGKILLed at random moments while an agent steps loses no acknowledged
 //! transition and accounts for every episode (see `ebmpc_e2e::kill_loop`). 10 kills here;
-//! `EBMPC_KILLS=100 cargo test -p ebmpc-e2e --test kill_loop_e2e -- --nocapture` for more.
+//! `EBMPC_KILLS=100 cargo test -p ebmpc-e2e --test e2e kill_loop:: -- --nocapture` for more.
 
 use ebmpc_e2e::TempDir;
 use ebmpc_e2e::kill_loop::kill_loop;
