@@ -1,7 +1,7 @@
 //! Retraining a run's models on its whole replay buffer (paper §2, Figure 1).
 //!
 //! Training starts from the current weights (the buffer only grows between two retrainings)
-//! with the epochs the preset's schedule gives for the number of stored episodes, within the
+//! with the epochs the preset's schedule gives for the stored episodes and transitions, within the
 //! run's budget: the preset's cap on gradient steps, the daemon's seconds per retraining, and
 //! a cancel flag the daemon raises when it stops. A retraining whose losses or parameters are
 //! not all finite is discarded: the caller keeps serving the previous models.
@@ -94,7 +94,7 @@ pub fn retrain(
     let started = Instant::now();
     let mut rng =
         StdRng::seed_from_u64(seed ^ (current.version + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let (dynamics_epochs, energy_epochs) = preset.epochs(episodes);
+    let (dynamics_epochs, energy_epochs) = preset.epochs(episodes, data.len());
     let plan = |epochs: usize, deadline: Option<Instant>| FitBudget {
         epochs,
         max_steps: preset

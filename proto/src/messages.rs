@@ -204,8 +204,10 @@ pub enum EpochSchedule {
     Constant,
     /// Half-cheetah: `epochs` for both models once `after_episodes` episodes are stored.
     DropAfter { after_episodes: u32, epochs: u32 },
-    /// Ant: epochs multiplied by `dynamics_factor` / `energy_factor` after every episode
-    /// beyond the exploration ones, never below `min_epochs`.
+    /// Ant: epochs multiplied by `dynamics_factor` / `energy_factor` for every time limit's
+    /// worth of transitions gathered after the exploration episodes (at most once per planned
+    /// episode, so an episode cut short counts for the share it lasted), never below
+    /// `min_epochs`.
     Geometric {
         dynamics_factor: f32,
         energy_factor: f32,

@@ -181,7 +181,7 @@ pub fn run(
         .0;
     }
 
-    let (_, energy_epochs) = preset.epochs(config.train_episodes);
+    let (_, energy_epochs) = preset.epochs(config.train_episodes, data.len());
     let mut plan_preset = Preset::new(task.task(), Some(&config.method))?;
     plan_preset.apply(&config.plan_scale.overrides(task, &config.method, None)?)?;
     // The three regularisers, trained once on the same data, compared from every state.

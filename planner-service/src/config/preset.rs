@@ -121,9 +121,9 @@ fn default_precision() -> InferencePrecision {
 }
 
 impl Preset {
-    /// `(dynamics epochs, energy epochs)` for a retraining after `episodes` stored episodes,
-    /// by the preset's [`EpochSchedule`].
-    pub fn epochs(&self, episodes: u32) -> (usize, usize) {
+    /// `(dynamics epochs, energy epochs)` for a retraining on `transitions` stored transitions
+    /// from `episodes` finished episodes, by the preset's [`EpochSchedule`].
+    pub fn epochs(&self, episodes: u32, transitions: usize) -> (usize, usize) {
         let (dynamics, energy) = (self.dynamics.epochs, self.energy.epochs);
         match self.schedule {
             EpochSchedule::Constant => (dynamics, energy),
@@ -137,9 +137,19 @@ impl Preset {
                 energy_factor,
                 min_epochs,
             } => {
-                let decays = episodes.saturating_sub(self.exploration_episodes) as i32;
+                // The decay makes up for an epoch's growing length as the buffer fills, so it
+                // counts the data gathered after exploration in time limits' worth of
+                // transitions, at most one per planned episode: a planned episode cut short
+                // by a fall counts for the share of the time limit it lasted. Counting
+                // episodes alone, a run of early falls (an ant flipping within 20 steps, ten
+                // times) would cut the epochs to the floor before the buffer held one
+                // episode's worth, and the models would then barely learn from what came next.
+                let planned = episodes.saturating_sub(self.exploration_episodes) as f32;
+                let gathered = transitions as f32 / self.task.episode_len.max(1) as f32
+                    - self.exploration_episodes as f32;
+                let decays = gathered.clamp(0.0, planned);
                 let decay = |epochs: usize, factor: f32| {
-                    ((epochs as f32 * factor.powi(decays)).round() as usize)
+                    ((epochs as f32 * factor.powf(decays)).round() as usize)
                         .max(min_epochs as usize)
                 };
                 (
@@ -689,8 +699,8 @@ mod tests {
         assert_eq!((hc.energy.hidden_layers, hc.energy.hidden_size), (5, 500));
         assert_eq!(hc.energy_weight, 0.05);
         assert_eq!(hc.exploration_episodes, 3);
-        assert_eq!(hc.epochs(5), (300, 100));
-        assert_eq!(hc.epochs(10), (8, 8));
+        assert_eq!(hc.epochs(5, 5000), (300, 100));
+        assert_eq!(hc.epochs(10, 10_000), (8, 8));
         let ant = Preset::new(Builtin::Ant.task(), Some("pets")).unwrap();
         assert_eq!(
             (
@@ -701,8 +711,8 @@ mod tests {
             (5, 20, 7)
         );
         assert_eq!(ant.regularizer, RegularizerKind::None);
-        assert_eq!(ant.epochs(1), (600, 800));
-        assert_eq!(ant.epochs(2), (360, 560));
+        assert_eq!(ant.epochs(1, 1000), (600, 800));
+        assert_eq!(ant.epochs(2, 2000), (360, 560));
         let pusher = Preset::new(Builtin::Pusher.task(), None).unwrap();
         assert_eq!(
             (
@@ -721,6 +731,39 @@ mod tests {
         assert_eq!(pusher.energy.noise_units, NoiseUnits::Raw);
         assert_eq!(ant.energy.noise_units, NoiseUnits::Standardised);
         assert!(Preset::new(Builtin::Cartpole.task(), Some("sac")).is_err());
+    }
+
+    /// The ant's geometric decay counts data, not resets: ten planned episodes that fell
+    /// within 20 steps leave the epochs near Table 2's, while full-length episodes decay once
+    /// each, and no more than once per planned episode however long the exploration ran.
+    #[test]
+    fn geometric_decay_counts_time_limits_of_data() {
+        let ant = Preset::new(Builtin::Ant.task(), None).unwrap();
+        assert_eq!(ant.exploration_episodes, 1);
+        // One exploration episode of 1,000 steps, then ten falls of 20 steps: 0.2 decays.
+        let (dynamics, energy) = ant.epochs(11, 1200);
+        assert_eq!(
+            (dynamics, energy),
+            (
+                (600.0 * 0.6f32.powf(0.2)).round() as usize,
+                (800.0 * 0.7f32.powf(0.2)).round() as usize
+            )
+        );
+        assert!(dynamics > 500, "{dynamics}");
+        // Five whole planned episodes: five decays, as the paper's per-episode schedule.
+        assert_eq!(
+            ant.epochs(6, 6000),
+            (
+                (600.0 * 0.6f32.powi(5)).round() as usize,
+                (800.0 * 0.7f32.powi(5)).round() as usize
+            )
+        );
+        // A short exploration episode does not make the first planned one count twice.
+        assert_eq!(ant.epochs(2, 2000), (360, 560));
+        // The floor.
+        assert_eq!(ant.epochs(40, 40_000), (5, 5));
+        // No decay before the data outgrow the exploration episodes' time limits.
+        assert_eq!(ant.epochs(4, 400), (600, 800));
     }
 
     #[test]
