@@ -483,8 +483,9 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
                     .await;
                 assert!(
                     served >= 4,
-                    "{}: not served during the partition",
-                    agent.client.run
+                    "{}: not served during the partition\n{}",
+                    agent.client.run,
+                    ownership_lines(&planners)
                 );
             }
             rounds += 1;
@@ -498,8 +499,9 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
                 .await;
             assert!(
                 served >= 4,
-                "{}: not served after the partition",
-                agent.client.run
+                "{}: not served after the partition\n{}",
+                agent.client.run,
+                ownership_lines(&planners)
             );
         }
         let after = hosted(&session, &["pa", "pb", "pc"]).await;
@@ -518,6 +520,28 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
         ledger.check_one_owner_at_a_time();
         ledger.check_replay(data, run, "a");
     }
+}
+
+/// Each planner's log lines about taking, holding and leaving runs and about its lease: what
+/// a failed partition test needs to tell a run taken from its holder from a lease that lapsed.
+fn ownership_lines(planners: &[Guarded]) -> String {
+    planners
+        .iter()
+        .enumerate()
+        .map(|(i, planner)| {
+            let log = planner.log();
+            let lines: Vec<&str> = log
+                .lines()
+                .filter(|l| {
+                    ["took the run", "stepped down", "lease"]
+                        .iter()
+                        .any(|needle| l.contains(needle))
+                })
+                .collect();
+            format!("planner {i}:\n{}", lines.join("\n"))
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
 }
 
 /// The resident memory of process `pid`, in KiB.
