@@ -1,9 +1,9 @@
 //! Retraining a run's models on its whole replay buffer (paper §2, Figure 1).
 //!
 //! Training starts from the current weights (the buffer only grows between two retrainings)
-//! with the epochs the preset's schedule gives for the stored episodes and transitions, within the
-//! run's budget: the preset's cap on gradient steps, the daemon's seconds per retraining, and
-//! a cancel flag the daemon raises when it stops. A retraining whose losses or parameters are
+//! with the epochs the preset's schedule gives for the stored episodes and transitions,
+//! within the run's budget: the preset's cap on gradient steps, the daemon's seconds per
+//! retraining, and a cancel flag the daemon raises when it stops. A retraining whose losses or parameters are
 //! not all finite is discarded: the caller keeps serving the previous models.
 
 use crate::config::Preset;
