@@ -8,6 +8,7 @@
 
 use crate::client::{Answer, Client, ToySystem};
 use crate::config::{PlannerConfig, Sizes};
+use crate::transitions::{TransitionKey, stored_keys, transition_key};
 use crate::{Planner, free_endpoint};
 use anyhow::{Context, Result, bail};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
@@ -64,19 +65,10 @@ fn config() -> String {
         .toml()
 }
 
-/// A transition's exact bits, to find it again in the log.
-fn key(obs: &[f32], act: &[f32], next: &[f32]) -> Vec<u32> {
-    obs.iter()
-        .chain(act)
-        .chain(next)
-        .map(|x| x.to_bits())
-        .collect()
-}
-
 /// What the agent knows.
 #[derive(Default)]
 struct Ledger {
-    acknowledged: HashSet<Vec<u32>>,
+    acknowledged: HashSet<TransitionKey>,
     /// Episodes started; `true` once their end was sent and the next episode's first action
     /// acknowledged it.
     episodes: BTreeMap<u32, bool>,
@@ -134,13 +126,7 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
     let mut planner = Planner::start_on(dir, &config(), &endpoint)?;
     planner.stop()?;
     let buffer = planner.replay(RUN, Builtin::Cartpole)?;
-    let stored = buffer.transitions();
-    let in_log: HashSet<Vec<u32>> = (0..stored.len())
-        .map(|r| {
-            let (o, a, n) = stored.row(r);
-            key(o, a, n)
-        })
-        .collect();
+    let in_log = stored_keys(&buffer);
     let lost = ledger
         .acknowledged
         .iter()
@@ -165,7 +151,7 @@ pub fn kill_loop(dir: &Path, kills: usize, seed: u64) -> Result<KillLoopReport> 
         kills,
         acknowledged: ledger.acknowledged.len(),
         lost,
-        stored: stored.len(),
+        stored: buffer.len(),
         episodes_started: ledger.episodes.len(),
         episodes_finished: finished,
         episodes_interrupted: interrupted,
@@ -201,7 +187,7 @@ async fn play_until_killed(
 ) -> Result<()> {
     // The episode whose end was sent, with its last transition: both are acknowledged by the
     // next episode's first action (one worker per agent stores them before taking that step).
-    let mut ending: Option<(u32, Vec<u32>)> = None;
+    let mut ending: Option<(u32, TransitionKey)> = None;
     loop {
         let mut obs = system.state.to_vec();
         let Some(mut action) = answer(
@@ -231,14 +217,16 @@ async fn play_until_killed(
                         end,
                     ))
                     .await?;
-                ending = Some((episode, key(&obs, &action, &next)));
+                ending = Some((episode, transition_key(&obs, &action, &next)));
                 break;
             }
             let msg = Observation::new(episode, step, next.clone(), Some(reward), None);
             let Some(next_action) = answer(client, &msg, killed).await? else {
                 return Ok(());
             };
-            ledger.acknowledged.insert(key(&obs, &action, &next));
+            ledger
+                .acknowledged
+                .insert(transition_key(&obs, &action, &next));
             ledger.episodes.entry(episode).or_insert(false);
             obs = next;
             action = next_action;

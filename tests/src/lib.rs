@@ -4,8 +4,8 @@
 //! temporary directory. Its modules speak for the other parties: [`config`] writes a test
 //! planner's configuration, [`bridge`] runs sim-bridge and reads its episodes, [`client`] is a
 //! scripted agent, [`etcd`] runs a real etcd for a fleet, [`proxy`] is a TCP link a test can
-//! cut, and [`python`] runs the Python package's tests, its example controller and its
-//! Gymnasium driver.
+//! cut, [`python`] runs the Python package's tests, its example controller and its Gymnasium
+//! driver, and [`transitions`] compares acknowledged transitions with stored ones bit for bit.
 
 pub mod bridge;
 pub mod client;
@@ -15,6 +15,7 @@ pub mod fleet;
 pub mod kill_loop;
 pub mod proxy;
 pub mod python;
+pub mod transitions;
 
 use anyhow::{Context, Result, bail};
 use planner_service::replay::ReplayBuffer;

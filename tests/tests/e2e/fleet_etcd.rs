@@ -24,6 +24,7 @@ use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::fleet::Fleet;
 use ebmpc_e2e::proxy::Proxy;
+use ebmpc_e2e::transitions::{TransitionKey, stored_keys, transition_key};
 use planner_service::config::Preset;
 use planner_service::models::Models;
 use planner_service::persist::{CheckpointId, PersistError, RunDir};
@@ -70,21 +71,12 @@ fn run_path(data: &Path, run: &str) -> PathBuf {
     data.join("runs").join(run)
 }
 
-/// A transition's exact bits.
-fn key(obs: &[f32], act: &[f32], next: &[f32]) -> Vec<u32> {
-    obs.iter()
-        .chain(act)
-        .chain(next)
-        .map(|x| x.to_bits())
-        .collect()
-}
-
 /// What an agent was told, to check the replay and the fencing against.
 #[derive(Default)]
 struct Ledger {
-    acknowledged: HashSet<Vec<u32>>,
+    acknowledged: HashSet<TransitionKey>,
     /// The acknowledged transitions of each episode.
-    by_episode: BTreeMap<u32, HashSet<Vec<u32>>>,
+    by_episode: BTreeMap<u32, HashSet<TransitionKey>>,
     /// Episodes started; `true` once their end was acknowledged.
     episodes: BTreeMap<u32, bool>,
     /// Every action received, with its fencing token, in the order received.
@@ -113,12 +105,7 @@ impl Ledger {
     fn check_replay(&self, data: &Path, run: &str, agent: &str) -> usize {
         let buffer = ReplayBuffer::read(&run_path(data, run), Builtin::Cartpole.task())
             .expect("the replay reads");
-        let stored: HashSet<Vec<u32>> = (0..buffer.len())
-            .map(|i| {
-                let (o, a, n) = buffer.transitions().row(i);
-                key(o, a, n)
-            })
-            .collect();
+        let stored = stored_keys(&buffer);
         let lost = self
             .acknowledged
             .iter()
@@ -159,7 +146,7 @@ struct Agent {
     episode: u32,
     /// The episode whose end was sent and its last transition, acknowledged by the next
     /// episode's first action.
-    ending: Option<(u32, Vec<u32>)>,
+    ending: Option<(u32, TransitionKey)>,
 }
 
 impl Agent {
@@ -246,7 +233,7 @@ impl Agent {
                     let end = Some(EpisodeEnd::TimeLimit);
                     let msg = Observation::new(self.episode, step, next.clone(), Some(reward), end);
                     self.client.send(&msg).await.unwrap();
-                    self.ending = Some((self.episode, key(&obs, &action, &next)));
+                    self.ending = Some((self.episode, transition_key(&obs, &action, &next)));
                     break;
                 }
                 let msg = Observation::new(self.episode, step, next.clone(), Some(reward), None);
@@ -256,12 +243,14 @@ impl Agent {
                     return actions;
                 };
                 actions += 1;
-                ledger.acknowledged.insert(key(&obs, &action, &next));
+                ledger
+                    .acknowledged
+                    .insert(transition_key(&obs, &action, &next));
                 ledger
                     .by_episode
                     .entry(self.episode)
                     .or_default()
-                    .insert(key(&obs, &action, &next));
+                    .insert(transition_key(&obs, &action, &next));
                 ledger.episodes.entry(self.episode).or_insert(false);
                 obs = next;
                 action = next_action;
@@ -951,12 +940,7 @@ fn compaction_across_takeovers_keeps_the_newest_episodes_and_bounds_the_replay()
     ledger.check_one_owner_at_a_time();
     let root = run_path(data, run);
     let stored = ReplayBuffer::read(&root, Builtin::Cartpole.task()).unwrap();
-    let held: HashSet<Vec<u32>> = (0..stored.len())
-        .map(|i| {
-            let (o, a, n) = stored.transitions().row(i);
-            key(o, a, n)
-        })
-        .collect();
+    let held = stored_keys(&stored);
     for (&episode, &ended) in &ledger.episodes {
         let records: Vec<_> = stored
             .episodes()

@@ -14,6 +14,7 @@
 use ebmpc_e2e::client::{Answer, Client, ToySystem, open_session, status};
 use ebmpc_e2e::config::{PlannerConfig, Sizes};
 use ebmpc_e2e::fleet::Fleet;
+use ebmpc_e2e::transitions::{stored_keys, transition_key};
 use ebmpc_e2e::{Guarded, status_cli};
 use planner_service::replay::{ActionOrigin, Record, ReplayBuffer, TransitionRecord};
 use proto::{Builtin, EpisodeEnd, Observation, RunSpec, TrainMode};
@@ -341,18 +342,12 @@ fn a_fleet_keeps_one_owner_per_run_and_hands_runs_over_when_one_dies() {
             let run = format!("run-{r}");
             let path = data.join("runs").join(&run);
             let buffer = ReplayBuffer::read(&path, Builtin::Cartpole.task()).unwrap();
-            let stored: HashSet<Vec<u32>> = (0..buffer.len())
-                .map(|i| {
-                    let (o, a, n) = buffer.transitions().row(i);
-                    o.iter().chain(a).chain(n).map(|x| x.to_bits()).collect()
-                })
-                .collect();
+            let stored = stored_keys(&buffer);
             let mut acked = 0;
             for agent in agents.iter().filter(|a| a.client.run == run) {
                 for (_, o, a, n) in &agent.acked {
-                    let key: Vec<u32> = o.iter().chain(a).chain(n).map(|x| x.to_bits()).collect();
                     assert!(
-                        stored.contains(&key),
+                        stored.contains(&transition_key(o, a, n)),
                         "{run}/{}: an acknowledged transition is missing",
                         agent.client.agent
                     );
