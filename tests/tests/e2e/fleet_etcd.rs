@@ -467,15 +467,7 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
         let mut rounds = 0;
         while partition.elapsed() < Duration::from_secs(3 * TTL_SECONDS) {
             for (agent, ledger) in agents.iter_mut().zip(&mut ledgers) {
-                let served = agent
-                    .play(ledger, Duration::from_secs(20), |n| n >= 4)
-                    .await;
-                assert!(
-                    served >= 4,
-                    "{}: not served during the partition\n{}",
-                    agent.client.run,
-                    ownership_lines(&planners)
-                );
+                four_steps_served(agent, ledger, "during the partition", &planners).await;
             }
             rounds += 1;
         }
@@ -483,15 +475,7 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
         link.heal();
         tokio::time::sleep(Duration::from_secs(TTL_SECONDS)).await;
         for (agent, ledger) in agents.iter_mut().zip(&mut ledgers) {
-            let served = agent
-                .play(ledger, Duration::from_secs(20), |n| n >= 4)
-                .await;
-            assert!(
-                served >= 4,
-                "{}: not served after the partition\n{}",
-                agent.client.run,
-                ownership_lines(&planners)
-            );
+            four_steps_served(agent, ledger, "after the partition", &planners).await;
         }
         let after = hosted(&session, &["pa", "pb", "pc"]).await;
         assert_eq!(before, after, "runs moved: {before:?} -> {after:?}");
@@ -513,6 +497,27 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
 
 /// Each planner's log lines about taking, holding and leaving runs and about its lease: what
 /// a failed partition test needs to tell a run taken from its holder from a lease that lapsed.
+/// Plays four steps of `agent`'s run and fails, naming `when` and every planner's ownership
+/// log, if they are not all answered within 20 s.
+async fn four_steps_served(
+    agent: &mut Agent,
+    ledger: &mut Ledger,
+    when: &str,
+    planners: &[Guarded],
+) {
+    let served = agent
+        .play(ledger, Duration::from_secs(20), |n| n >= 4)
+        .await;
+    assert!(
+        served >= 4,
+        "{}: not served {when}\n{}",
+        agent.client.run,
+        ownership_lines(planners)
+    );
+}
+
+/// The lines of each planner's log that speak of ownership (runs taken, stepped down, the
+/// lease), for a failure message.
 fn ownership_lines(planners: &[Guarded]) -> String {
     planners
         .iter()
