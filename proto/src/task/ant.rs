@@ -48,7 +48,6 @@ fn reward(_obs: &[f32], act: &[f32], next_obs: &[f32]) -> f32 {
     next_obs[FORWARD_VELOCITY] - 0.5 * squared_norm(act) + 1.0
 }
 
-/// The torso left the healthy height range: the ant fell (or jumped off).
 /// [`reward`] and its gradient: 1 for the forward velocity, `−a` for the action.
 fn reward_gradient(
     obs: &[f32],
@@ -63,6 +62,7 @@ fn reward_gradient(
     reward(obs, act, next_obs)
 }
 
+/// The torso left the healthy height range: the ant fell (or jumped off).
 fn is_terminal(next_obs: &[f32]) -> bool {
     let z = next_obs[TORSO_HEIGHT];
     !(HEALTHY_HEIGHT.0..=HEALTHY_HEIGHT.1).contains(&z)
