@@ -1,6 +1,7 @@
 //! Transitions compared bit for bit: what an agent was acknowledged against what a planner
-//! stored in its replay. Equality of the exact `f32` bits, not of values, so that a transition
-//! stored twice, or altered on its way to the log, cannot pass for the one acknowledged.
+//! stored in its replay. The exact `f32` bits, not the values: a transition changed on its way
+//! to the log by as little as a rounding cannot pass for the one acknowledged, and the keys can
+//! be hashed (a NaN still equals itself).
 
 use planner_service::replay::ReplayBuffer;
 use std::collections::HashSet;
