@@ -243,14 +243,13 @@ impl Agent {
                     return actions;
                 };
                 actions += 1;
-                ledger
-                    .acknowledged
-                    .insert(transition_key(&obs, &action, &next));
+                let key = transition_key(&obs, &action, &next);
+                ledger.acknowledged.insert(key.clone());
                 ledger
                     .by_episode
                     .entry(self.episode)
                     .or_default()
-                    .insert(transition_key(&obs, &action, &next));
+                    .insert(key);
                 ledger.episodes.entry(self.episode).or_insert(false);
                 obs = next;
                 action = next_action;
