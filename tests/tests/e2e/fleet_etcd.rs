@@ -53,12 +53,23 @@ fn spec() -> RunSpec {
     }
 }
 
+/// The lease of the router-cut test's planners: long enough that no owner's lease lapses
+/// under a loaded CI machine while the test holds the partition (a lapsed lease would let the
+/// cut-off planner take that run legitimately, and its agent, behind the router, would go
+/// unserved). The test is about etcd naming the owners, not about how fast runs move.
+const PARTITION_TTL_SECONDS: u64 = 10;
+
 /// A fleet planner's configuration: connects to `router` only, owns through `etcd`.
 fn config(id: &str, router: &str, etcd: &str) -> String {
+    leased_config(id, router, etcd, TTL_SECONDS)
+}
+
+/// [`config`] with a lease of `ttl_seconds`.
+fn leased_config(id: &str, router: &str, etcd: &str, ttl_seconds: u64) -> String {
     PlannerConfig::new(id, Sizes::TINY)
         .exploration_episodes(2)
         .line(format!("connect = [\"{router}\"]"))
-        .in_fleet(etcd, TTL_SECONDS)
+        .in_fleet(etcd, ttl_seconds)
         .toml()
 }
 
@@ -440,7 +451,13 @@ fn a_planner_cut_off_from_etcd_stops_acknowledging_and_its_run_moves() {
 fn a_planner_cut_off_from_the_router_takes_no_run() {
     let fleet = Fleet::start("fleet-router-cut");
     let (data, etcd, endpoint, rt) = (&fleet.data, &fleet.etcd, &fleet.endpoint, &fleet.rt);
-    let mut planners: Vec<Guarded> = ["pa", "pb"].iter().map(|id| start(&fleet, id)).collect();
+    let planner = |id: &str, router: &str| {
+        fleet.planner(
+            id,
+            &leased_config(id, router, &etcd.endpoint, PARTITION_TTL_SECONDS),
+        )
+    };
+    let mut planners: Vec<Guarded> = vec![planner("pa", endpoint), planner("pb", endpoint)];
     let runs = ["r0", "r1", "r2", "r3"];
     let upstream = endpoint.trim_start_matches("tcp/").parse().unwrap();
     let link = Proxy::start(upstream).unwrap();
@@ -459,11 +476,12 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
         assert_eq!(before.len(), runs.len(), "{before:?}");
         // pc joins through the link, then the link is cut while every agent keeps stepping.
         let through = format!("tcp/127.0.0.1:{}", link.port);
-        planners.push(fleet.planner("pc", &config("pc", &through, &etcd.endpoint)));
+        planners.push(planner("pc", &through));
         tokio::time::sleep(Duration::from_secs(1)).await;
         link.cut();
         let partition = Instant::now();
         let mut rounds = 0;
+        // As long as three of the other tests' leases: time for pc to try many times.
         while partition.elapsed() < Duration::from_secs(3 * TTL_SECONDS) {
             for (agent, ledger) in agents.iter_mut().zip(&mut ledgers) {
                 four_steps_served(agent, ledger, "during the partition", &planners).await;
@@ -494,8 +512,6 @@ fn a_planner_cut_off_from_the_router_takes_no_run() {
     }
 }
 
-/// Each planner's log lines about taking, holding and leaving runs and about its lease: what
-/// a failed partition test needs to tell a run taken from its holder from a lease that lapsed.
 /// Plays four steps of `agent`'s run and fails, naming `when` and every planner's ownership
 /// log, if they are not all answered within 20 s.
 async fn four_steps_served(
@@ -516,7 +532,8 @@ async fn four_steps_served(
 }
 
 /// The lines of each planner's log that speak of ownership (runs taken, stepped down, the
-/// lease), for a failure message.
+/// lease), for a failure message: what tells a run taken from its holder from a lease that
+/// lapsed.
 fn ownership_lines(planners: &[Guarded]) -> String {
     planners
         .iter()
