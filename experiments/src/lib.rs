@@ -9,6 +9,8 @@
 //! - [`figures`]: the paper's Figure 3 (DEEN vs DAE on a 1-D mixture) and Figure 5
 //!   (imagination against reality), computed in-process with the planner's library and the
 //!   simulator's [`sim_bridge::Env`].
+//! - [`run_ledger`]: every run of a folder, one row each: its planned episodes' returns, and
+//!   where it ran (CPUs, kernels, binaries, dates), from the run files and records.
 //! - [`compare`]: whether one method beats another at an episode, per method and seed-paired,
 //!   with Student-t intervals over seeds.
 //! - [`distance`]: how far a locomotion task's body travelled per episode, from the stored
@@ -37,5 +39,6 @@ pub mod queue;
 pub mod replan;
 pub mod results;
 pub mod resume_state;
+pub mod run_ledger;
 pub mod scale;
 pub mod stored_run;

@@ -10,7 +10,7 @@ use ebmpc_experiments::figures::{imagination, toy};
 use ebmpc_experiments::launcher::{self, Experiment};
 use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
 use ebmpc_experiments::scale::Scale;
-use ebmpc_experiments::{compare, distance, model_error, provenance, replan, results};
+use ebmpc_experiments::{compare, distance, model_error, provenance, replan, results, run_ledger};
 use proto::Builtin;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -46,6 +46,11 @@ enum Command {
     /// with a Student-t interval, and every pair's seed-paired difference with its interval
     /// (the methods of an experiment share each seed's random exploration).
     Compare(CompareArgs),
+    /// Every run of an experiment folder, one Markdown row each: its planned episodes'
+    /// returns in the order recorded (finished or under way), or with --provenance where it
+    /// ran: the CPUs, kernel paths, binaries and dates its records list, and its planning time
+    /// per step.
+    Runs(RunsArgs),
     /// How far the body travelled forward in each episode of a locomotion experiment's runs
     /// (half-cheetah, ant), read from the planner's stored replay logs: a return mixes
     /// progress with survival bonuses and control costs, the distance does not.
@@ -169,6 +174,15 @@ struct CompareArgs {
     /// Confidence level of the intervals, between 0 and 1.
     #[arg(long, default_value_t = 0.95, value_parser = confidence_level)]
     level: f64,
+}
+
+#[derive(Args, Debug)]
+struct RunsArgs {
+    /// The experiment folder (the one holding experiment.json and runs/).
+    folder: PathBuf,
+    /// Print where each run ran instead of its returns.
+    #[arg(long)]
+    provenance: bool,
 }
 
 /// A confidence level strictly between 0 and 1.
@@ -491,6 +505,16 @@ fn table_command(args: TableArgs) -> Result<()> {
     Ok(())
 }
 
+fn runs_command(args: RunsArgs) -> Result<()> {
+    let (manifest, runs) = run_ledger::read_folder(&args.folder)?;
+    if args.provenance {
+        print!("{}", run_ledger::provenance_markdown(&runs));
+    } else {
+        print!("{}", run_ledger::returns_markdown(&manifest, &runs));
+    }
+    Ok(())
+}
+
 fn compare_command(args: CompareArgs) -> Result<()> {
     let rows = read_experiments(&args.paths)?;
     let comparison = compare::compare(&rows, args.episode, args.level);
@@ -674,6 +698,7 @@ fn main() -> Result<()> {
         Command::Plot(args) => plot_command(args),
         Command::Table(args) => table_command(args),
         Command::Compare(args) => compare_command(args),
+        Command::Runs(args) => runs_command(args),
         Command::Distance(args) => distance_command(args),
         Command::Imagination(args) => imagination_command(args),
         Command::Toy(args) => toy_command(args),
