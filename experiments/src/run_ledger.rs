@@ -149,8 +149,8 @@ fn record_sittings(path: &Path) -> Result<(Vec<Sitting>, bool), LedgerError> {
     Ok((vec![sitting], false))
 }
 
-/// A return as the results pages print it: rounded, thousands separated, with a minus sign.
-pub fn format_return(value: f64) -> String {
+/// A number as the results pages print it: rounded, thousands separated, with a minus sign.
+pub fn grouped(value: f64) -> String {
     let rounded = value.round();
     let digits = format!("{:.0}", rounded.abs());
     let mut grouped = String::with_capacity(digits.len() + digits.len() / 3);
@@ -187,7 +187,7 @@ pub fn returns_markdown(manifest: &Manifest, runs: &[LedgerRun]) -> String {
             .episodes
             .iter()
             .filter(|e| e.planned_steps > 0)
-            .map(|e| format_return(e.episode_return))
+            .map(|e| grouped(e.episode_return))
             .collect();
         let mut cell = planned.join(", ");
         if run.state == RunState::Finished
@@ -257,7 +257,12 @@ fn planning_cell(run: &LedgerRun) -> String {
     let least = times.iter().copied().fold(f64::INFINITY, f64::min);
     let most = times.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     match results::median(times) {
-        Some(median) => format!("{least:.0} / {median:.0} / {most:.0}"),
+        Some(median) => format!(
+            "{} / {} / {}",
+            grouped(least),
+            grouped(median),
+            grouped(most)
+        ),
         None => "—".into(),
     }
 }
@@ -502,11 +507,11 @@ mod tests {
 
     #[test]
     fn returns_are_rounded_grouped_and_signed() {
-        assert_eq!(format_return(0.4), "0");
-        assert_eq!(format_return(999.5), "1,000");
-        assert_eq!(format_return(-1234567.0), "−1,234,567");
-        assert_eq!(format_return(-0.4), "0");
-        assert_eq!(format_return(123.0), "123");
+        assert_eq!(grouped(0.4), "0");
+        assert_eq!(grouped(999.5), "1,000");
+        assert_eq!(grouped(-1234567.0), "−1,234,567");
+        assert_eq!(grouped(-0.4), "0");
+        assert_eq!(grouped(123.0), "123");
     }
 
     #[test]
