@@ -38,7 +38,7 @@ use crate::config::{FleetConfig, Pins};
 use crate::persist::{PersistError, RunDir};
 use proto::Keys;
 use serde::{Deserialize, Serialize};
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::sync::Notify;
@@ -144,6 +144,49 @@ struct Held {
     lease: Option<i64>,
 }
 
+/// A run in [`Fleet::take`]: listed in the fleet's `taking` set from before its owner key is
+/// created until it is held, or until the take fails (dropped on every path out).
+struct Taking<'a> {
+    set: &'a Mutex<HashSet<String>>,
+    run: String,
+}
+
+impl<'a> Taking<'a> {
+    fn start(set: &'a Mutex<HashSet<String>>, run: &str) -> Self {
+        set.lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(run.to_string());
+        Self {
+            set,
+            run: run.to_string(),
+        }
+    }
+}
+
+impl Drop for Taking<'_> {
+    fn drop(&mut self) {
+        self.set
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(&self.run);
+    }
+}
+
+/// The owner keys etcd lists for this planner (`owned`: run and token) that it neither holds
+/// at that token nor is taking over right now: left behind by a release that failed.
+fn strays(
+    owned: Vec<(String, u64)>,
+    held: &HashMap<String, Held>,
+    taking: &HashSet<String>,
+) -> Vec<(String, u64)> {
+    owned
+        .into_iter()
+        .filter(|(run, token)| {
+            !taking.contains(run) && held.get(run).is_none_or(|h| h.token != *token)
+        })
+        .collect()
+}
+
 /// This planner's membership of the fleet.
 pub struct Fleet {
     me: String,
@@ -154,6 +197,10 @@ pub struct Fleet {
     view: Mutex<View>,
     /// The runs this planner holds.
     held: Mutex<HashMap<String, Held>>,
+    /// The runs this planner is taking over now: their owner key exists in etcd from the
+    /// moment its create succeeds, before the token is on disk and the run in `held`, and
+    /// [`Fleet::release_strays`] must not take it for one a failed release left behind.
+    taking: Mutex<HashSet<String>>,
     events: Mutex<VecDeque<FleetEvent>>,
     /// Runs whose owner found itself fenced; the service steps down from them.
     fenced: Mutex<Vec<String>>,
@@ -189,6 +236,7 @@ impl Fleet {
             etcd,
             view: Mutex::new(view),
             held: Mutex::new(HashMap::new()),
+            taking: Mutex::new(HashSet::new()),
             events: Mutex::new(VecDeque::new()),
             fenced: Mutex::new(Vec::new()),
             changed: Arc::new(Notify::new()),
@@ -495,6 +543,7 @@ impl Fleet {
     /// [`FleetError::is_contended`] when another planner holds the run; others when etcd or
     /// the disk fail.
     pub async fn take(&self, run: &str, dir: &RunDir) -> Result<u64, FleetError> {
+        let mut taking = None;
         let on_disk = dir.clone();
         let seen = blocking(move || on_disk.current_epoch()).await?;
         let previous = dir.epoch_holder(seen);
@@ -506,6 +555,7 @@ impl Fleet {
             }
             Some(etcd) => {
                 let lease = etcd.valid_lease().ok_or(EtcdError::NoLease)?;
+                taking = Some(Taking::start(&self.taking, run));
                 let token = etcd.take(run, seen).await?;
                 let (on_disk, me) = (dir.clone(), self.me.clone());
                 if let Err(e) = blocking(move || on_disk.record_token(token, &me)).await {
@@ -517,8 +567,11 @@ impl Fleet {
                 (token, Some(lease))
             }
         };
-        self.lock_held()
-            .insert(run.to_string(), Held { token, lease });
+        {
+            let mut held = self.lock_held();
+            held.insert(run.to_string(), Held { token, lease });
+            drop(taking);
+        }
         tracing::info!(%run, token, previous = ?previous, "took the run");
         self.event(FleetEventKind::Took {
             run: run.to_string(),
@@ -584,12 +637,12 @@ impl Fleet {
         let Some(lease) = etcd.valid_lease() else {
             return;
         };
-        let strays: Vec<(String, u64)> = {
+        let strays = {
+            // `held` before `taking`: a take moves its run from one to the other only with
+            // `held` locked, so no run is seen in neither while it is being taken.
             let held = self.lock_held();
-            etcd.owned_by(&self.me, lease)
-                .into_iter()
-                .filter(|(run, token)| held.get(run).is_none_or(|h| h.token != *token))
-                .collect()
+            let taking = self.taking.lock().unwrap_or_else(PoisonError::into_inner);
+            strays(etcd.owned_by(&self.me, lease), &held, &taking)
         };
         for (run, token) in strays {
             tracing::info!(%run, token, "releasing an owner key this planner does not serve");
@@ -645,5 +698,66 @@ async fn blocking<T: Send + 'static>(
     match tokio::task::spawn_blocking(work).await {
         Ok(result) => Ok(result?),
         Err(e) => Err(FleetError::Task(e.to_string())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn held(entries: &[(&str, u64)]) -> HashMap<String, Held> {
+        entries
+            .iter()
+            .map(|(run, token)| {
+                let held = Held {
+                    token: *token,
+                    lease: Some(7),
+                };
+                (run.to_string(), held)
+            })
+            .collect()
+    }
+
+    fn owned(entries: &[(&str, u64)]) -> Vec<(String, u64)> {
+        entries.iter().map(|(r, t)| (r.to_string(), *t)).collect()
+    }
+
+    #[test]
+    fn a_key_left_by_a_failed_release_is_a_stray() {
+        let strays = strays(
+            owned(&[("run-0", 4), ("run-1", 5)]),
+            &held(&[("run-0", 4)]),
+            &HashSet::new(),
+        );
+        assert_eq!(strays, owned(&[("run-1", 5)]));
+    }
+
+    #[test]
+    fn a_key_at_an_older_token_than_the_one_held_is_a_stray() {
+        let strays = strays(
+            owned(&[("run-0", 3)]),
+            &held(&[("run-0", 4)]),
+            &HashSet::new(),
+        );
+        assert_eq!(strays, owned(&[("run-0", 3)]));
+    }
+
+    /// The owner key of a run being taken exists before the run is held: releasing it then
+    /// would let another planner take the run from under the one that is opening it.
+    #[test]
+    fn a_run_being_taken_is_no_stray() {
+        let taking = HashSet::from(["run-2".to_string()]);
+        let strays = strays(owned(&[("run-2", 4)]), &held(&[]), &taking);
+        assert!(strays.is_empty(), "{strays:?}");
+    }
+
+    #[test]
+    fn taking_lists_the_run_until_dropped() {
+        let set = Mutex::new(HashSet::new());
+        {
+            let _taking = Taking::start(&set, "run-2");
+            assert!(set.lock().unwrap().contains("run-2"));
+        }
+        assert!(set.lock().unwrap().is_empty());
     }
 }
