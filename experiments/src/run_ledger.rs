@@ -183,23 +183,25 @@ pub fn returns_markdown(manifest: &Manifest, runs: &[LedgerRun]) -> String {
         "| run | episodes | planned episodes' returns, in the order recorded |\n|---|---|---|\n",
     );
     for run in runs {
-        let planned: Vec<String> = run
+        let planned: Vec<&EpisodeRow> = run
             .episodes
             .iter()
             .filter(|e| e.planned_steps > 0)
-            .map(|e| grouped(e.episode_return))
             .collect();
-        let mut cell = planned.join(", ");
-        if run.state == RunState::Finished
-            && let Some(last) = planned.last()
-        {
-            let head = &planned[..planned.len() - 1];
-            cell = if head.is_empty() {
-                format!("**{last}**")
-            } else {
-                format!("{}, **{last}**", head.join(", "))
-            };
-        }
+        let cell = planned
+            .iter()
+            .enumerate()
+            .map(|(i, e)| {
+                let value = grouped(e.episode_return);
+                let last = i + 1 == planned.len();
+                if last && run.state == RunState::Finished {
+                    format!("**{value}**")
+                } else {
+                    value
+                }
+            })
+            .collect::<Vec<_>>()
+            .join(", ");
         let _ = writeln!(
             out,
             "| `{}` seed {} | {} | {} |",
