@@ -165,18 +165,14 @@ impl RunId {
             .join(format!("{}.sittings.json", self.stem()))
     }
 
-    /// Where the run's sittings are kept: its record once it is finished, else its sittings
-    /// file.
-    fn sittings(&self, dir: &Path) -> Vec<Sitting> {
-        let file = if self.record_json(dir).exists() {
+    /// Where the run's sittings are kept ([`provenance::read_sittings`]): its record once it
+    /// is finished, else its sittings file.
+    pub fn sittings_file(&self, dir: &Path) -> PathBuf {
+        if self.record_json(dir).exists() {
             self.record_json(dir)
         } else {
             self.sittings_json(dir)
-        };
-        provenance::read_sittings(&file).unwrap_or_else(|e| {
-            tracing::warn!(run = %self.stem(), "{}: {e}", file.display());
-            Vec::new()
-        })
+        }
     }
 
     /// The unfinished run's packed resumable state.
@@ -309,8 +305,13 @@ fn recorded_rows(
     let task = manifest.task.name();
     let (mut all, mut here) = (Vec::new(), Vec::new());
     for (run, _) in runs(dir, manifest) {
-        let recorded_here: BTreeSet<u32> = run
-            .sittings(dir)
+        let file = run.sittings_file(dir);
+        let sittings = provenance::read_sittings(&file).unwrap_or_else(|e| {
+            tracing::warn!(run = %run.stem(), "{}: {e}", file.display());
+            provenance::KeptSittings::default()
+        });
+        let recorded_here: BTreeSet<u32> = sittings
+            .sittings
             .into_iter()
             .filter(|s| s.machine.same_cpu(machine))
             .flat_map(|s| s.episodes)
@@ -686,7 +687,8 @@ fn write_record(exp: &Experiment, manifest: &Manifest, run: &RunId) -> Result<()
         steps: rows.iter().map(|r| u64::from(r.steps)).sum(),
         spec,
         sittings: provenance::read_sittings(&sittings_json)
-            .with_context(|| format!("reading {}", sittings_json.display()))?,
+            .with_context(|| format!("reading {}", sittings_json.display()))?
+            .sittings,
         finished: provenance::utc_now(),
         episode_wall_seconds: rows.iter().map(|r| r.wall_seconds).sum(),
     };

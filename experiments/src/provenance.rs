@@ -222,31 +222,72 @@ pub struct Sitting {
     pub episodes: Vec<u32>,
 }
 
-/// The sittings kept in `path`, oldest first: an unfinished run's `runs/<stem>.sittings.json`,
-/// or a finished run's record (its `sittings`). None when the file does not exist, or is a
-/// record written before records kept their sittings.
-pub fn read_sittings(path: &Path) -> std::io::Result<Vec<Sitting>> {
+/// The sittings one run's file keeps, oldest first, and whether they are all of them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct KeptSittings {
+    pub sittings: Vec<Sitting>,
+    /// False for a record written before records kept every sitting: its one sitting is the
+    /// one that finished the run, and the episode numbers it recorded are not known.
+    pub complete: bool,
+}
+
+/// The sittings kept in `path`: an unfinished run's `runs/<stem>.sittings.json`, or a finished
+/// run's record (its `sittings`, or for a record older than that field the sitting its
+/// top-level fields describe). None, complete, when the file does not exist yet.
+pub fn read_sittings(path: &Path) -> std::io::Result<KeptSittings> {
+    /// A record written before records kept every sitting: these fields describe the sitting
+    /// that finished the run.
     #[derive(Deserialize)]
-    struct Sittings {
-        #[serde(default)]
-        sittings: Vec<Sitting>,
+    struct OlderRecord {
+        machine: Machine,
+        binaries_commit: String,
+        kernels: Option<RunKernels>,
+        started: String,
+        finished: String,
+        load_at_start: Load,
+        load_at_end: Load,
     }
     let text = match std::fs::read_to_string(path) {
         Ok(text) => text,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Ok(KeptSittings {
+                sittings: Vec::new(),
+                complete: true,
+            });
+        }
         Err(e) => return Err(e),
     };
-    let parsed = match serde_json::from_str::<Vec<Sitting>>(&text) {
-        Ok(list) => list,
-        Err(_) => serde_json::from_str::<Sittings>(&text)?.sittings,
+    let value: serde_json::Value = serde_json::from_str(&text)?;
+    let complete = |sittings| KeptSittings {
+        sittings,
+        complete: true,
     };
-    Ok(parsed)
+    if value.is_array() {
+        return Ok(complete(serde_json::from_value(value)?));
+    }
+    if let Some(list) = value.get("sittings") {
+        return Ok(complete(serde_json::from_value(list.clone())?));
+    }
+    let older: OlderRecord = serde_json::from_value(value)?;
+    Ok(KeptSittings {
+        sittings: vec![Sitting {
+            machine: older.machine,
+            binaries_commit: older.binaries_commit,
+            kernels: older.kernels,
+            started: older.started,
+            ended: older.finished,
+            load_at_start: older.load_at_start,
+            load_at_end: older.load_at_end,
+            episodes: Vec::new(),
+        }],
+        complete: false,
+    })
 }
 
 /// Adds `sitting` to an unfinished run's sittings file `path` (written whole to a temporary
 /// file, then renamed: a crash leaves the old list or the new one).
 pub fn append_sitting(path: &Path, sitting: Sitting) -> std::io::Result<()> {
-    let mut all = read_sittings(path)?;
+    let mut all = read_sittings(path)?.sittings;
     all.push(sitting);
     let text = serde_json::to_string_pretty(&all).map_err(std::io::Error::other)?;
     let tmp = path.with_extension("json.tmp");
@@ -368,7 +409,9 @@ mod tests {
     fn sittings_accumulate_in_their_file_and_are_read_back_from_a_record() {
         let dir = tempfile::tempdir().unwrap();
         let file = dir.path().join("cem-s0.sittings.json");
-        assert_eq!(read_sittings(&file).unwrap(), [], "no file yet: none");
+        let none = read_sittings(&file).unwrap();
+        assert_eq!(none.sittings, [], "no file yet: none");
+        assert!(none.complete);
         let load = Load {
             load_average_1m: 0.5,
             sched_idle: true,
@@ -386,19 +429,37 @@ mod tests {
         append_sitting(&file, sitting(vec![0, 1])).unwrap();
         append_sitting(&file, sitting(vec![2])).unwrap();
         let kept = read_sittings(&file).unwrap();
-        assert_eq!(kept, [sitting(vec![0, 1]), sitting(vec![2])]);
-        // A record holds them under `sittings`; one written before records kept them, none.
+        assert_eq!(kept.sittings, [sitting(vec![0, 1]), sitting(vec![2])]);
+        assert!(kept.complete);
+        // A record holds them under `sittings`.
         let record = dir.path().join("cem-s0.json");
-        let with = serde_json::json!({ "task": "ant", "sittings": kept });
+        let with = serde_json::json!({ "task": "ant", "sittings": kept.sittings });
         std::fs::write(&record, with.to_string()).unwrap();
         assert_eq!(read_sittings(&record).unwrap(), kept);
-        std::fs::write(&record, r#"{"task": "ant", "machine": {}}"#).unwrap();
-        assert_eq!(read_sittings(&record).unwrap(), []);
-        std::fs::write(&record, "[{\"not\": \"a sitting\"}]").unwrap();
-        assert!(
-            read_sittings(&record).is_err(),
-            "a damaged file is an error"
-        );
+        // One written before records kept them describes the finishing sitting at its top
+        // level: that one, with no episode numbers, and not complete.
+        let finishing = sitting(Vec::new());
+        let older = serde_json::json!({
+            "task": "ant",
+            "machine": finishing.machine,
+            "binaries_commit": "abc",
+            "kernels": null,
+            "started": finishing.started,
+            "finished": finishing.ended,
+            "load_at_start": load,
+            "load_at_end": load,
+        });
+        std::fs::write(&record, older.to_string()).unwrap();
+        let read = read_sittings(&record).unwrap();
+        assert_eq!(read.sittings, [finishing]);
+        assert!(!read.complete);
+        for damaged in ["[{\"not\": \"a sitting\"}]", r#"{"task": "ant"}"#, "{"] {
+            std::fs::write(&record, damaged).unwrap();
+            assert!(
+                read_sittings(&record).is_err(),
+                "a damaged file is an error: {damaged}"
+            );
+        }
     }
 
     #[test]

@@ -9,9 +9,8 @@
 
 use crate::launcher::RunId;
 use crate::manifest::{Manifest, ManifestError};
-use crate::provenance::{self, RunRecord, Sitting};
+use crate::provenance::{self, Sitting};
 use crate::results::{self, EpisodeRow, ResultsError};
-use serde::Deserialize;
 use std::collections::BTreeSet;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -80,73 +79,19 @@ pub fn read_folder(dir: &Path) -> Result<(Manifest, Vec<LedgerRun>), LedgerError
             if episodes.is_empty() {
                 continue;
             }
-            let (sittings, sittings_complete) = match state {
-                RunState::Finished => record_sittings(&run.record_json(dir))?,
-                RunState::UnderWay => (read_sittings(&run.sittings_json(dir))?, true),
-            };
+            let file = run.sittings_file(dir);
+            let kept = provenance::read_sittings(&file)
+                .map_err(|source| LedgerError::Record { path: file, source })?;
             runs.push(LedgerRun {
                 run,
                 state,
                 episodes,
-                sittings,
-                sittings_complete,
+                sittings: kept.sittings,
+                sittings_complete: kept.complete,
             });
         }
     }
     Ok((manifest, runs))
-}
-
-fn read_sittings(path: &Path) -> Result<Vec<Sitting>, LedgerError> {
-    provenance::read_sittings(path).map_err(|source| LedgerError::Record {
-        path: path.to_path_buf(),
-        source,
-    })
-}
-
-/// The sittings of a finished run's record. A record written before records kept every
-/// sitting describes, in its top-level fields, only the sitting that finished the run: that one
-/// is returned, marked incomplete. No record at all (a folder copied without it) gives none.
-fn record_sittings(path: &Path) -> Result<(Vec<Sitting>, bool), LedgerError> {
-    /// The fields of such an older record, beside [`RunRecord`]'s.
-    #[derive(Deserialize)]
-    struct OlderRecord {
-        machine: provenance::Machine,
-        binaries_commit: String,
-        kernels: Option<provenance::RunKernels>,
-        started: String,
-        finished: String,
-        load_at_start: provenance::Load,
-        load_at_end: provenance::Load,
-    }
-    let text = match std::fs::read_to_string(path) {
-        Ok(text) => text,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok((Vec::new(), false)),
-        Err(source) => {
-            return Err(LedgerError::Record {
-                path: path.to_path_buf(),
-                source,
-            });
-        }
-    };
-    let parse_error = |e: serde_json::Error| LedgerError::Record {
-        path: path.to_path_buf(),
-        source: std::io::Error::other(e),
-    };
-    if let Ok(record) = serde_json::from_str::<RunRecord>(&text) {
-        return Ok((record.sittings, true));
-    }
-    let older: OlderRecord = serde_json::from_str(&text).map_err(parse_error)?;
-    let sitting = Sitting {
-        machine: older.machine,
-        binaries_commit: older.binaries_commit,
-        kernels: older.kernels,
-        started: older.started,
-        ended: older.finished,
-        load_at_start: older.load_at_start,
-        load_at_end: older.load_at_end,
-        episodes: Vec::new(),
-    };
-    Ok((vec![sitting], false))
 }
 
 /// A number as the results pages print it: rounded, thousands separated, with a minus sign.
@@ -326,7 +271,7 @@ pub fn provenance_markdown(runs: &[LedgerRun]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::provenance::{Load, Machine, RunKernels};
+    use crate::provenance::{Load, Machine, RunKernels, RunRecord};
     use crate::scale::Scale;
     use proto::Builtin;
 
