@@ -9,7 +9,7 @@
 
 use crate::launcher::RunId;
 use crate::manifest::{Manifest, ManifestError};
-use crate::provenance::{self, Sitting};
+use crate::provenance::{self, KeptSittings, Sitting};
 use crate::results::{self, EpisodeRow, ResultsError};
 use std::collections::BTreeSet;
 use std::fmt::Write as _;
@@ -50,10 +50,7 @@ pub struct LedgerRun {
     /// Its recorded episodes, in the order recorded.
     pub episodes: Vec<EpisodeRow>,
     /// The sittings its record or sittings file names, oldest first.
-    pub sittings: Vec<Sitting>,
-    /// False for a record written before records kept every sitting: its one sitting is the
-    /// one that finished the run, and the episode numbers it recorded are not known.
-    pub sittings_complete: bool,
+    pub kept: KeptSittings,
 }
 
 /// Every run the folder's manifest asks for that has recorded at least one episode: methods in
@@ -86,8 +83,7 @@ pub fn read_folder(dir: &Path) -> Result<(Manifest, Vec<LedgerRun>), LedgerError
                 run,
                 state,
                 episodes,
-                sittings: kept.sittings,
-                sittings_complete: kept.complete,
+                kept,
             });
         }
     }
@@ -177,14 +173,14 @@ fn distinct<I: IntoIterator<Item = String>>(items: I) -> String {
 
 /// Which episodes the listed sittings account for.
 fn sittings_cell(run: &LedgerRun) -> String {
-    if run.sittings.is_empty() {
+    if run.kept.sittings.is_empty() {
         return "none recorded".into();
     }
-    if !run.sittings_complete {
+    if !run.kept.complete {
         return "the last only".into();
     }
-    let listed: usize = run.sittings.iter().map(|s| s.episodes.len()).sum();
-    let n = run.sittings.len();
+    let listed: usize = run.kept.sittings.iter().map(|s| s.episodes.len()).sum();
+    let n = run.kept.sittings.len();
     let noun = if n == 1 { "sitting" } else { "sittings" };
     if listed == run.episodes.len() {
         format!("{n} {noun}, every episode")
@@ -236,11 +232,12 @@ pub fn provenance_markdown(runs: &[LedgerRun]) -> String {
     );
     for run in runs {
         let cpus = distinct(
-            run.sittings
+            run.kept
+                .sittings
                 .iter()
                 .map(|s| format!("{} ({})", s.machine.cpu_model, s.machine.cpu_family_model)),
         );
-        let kernels = distinct(run.sittings.iter().filter_map(|s| {
+        let kernels = distinct(run.kept.sittings.iter().filter_map(|s| {
             let k = s.kernels.as_ref()?;
             let paths: BTreeSet<&str> = [&k.dynamics, &k.energy, &k.reward]
                 .into_iter()
@@ -248,7 +245,7 @@ pub fn provenance_markdown(runs: &[LedgerRun]) -> String {
                 .collect();
             Some(paths.into_iter().collect::<Vec<_>>().join(", "))
         }));
-        let binaries = distinct(run.sittings.iter().map(|s| {
+        let binaries = distinct(run.kept.sittings.iter().map(|s| {
             let commit = &s.binaries_commit;
             format!("`{}`", commit.get(..7).unwrap_or(commit))
         }));
@@ -261,7 +258,7 @@ pub fn provenance_markdown(runs: &[LedgerRun]) -> String {
             cpus,
             kernels,
             binaries,
-            dates_cell(&run.sittings),
+            dates_cell(&run.kept.sittings),
             planning_cell(run)
         );
     }
@@ -406,13 +403,13 @@ mod tests {
                 ("cem".into(), 1, RunState::UnderWay),
             ]
         );
-        assert!(runs[0].sittings_complete);
+        assert!(runs[0].kept.complete);
         assert!(
-            !runs[1].sittings_complete,
+            !runs[1].kept.complete,
             "an older record lists its last sitting only"
         );
-        assert_eq!(runs[1].sittings[0].binaries_commit, "ccccccc3333");
-        assert_eq!(runs[2].sittings.len(), 1);
+        assert_eq!(runs[1].kept.sittings[0].binaries_commit, "ccccccc3333");
+        assert_eq!(runs[2].kept.sittings.len(), 1);
     }
 
     #[test]
