@@ -454,6 +454,16 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     )?;
     let machine = Machine::this();
     let commit = provenance::binaries_commit(&exp.bin_dir);
+    if commit == "unknown" {
+        // Said at the start, not found in the records afterwards: a sitting whose binaries'
+        // commit is unknown leaves its episodes without the provenance a result must name.
+        tracing::warn!(
+            bin_dir = %exp.bin_dir.display(),
+            "the binaries' commit is unknown and this sitting's records will say so: write \
+             `git rev-parse HEAD` of the tree they were built from to COMMIT in --bin-dir \
+             (experiments/figure4.sh does)"
+        );
+    }
     let progress = Progress::new(pending.len(), run_length(&manifest));
     let queue = Mutex::new(plan_queue(&exp.out, &manifest, &machine, &pending));
     let failures = Mutex::new(Vec::new());
