@@ -454,7 +454,7 @@ pub fn run(exp: &Experiment, stop: &AtomicBool) -> Result<Vec<EpisodeRow>> {
     )?;
     let machine = Machine::this();
     let commit = provenance::binaries_commit(&exp.bin_dir);
-    if commit == "unknown" {
+    if commit == provenance::UNKNOWN_COMMIT {
         // Said at the start, not found in the records afterwards: a sitting whose binaries'
         // commit is unknown leaves its episodes without the provenance a result must name.
         tracing::warn!(

@@ -173,6 +173,9 @@ impl Load {
     }
 }
 
+/// What [`binaries_commit`] records when it cannot tell the commit.
+pub const UNKNOWN_COMMIT: &str = "unknown";
+
 /// The commit of the binaries in `bin_dir`: its `COMMIT` file (written when release binaries
 /// are copied aside, see `experiments/figure4.sh`), else the commit of the git work tree the
 /// folder lies in, with `-dirty` when that tree has uncommitted changes; `unknown` otherwise.
@@ -199,7 +202,7 @@ pub fn binaries_commit(bin_dir: &Path) -> String {
                 .is_some_and(|s| !s.is_empty());
             if dirty { format!("{head}-dirty") } else { head }
         }
-        _ => "unknown".into(),
+        _ => UNKNOWN_COMMIT.into(),
     }
 }
 
