@@ -2,12 +2,14 @@
 //!
 //! Both activations are smooth (the DEEN loss needs second derivatives). Every operation here
 //! is a [`multiversion!`](super::simd) loop over a slice: one call per layer, branch-free inside.
-//! On AVX-512, training's passes (the activation with its derivatives, [`Activation::apply_d1`]
-//! and [`Activation::apply_d2`]) run [`fastmath512`](super::fastmath512)'s register functions
-//! instead: the same polynomials with fused multiply-adds and a refined reciprocal estimate in
-//! place of the division, which the scalar code spends most of its time on. They agree with the
-//! scalar functions to a few ulps (tested); a cartpole training step spent 8–12 % of its time in
-//! these passes (README, Speed).
+//! On AVX-512 and AVX2, training's passes (the activation with its derivatives,
+//! [`Activation::apply_d1`] and [`Activation::apply_d2`]) run
+//! [`fastmath512`](super::fastmath512)'s or [`fastmath256`](super::fastmath256)'s register
+//! functions instead: the same polynomials with fused multiply-adds and a refined reciprocal
+//! estimate in place of the division, which the scalar code spends most of its time on. They
+//! agree with the scalar functions to a few ulps (tested), and their values are bit for bit
+//! those of the inference kernels' epilogues on the same CPU; a cartpole training step spent
+//! 8–12 % of its time in these passes (README, Speed).
 
 use super::fastmath::{softplus, softplus_d2, swish_d2};
 use super::simd::multiversion;
@@ -43,6 +45,12 @@ impl Activation {
             unsafe { avx512::apply_d2(self, z, d1, None) };
             return;
         }
+        #[cfg(target_arch = "x86_64")]
+        if level() == SimdLevel::Avx2 {
+            // SAFETY: `level()` reports AVX2 only when the CPU has AVX2 and FMA.
+            unsafe { avx2::apply_d2(self, z, d1, None) };
+            return;
+        }
         match self {
             Activation::Swish => swish_d1_inplace(z, d1),
             Activation::Softplus => softplus_d1_inplace(z, d1),
@@ -57,6 +65,12 @@ impl Activation {
         if level() == SimdLevel::Avx512 {
             // SAFETY: as in `apply_d1`.
             unsafe { avx512::apply_d2(self, z, d1, Some(d2)) };
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if level() == SimdLevel::Avx2 {
+            // SAFETY: as in `apply_d1`.
+            unsafe { avx2::apply_d2(self, z, d1, Some(d2)) };
             return;
         }
         match self {
@@ -192,6 +206,72 @@ mod avx512 {
                 if let Some(d2) = d2 {
                     _mm512_mask_storeu_ps(d2.as_mut_ptr().add(i), mask, c);
                 }
+            }
+        }
+    }
+}
+
+/// Training's activation passes on whole AVX2 registers (as [`avx512`], 8 lanes at a time).
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::Activation;
+    use crate::nn::fastmath256;
+    use std::arch::x86_64::*;
+
+    /// Activates `z` in place, writing the first derivative to `d1` and, when given, the second
+    /// to `d2` (all of `z`'s length).
+    #[target_feature(enable = "avx2,fma")]
+    pub fn apply_d2(act: Activation, z: &mut [f32], d1: &mut [f32], d2: Option<&mut [f32]>) {
+        // Closures, for the reason given in `avx512::apply_d2`.
+        let swish = |x| fastmath256::swish_d2(x);
+        let softplus = |x| fastmath256::softplus_d2(x);
+        match (act, d2) {
+            (Activation::Swish, None) => map(z, d1, None, swish),
+            (Activation::Swish, Some(d2)) => map(z, d1, Some(d2), swish),
+            (Activation::Softplus, None) => map(z, d1, None, softplus),
+            (Activation::Softplus, Some(d2)) => map(z, d1, Some(d2), softplus),
+        }
+    }
+
+    /// One pass of `f` over `z`, 8 lanes at a time, the last block through a zero-padded
+    /// copy (AVX2's masked loads and stores are slow on AMD, and this is the tail only).
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn map(
+        z: &mut [f32],
+        d1: &mut [f32],
+        mut d2: Option<&mut [f32]>,
+        f: impl Fn(__m256) -> (__m256, __m256, __m256),
+    ) {
+        let n = z.len();
+        assert!(d1.len() == n && d2.as_ref().is_none_or(|d2| d2.len() == n));
+        let whole = n / 8 * 8;
+        for i in (0..whole).step_by(8) {
+            // SAFETY: i + 8 ≤ n, inside every slice (same length n, checked above).
+            unsafe {
+                let (a, b, c) = f(_mm256_loadu_ps(z.as_ptr().add(i)));
+                _mm256_storeu_ps(z.as_mut_ptr().add(i), a);
+                _mm256_storeu_ps(d1.as_mut_ptr().add(i), b);
+                if let Some(d2) = d2.as_deref_mut() {
+                    _mm256_storeu_ps(d2.as_mut_ptr().add(i), c);
+                }
+            }
+        }
+        if whole < n {
+            let tail = n - whole;
+            let mut lanes = [[0.0f32; 8]; 3];
+            lanes[0][..tail].copy_from_slice(&z[whole..]);
+            // SAFETY: each of `lanes` holds 8 floats.
+            unsafe {
+                let (a, b, c) = f(_mm256_loadu_ps(lanes[0].as_ptr()));
+                _mm256_storeu_ps(lanes[0].as_mut_ptr(), a);
+                _mm256_storeu_ps(lanes[1].as_mut_ptr(), b);
+                _mm256_storeu_ps(lanes[2].as_mut_ptr(), c);
+            }
+            z[whole..].copy_from_slice(&lanes[0][..tail]);
+            d1[whole..].copy_from_slice(&lanes[1][..tail]);
+            if let Some(d2) = d2 {
+                d2[whole..].copy_from_slice(&lanes[2][..tail]);
             }
         }
     }

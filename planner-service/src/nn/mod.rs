@@ -7,7 +7,8 @@
 //! because every `gemm` call allocates; they match or beat `gemm` on these shapes) and
 //! [`activation`] (vectorised polynomial exp/log), both compiled for AVX-512/AVX2 and picked at
 //! run time ([`simd`]). Inference ([`Mlp::forward`], the planner's hot loop) reads weights
-//! packed once per model and fuses bias and activation into the kernel ([`fastmath512`]); it
+//! packed once per model and fuses bias and activation into the kernel ([`fastmath512`],
+//! [`fastmath256`]); it
 //! never allocates once its [`ForwardScratch`] exists and the weights are packed. Training
 //! threads flush denormals ([`denormals`]).
 //!
@@ -22,6 +23,8 @@ pub mod cputime;
 pub mod denormals;
 pub mod double_backprop;
 pub mod fastmath;
+#[cfg(target_arch = "x86_64")]
+pub mod fastmath256;
 #[cfg(target_arch = "x86_64")]
 pub mod fastmath512;
 pub mod kernel_path;

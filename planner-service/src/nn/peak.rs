@@ -81,6 +81,17 @@ impl Peak {
         }
     }
 
+    /// The f32 FMA peak of the widest vectors the kernels use at `level` (AVX2's on a CPU
+    /// without AVX-512; `None` for the portable loops).
+    pub fn f32_at(&self, level: crate::nn::simd::SimdLevel) -> Option<f64> {
+        use crate::nn::simd::SimdLevel;
+        match level {
+            SimdLevel::Avx512 => self.f32_gflops,
+            SimdLevel::Avx2 => self.avx2_gflops,
+            SimdLevel::Scalar => None,
+        }
+    }
+
     /// The higher of two measurements of each peak (e.g. one before and one after the timed
     /// work: the less disturbed one is nearer the truth).
     pub fn max(self, other: Self) -> Self {

@@ -33,6 +33,7 @@ pub use packed::{
     Encoding, PackedMatrix, bf16_bits, bf16_pair, bf16_value, matmul_packed, write_bf16_pairs,
 };
 
+use super::Activation;
 use super::denormals;
 use super::simd::{SimdLevel, level};
 
@@ -210,6 +211,10 @@ struct Raw {
     c: *mut f32,
     ld_c: usize,
     init: RawInit,
+    /// A hidden layer's activation, applied to each finished block in registers before it is
+    /// stored; only the AVX2 kernel takes one (the packed AVX2 layers, see
+    /// [`packed`]), every other caller passes `None`.
+    act: Option<Activation>,
 }
 
 #[derive(Clone, Copy)]
@@ -259,6 +264,7 @@ fn matmul_at(lvl: SimdLevel, c: MatMut<'_>, x: MatRef<'_>, y: MatRef<'_>, init: 
         c: c.data.as_mut_ptr(),
         ld_c: c.rs,
         init,
+        act: None,
     };
     match lvl {
         #[cfg(target_arch = "x86_64")]

@@ -17,7 +17,12 @@ pub(super) unsafe fn drive(raw: &Raw) {
         c,
         ld_c,
         init,
+        act,
     } = *raw;
+    assert!(
+        act.is_none(),
+        "the portable kernel has no activation epilogue"
+    );
     for i in 0..m {
         // SAFETY: row `i` of C holds `n` floats inside the checked extent, and C does not
         // overlap X or Y (it is borrowed mutably while they are borrowed shared).

@@ -6,6 +6,13 @@
 //! accumulator. 24 accumulators + 2 panel registers fit AVX-512's 32 registers; 12 + 2 fit
 //! AVX2's 16. Partial panels use masked loads and stores, so no shape needs padding.
 //!
+//! The AVX2 kernel also serves the packed inference layers on CPUs without AVX-512 (see
+//! `packed.rs`): it then activates the finished registers before storing them (`Raw::act`,
+//! [`fastmath256`]), and since a packed block's weights for one depth step are adjacent
+//! (`rs_x = 1`) it is compiled a second time with that stride a constant, so the row
+//! broadcasts take constant offsets instead of one pointer addition each (5 of the 28
+//! instructions of a depth step in the compiled loop).
+//!
 //! The row loop is unrolled by a macro (one statement per row) rather than left to LLVM: at the
 //! dev profile's opt-level 2 it does not unroll 12 iterations and the accumulators then live in
 //! memory (3× slower). Pointer arithmetic is wrapping and every load is an intrinsic because
@@ -13,7 +20,9 @@
 //! cost more than the arithmetic.
 
 use super::{Raw, RawInit};
+use crate::nn::Activation;
 use crate::nn::aligned::LANES;
+use crate::nn::fastmath256;
 use std::arch::x86_64::*;
 
 /// Rows per AVX-512 block.
@@ -129,6 +138,10 @@ unsafe fn block512<const NP: usize>(mr: usize, raw: &Raw, i: usize, p: usize) {
 /// The CPU must support AVX-512F and every extent of `raw` must be valid.
 #[target_feature(enable = "avx512f")]
 pub(super) unsafe fn drive_avx512(raw: &Raw) {
+    assert!(
+        raw.act.is_none(),
+        "the AVX-512 general kernel has no activation epilogue"
+    );
     let panels = raw.n.div_ceil(LANES);
     let mut i = 0;
     while i < raw.m {
@@ -162,8 +175,9 @@ macro_rules! kernel256 {
         /// A block of the listed rows × one panel; `MASKED` for the last, partial panel.
         #[inline]
         #[target_feature(enable = "avx2,fma")]
-        unsafe fn $name<const MASKED: bool>(raw: &Raw, i0: usize, p0: usize) {
+        unsafe fn $name<const MASKED: bool, const UNIT_RS: bool>(raw: &Raw, i0: usize, p0: usize) {
             let Raw { n, k, rs_x, cs_x, ld_y, ld_c, .. } = *raw;
+            let rs_x = if UNIT_RS { 1 } else { rs_x };
             let col = p0 * LANES;
             let (m0, m1) = (mask8(n, col), mask8(n, col + 8));
             let mut xp = raw.x.wrapping_add(i0.wrapping_mul(rs_x));
@@ -200,6 +214,9 @@ macro_rules! kernel256 {
                     xp = xp.wrapping_add(cs_x);
                     yp = yp.wrapping_add(ld_y);
                 }
+                if let Some(act) = raw.act {
+                    $( acc[$r] = [activate(act, acc[$r][0]), activate(act, acc[$r][1])]; )+
+                }
                 $(
                     let row = c.wrapping_add(($r as usize).wrapping_mul(ld_c));
                     if MASKED {
@@ -222,19 +239,34 @@ kernel256!(k256_4; 0 1 2 3);
 kernel256!(k256_5; 0 1 2 3 4);
 kernel256!(k256_6; 0 1 2 3 4 5);
 
+/// A hidden layer's activation of one register ([`fastmath256`]'s; masked-off lanes hold
+/// zeros, which activate to finite values that are never stored).
+#[inline(always)]
+fn activate(act: Activation, v: __m256) -> __m256 {
+    match act {
+        Activation::Swish => fastmath256::swish(v),
+        Activation::Softplus => fastmath256::softplus(v),
+    }
+}
+
 /// Runs the AVX2 kernel for a block of `mr ≤ 6` rows and one panel.
 #[inline]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn block256<const MASKED: bool>(mr: usize, raw: &Raw, i: usize, p: usize) {
+unsafe fn block256<const MASKED: bool, const UNIT_RS: bool>(
+    mr: usize,
+    raw: &Raw,
+    i: usize,
+    p: usize,
+) {
     // SAFETY: forwarded from the caller.
     unsafe {
         match mr {
-            1 => k256_1::<MASKED>(raw, i, p),
-            2 => k256_2::<MASKED>(raw, i, p),
-            3 => k256_3::<MASKED>(raw, i, p),
-            4 => k256_4::<MASKED>(raw, i, p),
-            5 => k256_5::<MASKED>(raw, i, p),
-            6 => k256_6::<MASKED>(raw, i, p),
+            1 => k256_1::<MASKED, UNIT_RS>(raw, i, p),
+            2 => k256_2::<MASKED, UNIT_RS>(raw, i, p),
+            3 => k256_3::<MASKED, UNIT_RS>(raw, i, p),
+            4 => k256_4::<MASKED, UNIT_RS>(raw, i, p),
+            5 => k256_5::<MASKED, UNIT_RS>(raw, i, p),
+            6 => k256_6::<MASKED, UNIT_RS>(raw, i, p),
             _ => unreachable!("row block of {mr}"),
         }
     }
@@ -249,11 +281,20 @@ pub(super) unsafe fn drive_avx2(raw: &Raw) {
     while i < raw.m {
         let mr = MR256.min(raw.m - i);
         // SAFETY (both calls): rows `i..i + mr` and the panels named are inside the extents.
-        for p in 0..full {
-            unsafe { block256::<false>(mr, raw, i, p) };
-        }
-        if !raw.n.is_multiple_of(LANES) {
-            unsafe { block256::<true>(mr, raw, i, full) };
+        if raw.rs_x == 1 {
+            for p in 0..full {
+                unsafe { block256::<false, true>(mr, raw, i, p) };
+            }
+            if !raw.n.is_multiple_of(LANES) {
+                unsafe { block256::<true, true>(mr, raw, i, full) };
+            }
+        } else {
+            for p in 0..full {
+                unsafe { block256::<false, false>(mr, raw, i, p) };
+            }
+            if !raw.n.is_multiple_of(LANES) {
+                unsafe { block256::<true, false>(mr, raw, i, full) };
+            }
         }
         i += mr;
     }

@@ -552,7 +552,7 @@ impl fmt::Display for KernelReport {
         if let Some(o) = &self.tile_overlap {
             write!(f, "\n  {o}")?;
         }
-        let (f32_peak, bf16_peak) = (self.peak.f32_gflops, self.peak.bf16_gflops);
+        let (f32_peak, bf16_peak) = (self.peak.f32_at(self.simd), self.peak.bf16_gflops);
         if !self.layers.is_empty() {
             write!(
                 f,

@@ -250,6 +250,7 @@ impl fmt::Display for TrainReport {
              core's f32 peak; each network's training path measured fastest for its shape)\n  {}",
             self.task, self.steps, self.threads, self.peak
         )?;
+        let f32_peak = self.peak.f32_at(planner_service::nn::simd::level());
         for (name, t) in [("dynamics", &self.dynamics), ("DEEN", &self.deen)] {
             let (best, median) = t.gflops();
             write!(
@@ -261,8 +262,8 @@ impl fmt::Display for TrainReport {
                 t.path.name(),
                 t.time.min_ms,
                 t.time.median_ms,
-                percent(best, self.peak.f32_gflops),
-                percent(median, self.peak.f32_gflops),
+                percent(best, f32_peak),
+                percent(median, f32_peak),
             )?;
             if let Some(share) = t.time.cpu_share {
                 write!(f, "; CPU share {:.0}%", share * 100.0)?;
