@@ -3,8 +3,7 @@
 //! Both activations are smooth (the DEEN loss needs second derivatives). Every operation here
 //! is a [`multiversion!`](super::simd) loop over a slice: one call per layer, branch-free inside.
 //! On AVX-512 and AVX2, training's passes (the activation with its derivatives,
-//! [`Activation::apply_d1`] and [`Activation::apply_d2`]) run
-//! [`fastmath512`](super::fastmath512)'s or [`fastmath256`](super::fastmath256)'s register
+//! [`Activation::apply_d1`] and [`Activation::apply_d2`]) run [`lanes`](super::lanes)' register
 //! functions instead: the same polynomials with fused multiply-adds and a refined reciprocal
 //! estimate in place of the division, which the scalar code spends most of its time on. They
 //! agree with the scalar functions to a few ulps (tested), and their values are bit for bit
@@ -39,16 +38,7 @@ impl Activation {
     /// Applies the activation in place and writes its derivative at the old values to `d1`.
     pub fn apply_d1(self, z: &mut [f32], d1: &mut [f32]) {
         assert_eq!(z.len(), d1.len());
-        #[cfg(target_arch = "x86_64")]
-        if level() == SimdLevel::Avx512 {
-            // SAFETY: `level()` reports AVX-512 only when the CPU has every enabled feature.
-            unsafe { avx512::apply_d2(self, z, d1, None) };
-            return;
-        }
-        #[cfg(target_arch = "x86_64")]
-        if level() == SimdLevel::Avx2 {
-            // SAFETY: `level()` reports AVX2 only when the CPU has AVX2 and FMA.
-            unsafe { avx2::apply_d2(self, z, d1, None) };
+        if self.on_registers(z, d1, None) {
             return;
         }
         match self {
@@ -61,21 +51,33 @@ impl Activation {
     /// values to `d1` and `d2` (the DEEN double backprop needs both).
     pub fn apply_d2(self, z: &mut [f32], d1: &mut [f32], d2: &mut [f32]) {
         assert!(z.len() == d1.len() && z.len() == d2.len());
-        #[cfg(target_arch = "x86_64")]
-        if level() == SimdLevel::Avx512 {
-            // SAFETY: as in `apply_d1`.
-            unsafe { avx512::apply_d2(self, z, d1, Some(d2)) };
-            return;
-        }
-        #[cfg(target_arch = "x86_64")]
-        if level() == SimdLevel::Avx2 {
-            // SAFETY: as in `apply_d1`.
-            unsafe { avx2::apply_d2(self, z, d1, Some(d2)) };
+        if self.on_registers(z, d1, Some(&mut *d2)) {
             return;
         }
         match self {
             Activation::Swish => swish_d2_inplace(z, d1, d2),
             Activation::Softplus => softplus_d2_inplace(z, d1, d2),
+        }
+    }
+
+    /// Runs a training pass on whole registers where the CPU has AVX-512 or AVX2
+    /// ([`registers`]); `false` (nothing done) on the portable level.
+    fn on_registers(self, z: &mut [f32], d1: &mut [f32], d2: Option<&mut [f32]>) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            match level() {
+                // SAFETY: `level()` reports AVX-512 only when the CPU has every enabled feature.
+                SimdLevel::Avx512 => unsafe { registers::avx512(self, z, d1, d2) },
+                // SAFETY: `level()` reports AVX2 only when the CPU has AVX2 and FMA.
+                SimdLevel::Avx2 => unsafe { registers::avx2(self, z, d1, d2) },
+                SimdLevel::Scalar => return false,
+            }
+            true
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (z, d1, d2);
+            false
         }
     }
 
@@ -146,127 +148,75 @@ multiversion! {
     }
 }
 
-/// Training's activation passes on whole AVX-512 registers.
+/// Training's activation passes on whole registers: [`lanes`](crate::nn::lanes)' functions,
+/// 16 lanes at a time on AVX-512 and 8 on AVX2.
 #[cfg(target_arch = "x86_64")]
-mod avx512 {
+mod registers {
     use super::Activation;
-    use crate::nn::fastmath512;
+    use crate::nn::lanes::{self, Lanes};
     use std::arch::x86_64::*;
 
     /// Activates `z` in place, writing the first derivative to `d1` and, when given, the second
-    /// to `d2` (all of `z`'s length).
+    /// to `d2` (all of `z`'s length), on AVX-512 registers.
     #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-    pub fn apply_d2(act: Activation, z: &mut [f32], d1: &mut [f32], d2: Option<&mut [f32]>) {
+    pub fn avx512(act: Activation, z: &mut [f32], d1: &mut [f32], d2: Option<&mut [f32]>) {
         // Closures, not the functions themselves: a closure inherits this function's target
         // features, so the intrinsics inline into the loop (a function item passed as `Fn` was
         // called through a shim without them, four times slower than the scalar code).
-        let swish = |x| fastmath512::swish_d2(x);
-        let softplus = |x| fastmath512::softplus_d2(x);
-        match (act, d2) {
-            (Activation::Swish, None) => map(z, d1, None, swish),
-            (Activation::Swish, Some(d2)) => map(z, d1, Some(d2), swish),
-            (Activation::Softplus, None) => map(z, d1, None, softplus),
-            (Activation::Softplus, Some(d2)) => map(z, d1, Some(d2), softplus),
+        let swish = |x| lanes::swish_d2::<__m512>(x);
+        let softplus = |x| lanes::softplus_d2::<__m512>(x);
+        match act {
+            Activation::Swish => map(z, d1, d2, swish),
+            Activation::Softplus => map(z, d1, d2, softplus),
         }
     }
 
-    /// One pass of `f` over `z`, 16 lanes at a time, the last block masked. Generic over `f`
-    /// (a closure of [`apply_d2`]) and inlined, so that each activation gets a loop of its own.
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-    fn map(
+    /// [`avx512`] on AVX2 registers.
+    #[target_feature(enable = "avx2,fma")]
+    pub fn avx2(act: Activation, z: &mut [f32], d1: &mut [f32], d2: Option<&mut [f32]>) {
+        let swish = |x| lanes::swish_d2::<__m256>(x);
+        let softplus = |x| lanes::softplus_d2::<__m256>(x);
+        match act {
+            Activation::Swish => map(z, d1, d2, swish),
+            Activation::Softplus => map(z, d1, d2, softplus),
+        }
+    }
+
+    /// One pass of `f` over `z`, a register at a time, the last partial register through a
+    /// zero-padded copy (the tail only; AMD's masked stores are slow). Generic over `f` (a
+    /// closure of the entry points above) and inlined, so that each activation and register
+    /// type gets a loop of its own.
+    #[inline(always)]
+    fn map<V: Lanes>(
         z: &mut [f32],
         d1: &mut [f32],
         mut d2: Option<&mut [f32]>,
-        f: impl Fn(__m512) -> (__m512, __m512, __m512),
+        f: impl Fn(V) -> (V, V, V),
     ) {
         let n = z.len();
         assert!(d1.len() == n && d2.as_ref().is_none_or(|d2| d2.len() == n));
-        // Whole registers, then the tail under a mask (AMD's masked stores are slow).
-        let whole = n / 16 * 16;
-        for i in (0..whole).step_by(16) {
-            // SAFETY: i + 16 ≤ n, inside every slice (same length n, checked above).
+        let whole = n / V::LANES * V::LANES;
+        for i in (0..whole).step_by(V::LANES) {
+            // SAFETY: i + LANES ≤ n, inside every slice (same length n, checked above).
             unsafe {
-                let (a, b, c) = f(_mm512_loadu_ps(z.as_ptr().add(i)));
-                _mm512_storeu_ps(z.as_mut_ptr().add(i), a);
-                _mm512_storeu_ps(d1.as_mut_ptr().add(i), b);
+                let (a, b, c) = f(V::load(z.as_ptr().add(i)));
+                a.store(z.as_mut_ptr().add(i));
+                b.store(d1.as_mut_ptr().add(i));
                 if let Some(d2) = d2.as_deref_mut() {
-                    _mm512_storeu_ps(d2.as_mut_ptr().add(i), c);
-                }
-            }
-        }
-        if whole < n {
-            let (i, mask) = (whole, (1u16 << (n - whole)) - 1);
-            // SAFETY: the mask selects lanes whole..n, inside every slice; masked-off lanes are
-            // neither read nor written.
-            unsafe {
-                let (a, b, c) = f(_mm512_maskz_loadu_ps(mask, z.as_ptr().add(i)));
-                _mm512_mask_storeu_ps(z.as_mut_ptr().add(i), mask, a);
-                _mm512_mask_storeu_ps(d1.as_mut_ptr().add(i), mask, b);
-                if let Some(d2) = d2 {
-                    _mm512_mask_storeu_ps(d2.as_mut_ptr().add(i), mask, c);
-                }
-            }
-        }
-    }
-}
-
-/// Training's activation passes on whole AVX2 registers (as [`avx512`], 8 lanes at a time).
-#[cfg(target_arch = "x86_64")]
-mod avx2 {
-    use super::Activation;
-    use crate::nn::fastmath256;
-    use std::arch::x86_64::*;
-
-    /// Activates `z` in place, writing the first derivative to `d1` and, when given, the second
-    /// to `d2` (all of `z`'s length).
-    #[target_feature(enable = "avx2,fma")]
-    pub fn apply_d2(act: Activation, z: &mut [f32], d1: &mut [f32], d2: Option<&mut [f32]>) {
-        // Closures, for the reason given in `avx512::apply_d2`.
-        let swish = |x| fastmath256::swish_d2(x);
-        let softplus = |x| fastmath256::softplus_d2(x);
-        match (act, d2) {
-            (Activation::Swish, None) => map(z, d1, None, swish),
-            (Activation::Swish, Some(d2)) => map(z, d1, Some(d2), swish),
-            (Activation::Softplus, None) => map(z, d1, None, softplus),
-            (Activation::Softplus, Some(d2)) => map(z, d1, Some(d2), softplus),
-        }
-    }
-
-    /// One pass of `f` over `z`, 8 lanes at a time, the last block through a zero-padded
-    /// copy (AVX2's masked loads and stores are slow on AMD, and this is the tail only).
-    #[inline]
-    #[target_feature(enable = "avx2,fma")]
-    fn map(
-        z: &mut [f32],
-        d1: &mut [f32],
-        mut d2: Option<&mut [f32]>,
-        f: impl Fn(__m256) -> (__m256, __m256, __m256),
-    ) {
-        let n = z.len();
-        assert!(d1.len() == n && d2.as_ref().is_none_or(|d2| d2.len() == n));
-        let whole = n / 8 * 8;
-        for i in (0..whole).step_by(8) {
-            // SAFETY: i + 8 ≤ n, inside every slice (same length n, checked above).
-            unsafe {
-                let (a, b, c) = f(_mm256_loadu_ps(z.as_ptr().add(i)));
-                _mm256_storeu_ps(z.as_mut_ptr().add(i), a);
-                _mm256_storeu_ps(d1.as_mut_ptr().add(i), b);
-                if let Some(d2) = d2.as_deref_mut() {
-                    _mm256_storeu_ps(d2.as_mut_ptr().add(i), c);
+                    c.store(d2.as_mut_ptr().add(i));
                 }
             }
         }
         if whole < n {
             let tail = n - whole;
-            let mut lanes = [[0.0f32; 8]; 3];
+            let mut lanes = [[0.0f32; lanes::MAX_LANES]; 3];
             lanes[0][..tail].copy_from_slice(&z[whole..]);
-            // SAFETY: each of `lanes` holds 8 floats.
+            // SAFETY: each of `lanes` holds MAX_LANES ≥ V::LANES floats.
             unsafe {
-                let (a, b, c) = f(_mm256_loadu_ps(lanes[0].as_ptr()));
-                _mm256_storeu_ps(lanes[0].as_mut_ptr(), a);
-                _mm256_storeu_ps(lanes[1].as_mut_ptr(), b);
-                _mm256_storeu_ps(lanes[2].as_mut_ptr(), c);
+                let (a, b, c) = f(V::load(lanes[0].as_ptr()));
+                a.store(lanes[0].as_mut_ptr());
+                b.store(lanes[1].as_mut_ptr());
+                c.store(lanes[2].as_mut_ptr());
             }
             z[whole..].copy_from_slice(&lanes[0][..tail]);
             d1[whole..].copy_from_slice(&lanes[1][..tail]);

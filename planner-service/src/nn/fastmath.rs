@@ -10,16 +10,49 @@
 //!
 //! `mul_add` is deliberately not used: on baseline x86-64 it is a libm call.
 
-const LOG2E: f32 = std::f32::consts::LOG2_E;
+pub(super) const LOG2E: f32 = std::f32::consts::LOG2_E;
 /// ln 2 split in a part exact in few bits and a remainder, for an accurate `x − n ln 2`.
-const LN2_HI: f32 = 0.693_359_4;
-const LN2_LO: f32 = -2.121_944_4e-4;
+pub(super) const LN2_HI: f32 = 0.693_359_4;
+pub(super) const LN2_LO: f32 = -2.121_944_4e-4;
 /// 1.5 · 2²³: adding it rounds a float of magnitude < 2²² to an integer held in the low mantissa.
-const ROUND_MAGIC: f32 = 12_582_912.0;
-const ROUND_MAGIC_BITS: u32 = 0x4B40_0000;
+pub(super) const ROUND_MAGIC: f32 = 12_582_912.0;
+pub(super) const ROUND_MAGIC_BITS: u32 = 0x4B40_0000;
 /// Inputs are clamped here so `2ⁿ` stays a normal float.
-const EXP_LO: f32 = -87.0;
+pub(super) const EXP_LO: f32 = -87.0;
 const EXP_HI: f32 = 88.0;
+/// `eʳ ≈ 1 + r + r² p(r)` on `|r| ≤ ln 2 / 2`: `p`'s coefficients, highest degree first
+/// (Cephes `expf`).
+pub(super) const EXP_COEFFS: [f32; 6] = [
+    1.987_569_2e-4,
+    1.398_2e-3,
+    8.333_452e-3,
+    4.166_579_6e-2,
+    1.666_666_5e-1,
+    0.5,
+];
+/// `ln(1 + f) ≈ f − f²/2 + f³ p(f)` on `f ∈ [√½ − 1, √2 − 1]`: `p`'s coefficients, highest
+/// degree first (Cephes `logf`).
+pub(super) const LN_1P_COEFFS: [f32; 9] = [
+    7.037_683_6e-2,
+    -1.151_461e-1,
+    1.167_699_9e-1,
+    -1.242_014_1e-1,
+    1.424_932_3e-1,
+    -1.666_805_8e-1,
+    2.000_071_4e-1,
+    -2.499_999_4e-1,
+    0.333_333_3,
+];
+
+/// `p(x)` for `coeffs` highest degree first, by Horner's rule (unrolled: the arrays are
+/// constants).
+#[inline(always)]
+fn horner(coeffs: &[f32], x: f32) -> f32 {
+    let [c0, rest @ ..] = coeffs else {
+        return 0.0;
+    };
+    rest.iter().fold(*c0, |p, &c| p * x + c)
+}
 
 /// Branch-free clamp with plain compares (`f32::clamp`'s NaN handling costs extra instructions).
 #[inline(always)]
@@ -35,12 +68,7 @@ pub fn exp(x: f32) -> f32 {
     let shifted = x * LOG2E + ROUND_MAGIC;
     let n = shifted - ROUND_MAGIC;
     let r = x - n * LN2_HI - n * LN2_LO;
-    let p = 1.987_569_2e-4_f32;
-    let p = p * r + 1.398_2e-3;
-    let p = p * r + 8.333_452e-3;
-    let p = p * r + 4.166_579_6e-2;
-    let p = p * r + 1.666_666_5e-1;
-    let p = p * r + 0.5;
+    let p = horner(&EXP_COEFFS, r);
     let er = p * (r * r) + r + 1.0;
     // The low mantissa bits of `shifted` hold n + 2²²; move n + 127 into the exponent field.
     let n_int = shifted.to_bits().wrapping_sub(ROUND_MAGIC_BITS);
@@ -56,15 +84,7 @@ pub fn ln_1p_unit(t: f32) -> f32 {
     let f = if big { (t - 1.0) * 0.5 } else { t };
     let e = if big { std::f32::consts::LN_2 } else { 0.0 };
     let z = f * f;
-    let p = 7.037_683_6e-2_f32;
-    let p = p * f - 1.151_461e-1;
-    let p = p * f + 1.167_699_9e-1;
-    let p = p * f - 1.242_014_1e-1;
-    let p = p * f + 1.424_932_3e-1;
-    let p = p * f - 1.666_805_8e-1;
-    let p = p * f + 2.000_071_4e-1;
-    let p = p * f - 2.499_999_4e-1;
-    let p = p * f + 0.333_333_3;
+    let p = horner(&LN_1P_COEFFS, f);
     let y = f * z * p - 0.5 * z;
     f + y + e
 }

@@ -1,11 +1,7 @@
-//! [`fastmath`](super::fastmath)'s swish and softplus on whole AVX-512 registers, for the matrix
-//! kernel's epilogue: a finished tile of `Z = Wᵀ·H + b` is activated in registers before it is
-//! stored, so the activation costs no extra pass over memory.
-//!
-//! The polynomials, constants and range reductions are `fastmath`'s; two things differ, both
-//! for speed: every `a·b + c` is one fused multiply-add, and `1 / (1 + t)` is a 14-bit
-//! reciprocal estimate refined by one Newton step (a division costs as much as the rest of the
-//! swish put together). Results agree with `fastmath` to within a few ulps (tested).
+//! AVX-512 registers for the matrix kernels' epilogues and training's activation passes: the
+//! [`Lanes`] operations on `__m512` (so [`lanes`](super::lanes)' swish and softplus run 16
+//! lanes at a time), and the bf16-grade activations, which only the bf16 layers of AVX-512 BF16
+//! CPUs use.
 //!
 //! A layer that stores its output as bf16 (8 significant bits, rounding error up to 2⁻⁹) has
 //! no use for 24-bit activations: [`swish_for_bf16`] and [`softplus_for_bf16`] are accurate to
@@ -16,168 +12,104 @@
 //! the half-cheetah + DEEN plan runs at 84–88 % of the bf16 peak per CPU second instead of
 //! 72–76 % (README, Speed).
 
+use super::fastmath::{LOG2E, ROUND_MAGIC_BITS};
+use super::lanes::Lanes;
 use std::arch::x86_64::*;
 
-const LOG2E: f32 = std::f32::consts::LOG2_E;
-const LN2_HI: f32 = 0.693_359_4;
-const LN2_LO: f32 = -2.121_944_4e-4;
-const ROUND_MAGIC: f32 = 12_582_912.0;
-const ROUND_MAGIC_BITS: i32 = 0x4B40_0000;
-const EXP_LO: f32 = -87.0;
+// SAFETY (every intrinsic in this file): the functions are `inline(always)` into
+// `#[target_feature(enable = "avx512f")]` code (the kernels' and passes' entry points check
+// the CPU first), which covers each intrinsic's features.
+impl Lanes for __m512 {
+    const LANES: usize = 16;
+    #[inline(always)]
+    unsafe fn load(p: *const f32) -> Self {
+        // SAFETY: the caller guarantees `p` is valid for 16 floats.
+        unsafe { _mm512_loadu_ps(p) }
+    }
+    #[inline(always)]
+    unsafe fn store(self, p: *mut f32) {
+        // SAFETY: the caller guarantees `p` is valid for 16 floats.
+        unsafe { _mm512_storeu_ps(p, self) }
+    }
+    #[inline(always)]
+    fn splat(v: f32) -> Self {
+        unsafe { _mm512_set1_ps(v) }
+    }
+    #[inline(always)]
+    fn add(self, b: Self) -> Self {
+        unsafe { _mm512_add_ps(self, b) }
+    }
+    #[inline(always)]
+    fn sub(self, b: Self) -> Self {
+        unsafe { _mm512_sub_ps(self, b) }
+    }
+    #[inline(always)]
+    fn mul(self, b: Self) -> Self {
+        unsafe { _mm512_mul_ps(self, b) }
+    }
+    #[inline(always)]
+    fn mul_add(self, b: Self, c: Self) -> Self {
+        unsafe { _mm512_fmadd_ps(self, b, c) }
+    }
+    #[inline(always)]
+    fn neg_mul_add(self, b: Self, c: Self) -> Self {
+        unsafe { _mm512_fnmadd_ps(self, b, c) }
+    }
+    #[inline(always)]
+    fn max(self, b: Self) -> Self {
+        unsafe { _mm512_max_ps(self, b) }
+    }
+    #[inline(always)]
+    fn neg_abs(self) -> Self {
+        unsafe {
+            _mm512_castsi512_ps(_mm512_or_si512(
+                _mm512_castps_si512(self),
+                _mm512_set1_epi32(i32::MIN),
+            ))
+        }
+    }
+    #[inline(always)]
+    fn recip_estimate(self) -> Self {
+        unsafe { _mm512_rcp14_ps(self) }
+    }
+    #[inline(always)]
+    fn exp2_of_rounded(self) -> Self {
+        unsafe {
+            let n = _mm512_sub_epi32(
+                _mm512_castps_si512(self),
+                _mm512_set1_epi32(ROUND_MAGIC_BITS as i32),
+            );
+            _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_add_epi32(
+                n,
+                _mm512_set1_epi32(127),
+            )))
+        }
+    }
+    #[inline(always)]
+    fn where_negative(self, if_negative: Self, otherwise: Self) -> Self {
+        unsafe {
+            let negative = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(self, _mm512_setzero_ps());
+            _mm512_mask_blend_ps(negative, otherwise, if_negative)
+        }
+    }
+    #[inline(always)]
+    fn where_above(self, bound: Self, if_above: Self, otherwise: Self) -> Self {
+        unsafe {
+            let above = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(self, bound);
+            _mm512_mask_blend_ps(above, otherwise, if_above)
+        }
+    }
+}
 
 /// `x · y + z` in one rounding.
 #[inline(always)]
 fn fma(x: __m512, y: __m512, z: __m512) -> __m512 {
-    // SAFETY: callers are compiled with AVX-512F (every function here is `inline(always)`
-    // into `#[target_feature(enable = "avx512f")]` code).
-    unsafe { _mm512_fmadd_ps(x, y, z) }
+    x.mul_add(y, z)
 }
 
 #[inline(always)]
 fn splat(v: f32) -> __m512 {
-    // SAFETY: as in `fma`.
-    unsafe { _mm512_set1_ps(v) }
-}
-
-/// `-|x|` (the sign bit set).
-#[inline(always)]
-fn neg_abs(x: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
-    unsafe {
-        _mm512_castsi512_ps(_mm512_or_si512(
-            _mm512_castps_si512(x),
-            _mm512_set1_epi32(i32::MIN),
-        ))
-    }
-}
-
-/// `eˣ` for `x ≤ 0` (clamped below at −87, as [`super::fastmath::exp`]).
-#[inline(always)]
-fn exp_nonpositive(x: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
-    unsafe {
-        let x = _mm512_max_ps(x, splat(EXP_LO));
-        let shifted = fma(x, splat(LOG2E), splat(ROUND_MAGIC));
-        let n = _mm512_sub_ps(shifted, splat(ROUND_MAGIC));
-        let r = _mm512_fnmadd_ps(n, splat(LN2_HI), x);
-        let r = _mm512_fnmadd_ps(n, splat(LN2_LO), r);
-        let p = fma(splat(1.987_569_2e-4), r, splat(1.398_2e-3));
-        let p = fma(p, r, splat(8.333_452e-3));
-        let p = fma(p, r, splat(4.166_579_6e-2));
-        let p = fma(p, r, splat(1.666_666_5e-1));
-        let p = fma(p, r, splat(0.5));
-        let er = _mm512_add_ps(fma(p, _mm512_mul_ps(r, r), r), splat(1.0));
-        let n_int = _mm512_sub_epi32(
-            _mm512_castps_si512(shifted),
-            _mm512_set1_epi32(ROUND_MAGIC_BITS),
-        );
-        let scale = _mm512_slli_epi32::<23>(_mm512_add_epi32(n_int, _mm512_set1_epi32(127)));
-        _mm512_mul_ps(er, _mm512_castsi512_ps(scale))
-    }
-}
-
-/// `1 / d` for `d ∈ [1, 2]`: the 14-bit estimate and one Newton step (error below 2⁻²³).
-#[inline(always)]
-fn recip_1_2(d: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
-    unsafe {
-        let r = _mm512_rcp14_ps(d);
-        fma(_mm512_fnmadd_ps(d, r, splat(1.0)), r, r)
-    }
-}
-
-/// Swish `x σ(x)`.
-#[inline(always)]
-pub fn swish(x: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
-    unsafe {
-        let t = exp_nonpositive(neg_abs(x));
-        let a = recip_1_2(_mm512_add_ps(splat(1.0), t));
-        // σ(x) is a = 1/(1 + e^{-|x|}) for x ≥ 0 and t·a for x < 0.
-        let negative = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(x, _mm512_setzero_ps());
-        let s = _mm512_mask_mul_ps(a, negative, t, a);
-        _mm512_mul_ps(x, s)
-    }
-}
-
-/// `ln(1 + t)` for `t ∈ [0, 1]` ([`super::fastmath::ln_1p_unit`]).
-#[inline(always)]
-fn ln_1p_unit(t: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
-    unsafe {
-        let big = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(t, splat(std::f32::consts::SQRT_2 - 1.0));
-        let half_tm1 = _mm512_mul_ps(_mm512_sub_ps(t, splat(1.0)), splat(0.5));
-        let f = _mm512_mask_blend_ps(big, t, half_tm1);
-        let e = _mm512_maskz_mov_ps(big, splat(std::f32::consts::LN_2));
-        let z = _mm512_mul_ps(f, f);
-        let p = fma(splat(7.037_683_6e-2), f, splat(-1.151_461e-1));
-        let p = fma(p, f, splat(1.167_699_9e-1));
-        let p = fma(p, f, splat(-1.242_014_1e-1));
-        let p = fma(p, f, splat(1.424_932_3e-1));
-        let p = fma(p, f, splat(-1.666_805_8e-1));
-        let p = fma(p, f, splat(2.000_071_4e-1));
-        let p = fma(p, f, splat(-2.499_999_4e-1));
-        let p = fma(p, f, splat(0.333_333_3));
-        let y = fma(_mm512_mul_ps(f, z), p, _mm512_mul_ps(splat(-0.5), z));
-        _mm512_add_ps(_mm512_add_ps(f, y), e)
-    }
-}
-
-/// Softplus `ln(1 + eˣ) = max(x, 0) + ln(1 + e^{-|x|})`.
-#[inline(always)]
-pub fn softplus(x: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
-    unsafe {
-        let t = exp_nonpositive(neg_abs(x));
-        let pos = _mm512_max_ps(x, _mm512_setzero_ps());
-        _mm512_add_ps(pos, ln_1p_unit(t))
-    }
-}
-
-/// `(σ(x), σ(−x))` given `t = e^{−|x|}` ([`super::fastmath`]'s pair, with the reciprocal
-/// estimate refined by one Newton step in place of the division).
-#[inline(always)]
-fn sigmoid_pair(x: __m512, t: __m512) -> (__m512, __m512) {
-    // SAFETY: as in `fma`.
-    unsafe {
-        let a = recip_1_2(_mm512_add_ps(splat(1.0), t));
-        let b = _mm512_mul_ps(t, a);
-        let negative = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(x, _mm512_setzero_ps());
-        (
-            _mm512_mask_blend_ps(negative, a, b),
-            _mm512_mask_blend_ps(negative, b, a),
-        )
-    }
-}
-
-/// Swish and its first two derivatives, as [`super::fastmath::swish_d2`]: `(x σ, σ (1 + x (1 −
-/// σ)), σ (1 − σ) (2 + x (1 − 2σ)))`. For training, whose activation passes the scalar code
-/// spent its time dividing (the division is a 14-bit estimate and a Newton step here) and
-/// multiplying and adding in separate roundings (fused here).
-#[inline(always)]
-pub fn swish_d2(x: __m512) -> (__m512, __m512, __m512) {
-    // SAFETY: as in `fma`.
-    unsafe {
-        let (s, c) = sigmoid_pair(x, exp_nonpositive(neg_abs(x)));
-        let d1 = _mm512_mul_ps(s, fma(x, c, splat(1.0)));
-        let d2 = _mm512_mul_ps(_mm512_mul_ps(s, c), fma(x, _mm512_sub_ps(c, s), splat(2.0)));
-        (_mm512_mul_ps(x, s), d1, d2)
-    }
-}
-
-/// Softplus and its first two derivatives, as [`super::fastmath::softplus_d2`]: `(ln(1 + eˣ),
-/// σ(x), σ(x) σ(−x))`. A NaN input gives a NaN value (unlike [`softplus`], whose planning
-/// epilogue never sees one), so that a diverging training step shows in its loss.
-#[inline(always)]
-pub fn softplus_d2(x: __m512) -> (__m512, __m512, __m512) {
-    // SAFETY: as in `fma`.
-    unsafe {
-        let t = exp_nonpositive(neg_abs(x));
-        // `max` returns its second operand when either is NaN.
-        let pos = _mm512_max_ps(_mm512_setzero_ps(), x);
-        let (s, c) = sigmoid_pair(x, t);
-        (_mm512_add_ps(pos, ln_1p_unit(t)), s, _mm512_mul_ps(s, c))
-    }
+    __m512::splat(v)
 }
 
 /// Bounds on `y` in [`exp2_for_bf16`]: `2^y` stays a normal float (no denormal results, which
@@ -190,7 +122,7 @@ const EXP2_Y_HI: f32 = 125.0;
 /// through a degree-4 minimax polynomial (Remez, relative error).
 #[inline(always)]
 fn exp2_for_bf16(y: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
+    // SAFETY: as for the `Lanes` impl above.
     unsafe {
         let n = _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(y);
         let f = _mm512_sub_ps(y, n);
@@ -204,11 +136,11 @@ fn exp2_for_bf16(y: __m512) -> __m512 {
 
 /// Swish `x σ(x)` for a layer that stores its output as bf16: to within 2⁻¹³·⁸ relative
 /// (the exponential above, and the 14-bit reciprocal estimate without a Newton step), where
-/// the store that follows rounds by up to 2⁻⁹. Half the instructions of [`swish`], which a
+/// the store that follows rounds by up to 2⁻⁹. Half the instructions of [`swish`](super::lanes::swish), which a
 /// hidden bf16 layer pays once per output element against only `k/2` multiply instructions.
 #[inline(always)]
 pub fn swish_for_bf16(x: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
+    // SAFETY: as for the `Lanes` impl above.
     unsafe {
         // e^{−x} = 2^y, y = −x·log₂e, clamped so that 1 + 2^y and its reciprocal stay normal.
         let y = _mm512_mul_ps(x, splat(-LOG2E));
@@ -230,12 +162,12 @@ fn ln_1p_over_t(t: __m512) -> __m512 {
 
 /// Softplus `max(x, 0) + ln(1 + e^{−|x|})` for a layer that stores its output as bf16: to
 /// within 2⁻¹⁶ relative, where the store rounds by up to 2⁻⁹; half the instructions of
-/// [`softplus`]. A NaN input gives NaN.
+/// [`softplus`](super::lanes::softplus). A NaN input gives NaN.
 #[inline(always)]
 pub fn softplus_for_bf16(x: __m512) -> __m512 {
-    // SAFETY: as in `fma`.
+    // SAFETY: as for the `Lanes` impl above.
     unsafe {
-        let y = _mm512_mul_ps(neg_abs(x), splat(LOG2E));
+        let y = _mm512_mul_ps(x.neg_abs(), splat(LOG2E));
         // `max` returns its second operand when either is NaN: here the bound (a finite `t`),
         // and below `x`, so that NaN comes through.
         let t = exp2_for_bf16(_mm512_max_ps(y, splat(EXP2_Y_LO)));
@@ -249,6 +181,7 @@ mod tests {
     use super::*;
     use crate::nn::activation::Activation;
     use crate::nn::fastmath;
+    use crate::nn::lanes::{softplus, swish};
     use crate::nn::simd::{SimdLevel, level};
 
     /// Applies `f` to 16 floats at a time.
@@ -318,7 +251,7 @@ mod tests {
             -1e30, -200.0, -88.0, -87.5, 0.0, -0.0, 1e-30, 88.0, 200.0, 1e30,
         ]);
         // SAFETY: the level check above guarantees AVX-512F.
-        let (sw, sp) = unsafe { (map(&xs, swish), map(&xs, softplus)) };
+        let (sw, sp) = unsafe { (map(&xs, swish::<__m512>), map(&xs, softplus::<__m512>)) };
         for (i, &x) in xs.iter().enumerate() {
             let want_sw = fastmath::swish_d2(x).0;
             let want_sp = fastmath::softplus(x);

@@ -7,8 +7,7 @@
 //! because every `gemm` call allocates; they match or beat `gemm` on these shapes) and
 //! [`activation`] (vectorised polynomial exp/log), both compiled for AVX-512/AVX2 and picked at
 //! run time ([`simd`]). Inference ([`Mlp::forward`], the planner's hot loop) reads weights
-//! packed once per model and fuses bias and activation into the kernel ([`fastmath512`],
-//! [`fastmath256`]); it
+//! packed once per model and fuses bias and activation into the kernel ([`lanes`]); it
 //! never allocates once its [`ForwardScratch`] exists and the weights are packed. Training
 //! threads flush denormals ([`denormals`]).
 //!
@@ -28,6 +27,8 @@ pub mod fastmath256;
 #[cfg(target_arch = "x86_64")]
 pub mod fastmath512;
 pub mod kernel_path;
+#[cfg(target_arch = "x86_64")]
+pub mod lanes;
 pub mod matmul;
 pub mod mlp;
 pub mod normalizer;

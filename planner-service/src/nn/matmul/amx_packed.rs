@@ -30,7 +30,8 @@ use super::x86::{load_scalar, mask16};
 use super::x86_packed::{PackedRaw, store_pairs};
 use crate::nn::activation::Activation;
 use crate::nn::amx::{TILE_BYTES, TILE_ROWS, TileConfig, tile};
-use crate::nn::fastmath512::{softplus, softplus_for_bf16, swish, swish_for_bf16};
+use crate::nn::fastmath512::{softplus_for_bf16, swish_for_bf16};
+use crate::nn::lanes::{softplus, swish};
 use std::arch::x86_64::*;
 
 /// Words (bf16 pairs or f32) of one full tile.

@@ -10,8 +10,7 @@
 //! activation below gives the rest).
 //!
 //! The activation is the kernel's epilogue: on AVX-512 and AVX2 it runs on the finished tile in
-//! registers (see [`fastmath512`](crate::nn::fastmath512) and
-//! [`fastmath256`](crate::nn::fastmath256)), so a hidden layer costs one pass over memory; the
+//! registers (see [`lanes`](crate::nn::lanes)), so a hidden layer costs one pass over memory; the
 //! portable kernel's rows are activated right after they are stored, while they are still in L1.
 //!
 //! **bf16 layers** ([`Encoding::Bf16Pairs`]). On CPUs with AVX-512 BF16 one `VDPBF16PS` does
@@ -367,9 +366,9 @@ pub(crate) fn matmul_packed_at(
     // pass, and `A`, read once per panel, in L2; block by block over the whole width instead,
     // every block streamed all of `Y` again, from L3 once a call's samples outgrow L2 (a
     // half-cheetah PETS plan on a Zen 3: 1,000 samples a call, `Y` 800 KB), and the plan
-    // took about a tenth longer (one thread, four rounds in turns). The AVX2 kernel activates the finished registers
-    // ([`fastmath256`](crate::nn::fastmath256)); the portable kernel's rows are activated
-    // right after they are stored, while they are in L1.
+    // took about a tenth longer (one thread, four rounds in turns). The AVX2 kernel activates
+    // the finished registers ([`lanes`](crate::nn::lanes)); the portable kernel's rows are
+    // activated right after they are stored, while they are in L1.
     let k = a.depth;
     let ld_c = c.rs;
     let c_data = c.data;

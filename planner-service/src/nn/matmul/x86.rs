@@ -8,7 +8,7 @@
 //!
 //! The AVX2 kernel also serves the packed inference layers on CPUs without AVX-512 (see
 //! `packed.rs`): it then activates the finished registers before storing them (`Raw::act`,
-//! [`fastmath256`]), and since a packed block's weights for one depth step are adjacent
+//! [`lanes`]), and since a packed block's weights for one depth step are adjacent
 //! (`rs_x = 1`) it is compiled a second time with that stride a constant, so the row
 //! broadcasts take constant offsets instead of one pointer addition each (5 of the 28
 //! instructions of a depth step in the compiled loop).
@@ -22,7 +22,7 @@
 use super::{Raw, RawInit};
 use crate::nn::Activation;
 use crate::nn::aligned::LANES;
-use crate::nn::fastmath256;
+use crate::nn::lanes;
 use std::arch::x86_64::*;
 
 /// Rows per AVX-512 block.
@@ -239,13 +239,13 @@ kernel256!(k256_4; 0 1 2 3);
 kernel256!(k256_5; 0 1 2 3 4);
 kernel256!(k256_6; 0 1 2 3 4 5);
 
-/// A hidden layer's activation of one register ([`fastmath256`]'s; masked-off lanes hold
+/// A hidden layer's activation of one register ([`lanes`]' on `__m256`; masked-off lanes hold
 /// zeros, which activate to finite values that are never stored).
 #[inline(always)]
 fn activate(act: Activation, v: __m256) -> __m256 {
     match act {
-        Activation::Swish => fastmath256::swish(v),
-        Activation::Softplus => fastmath256::softplus(v),
+        Activation::Swish => lanes::swish(v),
+        Activation::Softplus => lanes::softplus(v),
     }
 }
 

@@ -34,7 +34,8 @@ use super::packed::Encoding;
 use super::x86::{load_scalar, mask16};
 use crate::nn::activation::Activation;
 use crate::nn::aligned::LANES;
-use crate::nn::fastmath512::{softplus, softplus_for_bf16, swish, swish_for_bf16};
+use crate::nn::fastmath512::{softplus_for_bf16, swish_for_bf16};
+use crate::nn::lanes::{softplus, swish};
 use std::arch::x86_64::*;
 
 /// One packed product in pointer form; every extent was checked by `matmul_packed`.
