@@ -1,8 +1,9 @@
 //! Hidden-layer activations and the vectorised slice operations built on them.
 //!
 //! Both activations are smooth (the DEEN loss needs second derivatives). Every operation here
-//! is a [`multiversion!`](super::simd) loop over a slice: one call per layer, branch-free inside.
-//! On AVX-512 and AVX2, training's passes (the activation with its derivatives,
+//! is a loop over a slice: one call per layer, branch-free inside. [`Activation::apply`] is a
+//! [`multiversion!`](super::simd) loop (the portable kernel's inference pass). On AVX-512 and
+//! AVX2, training's passes (the activation with its derivatives,
 //! [`Activation::apply_d1`] and [`Activation::apply_d2`]) run [`lanes`](super::lanes)' register
 //! functions instead: the same polynomials with fused multiply-adds and a refined reciprocal
 //! estimate in place of the division, which the scalar code spends most of its time on. They
@@ -106,45 +107,40 @@ multiversion! {
     }
 }
 
-multiversion! {
-    fn swish_d1_inplace(z: &mut [f32], d1: &mut [f32]) {
-        for (v, g) in z.iter_mut().zip(d1.iter_mut()) {
-            let (a, b, _) = swish_d2(*v);
-            *v = a;
-            *g = b;
-        }
+// Training's passes on the portable level only: AVX2 and AVX-512 run [`registers`], so these
+// need no per-level copies.
+
+fn swish_d1_inplace(z: &mut [f32], d1: &mut [f32]) {
+    for (v, g) in z.iter_mut().zip(d1.iter_mut()) {
+        let (a, b, _) = swish_d2(*v);
+        *v = a;
+        *g = b;
     }
 }
 
-multiversion! {
-    fn softplus_d1_inplace(z: &mut [f32], d1: &mut [f32]) {
-        for (v, g) in z.iter_mut().zip(d1.iter_mut()) {
-            let (a, b, _) = softplus_d2(*v);
-            *v = a;
-            *g = b;
-        }
+fn softplus_d1_inplace(z: &mut [f32], d1: &mut [f32]) {
+    for (v, g) in z.iter_mut().zip(d1.iter_mut()) {
+        let (a, b, _) = softplus_d2(*v);
+        *v = a;
+        *g = b;
     }
 }
 
-multiversion! {
-    fn swish_d2_inplace(z: &mut [f32], d1: &mut [f32], d2: &mut [f32]) {
-        for ((v, g), h) in z.iter_mut().zip(d1.iter_mut()).zip(d2.iter_mut()) {
-            let (a, b, c) = swish_d2(*v);
-            *v = a;
-            *g = b;
-            *h = c;
-        }
+fn swish_d2_inplace(z: &mut [f32], d1: &mut [f32], d2: &mut [f32]) {
+    for ((v, g), h) in z.iter_mut().zip(d1.iter_mut()).zip(d2.iter_mut()) {
+        let (a, b, c) = swish_d2(*v);
+        *v = a;
+        *g = b;
+        *h = c;
     }
 }
 
-multiversion! {
-    fn softplus_d2_inplace(z: &mut [f32], d1: &mut [f32], d2: &mut [f32]) {
-        for ((v, g), h) in z.iter_mut().zip(d1.iter_mut()).zip(d2.iter_mut()) {
-            let (a, b, c) = softplus_d2(*v);
-            *v = a;
-            *g = b;
-            *h = c;
-        }
+fn softplus_d2_inplace(z: &mut [f32], d1: &mut [f32], d2: &mut [f32]) {
+    for ((v, g), h) in z.iter_mut().zip(d1.iter_mut()).zip(d2.iter_mut()) {
+        let (a, b, c) = softplus_d2(*v);
+        *v = a;
+        *g = b;
+        *h = c;
     }
 }
 
