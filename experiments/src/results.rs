@@ -329,6 +329,24 @@ pub fn curves(rows: &[EpisodeRow]) -> Vec<Curve> {
         .collect()
 }
 
+/// A number as the results pages print it: rounded, thousands separated, with a minus sign.
+pub fn grouped(value: f64) -> String {
+    let rounded = value.round();
+    let digits = format!("{:.0}", rounded.abs());
+    let mut grouped = String::with_capacity(digits.len() + digits.len() / 3);
+    for (i, c) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i) % 3 == 0 {
+            grouped.push(',');
+        }
+        grouped.push(c);
+    }
+    if rounded < 0.0 {
+        format!("−{grouped}")
+    } else {
+        grouped
+    }
+}
+
 /// A Markdown table of the return at `episodes` (every episode when empty), mean ± sample std
 /// over seeds per method, with the seeds behind each method, its mean planning time per planned
 /// step and its mean wall time per run: what the results tables of docs/results.md print.
@@ -361,10 +379,16 @@ pub fn markdown_table(rows: &[EpisodeRow], episodes: &[u32]) -> String {
         for e in &episodes {
             match curve.points.iter().find(|p| p.episode == *e) {
                 Some(p) if p.seeds == seeds.len() => {
-                    let _ = write!(out, " {:.0} ± {:.0} |", p.mean, p.std);
+                    let _ = write!(out, " {} ± {} |", grouped(p.mean), grouped(p.std));
                 }
                 Some(p) => {
-                    let _ = write!(out, " {:.0} ± {:.0} ({} seeds) |", p.mean, p.std, p.seeds);
+                    let _ = write!(
+                        out,
+                        " {} ± {} ({} seeds) |",
+                        grouped(p.mean),
+                        grouped(p.std),
+                        p.seeds
+                    );
                 }
                 None => out.push_str(" — |"),
             }
@@ -635,5 +659,14 @@ pub(crate) mod tests {
             (points[2].episode, points[2].seeds, points[2].mean),
             (2, 2, 4.0)
         );
+    }
+
+    #[test]
+    fn returns_are_rounded_grouped_and_signed() {
+        assert_eq!(grouped(0.4), "0");
+        assert_eq!(grouped(999.5), "1,000");
+        assert_eq!(grouped(-1234567.0), "−1,234,567");
+        assert_eq!(grouped(-0.4), "0");
+        assert_eq!(grouped(123.0), "123");
     }
 }

@@ -10,7 +10,7 @@
 use crate::launcher::RunId;
 use crate::manifest::{Manifest, ManifestError};
 use crate::provenance::{self, KeptSittings, Sitting};
-use crate::results::{self, EpisodeRow, ResultsError};
+use crate::results::{self, EpisodeRow, ResultsError, grouped};
 use std::collections::BTreeSet;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -88,24 +88,6 @@ pub fn read_folder(dir: &Path) -> Result<(Manifest, Vec<LedgerRun>), LedgerError
         }
     }
     Ok((manifest, runs))
-}
-
-/// A number as the results pages print it: rounded, thousands separated, with a minus sign.
-pub fn grouped(value: f64) -> String {
-    let rounded = value.round();
-    let digits = format!("{:.0}", rounded.abs());
-    let mut grouped = String::with_capacity(digits.len() + digits.len() / 3);
-    for (i, c) in digits.chars().enumerate() {
-        if i > 0 && (digits.len() - i) % 3 == 0 {
-            grouped.push(',');
-        }
-        grouped.push(c);
-    }
-    if rounded < 0.0 {
-        format!("−{grouped}")
-    } else {
-        grouped
-    }
 }
 
 fn episodes_cell(run: &LedgerRun, episodes_per_run: u32) -> String {
@@ -447,15 +429,6 @@ mod tests {
             "| `cem` seed 1 | 1 sitting, 1 of 2 episodes | Some CPU (25/17) \
              | avx2-f32, avx512-bf16 | `ddddddd` | 2026-12-03 | 25 / 25 / 25 |"
         );
-    }
-
-    #[test]
-    fn returns_are_rounded_grouped_and_signed() {
-        assert_eq!(grouped(0.4), "0");
-        assert_eq!(grouped(999.5), "1,000");
-        assert_eq!(grouped(-1234567.0), "−1,234,567");
-        assert_eq!(grouped(-0.4), "0");
-        assert_eq!(grouped(123.0), "123");
     }
 
     #[test]

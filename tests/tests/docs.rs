@@ -6,6 +6,10 @@
 //!   key with its doc comment and default), and lists every `EBMPC_*` environment variable the
 //!   repository reads. It fails when the checked-in page differs; write it again with
 //!   `EBMPC_WRITE_DOCS=1 cargo test -p ebmpc-e2e --test docs` and commit it.
+//! - `results_tables_are_current`: every table of `docs/results.md` marked
+//!   `<!-- generated: ebmpc-experiment ARGS… -->` is what `ebmpc-experiment ARGS…` prints from
+//!   the committed `results/` (and every table shaped like its output is marked), so the page
+//!   never shows a return the results do not hold. `EBMPC_WRITE_DOCS=1` writes them again.
 //! - `links_and_anchors_resolve`: every relative link and image of the book's pages and of the
 //!   top-level Markdown files points at a file that exists, and every `#anchor` at a heading of
 //!   its page (mdBook's heading ids).
@@ -88,7 +92,7 @@ const OTHER_VARIABLES: &[(&str, &str, &str)] = &[
     (
         "EBMPC_WRITE_DOCS",
         "`tests/tests/docs.rs`",
-        "set: write `docs/configuration.md` (this page) instead of comparing.",
+        "set: write `docs/configuration.md` (this page) and the generated tables of `docs/results.md` instead of comparing.",
     ),
     (
         "EBMPC_MDBOOK",
@@ -657,6 +661,139 @@ fn configuration_reference_is_current() {
             "{needle} missing from the reference"
         );
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The results page's generated tables
+// ---------------------------------------------------------------------------------------------
+
+/// What marks a generated table on the results page: the line before the table is
+/// `<!-- generated: ebmpc-experiment ARGS… -->` (invisible in the book).
+const GENERATED_MARK: &str = "<!-- generated: ebmpc-experiment ";
+
+/// Headers of the tables `ebmpc-experiment table` and `runs` print: such a table without a mark
+/// would be a copy nobody checks.
+const GENERATED_HEADERS: &[&str] = &[
+    "| method | seeds |",
+    "| run | episodes | planned episodes' returns",
+    "| run | sittings listed |",
+];
+
+/// One marked table of a page: its command's arguments and the lines it spans.
+struct MarkedTable {
+    args: Vec<String>,
+    mark_line: usize,
+    rows: std::ops::Range<usize>,
+}
+
+fn marked_tables(lines: &[&str]) -> Vec<MarkedTable> {
+    let mut tables = Vec::new();
+    for (n, line) in lines.iter().enumerate() {
+        let Some(rest) = line.trim().strip_prefix(GENERATED_MARK) else {
+            continue;
+        };
+        let args: Vec<String> = rest
+            .strip_suffix("-->")
+            .unwrap_or_else(|| panic!("line {}: the mark does not end with -->", n + 1))
+            .split_whitespace()
+            .map(str::to_string)
+            .collect();
+        assert!(
+            matches!(args.first().map(String::as_str), Some("table" | "runs")),
+            "line {}: only `table` and `runs` generate tables: {args:?}",
+            n + 1
+        );
+        let start = n + 1;
+        let end = start
+            + lines[start..]
+                .iter()
+                .take_while(|l| l.starts_with('|'))
+                .count();
+        assert!(end > start, "line {}: no table follows the mark", n + 1);
+        tables.push(MarkedTable {
+            args,
+            mark_line: n + 1,
+            rows: start..end,
+        });
+    }
+    tables
+}
+
+#[test]
+fn results_tables_are_current() {
+    let page = workspace().join("docs/results.md");
+    let text = std::fs::read_to_string(&page).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    let tables = marked_tables(&lines);
+    assert!(!tables.is_empty(), "no marked table on {}", page.display());
+
+    // Every table shaped like the launcher's output is marked.
+    let marked: BTreeSet<usize> = tables.iter().map(|t| t.rows.start).collect();
+    for (n, line) in lines.iter().enumerate() {
+        let starts_table = n == 0 || !lines[n - 1].starts_with('|');
+        if starts_table
+            && GENERATED_HEADERS.iter().any(|h| line.starts_with(h))
+            && !marked.contains(&n)
+        {
+            panic!(
+                "{} line {}: a generated table without its `{GENERATED_MARK}ARGS -->` line",
+                page.display(),
+                n + 1
+            );
+        }
+    }
+
+    let experiment = binary_paths()
+        .into_iter()
+        .find(|(name, _)| *name == "ebmpc-experiment")
+        .unwrap()
+        .1;
+    let mut written: Vec<String> = lines.iter().map(|l| l.to_string()).collect();
+    let mut stale = Vec::new();
+    // From the last table up, so that a rewritten table's length never moves the next one.
+    for table in tables.iter().rev() {
+        let out = Command::new(&experiment)
+            .args(&table.args)
+            .current_dir(workspace())
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "line {}: ebmpc-experiment {}: {}",
+            table.mark_line,
+            table.args.join(" "),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let generated: Vec<String> = String::from_utf8(out.stdout)
+            .unwrap()
+            .lines()
+            .map(str::to_string)
+            .collect();
+        assert!(
+            generated.iter().all(|l| l.starts_with('|')),
+            "ebmpc-experiment {} printed more than a table",
+            table.args.join(" ")
+        );
+        if written[table.rows.clone()] != generated[..] {
+            stale.push(format!(
+                "line {}: ebmpc-experiment {}",
+                table.mark_line,
+                table.args.join(" ")
+            ));
+            written.splice(table.rows.clone(), generated);
+        }
+    }
+    if std::env::var_os("EBMPC_WRITE_DOCS").is_some() && !stale.is_empty() {
+        std::fs::write(&page, written.join("\n") + "\n").unwrap();
+        return;
+    }
+    assert!(
+        stale.is_empty(),
+        "{}: these tables differ from what the committed results give (write them again: \
+         EBMPC_WRITE_DOCS=1 cargo test -p ebmpc-e2e --test docs results_tables):\n{}",
+        page.display(),
+        stale.join("\n")
+    );
 }
 
 // ---------------------------------------------------------------------------------------------
