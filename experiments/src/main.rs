@@ -6,7 +6,7 @@
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use ebmpc_experiments::figures::imagination_folder::{self, Folder};
-use ebmpc_experiments::figures::{imagination, toy};
+use ebmpc_experiments::figures::{imagination, imagination_tables, toy};
 use ebmpc_experiments::launcher::{self, Experiment};
 use ebmpc_experiments::plot::{self, curves::LearningCurves, fonts};
 use ebmpc_experiments::scale::Scale;
@@ -58,6 +58,10 @@ enum Command {
     /// Figure 5: after some episodes of training, optimise one plan from a random population
     /// with each regulariser and compare its imagined rewards with the real ones.
     Imagination(ImaginationArgs),
+    /// Figure 5's tables of an imagination folder, in Markdown: per regulariser the mean gap
+    /// (imagined − real return) and real return over every (seed, state) with their 95 %
+    /// intervals, or with --per-seed each seed's means and its training returns.
+    ImaginationTable(ImaginationTableArgs),
     /// Figure 3: DEEN and DAE score estimates on a 1-D Gaussian mixture against the truth.
     Toy(ToyArgs),
     /// Plan with a stored run's frozen models in the simulator for one episode: real return
@@ -160,6 +164,16 @@ struct TableArgs {
     /// Episodes to show (comma-separated; default: every episode).
     #[arg(long, value_delimiter = ',')]
     episodes: Vec<u32>,
+}
+
+#[derive(Args, Debug)]
+struct ImaginationTableArgs {
+    /// The folder an `imagination` command wrote (imagination_states.csv, imagination_summary.csv).
+    folder: PathBuf,
+    /// One row per seed (its mean imagined return, real return and gap per regulariser)
+    /// instead of the summary over seeds.
+    #[arg(long)]
+    per_seed: bool,
 }
 
 #[derive(Args, Debug)]
@@ -505,6 +519,16 @@ fn table_command(args: TableArgs) -> Result<()> {
     Ok(())
 }
 
+fn imagination_table_command(args: ImaginationTableArgs) -> Result<()> {
+    let table = if args.per_seed {
+        imagination_tables::per_seed_markdown(&args.folder)?
+    } else {
+        imagination_tables::summary_markdown(&args.folder)?
+    };
+    print!("{table}");
+    Ok(())
+}
+
 fn runs_command(args: RunsArgs) -> Result<()> {
     let (manifest, runs) = run_ledger::read_folder(&args.folder)?;
     if args.provenance {
@@ -701,6 +725,7 @@ fn main() -> Result<()> {
         Command::Runs(args) => runs_command(args),
         Command::Distance(args) => distance_command(args),
         Command::Imagination(args) => imagination_command(args),
+        Command::ImaginationTable(args) => imagination_table_command(args),
         Command::Toy(args) => toy_command(args),
         Command::Replan(args) => replan_command(args),
         Command::ModelError(args) => model_error_command(args),

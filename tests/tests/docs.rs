@@ -671,12 +671,15 @@ fn configuration_reference_is_current() {
 /// `<!-- generated: ebmpc-experiment ARGS… -->` (invisible in the book).
 const GENERATED_MARK: &str = "<!-- generated: ebmpc-experiment ";
 
-/// Headers of the tables `ebmpc-experiment table` and `runs` print: such a table without a mark
-/// would be a copy nobody checks.
+/// Headers of the tables `ebmpc-experiment table`, `runs` and `imagination-table` print: such a
+/// table without a mark would be a copy nobody checks.
 const GENERATED_HEADERS: &[&str] = &[
     "| method | seeds |",
     "| run | episodes | planned episodes' returns",
     "| run | sittings listed |",
+    "| regulariser | imagined − real",
+    "| seed | none: imagined",
+    "| seed (training returns) |",
 ];
 
 /// One marked table of a page: its command's arguments and the lines it spans.
@@ -699,8 +702,11 @@ fn marked_tables(lines: &[&str]) -> Vec<MarkedTable> {
             .map(str::to_string)
             .collect();
         assert!(
-            matches!(args.first().map(String::as_str), Some("table" | "runs")),
-            "line {}: only `table` and `runs` generate tables: {args:?}",
+            matches!(
+                args.first().map(String::as_str),
+                Some("table" | "runs" | "imagination-table")
+            ),
+            "line {}: only `table`, `runs` and `imagination-table` generate tables: {args:?}",
             n + 1
         );
         let start = n + 1;

@@ -401,7 +401,7 @@ pub struct Interval {
 
 /// Per regulariser over every seed's states: the gap and the real return, each with a 95 %
 /// two-level bootstrap interval (10,000 resamples).
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SummaryRow {
     pub regularizer: String,
     pub alpha: f32,
