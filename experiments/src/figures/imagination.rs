@@ -70,6 +70,29 @@ pub struct StateRow {
     pub gap: f32,
 }
 
+#[cfg(test)]
+impl StateRow {
+    /// A row for tests: α 0 for `none` and 0.05 otherwise, 30 steps, the gap from the returns.
+    pub(crate) fn for_test(
+        seed: u64,
+        state: u32,
+        regularizer: &str,
+        imagined: f32,
+        real: f32,
+    ) -> Self {
+        Self {
+            seed,
+            state,
+            regularizer: regularizer.to_string(),
+            alpha: if regularizer == "none" { 0.0 } else { 0.05 },
+            steps: 30,
+            imagined_return: imagined,
+            real_return: real,
+            gap: imagined - real,
+        }
+    }
+}
+
 /// One regulariser's plan: what the model imagined and what the simulator delivered.
 #[derive(Clone, Debug)]
 pub struct PlanTrace {
@@ -659,16 +682,7 @@ mod tests {
 
     #[test]
     fn summary_per_regulariser_and_csv_round_trip() {
-        let row = |seed, state, regularizer: &str, imagined: f32, real: f32| StateRow {
-            seed,
-            state,
-            regularizer: regularizer.to_string(),
-            alpha: if regularizer == "none" { 0.0 } else { 0.05 },
-            steps: 30,
-            imagined_return: imagined,
-            real_return: real,
-            gap: imagined - real,
-        };
+        let row = StateRow::for_test;
         let rows = vec![
             row(0, 0, "none", 10.0, 2.0),
             row(0, 0, "deen", 5.0, 4.0),

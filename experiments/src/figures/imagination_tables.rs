@@ -155,16 +155,7 @@ mod tests {
     use crate::figures::imagination::write_csv;
 
     fn state(seed: u64, regularizer: &str, imagined: f32, real: f32) -> StateRow {
-        StateRow {
-            seed,
-            state: 0,
-            regularizer: regularizer.to_string(),
-            alpha: if regularizer == "none" { 0.0 } else { 0.05 },
-            steps: 30,
-            imagined_return: imagined,
-            real_return: real,
-            gap: imagined - real,
-        }
+        StateRow::for_test(seed, 0, regularizer, imagined, real)
     }
 
     #[test]
@@ -185,9 +176,7 @@ mod tests {
             state(0, "none", 2.0, 1.0),
             state(0, "deen", 1.0, 1.0),
         ];
-        let mut second = state(0, "none", 4.0, 1.0);
-        second.state = 1;
-        rows.push(second);
+        rows.push(StateRow::for_test(0, 1, "none", 4.0, 1.0));
         write_csv(&dir.path().join("imagination_states.csv"), &rows).unwrap();
         let without = per_seed_markdown(dir.path()).unwrap();
         assert_eq!(
