@@ -13,7 +13,7 @@
 //! run (see [`runs_by_method`]). Runs budgeted in timesteps (the ant's 4,000) end after
 //! different numbers of episodes; they are compared at each run's last episode.
 
-use crate::results::{EpisodeRow, mean_and_std, runs_by_method};
+use crate::results::{EpisodeRow, grouped, mean_and_std, runs_by_method};
 use statrs::distribution::{ContinuousCDF, StudentsT};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -182,51 +182,86 @@ pub fn compare(rows: &[EpisodeRow], at: At, level: f64) -> Comparison {
     }
 }
 
-/// The comparison as two Markdown tables: each method's return, then the paired differences.
-pub fn markdown(c: &Comparison) -> String {
-    let percent = c.level * 100.0;
-    let interval = |e: &Estimate| match e.interval {
-        Some((lo, hi)) => format!("[{lo:.0}, {hi:.0}]"),
-        None => "— (one seed)".into(),
-    };
-    let mut out = format!(
-        "Return at {}, mean over seeds with a {percent:.0} % Student-t interval:\n\n\
-         | method | seeds | mean | {percent:.0} % interval |\n|---|---|---|---|\n",
-        c.at
-    );
-    for m in &c.methods {
-        let _ = writeln!(
-            out,
-            "| `{}` | {} | {:.0} | {} |",
-            m.method,
-            m.estimate.seeds,
-            m.estimate.mean,
-            interval(&m.estimate)
-        );
+/// Which of the two tables to print.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Table {
+    /// Each method's mean return with its interval.
+    Methods,
+    /// Every pair's seed-paired difference with its interval.
+    Differences,
+}
+
+impl At {
+    /// The episode as a table cell: its number from 0, or `last`.
+    fn cell(self) -> String {
+        match self {
+            At::Episode(k) => k.to_string(),
+            At::Last => "last".into(),
+        }
     }
-    let _ = write!(
-        out,
-        "\nSeed-paired differences (over the seeds both methods have):\n\n\
-         | difference | seeds | mean | {percent:.0} % interval | first ahead in | methods' intervals |\n\
-         |---|---|---|---|---|---|\n"
-    );
-    for d in &c.differences {
-        let _ = writeln!(
-            out,
-            "| `{}` − `{}` | {} | {:.0} | {} | {} of {} | {} |",
-            d.a,
-            d.b,
-            d.estimate.seeds,
-            d.estimate.mean,
-            interval(&d.estimate),
-            d.a_ahead,
-            d.estimate.seeds,
-            if d.methods_separate {
-                "separate"
-            } else {
-                "overlap"
+}
+
+fn interval_cell(e: &Estimate) -> String {
+    match e.interval {
+        Some((lo, hi)) => format!("[{}, {}]", grouped(lo), grouped(hi)),
+        None => "— (one seed)".into(),
+    }
+}
+
+/// The comparisons at several episodes as one Markdown table, a row per episode and method (or
+/// pair), with the numbers in the results tables' format (thousands grouped, a minus sign).
+/// Comparisons at different levels cannot share a header: the first one's names it.
+pub fn markdown(comparisons: &[Comparison], table: Table) -> String {
+    let percent = comparisons.first().map_or(95.0, |c| c.level * 100.0);
+    let mut out = String::new();
+    match table {
+        Table::Methods => {
+            let _ = writeln!(
+                out,
+                "| episode | method | seeds | mean | {percent:.0} % interval |\n|---|---|---|---|---|"
+            );
+            for c in comparisons {
+                for m in &c.methods {
+                    let _ = writeln!(
+                        out,
+                        "| {} | `{}` | {} | {} | {} |",
+                        c.at.cell(),
+                        m.method,
+                        m.estimate.seeds,
+                        grouped(m.estimate.mean),
+                        interval_cell(&m.estimate)
+                    );
+                }
             }
-        );
+        }
+        Table::Differences => {
+            let _ = writeln!(
+                out,
+                "| episode | difference | seeds | mean | {percent:.0} % interval | first ahead in | \
+                 methods' intervals |\n|---|---|---|---|---|---|---|"
+            );
+            for c in comparisons {
+                for d in &c.differences {
+                    let _ = writeln!(
+                        out,
+                        "| {} | `{}` − `{}` | {} | {} | {} | {} of {} | {} |",
+                        c.at.cell(),
+                        d.a,
+                        d.b,
+                        d.estimate.seeds,
+                        grouped(d.estimate.mean),
+                        interval_cell(&d.estimate),
+                        d.a_ahead,
+                        d.estimate.seeds,
+                        if d.methods_separate {
+                            "separate"
+                        } else {
+                            "overlap"
+                        }
+                    );
+                }
+            }
+        }
     }
     out
 }
@@ -277,9 +312,9 @@ mod tests {
         let (lo, hi) = d.estimate.interval.unwrap();
         assert!(lo > 0.0 && hi < 200.0, "[{lo}, {hi}]");
         assert!(!d.methods_separate);
-        let table = markdown(&c);
+        let table = markdown(std::slice::from_ref(&c), Table::Differences);
         assert!(
-            table.contains("| `cem+deen` − `cem` | 4 | 100 |"),
+            table.contains("| 1 | `cem+deen` − `cem` | 4 | 100 |"),
             "{table}"
         );
         assert!(table.contains("4 of 4 | overlap |"), "{table}");
@@ -296,7 +331,7 @@ mod tests {
         assert!(c.differences[0].methods_separate);
         assert_eq!(c.differences[0].a, "cem+deen");
         assert_eq!(c.differences[0].a_ahead, 3);
-        assert!(markdown(&c).contains("| separate |"));
+        assert!(markdown(&[c], Table::Differences).contains("| separate |"));
     }
 
     #[test]
@@ -343,7 +378,9 @@ mod tests {
         assert!((c.methods[0].estimate.mean - 40.0).abs() < 1e-9);
         assert!((c.methods[1].estimate.mean - 80.0).abs() < 1e-9);
         assert_eq!(c.differences[0].a_ahead, 2);
-        assert!(markdown(&c).starts_with("Return at each run's last episode"));
+        let table = markdown(&[c], Table::Methods);
+        assert!(table.starts_with("| episode | method | seeds | mean | 95 % interval |"));
+        assert!(table.contains("| last | `cem+deen` | 2 | 80 |"), "{table}");
         assert_eq!("last".parse::<At>(), Ok(At::Last));
         assert_eq!("19".parse::<At>(), Ok(At::Episode(19)));
         assert!("-1".parse::<At>().unwrap_err().contains("neither"));

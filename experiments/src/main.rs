@@ -42,7 +42,7 @@ enum Command {
     /// Print a Markdown table of the returns (mean ± sample std over seeds) at chosen episodes,
     /// per method, with the planning time per step and the wall time per run.
     Table(TableArgs),
-    /// Whether one method beats another at an episode: each method's mean return over seeds
+    /// Whether one method beats another at some episodes: each method's mean return over seeds
     /// with a Student-t interval, and every pair's seed-paired difference with its interval
     /// (the methods of an experiment share each seed's random exploration).
     Compare(CompareArgs),
@@ -181,13 +181,21 @@ struct CompareArgs {
     /// Experiment folders (their episodes.csv) or episodes.csv files, all of one task.
     #[arg(required = true)]
     paths: Vec<PathBuf>,
-    /// The episode to compare at: its number from 0 (the 20th episode is 19), or `last`: each
-    /// run's last episode (runs budgeted in timesteps end after different numbers of episodes).
-    #[arg(long)]
-    episode: compare::At,
+    /// The episodes to compare at (comma-separated), each its number from 0 (the 20th episode
+    /// is 19) or `last`: each run's last episode (runs budgeted in timesteps end after
+    /// different numbers of episodes).
+    #[arg(long, required = true, value_delimiter = ',')]
+    episode: Vec<compare::At>,
     /// Confidence level of the intervals, between 0 and 1.
     #[arg(long, default_value_t = 0.95, value_parser = confidence_level)]
     level: f64,
+    /// Compare only these methods (comma-separated, as the experiment names them; several
+    /// folders' methods carry their folder's name in parentheses). Default: every method.
+    #[arg(long, value_delimiter = ',')]
+    methods: Vec<String>,
+    /// Print only this table, without captions (as the results page's checked tables hold it).
+    #[arg(long, value_enum)]
+    only: Option<compare::Table>,
 }
 
 #[derive(Args, Debug)]
@@ -540,12 +548,38 @@ fn runs_command(args: RunsArgs) -> Result<()> {
 }
 
 fn compare_command(args: CompareArgs) -> Result<()> {
-    let rows = read_experiments(&args.paths)?;
-    let comparison = compare::compare(&rows, args.episode, args.level);
-    if comparison.methods.is_empty() {
-        anyhow::bail!("no run has {}", args.episode);
+    let mut rows = read_experiments(&args.paths)?;
+    if !args.methods.is_empty() {
+        let mut present: Vec<&str> = rows.iter().map(|r| r.method.as_str()).collect();
+        present.sort_unstable();
+        present.dedup();
+        if let Some(missing) = args.methods.iter().find(|m| !present.contains(&m.as_str())) {
+            anyhow::bail!(
+                "no run of method `{missing}`: the experiments hold {}",
+                present.join(", ")
+            );
+        }
+        rows.retain(|r| args.methods.contains(&r.method));
     }
-    print!("{}", compare::markdown(&comparison));
+    let mut comparisons = Vec::new();
+    for at in args.episode {
+        let comparison = compare::compare(&rows, at, args.level);
+        if comparison.methods.is_empty() {
+            anyhow::bail!("no run has {at}");
+        }
+        comparisons.push(comparison);
+    }
+    let percent = args.level * 100.0;
+    match args.only {
+        Some(table) => print!("{}", compare::markdown(&comparisons, table)),
+        None => print!(
+            "Return at each episode, the mean over seeds with a {percent:.0} % Student-t \
+             interval:\n\n{}\nSeed-paired differences, over the seeds both methods have (the \
+             method ahead on average first):\n\n{}",
+            compare::markdown(&comparisons, compare::Table::Methods),
+            compare::markdown(&comparisons, compare::Table::Differences)
+        ),
+    }
     Ok(())
 }
 

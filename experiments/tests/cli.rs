@@ -674,16 +674,48 @@ fn compare_prints_intervals_per_method_and_seed_paired_and_refuses_bad_arguments
     let out = compare(&["--episode", "2"]);
     succeeded(&out);
     // cem 110 and 150 (mean 130), cem+deen 170 and 175; t(0.975, 1 dof) = 12.706.
-    says(&out.stdout, "| `cem` | 2 | 130 | [-124, 384] |");
-    says(&out.stdout, "| `cem+deen` − `cem` | 2 |");
-    says(&out.stdout, "| [-180, 265] | 2 of 2 | overlap |");
+    says(&out.stdout, "| 2 | `cem` | 2 | 130 | [−124, 384] |");
+    says(&out.stdout, "| 2 | `cem+deen` − `cem` | 2 |");
+    says(&out.stdout, "| [−180, 265] | 2 of 2 | overlap |");
 
     let out = compare(&["--episode", "3"]);
     assert!(!out.status.success());
     says(&out.stderr, "no run has episode 3 (from 0)");
-    let out = compare(&["--episode", "last"]);
+    let out = compare(&["--episode", "2,3"]);
+    assert!(!out.status.success(), "one episode missing fails the whole");
+    // Several episodes, one table: each episode's rows in the order asked.
+    let out = compare(&["--episode", "last,2", "--only", "methods"]);
     succeeded(&out);
-    says(&out.stdout, "| `cem` | 2 | 130 | [-124, 384] |");
+    let table = String::from_utf8(out.stdout).unwrap();
+    let lines: Vec<&str> = table.lines().collect();
+    assert!(lines.iter().all(|l| l.starts_with('|')), "{table}");
+    assert_eq!(
+        lines.len(),
+        2 + 2 * 2,
+        "header, rule, 2 episodes x 2 methods: {table}"
+    );
+    assert!(
+        lines[2].starts_with("| last | `cem` | 2 | 130 | [−124, 384] |"),
+        "{table}"
+    );
+    assert!(lines[4].starts_with("| 2 | `cem` |"), "{table}");
+    let out = compare(&["--episode", "2", "--only", "differences"]);
+    succeeded(&out);
+    let table = String::from_utf8(out.stdout).unwrap();
+    assert!(table.starts_with("| episode | difference |"), "{table}");
+    assert_eq!(table.lines().count(), 3, "{table}");
+    let out = compare(&["--episode", "2", "--only", "prose"]);
+    assert!(!out.status.success());
+    // Only the methods asked for; a method the experiments lack is named in the error.
+    let out = compare(&["--episode", "2", "--methods", "cem", "--only", "methods"]);
+    succeeded(&out);
+    assert_eq!(String::from_utf8(out.stdout).unwrap().lines().count(), 3);
+    let out = compare(&["--episode", "2", "--methods", "cem,pets"]);
+    assert!(!out.status.success());
+    says(
+        &out.stderr,
+        "no run of method `pets`: the experiments hold cem, cem+deen",
+    );
     let out = compare(&["--episode", "2", "--level", "95"]);
     assert!(!out.status.success());
     says(&out.stderr, "not a level between 0 and 1");

@@ -671,10 +671,12 @@ fn configuration_reference_is_current() {
 /// `<!-- generated: ebmpc-experiment ARGS… -->` (invisible in the book).
 const GENERATED_MARK: &str = "<!-- generated: ebmpc-experiment ";
 
-/// Headers of the tables `ebmpc-experiment table`, `runs` and `imagination-table` print: such a
-/// table without a mark would be a copy nobody checks.
+/// Headers of the tables `ebmpc-experiment table`, `runs`, `compare` and `imagination-table`
+/// print: such a table without a mark would be a copy nobody checks.
 const GENERATED_HEADERS: &[&str] = &[
     "| method | seeds |",
+    "| episode | method | seeds |",
+    "| episode | difference | seeds |",
     "| run | episodes | planned episodes' returns",
     "| run | sittings listed |",
     "| regulariser | imagined − real",
@@ -704,9 +706,10 @@ fn marked_tables(lines: &[&str]) -> Vec<MarkedTable> {
         assert!(
             matches!(
                 args.first().map(String::as_str),
-                Some("table" | "runs" | "imagination-table")
+                Some("table" | "runs" | "compare" | "imagination-table")
             ),
-            "line {}: only `table`, `runs` and `imagination-table` generate tables: {args:?}",
+            "line {}: only `table`, `runs`, `compare` and `imagination-table` generate tables: \
+             {args:?}",
             n + 1
         );
         let start = n + 1;
