@@ -201,11 +201,13 @@ impl At {
     }
 }
 
-fn interval_cell(e: &Estimate) -> String {
-    match e.interval {
+/// An estimate's three cells: seeds, mean and interval.
+fn estimate_cells(e: &Estimate) -> String {
+    let interval = match e.interval {
         Some((lo, hi)) => format!("[{}, {}]", grouped(lo), grouped(hi)),
         None => "— (one seed)".into(),
-    }
+    };
+    format!("{} | {} | {interval}", e.seeds, grouped(e.mean))
 }
 
 /// The comparisons at several episodes as one Markdown table, a row per episode and method (or
@@ -224,12 +226,10 @@ pub fn markdown(comparisons: &[Comparison], table: Table) -> String {
                 for m in &c.methods {
                     let _ = writeln!(
                         out,
-                        "| {} | `{}` | {} | {} | {} |",
+                        "| {} | `{}` | {} |",
                         c.at.cell(),
                         m.method,
-                        m.estimate.seeds,
-                        grouped(m.estimate.mean),
-                        interval_cell(&m.estimate)
+                        estimate_cells(&m.estimate)
                     );
                 }
             }
@@ -242,22 +242,20 @@ pub fn markdown(comparisons: &[Comparison], table: Table) -> String {
             );
             for c in comparisons {
                 for d in &c.differences {
+                    let methods = if d.methods_separate {
+                        "separate"
+                    } else {
+                        "overlap"
+                    };
                     let _ = writeln!(
                         out,
-                        "| {} | `{}` − `{}` | {} | {} | {} | {} of {} | {} |",
+                        "| {} | `{}` − `{}` | {} | {} of {} | {methods} |",
                         c.at.cell(),
                         d.a,
                         d.b,
-                        d.estimate.seeds,
-                        grouped(d.estimate.mean),
-                        interval_cell(&d.estimate),
+                        estimate_cells(&d.estimate),
                         d.a_ahead,
                         d.estimate.seeds,
-                        if d.methods_separate {
-                            "separate"
-                        } else {
-                            "overlap"
-                        }
                     );
                 }
             }
