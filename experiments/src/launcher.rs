@@ -363,20 +363,17 @@ fn plan_queue(
             let rows = results::recorded(&run.partial_csv(dir));
             let estimate = remaining_after(&rows, manifest)
                 .and_then(|left| queue::estimate(left, cost?, episode_len));
-            // A resumed run's next episode costs what its last one did when this CPU ran that
-            // one; an episode of another CPU (or of no recorded sitting) says nothing about this
-            // one, so the method's rate here stands in. A new run's first episode is random
-            // exploration (cheap), left unestimated.
-            let next_episode = rows.last().and_then(|last| {
-                let ran_here = here.iter().any(|r| {
-                    r.method == run.method && r.seed == run.seed && r.episode == last.episode
-                });
-                if ran_here {
-                    queue::next_episode(last, cost, episode_len)
-                } else {
-                    queue::planned_episode(cost, episode_len)
-                }
-            });
+            // A resumed run's next episode costs what its planned episodes on this CPU took
+            // (their median); episodes of another CPU (or of no recorded sitting) say nothing
+            // about this one, so without any the method's rate here stands in. A new run's
+            // first episode is random exploration (cheap), left unestimated.
+            let planned_here: Vec<&EpisodeRow> = here
+                .iter()
+                .filter(|r| r.method == run.method && r.seed == run.seed)
+                .collect();
+            let next_episode = rows
+                .last()
+                .and_then(|_| queue::next_episode(&planned_here, cost, episode_len));
             Pending {
                 run: run.clone(),
                 estimate,
@@ -1227,8 +1224,8 @@ mod tests {
         // episodes at 50 s per 1,000 steps and two at 200 s.
         let unseen = machine("6/143");
         assert!((estimate_of_seed_2(&unseen) - 30.0).abs() < 1e-6);
-        // Seed 1's next episode is as long as its last (the bridge's rule) on the CPU that ran
-        // that one; on another CPU, one episode at the method's rate there.
+        // Seed 1's next episode is as long as its planned episodes took on the CPU that ran
+        // them; on another CPU, one episode at the method's rate there.
         let seed_1 = |on: &Machine| plan_queue(dir, &m, on, &[id(1)]).remove(0);
         assert_eq!(seed_1(&slow).next_episode, Some(Duration::from_secs(40)));
         assert_eq!(seed_1(&fast).next_episode, Some(Duration::from_secs(10)));

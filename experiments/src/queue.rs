@@ -142,20 +142,26 @@ pub fn planned_episode(cost: Option<MethodCost>, episode_len: u32) -> Option<Dur
     estimate(one, cost?, episode_len)
 }
 
-/// The estimated wall time of a run's next episode, given the episode it just finished
-/// (`last`) and its method's measured `cost`, by the rule the bridge applies at a deadline
-/// ([`sim_bridge::deadline::next_episode`]): the last episode's own wall time when it planned,
-/// otherwise the method's [`planned_episode`]. `None` when neither has been measured.
+/// The estimated wall time of a resumed run's next episode at the start of a sitting: the
+/// median wall time of the run's planned episodes that this CPU recorded (`planned_here`),
+/// otherwise the method's [`planned_episode`] here. Not the last episode's own time, the rule
+/// the bridge applies within a sitting ([`sim_bridge::deadline::next_episode`]): the last
+/// episode ran in an earlier sitting, perhaps beside a build or a second experiment that this
+/// one does not have, and one such episode would keep the run out of a sitting it fits. `None`
+/// when neither has been measured.
 pub fn next_episode(
-    last: &EpisodeRow,
+    planned_here: &[&EpisodeRow],
     cost: Option<MethodCost>,
     episode_len: u32,
 ) -> Option<Duration> {
-    sim_bridge::deadline::next_episode(
-        last.planned_steps,
-        last.wall_seconds,
-        planned_episode(cost, episode_len),
-    )
+    let walls: Vec<f64> = planned_here
+        .iter()
+        .filter(|r| r.planned_steps > 0)
+        .map(|r| r.wall_seconds.max(0.0))
+        .collect();
+    median(walls)
+        .map(|w| Duration::try_from_secs_f64(w).unwrap_or(Duration::MAX))
+        .or_else(|| planned_episode(cost, episode_len))
 }
 
 /// A pending run and its estimated remaining cost.
@@ -288,28 +294,35 @@ mod tests {
     }
 
     #[test]
-    fn the_next_episode_costs_what_the_last_planned_one_did() {
+    fn the_next_episode_costs_the_median_of_the_runs_planned_episodes_here() {
         let cost = Some(MethodCost {
             seconds_per_step: Some(0.5),
             steps_per_episode: Some(800.0),
         });
-        let planned = row("cem", 1000, 1000, 600.0);
+        // One episode beside a build (4,200 s) among three alone: the median, not the last.
+        let episodes = [
+            row("pets", 1000, 1000, 1600.0),
+            row("pets", 1000, 0, 4.0),
+            row("pets", 1000, 1000, 1500.0),
+            row("pets", 1000, 1000, 4200.0),
+        ];
+        let here: Vec<&EpisodeRow> = episodes.iter().collect();
         assert_eq!(
-            next_episode(&planned, cost, 1000),
-            Some(Duration::from_secs(600))
+            next_episode(&here, cost, 1000),
+            Some(Duration::from_secs(1600))
         );
-        // After random exploration the method's planned rate over its mean episode length.
-        let random = row("cem", 1000, 0, 4.0);
+        // None planned here (random exploration only, or another CPU's episodes): the
+        // method's planned rate over its mean episode length.
         assert_eq!(
-            next_episode(&random, cost, 1000),
+            next_episode(&here[1..2], cost, 1000),
             Some(Duration::from_secs(400))
         );
-        assert_eq!(next_episode(&random, None, 1000), None);
+        assert_eq!(next_episode(&[], None, 1000), None);
         let unplanned = Some(MethodCost {
             seconds_per_step: None,
             steps_per_episode: Some(1000.0),
         });
-        assert_eq!(next_episode(&random, unplanned, 1000), None);
+        assert_eq!(next_episode(&[], unplanned, 1000), None);
     }
 
     #[test]
