@@ -367,13 +367,13 @@ fn plan_queue(
             // (their median); episodes of another CPU (or of no recorded sitting) say nothing
             // about this one, so without any the method's rate here stands in. A new run's
             // first episode is random exploration (cheap), left unestimated.
-            let planned_here: Vec<&EpisodeRow> = here
+            let recorded_here: Vec<&EpisodeRow> = here
                 .iter()
                 .filter(|r| r.method == run.method && r.seed == run.seed)
                 .collect();
             let next_episode = rows
                 .last()
-                .and_then(|_| queue::next_episode(&planned_here, cost, episode_len));
+                .and_then(|_| queue::next_episode(&recorded_here, cost, episode_len));
             Pending {
                 run: run.clone(),
                 estimate,

@@ -143,18 +143,18 @@ pub fn planned_episode(cost: Option<MethodCost>, episode_len: u32) -> Option<Dur
 }
 
 /// The estimated wall time of a resumed run's next episode at the start of a sitting: the
-/// median wall time of the run's planned episodes that this CPU recorded (`planned_here`),
+/// median wall time of the planned ones among the run's episodes this CPU recorded (`recorded_here`),
 /// otherwise the method's [`planned_episode`] here. Not the last episode's own time, the rule
 /// the bridge applies within a sitting ([`sim_bridge::deadline::next_episode`]): the last
 /// episode ran in an earlier sitting, perhaps beside a build or a second experiment that this
 /// one does not have, and one such episode would keep the run out of a sitting it fits. `None`
 /// when neither has been measured.
 pub fn next_episode(
-    planned_here: &[&EpisodeRow],
+    recorded_here: &[&EpisodeRow],
     cost: Option<MethodCost>,
     episode_len: u32,
 ) -> Option<Duration> {
-    let walls: Vec<f64> = planned_here
+    let walls: Vec<f64> = recorded_here
         .iter()
         .filter(|r| r.planned_steps > 0)
         .map(|r| r.wall_seconds.max(0.0))
@@ -360,7 +360,7 @@ mod tests {
     }
 
     #[test]
-    fn this_machines_rate_replaces_the_folders_once_it_has_planned_here() {
+    fn this_machines_rate_replaces_the_folders_once_it_has_recorded_here() {
         let all = [
             row("cem", 1000, 0, 1.0),
             row("cem", 1000, 1000, 300.0), // another CPU, 3× faster
