@@ -144,8 +144,9 @@ pub fn planned_episode(cost: Option<MethodCost>, episode_len: u32) -> Option<Dur
 
 /// The estimated wall time of a resumed run's next episode at the start of a sitting: the
 /// median wall time of the planned ones among the run's episodes this CPU recorded
-/// (`recorded_here`), otherwise the method's [`planned_episode`] here. Not the last episode's own time, the rule
-/// the bridge applies within a sitting ([`sim_bridge::deadline::next_episode`]): the last
+/// (`recorded_here`), otherwise the method's [`planned_episode`] here. Not the last episode's
+/// own time, the rule the bridge applies within a sitting
+/// ([`sim_bridge::deadline::next_episode`]): the last
 /// episode ran in an earlier sitting, perhaps beside a build or a second experiment that this
 /// one does not have, and one such episode would keep the run out of a sitting it fits. `None`
 /// when neither has been measured.
